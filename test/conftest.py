@@ -1,0 +1,22 @@
+"""Shared pytest fixtures: where the real data lives, and ROS isolation per test run."""
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def shared_data_dir() -> Path:
+    """../shared/data beside the clone, or $TERRAIN_NAV_DATA."""
+    return Path(os.environ.get("TERRAIN_NAV_DATA", REPO.parent / "shared" / "data"))
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """Path to the real DEMs and imagery; skips the test when they are absent."""
+    path = shared_data_dir()
+    if not (path / "dem").is_dir():
+        pytest.skip(f"real data not found at {path} (set TERRAIN_NAV_DATA)")
+    return path
