@@ -1,0 +1,530 @@
+"""Lazy DEM ingest: ESRI ASCII grids, GeoTIFF, SRTM ``.hgt``, mosaics and the embedded default.
+
+:func:`open_dem` returns a :class:`Dem`: the georeference (affine transform, CRS, size, nodata)
+is read at once, elevations only on demand, window by window. Uncompressed single-band
+GeoTIFFs with contiguous strips and SRTM ``.hgt`` tiles are memory-mapped with numpy (a
+1024 x 1024 window of a 10812 x 10812 tile touches ~4 MB); everything else goes through
+rasterio/GDAL windowed reads. Windows come back as float32 with NaN for nodata/voids.
+
+Pixel convention (as in :mod:`.georef`): ``Dem.transform`` is the GDAL affine transform of
+pixel *corners*; integer pixel coordinates (col, row) are pixel *centres*.
+
+Heights are whatever the file stores, normally orthometric metres (SRTM: EGM96 geoid; USGS:
+NAVD88); see :mod:`.geodesy` for what that means in ENU.
+
+Embedded default (:func:`sample_dem`): ``jacksboro_fault_dem.npz`` from matplotlib's sample
+data, a 344 x 403 int16 USGS DEM of the Jacksboro fault / Pine Mountain area (Cumberland
+Mountains, Tennessee), 3 arc-second cells (``dx = dy = 1/1200`` deg). Its keys are
+``elevation, dx, dy, xmin, xmax, ymin, ymax``; the extent is exactly ``403 dx`` by ``344 dy``,
+so the bounds are the outer cell edges. ``ymin`` (36.7329) and ``ymax`` (36.4463) are stored
+swapped; we take row 0 as the northern edge (the raster convention, and how matplotlib shows
+it). That orientation is consistent with the mapped geology: Pine Mountain then strikes NE and
+the Jacksboro tear fault NW, as they do (flipped, both would be wrong). The absolute position
+is the file's own and has not been checked against an independent source. The file names no
+datum: we use EPSG:4326; if it is NAD83 (as USGS products are) the horizontal difference is
+about 1 m, 1 % of a cell. Heights are metres above the geoid (NAVD88 or EGM96).
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import re
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import rasterio
+from affine import Affine
+from pyproj import CRS
+from rasterio.errors import RasterioError, RasterioIOError
+from rasterio.windows import Window
+from scipy import ndimage as ndi
+from scipy.interpolate import griddata
+
+__all__ = [
+    "DemError", "Dem", "open_dem", "sample_dem", "mosaic", "fill_voids", "SRTM_VOID",
+]
+
+#: SRTM void marker.
+SRTM_VOID = -32768
+_HGT_NAME = re.compile(r"^([NS])(\d{2})([EW])(\d{3})\.hgt$", re.IGNORECASE)
+_HGT_SIZES = {1201: 3.0, 3601: 1.0}  # samples per side -> arc-seconds
+
+
+class DemError(ValueError):
+    """A DEM cannot be used; the message names the file and the problem."""
+
+
+@dataclass(eq=False)
+class Dem:
+    """A DEM raster opened lazily: georeference now, elevations window by window.
+
+    Build one with :func:`open_dem`, :func:`sample_dem`, :func:`mosaic` or
+    :meth:`Dem.from_array`.
+
+    Attributes
+    ----------
+    name : str
+        File path or description, used in messages.
+    transform : affine.Affine
+        Pixel-corner (col, row) -> CRS (x, y), GDAL convention.
+    width, height : int
+        Raster size in pixels.
+    crs : pyproj.CRS or None
+        Horizontal CRS; None when the grid is in unreferenced local metres.
+    crs_guessed : bool
+        True when the CRS was inferred from the header (ESRI grid without ``.prj``).
+    dtype : numpy.dtype
+        Storage dtype of the elevations.
+    nodata : float or None
+        Storage value marking missing cells (NaN nodata is always honoured).
+    """
+
+    name: str
+    transform: Affine
+    width: int
+    height: int
+    crs: CRS | None
+    dtype: np.dtype
+    nodata: float | None
+    _read: Callable[[int, int, int, int], np.ndarray] = field(repr=False)
+    crs_guessed: bool = False
+    _close: Callable[[], None] | None = field(default=None, repr=False)
+
+    # -- construction -------------------------------------------------------------------
+    @classmethod
+    def from_array(cls, array, transform, crs=None, nodata=None, name="<array>",
+                   crs_guessed=False):
+        """Wrap a 2-D array (ndarray or ``np.memmap``) as a DEM; windows are views, not copies.
+
+        Parameters
+        ----------
+        array : array_like, shape (rows, cols)
+            Elevations; any real dtype.
+        transform : affine.Affine or sequence of 6 floats
+            Pixel-corner affine transform (``Affine`` order or a GDAL geotransform tuple).
+        crs : pyproj.CRS, str or None
+            Horizontal CRS; None for local metres.
+        nodata : float, optional
+            Storage value of missing cells.
+        """
+        if array.ndim != 2:
+            raise DemError(f"{name}: elevation array must be 2-D, got shape {array.shape}")
+        if not isinstance(transform, Affine):
+            transform = Affine.from_gdal(*transform)
+        crs = None if crs is None else CRS.from_user_input(crs)
+
+        def read(r0, r1, c0, c1):
+            return _to_float(array[r0:r1, c0:c1], nodata)
+
+        return cls(name, transform, array.shape[1], array.shape[0], crs, np.dtype(array.dtype),
+                   nodata, read, crs_guessed)
+
+    # -- georeference -------------------------------------------------------------------
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(rows, cols)."""
+        return (self.height, self.width)
+
+    @property
+    def local_metres(self) -> bool:
+        """True when the grid has no CRS and is taken as local metres east/north."""
+        return self.crs is None
+
+    @property
+    def res(self) -> tuple[float, float]:
+        """Cell size (x, y) in CRS units, both positive."""
+        return (abs(self.transform.a), abs(self.transform.e))
+
+    @property
+    def is_north_up(self) -> bool:
+        """True when the transform has no rotation and rows grow southwards."""
+        t = self.transform
+        return t.b == 0 and t.d == 0 and t.a > 0 and t.e < 0
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """(left, bottom, right, top) outer edges in CRS units."""
+        xs, ys = self.transform * (np.array([0, self.width, 0, self.width]),
+                                   np.array([0, 0, self.height, self.height]))
+        return (float(xs.min()), float(ys.min()), float(xs.max()), float(ys.max()))
+
+    def pixel_to_crs(self, col, row):
+        """CRS (x, y) of fractional pixel coordinates; integers are pixel centres."""
+        col = np.asarray(col, dtype=float) + 0.5
+        row = np.asarray(row, dtype=float) + 0.5
+        return self.transform * (col, row)
+
+    def crs_to_pixel(self, x, y):
+        """Fractional pixel coordinates (col, row) of CRS points; integers are centres."""
+        col, row = ~self.transform * (np.asarray(x, dtype=float), np.asarray(y, dtype=float))
+        return col - 0.5, row - 0.5
+
+    # -- pixels -------------------------------------------------------------------------
+    def read(self, window=None) -> np.ndarray:
+        """Elevations as float32 with NaN for nodata.
+
+        Parameters
+        ----------
+        window : tuple of slices (rows, cols), optional
+            Region to read, ``np.s_[r0:r1, c0:c1]``; default the whole raster. Unbounded or
+            negative slice ends behave as in numpy; steps are not supported.
+        """
+        if window is None:
+            return self.read_window(0, 0, self.height, self.width)
+        rows, cols = window
+        r0, r1, _ = rows.indices(self.height)
+        c0, c1, _ = cols.indices(self.width)
+        return self.read_window(r0, c0, max(r1 - r0, 0), max(c1 - c0, 0))
+
+    def read_window(self, row0: int, col0: int, nrows: int, ncols: int) -> np.ndarray:
+        """Read ``nrows x ncols`` cells from (row0, col0); cells outside the DEM are NaN."""
+        out = np.full((nrows, ncols), np.nan, dtype=np.float32)
+        r0, r1 = max(row0, 0), min(row0 + nrows, self.height)
+        c0, c1 = max(col0, 0), min(col0 + ncols, self.width)
+        if r1 > r0 and c1 > c0:
+            try:
+                block = self._read(r0, r1, c0, c1)
+            except (RasterioError, OSError) as exc:
+                raise DemError(f"{self.name}: cannot read rows {r0}:{r1}, cols {c0}:{c1} "
+                               f"(truncated or corrupt data?): {exc}") from exc
+            out[r0 - row0:r1 - row0, c0 - col0:c1 - col0] = block
+        return out
+
+    def filled(self, max_area: int = 256) -> Dem:
+        """An in-memory copy with small voids filled (see :func:`fill_voids`).
+
+        Loads the whole raster: meant for small DEMs (SRTM3/SRTM1 tiles, ASCII grids).
+        """
+        z, _ = fill_voids(self.read(), max_area=max_area)
+        return Dem.from_array(z, self.transform, self.crs, None, self.name + " (filled)",
+                              self.crs_guessed)
+
+    def close(self):
+        """Release the file handle (idempotent)."""
+        if self._close is not None:
+            self._close()
+            self._close = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def _to_float(block, nodata) -> np.ndarray:
+    """float32 copy of a storage block with nodata -> NaN."""
+    out = np.asarray(block, dtype=np.float32)
+    if np.may_share_memory(out, block):  # never hand out (or NaN-poke) the source's memory
+        out = out.copy()
+    if nodata is not None and not np.isnan(nodata):
+        out[np.asarray(block) == nodata] = np.nan
+    return out
+
+
+# -- opening files ----------------------------------------------------------------------
+def open_dem(path, crs=None, *, validate: bool = True) -> Dem:
+    """Open a DEM file lazily.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``.asc`` (ESRI ASCII grid, optional ``.prj``), ``.tif``/``.tiff`` (GeoTIFF), ``.hgt``
+        (SRTM tile named like ``N44E005.hgt``), ``.npz`` (matplotlib sample-DEM layout), or
+        anything else GDAL reads.
+    crs : pyproj.CRS, str, or "local", optional
+        Override the file's CRS; ``"local"`` forces unreferenced local metres.
+    validate : bool
+        Read the last cell at once, so truncated files fail here rather than mid-mission.
+
+    Returns
+    -------
+    Dem
+
+    Raises
+    ------
+    DemError
+        Missing file, unreadable or wrong header, truncated data, unknown CRS.
+
+    Notes
+    -----
+    An ESRI ASCII grid without ``.prj`` gets its CRS from the header: if the cell size is
+    below 0.01 and the extent lies within [-180, 180] x [-90, 90] it is taken as WGS84
+    lon/lat (EPSG:4326), otherwise as local metres (``Dem.local_metres``); both set
+    ``Dem.crs_guessed``. A GeoTIFF without CRS, or a ``.prj`` GDAL cannot parse, is an error
+    unless ``crs`` is given.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DemError(f"{path}: no such DEM file")
+    suffix = path.suffix.lower()
+    if suffix == ".npz":
+        dem = _open_npz(path)
+    else:
+        if suffix == ".hgt":
+            _check_hgt(path)
+        dem = _open_gdal(path)
+    if crs is not None:
+        dem.crs = None if str(crs).lower() == "local" else _parse_crs(crs, path)
+        dem.crs_guessed = False
+    if validate and dem.width and dem.height:
+        dem.read_window(dem.height - 1, dem.width - 1, 1, 1)
+    return dem
+
+
+def _parse_crs(crs, path) -> CRS:
+    try:
+        return CRS.from_user_input(crs)
+    except Exception as exc:  # pyproj raises several types
+        raise DemError(f"{path}: unknown CRS {crs!r}: {exc}") from exc
+
+
+def _check_hgt(path: Path):
+    """Reject .hgt files whose name or size is not an SRTM tile (GDAL's errors are vague)."""
+    if not _HGT_NAME.match(path.name):
+        raise DemError(f"{path}: SRTM .hgt name must give the SW corner, like N44E005.hgt")
+    size = path.stat().st_size
+    for n in _HGT_SIZES:
+        if size == 2 * n * n:
+            return
+    raise DemError(f"{path}: {size} bytes is not an SRTM tile (expected {2 * 1201 ** 2} for "
+                   f"3\" 1201x1201 or {2 * 3601 ** 2} for 1\" 3601x3601): truncated?")
+
+
+def _open_gdal(path: Path) -> Dem:
+    try:
+        ds = rasterio.open(path)
+    except RasterioIOError as exc:
+        raise DemError(f"{path}: not a readable DEM (wrong or corrupt header?): {exc}") from exc
+    try:
+        if ds.count < 1:
+            raise DemError(f"{path}: raster has no bands")
+        if ds.transform == Affine.identity() and not ds.crs:
+            raise DemError(f"{path}: raster has no georeference (no geotransform)")
+        crs, guessed = _dataset_crs(ds, path)
+        nodata = ds.nodata
+        if path.suffix.lower() == ".hgt" and nodata is None:
+            nodata = float(SRTM_VOID)
+        array = _memmap_if_possible(ds, path)
+    except BaseException:
+        ds.close()
+        raise
+    if array is not None:
+        dem = Dem.from_array(array, ds.transform, crs, nodata, str(path), guessed)
+        ds.close()
+        return dem
+
+    def read(r0, r1, c0, c1):
+        block = ds.read(1, window=Window(c0, r0, c1 - c0, r1 - r0))
+        return _to_float(block, nodata)
+
+    return Dem(str(path), ds.transform, ds.width, ds.height, crs, np.dtype(ds.dtypes[0]),
+               nodata, read, guessed, ds.close)
+
+
+def _dataset_crs(ds, path: Path):
+    """(crs, guessed) for a rasterio dataset, applying the ESRI-grid header rule."""
+    if ds.crs:
+        try:
+            return CRS.from_wkt(ds.crs.to_wkt()), False
+        except Exception as exc:
+            raise DemError(f"{path}: unknown CRS in file: {exc}") from exc
+    prj = path.with_suffix(".prj")
+    if prj.exists():
+        raise DemError(f"{path}: unknown CRS: GDAL cannot parse {prj.name}")
+    if ds.driver != "AAIGrid":
+        raise DemError(f"{path}: unknown CRS: the file stores none (pass crs=...)")
+    left, bottom, right, top = ds.bounds
+    cell = max(abs(ds.transform.a), abs(ds.transform.e))
+    lonlat = (cell < 0.01 and -180.0 <= left < right <= 360.0 and -90.0 <= bottom < top <= 90.0)
+    return (CRS.from_epsg(4326) if lonlat else None), True
+
+
+def _memmap_if_possible(ds, path: Path):
+    """np.memmap over an uncompressed, single-band, contiguous-strip raster, else None."""
+    if ds.count != 1 or ds.driver not in ("GTiff", "SRTMHGT"):
+        return None
+    h, w, dtype = ds.height, ds.width, np.dtype(ds.dtypes[0])
+    if ds.driver == "SRTMHGT":
+        return np.memmap(path, dtype=">i2", mode="r", shape=(h, w))
+    if ds.compression is not None or ds.profile.get("tiled") or ds.profile.get("photometric"):
+        return None
+    rows_per_strip = ds.block_shapes[0][0]
+    nstrips = -(-h // rows_per_strip)
+    try:
+        first = int(ds.get_tag_item("BLOCK_OFFSET_0_0", "TIFF", bidx=1))
+        last = int(ds.get_tag_item(f"BLOCK_OFFSET_0_{nstrips - 1}", "TIFF", bidx=1))
+    except (TypeError, ValueError):
+        return None
+    if last - first != (nstrips - 1) * rows_per_strip * w * dtype.itemsize:
+        return None
+    if first + h * w * dtype.itemsize > path.stat().st_size:
+        raise DemError(f"{path}: truncated data: the file ends before its last row")
+    with open(path, "rb") as f:
+        order = f.read(2)
+    dtype = dtype.newbyteorder("<" if order == b"II" else ">")
+    return np.memmap(path, dtype=dtype, mode="r", offset=first, shape=(h, w))
+
+
+def _open_npz(path: Path, name=None) -> Dem:
+    """matplotlib sample-DEM layout: elevation + dx, dy, xmin, xmax, ymin, ymax (degrees)."""
+    name = name or str(path)
+    try:
+        with np.load(path) as z:
+            elevation = z["elevation"]
+            dx, dy = float(z["dx"]), float(z["dy"])
+            xmin, xmax = float(z["xmin"]), float(z["xmax"])
+            north = max(float(z["ymin"]), float(z["ymax"]))
+            south = min(float(z["ymin"]), float(z["ymax"]))
+    except (OSError, KeyError, ValueError) as exc:
+        raise DemError(f"{name}: not a DEM .npz (needs elevation, dx, dy, xmin, xmax, ymin, "
+                       f"ymax): {exc}") from exc
+    rows, cols = elevation.shape
+    if not (np.isclose(cols * dx, xmax - xmin, rtol=1e-3)
+            and np.isclose(rows * dy, north - south, rtol=1e-3)):
+        raise DemError(f"{name}: extent does not match {rows}x{cols} cells of {dx}x{dy}")
+    return Dem.from_array(elevation, Affine(dx, 0, xmin, 0, -dy, north), CRS.from_epsg(4326),
+                          None, name)
+
+
+def sample_dem() -> Dem:
+    """The embedded default DEM: matplotlib's ``jacksboro_fault_dem.npz`` (see module notes)."""
+    from matplotlib import cbook
+
+    path = cbook.get_sample_data("jacksboro_fault_dem.npz", asfileobj=False)
+    return _open_npz(Path(path), f"matplotlib:jacksboro_fault_dem.npz ({path})")
+
+
+# -- mosaics ----------------------------------------------------------------------------
+def mosaic(dems, name: str | None = None) -> Dem:
+    """One lazy DEM over adjacent, grid-aligned tiles (e.g. neighbouring SRTM tiles).
+
+    Tiles must share CRS, cell size and grid phase; overlapping cells (SRTM tiles repeat
+    their shared edge) come from the first tile holding valid data there.
+
+    Parameters
+    ----------
+    dems : sequence of Dem
+    name : str, optional
+
+    Raises
+    ------
+    DemError
+        Different CRSs, cell sizes, rotated grids, or misaligned grids.
+    """
+    dems = list(dems)
+    if not dems:
+        raise DemError("mosaic: no tiles")
+    name = name or "mosaic(" + ", ".join(d.name for d in dems) + ")"
+    ref = dems[0]
+    for d in dems:
+        if not d.is_north_up:
+            raise DemError(f"{d.name}: mosaic needs north-up grids")
+        if (d.crs is None) != (ref.crs is None) or (d.crs is not None and d.crs != ref.crs):
+            raise DemError(f"{d.name}: CRS differs from {ref.name}")
+        if not np.allclose(d.res, ref.res, rtol=1e-9, atol=0):
+            raise DemError(f"{d.name}: cell size {d.res} differs from {ref.res} ({ref.name})")
+    dx, dy = ref.res
+    offsets = []
+    for d in dems:
+        oc, orow = (d.transform.c - ref.transform.c) / dx, (ref.transform.f - d.transform.f) / dy
+        if abs(oc - round(oc)) > 1e-3 or abs(orow - round(orow)) > 1e-3:
+            raise DemError(f"{d.name}: grid is not aligned with {ref.name}")
+        offsets.append((round(orow), round(oc)))
+    r_min = min(o[0] for o in offsets)
+    c_min = min(o[1] for o in offsets)
+    offsets = [(r - r_min, c - c_min) for r, c in offsets]
+    height = max(o[0] + d.height for o, d in zip(offsets, dems, strict=True))
+    width = max(o[1] + d.width for o, d in zip(offsets, dems, strict=True))
+    transform = ref.transform * Affine.translation(c_min, r_min)
+
+    def read(r0, r1, c0, c1):
+        out = np.full((r1 - r0, c1 - c0), np.nan, dtype=np.float32)
+        for (orow, ocol), d in zip(offsets, dems, strict=True):
+            a0, a1 = max(r0, orow), min(r1, orow + d.height)
+            b0, b1 = max(c0, ocol), min(c1, ocol + d.width)
+            if a1 <= a0 or b1 <= b0:
+                continue
+            dst = out[a0 - r0:a1 - r0, b0 - c0:b1 - c0]
+            block = d.read_window(a0 - orow, b0 - ocol, a1 - a0, b1 - b0)
+            np.copyto(dst, block, where=np.isnan(dst))
+        return out
+
+    def close():
+        for d in dems:
+            d.close()
+
+    return Dem(name, transform, width, height, ref.crs, np.dtype(np.float32), None, read,
+               ref.crs_guessed, close)
+
+
+# -- voids ------------------------------------------------------------------------------
+def fill_voids(z, max_area: int = 256, fill_border: bool = False):
+    """Fill small voids (NaN) by interpolation over their rims; report the large ones.
+
+    Each connected void (8-connectivity) of at most ``max_area`` cells is filled by linear
+    interpolation (Delaunay, :func:`scipy.interpolate.griddata`) of the valid cells on its rim,
+    nearest-rim value where the rim does not enclose it. Voids touching the raster edge are
+    treated as outside the survey (e.g. a clipped catchment) and never filled unless
+    ``fill_border``.
+
+    Parameters
+    ----------
+    z : ndarray, shape (rows, cols)
+        Elevations with NaN voids.
+    max_area : int
+        Largest void (cells) that is filled.
+    fill_border : bool
+        Also fill small voids that touch the raster edge.
+
+    Returns
+    -------
+    filled : ndarray of float32
+        Copy of ``z`` with small voids filled.
+    large : ndarray of bool
+        Cells still void (large or edge voids).
+    """
+    z = np.asarray(z, dtype=np.float32)
+    void = np.isnan(z)
+    filled = z.copy()
+    if not void.any():
+        return filled, void
+    labels, n = ndi.label(void, structure=np.ones((3, 3), bool))
+    areas = np.bincount(labels.ravel(), minlength=n + 1)
+    small = areas <= max_area
+    small[0] = False
+    if not fill_border:
+        edge = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+        small[edge] = False
+    target = small[labels]
+    if target.any():
+        rim = ndi.binary_dilation(target, structure=np.ones((3, 3), bool)) & ~void
+        rr, rc = np.nonzero(rim)
+        tr, tc = np.nonzero(target)
+        if rr.size:
+            pts, vals = np.column_stack([rr, rc]), z[rr, rc]
+            est = griddata(pts, vals, (tr, tc), method="linear") if rr.size >= 3 else \
+                np.full(tr.size, np.nan)
+            miss = np.isnan(est)
+            if miss.any():
+                est[miss] = griddata(pts, vals, (tr[miss], tc[miss]), method="nearest")
+            filled[tr, tc] = est
+    return filled, np.isnan(filled)
+
+
+def dem_files(paths) -> list[str]:
+    """Expand a list of files/directories/globs into DEM file paths (sorted, unique)."""
+    out = []
+    for p in paths:
+        p = os.fspath(p)
+        if os.path.isdir(p):
+            out += [str(q) for q in Path(p).iterdir()
+                    if q.suffix.lower() in (".asc", ".tif", ".tiff", ".hgt", ".npz")]
+        elif any(ch in p for ch in "*?["):
+            out += glob.glob(p)
+        else:
+            out.append(p)
+    return sorted(set(out))
