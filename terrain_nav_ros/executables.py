@@ -1,0 +1,17 @@
+"""The package's executables: ROS node name -> ``module:function``.
+
+One list, read by ``setup.py`` (console-script entry points installed under
+``lib/terrain_nav_ros`` so ``ros2 run terrain_nav_ros <name>`` works), by the graph runner
+and by ``launch/terrain_nav.launch.py``'s test. This module must stay import-free so that
+``setup.py`` can read it before anything is installed.
+"""
+
+NODES = {
+    "bag_player": "terrain_nav_ros.bag_player_node:main",
+    "bag_recorder": "terrain_nav_ros.bag_recorder_node:main",
+}
+
+# Command-line tools that are not nodes.
+TOOLS = {
+    "terrain-nav": "terrain_nav_ros.cli:main",
+}

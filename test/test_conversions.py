@@ -1,0 +1,109 @@
+"""Round trips through the one conversions module."""
+
+import numpy as np
+import pytest
+from sensor_msgs.msg import Image
+from std_msgs.msg import Header
+
+from terrain_nav_ros import conversions as cv
+from terrain_nav_ros.core.georef import GeoReference
+from terrain_nav_ros.core.minutia_set import BIFURCATION, ENDING, MinutiaSet
+
+RNG = np.random.default_rng(7)
+
+CASES = {
+    "mono8": RNG.integers(0, 256, (5, 7), dtype=np.uint8),
+    "mono16": RNG.integers(0, 65536, (5, 7), dtype=np.uint16),
+    "32FC1": RNG.standard_normal((5, 7)).astype(np.float32),
+    "rgb8": RNG.integers(0, 256, (5, 7, 3), dtype=np.uint8),
+    "bgr8": RNG.integers(0, 256, (5, 7, 3), dtype=np.uint8),
+}
+
+
+@pytest.mark.parametrize("encoding", sorted(CASES))
+def test_image_round_trip(encoding):
+    arr = CASES[encoding]
+    msg = cv.array_to_image(arr, encoding)
+    assert (msg.encoding, msg.height, msg.width) == (encoding, 5, 7)
+    np.testing.assert_array_equal(cv.image_to_array(msg), arr)
+
+
+def test_image_with_row_padding_and_big_endian():
+    arr = np.arange(12, dtype=np.uint16).reshape(3, 4) * 1000
+    padded = np.zeros((3, 10), dtype=np.uint8)  # step 10 > 4 px * 2 bytes
+    padded[:, :8] = arr.astype(">u2").view(np.uint8).reshape(3, 8)
+    msg = Image(height=3, width=4, encoding="mono16", is_bigendian=1, step=10,
+                data=padded.tobytes())
+    np.testing.assert_array_equal(cv.image_to_array(msg), arr)
+
+
+def test_unsupported_and_truncated_images_raise_clear_errors():
+    with pytest.raises(cv.ConversionError, match="unsupported image encoding 'yuv422'"):
+        cv.image_to_array(Image(height=1, width=1, encoding="yuv422", step=2, data=b"ab"))
+    with pytest.raises(cv.ConversionError, match="too small"):
+        cv.image_to_array(Image(height=4, width=4, encoding="mono8", step=4, data=b"abc"))
+    with pytest.raises(cv.ConversionError):
+        cv.array_to_image(np.zeros((2, 2), np.int64))
+
+
+def test_colour_to_grey_respects_channel_order():
+    red = np.zeros((1, 1, 3), np.uint8)
+    red[..., 0] = 200
+    assert cv.to_grey(red, "rgb8")[0, 0] == round(200 * 0.299)
+    assert cv.to_grey(red, "bgr8")[0, 0] == round(200 * 0.114)
+
+
+def test_camera_info_round_trip_and_uncalibrated_error():
+    k = np.array([[800.0, 0, 320], [0, 810.0, 240], [0, 0, 1]])
+    d = [-0.1, 0.01, 0.001, -0.002, 0.0]
+    msg = cv.intrinsics_to_camera_info(k, d, 640, 480)
+    k2, d2, model, size = cv.camera_info_to_intrinsics(msg)
+    np.testing.assert_array_equal(k2, k)
+    np.testing.assert_array_equal(d2, d)
+    assert (model, size) == ("plumb_bob", (640, 480))
+    msg.k = [0.0] * 9
+    with pytest.raises(cv.ConversionError, match="not calibrated"):
+        cv.camera_info_to_intrinsics(msg)
+
+
+def test_covariance_and_stamp_round_trips():
+    cov = RNG.standard_normal((6, 6))
+    cov = cov @ cov.T
+    np.testing.assert_array_equal(cv.covariance_to_array(cv.array_to_covariance(cov), 6), cov)
+    with pytest.raises(cv.ConversionError):
+        cv.covariance_to_array(np.zeros(35), 6)
+    for ns in (0, 1, 1_700_000_000_123_456_789, -1_500_000_000):
+        assert cv.stamp_to_ns(cv.ns_to_stamp(ns)) == ns
+    assert cv.stamp_to_sec(cv.sec_to_stamp(12.25)) == 12.25
+
+
+def test_dem_tile_and_geo_image_round_trips():
+    georef = GeoReference(100.0, 2000.0, 2.5, 4, 3)
+    heights = RNG.uniform(0, 3000, georef.shape).astype(np.float32)
+    heights[1, 2] = np.nan
+    msg = cv.dem_tile_to_msg(heights, georef, Header(frame_id="map"), (40.0, -105.0, 0.0),
+                             "EGM96")
+    back, georef2 = cv.msg_to_dem_tile(msg)
+    np.testing.assert_array_equal(back, heights)
+    assert georef2 == georef
+    assert msg.void_fraction == pytest.approx(1 / 12)
+
+    image = RNG.integers(0, 256, georef.shape, dtype=np.uint8)
+    mask = np.ones(georef.shape, bool)
+    mask[0, 0] = False
+    image2, georef3, mask2 = cv.msg_to_geo_image(
+        cv.geo_image_to_msg(image, georef, Header(frame_id="map"), mask))
+    np.testing.assert_array_equal(image2, image)
+    np.testing.assert_array_equal(mask2, mask)
+    assert georef3 == georef
+
+
+def test_minutiae_round_trip():
+    georef = GeoReference(0.0, 0.0, 5.0, 100, 100)
+    m = MinutiaSet([1.0, 50.5], [2.0, 70.25], [0.5, 6.0], [ENDING, BIFURCATION], [0.9, 0.4],
+                   georef=georef)
+    back = cv.msg_to_minutiae(cv.minutiae_to_msg(m, Header(), 0))
+    for name in ("col", "row", "angle", "kind"):
+        np.testing.assert_allclose(getattr(back, name), getattr(m, name), rtol=1e-6)
+    empty = cv.msg_to_minutiae(cv.minutiae_to_msg(MinutiaSet.empty("flat", georef), Header(), 1))
+    assert len(empty) == 0 and empty.reason == "flat"
