@@ -1,0 +1,199 @@
+"""CPU reference ray caster for the landmark renderer (small images only).
+
+Same height field (exact bilinear interpolation between pixel centres, clamped at the edges),
+same cameras, same box and same shading formula as :mod:`terrain_nav_ros.core.renderer`, but
+found by brute force: every ray is marched in fine fixed steps (default 0.1 DEM cell) from
+where it enters the tile's box to where it leaves, and the first sample below the surface is
+refined by the same bisection + secant step. Vectorised over pixels with numpy, float64.
+It exists to test the GPU renderer, not to be fast.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .georef import GeoReference
+from .renderer import (
+    AlbedoRamp,
+    NoTerrainVisibleError,
+    PinholeCamera,
+    RenderResult,
+    TerrainFrame,
+    albedo_lookup,
+    normal_map,
+    resolve_sun,
+    validate_pose,
+    validate_terrain,
+)
+
+__all__ = ["ReferenceRaycaster", "bilinear_local"]
+
+
+def bilinear_local(grid: np.ndarray, gsd: float, xy: np.ndarray) -> np.ndarray:
+    """Bilinear sample of a north-up raster at tile-local (x east, y north) metres.
+
+    Parameters
+    ----------
+    grid : ndarray (rows, cols) or (rows, cols, k)
+    gsd : float
+    xy : ndarray (..., 2)
+
+    Returns
+    -------
+    ndarray (...) or (..., k)
+    """
+    rows, cols = grid.shape[:2]
+    fc = xy[..., 0] / gsd - 0.5
+    fr = rows - xy[..., 1] / gsd - 0.5
+    c0, r0 = np.floor(fc), np.floor(fr)
+    wc, wr = fc - c0, fr - r0
+    a_c = np.clip(c0, 0, cols - 1).astype(int)
+    b_c = np.clip(c0 + 1, 0, cols - 1).astype(int)
+    a_r = np.clip(r0, 0, rows - 1).astype(int)
+    b_r = np.clip(r0 + 1, 0, rows - 1).astype(int)
+    if grid.ndim == 3:
+        wc, wr = wc[..., None], wr[..., None]
+    top = grid[a_r, a_c] * (1 - wc) + grid[a_r, b_c] * wc
+    bot = grid[b_r, a_c] * (1 - wc) + grid[b_r, b_c] * wc
+    return top * (1 - wr) + bot * wr
+
+
+def _box_interval(o: np.ndarray, d: np.ndarray, box: np.ndarray):
+    """Slab test: entry and exit ray parameters of the box [0, box] (arrays (N,))."""
+    safe = np.where(np.abs(d) < 1e-12, 1e-12, d)
+    ta = -o / safe
+    tb = (box - o) / safe
+    return np.minimum(ta, tb).max(axis=-1), np.maximum(ta, tb).min(axis=-1)
+
+
+class ReferenceRaycaster:
+    """Brute-force numpy counterpart of :class:`~terrain_nav_ros.core.renderer.LandmarkRenderer`.
+
+    Parameters
+    ----------
+    heights : array_like (rows, cols)
+    georef : GeoReference
+    step_cells : float
+        Fixed marching step along each ray, in DEM cells.
+    refine_steps, ambient, albedo
+        As in the GPU renderer (same defaults).
+    shadow_offset_cells : float
+        Start of the shadow ray above the hit point, towards the sun (DEM cells); keep it
+        equal to the GPU renderer's ``min_step_cells``.
+    """
+
+    def __init__(self, heights, georef: GeoReference, *, step_cells: float = 0.1,
+                 refine_steps: int = 8, ambient: float = 0.25, albedo: AlbedoRamp | None = None,
+                 shadow_offset_cells: float = 0.25):
+        h = validate_terrain(heights, georef)
+        self.frame = TerrainFrame.from_heights(h, georef)
+        self.h_local = h - self.frame.z0
+        self.normals = normal_map(h, georef.gsd)
+        self.step = step_cells * georef.gsd
+        self.refine_steps = refine_steps
+        self.ambient = ambient
+        self.albedo_table = (albedo or AlbedoRamp()).table()
+        # The shadow ray starts this far towards the sun; the GPU uses its min step.
+        self.shadow_offset = shadow_offset_cells * georef.gsd
+
+    def gap(self, p: np.ndarray) -> np.ndarray:
+        """Height of points above the surface (tile-local), negative below."""
+        return p[..., 2] - bilinear_local(self.h_local, self.frame.georef.gsd, p[..., :2])
+
+    def trace(self, o: np.ndarray, d: np.ndarray, t0: np.ndarray, t1: np.ndarray) -> np.ndarray:
+        """First surface crossing of rays o + t d within [t0, t1]; NaN where none.
+
+        The first sample is at t0; a ray that starts below the surface hits at t0.
+        """
+        n = len(o)
+        t_hit = np.full(n, np.nan)
+        lo = np.full(n, np.nan)
+        hi = np.full(n, np.nan)
+        t = t0.astype(float).copy()
+        t_prev = t.copy()
+        active = t0 <= t1
+        first = True
+        while active.any():
+            idx = np.flatnonzero(active)
+            below = self.gap(o[idx] + t[idx, None] * d[idx]) <= 0
+            hits = idx[below]
+            if first:
+                t_hit[hits] = t[hits]
+            else:
+                lo[hits], hi[hits] = t_prev[hits], t[hits]
+            done = below | (t[idx] >= t1[idx])
+            active[idx[done]] = False
+            idx = idx[~done]
+            t_prev[idx] = t[idx]
+            t[idx] = np.minimum(t[idx] + self.step, t1[idx])
+            first = False
+        todo = np.isfinite(lo)
+        if todo.any():
+            t_hit[todo] = self._refine(o[todo], d[todo], lo[todo], hi[todo])
+        return t_hit
+
+    def _refine(self, o, d, lo, hi):
+        """Bisection then one secant step, as in the shader."""
+        for _ in range(self.refine_steps):
+            mid = 0.5 * (lo + hi)
+            above = self.gap(o + mid[:, None] * d) > 0
+            lo = np.where(above, mid, lo)
+            hi = np.where(above, hi, mid)
+        g_lo = self.gap(o + lo[:, None] * d)
+        g_hi = self.gap(o + hi[:, None] * d)
+        denom = g_lo - g_hi
+        ok = denom > 0
+        return np.where(ok, lo + (hi - lo) * g_lo / np.where(ok, denom, 1.0), hi)
+
+    def shade(self, p: np.ndarray, sun_local: np.ndarray, shadows: bool) -> np.ndarray:
+        """Lambert shading of tile-local surface points with the elevation albedo."""
+        n = bilinear_local(self.normals, self.frame.georef.gsd, p[:, :2])
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        diffuse = np.maximum(n @ sun_local, 0.0)
+        if shadows:
+            lit = diffuse > 0
+            s0 = p[lit] + sun_local * self.shadow_offset
+            d = np.broadcast_to(sun_local, s0.shape)
+            _, t1 = _box_interval(s0, d, self.frame.size)
+            occluded = np.isfinite(self.trace(s0, d, np.zeros(len(s0)), np.maximum(t1, 0.0)))
+            diffuse[np.flatnonzero(lit)[occluded]] = 0.0
+        table, lo, hi = self.albedo_table
+        alb = albedo_lookup(table, lo, hi, p[:, 2] + self.frame.z0)
+        return alb * (self.ambient + (1 - self.ambient) * diffuse)[:, None]
+
+    def _render(self, o, d, t0, t1, shape, sun, shadows, georef) -> RenderResult:
+        t = self.trace(o, d, t0, t1)
+        hit = np.isfinite(t)
+        if not hit.any():
+            raise NoTerrainVisibleError("the view sees no terrain")
+        p = o[hit] + t[hit, None] * d[hit]
+        rgb = np.zeros((len(o), 3))
+        rgb[hit] = self.shade(p, resolve_sun(sun), shadows)
+        hit_enu = np.full((len(o), 3), np.nan)
+        hit_enu[hit] = self.frame.to_enu(p)
+        return RenderResult(rgb.reshape(*shape, 3).astype(np.float32),
+                            hit_enu.reshape(*shape, 3), 0, georef)
+
+    def render_nadir(self, georef: GeoReference | None = None, sun=(315.0, 45.0), *,
+                     shadows: bool = False) -> RenderResult:
+        """Nadir orthographic image, pixel (r, c) = ``georef`` pixel (r, c)."""
+        out = georef or self.frame.georef
+        col, row = np.meshgrid(np.arange(out.width), np.arange(out.height))
+        east, north = out.pixel_to_enu(col, row)
+        xy = np.stack([east.ravel(), north.ravel()], -1) - self.frame.offset[:2]
+        o = np.concatenate([xy, np.full((len(xy), 1), self.frame.top)], axis=1)
+        d = np.broadcast_to([0.0, 0.0, -1.0], o.shape)
+        t0, t1 = _box_interval(o, d, self.frame.size)
+        inside = (xy >= 0).all(-1) & (xy <= self.frame.size[:2]).all(-1)
+        t1 = np.where(inside, t1, -np.inf)
+        return self._render(o, d, np.maximum(t0, 0.0), t1, out.shape, sun, shadows, out)
+
+    def render_perspective(self, camera: PinholeCamera, position_enu, r_enu_optical,
+                           sun=(315.0, 45.0), *, shadows: bool = False) -> RenderResult:
+        """Pinhole view (optical frame x right, y down, z forward; R maps optical -> ENU)."""
+        p, r = validate_pose(position_enu, r_enu_optical)
+        d = camera.rays_optical().reshape(-1, 3) @ r.T
+        o = np.broadcast_to(self.frame.to_local(p), d.shape)
+        t0, t1 = _box_interval(o, d, self.frame.size)
+        return self._render(o, d, np.maximum(t0, 0.0), t1, (camera.height, camera.width),
+                            sun, shadows, None)
