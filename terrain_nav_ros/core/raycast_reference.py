@@ -169,10 +169,10 @@ class ReferenceRaycaster:
         p = o[hit] + t[hit, None] * d[hit]
         rgb = np.zeros((len(o), 3))
         rgb[hit] = self.shade(p, resolve_sun(sun), shadows)
-        hit_enu = np.full((len(o), 3), np.nan)
-        hit_enu[hit] = self.frame.to_enu(p)
+        hit_local = np.full((len(o), 3), np.nan)
+        hit_local[hit] = p
         return RenderResult(rgb.reshape(*shape, 3).astype(np.float32),
-                            hit_enu.reshape(*shape, 3), 0, georef)
+                            hit_local.reshape(*shape, 3), self.frame.offset, 0, georef)
 
     def render_nadir(self, georef: GeoReference | None = None, sun=(315.0, 45.0), *,
                      shadows: bool = False) -> RenderResult:

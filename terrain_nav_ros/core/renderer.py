@@ -29,7 +29,8 @@ usable (e.g. by :mod:`terrain_nav_ros.core.raycast_reference`) without it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy import ndimage
@@ -427,8 +428,10 @@ class RenderResult:
     ----------
     rgb : ndarray (H, W, 3) float32
         Linear RGB radiance in [0, 1]; 0 where no terrain.
-    hit_enu : ndarray (H, W, 3) float64
-        ENU position (m) of the surface point each pixel sees; NaN where none.
+    hit_local : ndarray (H, W, 3) float32
+        Tile-local position (m) of the surface point each pixel sees; NaN where none.
+    origin : ndarray (3,)
+        ENU coordinates of the tile-local origin (kept apart for float32 precision).
     unresolved : int
         Pixels whose ray ran out of steps before hitting or leaving the tile (NaN too).
     georef : GeoReference or None
@@ -436,20 +439,25 @@ class RenderResult:
     """
 
     rgb: np.ndarray
-    hit_enu: np.ndarray
+    hit_local: np.ndarray
+    origin: np.ndarray
     unresolved: int = 0
     georef: GeoReference | None = None
-    stats: dict = field(default_factory=dict)
+
+    @cached_property
+    def hit_enu(self) -> np.ndarray:
+        """(H, W, 3) float64 ENU position (m) of each pixel's surface point; NaN where none."""
+        return self.hit_local.astype(np.float64) + self.origin
 
     @property
     def mask(self) -> np.ndarray:
         """True where the pixel sees terrain."""
-        return np.isfinite(self.hit_enu[..., 0])
+        return np.isfinite(self.hit_local[..., 0])
 
     @property
     def grey(self) -> np.ndarray:
         """Luminance (Rec. 601 weights), float32 in [0, 1]."""
-        return (self.rgb @ np.array([0.299, 0.587, 0.114], np.float32)).astype(np.float32)
+        return self.rgb @ np.array([0.299, 0.587, 0.114], np.float32)
 
     @property
     def grey_u8(self) -> np.ndarray:
@@ -808,17 +816,17 @@ class LandmarkRenderer:
         color = np.frombuffer(fbo.read(components=4, attachment=0, dtype="f4"), np.float32)
         hit = np.frombuffer(fbo.read(components=4, attachment=1, dtype="f4"), np.float32)
         color = color.reshape(height, width, 4)
-        hit = hit.reshape(height, width, 4)
-        is_hit = color[..., 3] > 0.5
-        hit_enu = np.full((height, width, 3), np.nan)
-        hit_enu[is_hit] = frame.to_enu(hit[is_hit, :3].astype(float))
-        unresolved = int((color[..., 3] < -0.5).sum())
-        if not is_hit.any():
+        flag = color[..., 3]
+        unresolved = int(np.count_nonzero(flag < -0.5))
+        miss = flag < 0.5
+        if miss.all():
             raise NoTerrainVisibleError(
                 "the view sees no terrain (camera outside or facing away from the tile)"
                 + (f"; {unresolved} rays ran out of steps" if unresolved else ""))
-        rgb = np.where(is_hit[..., None], color[..., :3], 0.0).astype(np.float32)
-        return RenderResult(rgb, hit_enu, unresolved, georef)
+        hit_local = hit.reshape(height, width, 4)[..., :3].copy()
+        hit_local[miss] = np.nan
+        # The shader writes black for misses, so rgb needs no masking.
+        return RenderResult(color[..., :3], hit_local, frame.offset, unresolved, georef)
 
     def render_nadir(self, georef: GeoReference | None = None, sun=(315.0, 45.0), *,
                      shadows: bool | None = None) -> RenderResult:
