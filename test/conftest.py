@@ -20,3 +20,11 @@ def shared_data() -> Path:
     if not (path / "dem").is_dir():
         pytest.skip(f"real data not found at {path} (set TERRAIN_NAV_DATA)")
     return path
+
+
+# Every test run gets its own DDS domain and localhost-only discovery, so parallel runs
+# (CI next to a developer, two checkouts) never see each other's nodes. Set before rclpy
+# initialises; node subprocesses inherit it.
+os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 100))
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ.setdefault("RCUTILS_LOGGING_BUFFERED_STREAM", "0")

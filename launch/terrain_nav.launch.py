@@ -1,0 +1,48 @@
+"""Launch the terrain_nav node graph on a normal ROS 2 Jazzy install (ros2 launch).
+
+The node list is not repeated here: it is read from config/graph.yaml, the same file the
+``terrain-nav graph`` runner uses, so both start the same nodes with the same parameters.
+
+    ros2 launch terrain_nav_ros terrain_nav.launch.py [graph:=/path/graph.yaml] [use_sim_time:=true]
+"""
+
+import os
+
+from ament_index_python.packages import get_package_share_directory
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
+from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
+
+from terrain_nav_ros.graph_runner import load_graph
+
+
+def graph_nodes(graph_path, use_sim_time=False):
+    """launch_ros Node actions for every node of a graph file."""
+    spec = load_graph(graph_path)
+    params_files = [str(spec.params_file)] if spec.params_file else []
+    return [
+        Node(package="terrain_nav_ros", executable=node.executable, name=node.name,
+             output="screen", respawn=False,
+             parameters=params_files + [{**node.parameters, "use_sim_time": use_sim_time}],
+             remappings=list(node.remappings.items()))
+        for node in spec.nodes
+    ]
+
+
+def _from_arguments(context):
+    graph = LaunchConfiguration("graph").perform(context)
+    sim = LaunchConfiguration("use_sim_time").perform(context).lower() in ("1", "true")
+    return graph_nodes(graph, sim)
+
+
+def generate_launch_description():
+    default_graph = os.path.join(get_package_share_directory("terrain_nav_ros"), "config",
+                                 "graph.yaml")
+    return LaunchDescription([
+        DeclareLaunchArgument("graph", default_value=default_graph,
+                              description="graph YAML listing the nodes"),
+        DeclareLaunchArgument("use_sim_time", default_value="false",
+                              description="use /clock (when replaying a bag)"),
+        OpaqueFunction(function=_from_arguments),
+    ])

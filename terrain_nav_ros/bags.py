@@ -1,0 +1,213 @@
+"""rosbag2 MCAP bags without rosbag2_py: reading, writing and decoding with ``rosbags``.
+
+The bags this module writes are ordinary rosbag2 (metadata version 9, MCAP storage) bags:
+``ros2 bag``, Foxglove and the ``mcap`` package read them. The type store knows every ROS 2
+Jazzy standard message plus this project's ``terrain_nav_msgs``.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from rosbags.interfaces import (
+    Qos,
+    QosDurability,
+    QosHistory,
+    QosLiveliness,
+    QosReliability,
+    QosTime,
+)
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+MSGS_SOURCE = Path(__file__).resolve().parents[1] / "terrain_nav_msgs"
+
+
+class BagError(RuntimeError):
+    """A bag cannot be opened, read or written; the message names the file and the cause."""
+
+
+def _msg_dirs() -> list[Path]:
+    """Where terrain_nav_msgs' .msg files are: the installed share, else the source tree."""
+    dirs = []
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        dirs.append(Path(get_package_share_directory("terrain_nav_msgs")) / "msg")
+    except Exception:  # noqa: BLE001 - not installed through ament: use the sources
+        pass
+    dirs.append(MSGS_SOURCE / "msg")
+    return [d for d in dirs if d.is_dir()]
+
+
+@functools.cache
+def typestore():
+    """Jazzy type store with terrain_nav_msgs registered (cached)."""
+    store = get_typestore(Stores.ROS2_JAZZY)
+    dirs = _msg_dirs()
+    if not dirs:
+        raise BagError("terrain_nav_msgs .msg files not found (run scripts/setup.sh)")
+    types = {}
+    for path in sorted(dirs[0].glob("*.msg")):
+        types.update(get_types_from_msg(path.read_text(), f"terrain_nav_msgs/msg/{path.stem}"))
+    store.register(types)
+    return store
+
+
+def qos_profile(reliable: bool = True, transient_local: bool = False, depth: int = 10) -> Qos:
+    """A rosbags QoS record for a topic's offered_qos_profiles metadata."""
+    never = QosTime(sec=0x7FFFFFFF, nsec=0xFFFFFFFF)
+    return Qos(
+        history=QosHistory.KEEP_LAST, depth=depth,
+        reliability=QosReliability.RELIABLE if reliable else QosReliability.BEST_EFFORT,
+        durability=QosDurability.TRANSIENT_LOCAL if transient_local else QosDurability.VOLATILE,
+        deadline=never, lifespan=never, liveliness=QosLiveliness.AUTOMATIC,
+        liveliness_lease_duration=never, avoid_ros_namespace_conventions=False)
+
+
+@dataclass(frozen=True)
+class BagMessage:
+    """One serialized message of a bag."""
+
+    topic: str
+    msgtype: str
+    timestamp_ns: int
+    rawdata: bytes
+
+
+@dataclass(frozen=True)
+class TopicInfo:
+    """What a bag holds on one topic."""
+
+    topic: str
+    msgtype: str
+    count: int
+    reliable: bool
+    transient_local: bool
+
+
+class BagWriter:
+    """Write serialized messages to a new rosbag2 MCAP bag (a directory).
+
+    Use as a context manager so the MCAP summary and metadata.yaml are written on exit.
+    """
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        if self.path.exists():
+            raise BagError(f"bag {self.path} already exists; choose a new output path")
+        self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
+        self._connections = {}
+        self._open = False
+
+    def __enter__(self) -> BagWriter:
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def open(self) -> None:
+        self._writer.open()
+        self._open = True
+
+    def close(self) -> None:
+        if self._open:
+            self._writer.close()
+            self._open = False
+
+    def has_topic(self, topic: str) -> bool:
+        return topic in self._connections
+
+    def add_topic(self, topic: str, msgtype: str, qos: Qos | None = None) -> None:
+        """Declare a topic; ``msgtype`` like ``sensor_msgs/msg/Image``."""
+        if topic in self._connections:
+            return
+        store = typestore()
+        if msgtype not in store.types:
+            raise BagError(f"message type {msgtype} of {topic} is unknown to the type store")
+        self._connections[topic] = self._writer.add_connection(
+            topic, msgtype, typestore=store, offered_qos_profiles=[qos or qos_profile()])
+
+    def write(self, topic: str, timestamp_ns: int, rawdata: bytes) -> None:
+        """Append one CDR-serialized message (topic must have been added)."""
+        self._writer.write(self._connections[topic], int(timestamp_ns), rawdata)
+
+    def write_message(self, topic: str, timestamp_ns: int, msg, msgtype: str) -> None:
+        """Serialize a rosbags message object and append it (adds the topic if needed)."""
+        if not self.has_topic(topic):
+            self.add_topic(topic, msgtype)
+        self.write(topic, timestamp_ns, typestore().serialize_cdr(msg, msgtype))
+
+
+def _open_reader(path: str | Path) -> Reader:
+    path = Path(path)
+    if not path.exists():
+        raise BagError(f"bag {path} does not exist")
+    try:
+        reader = Reader(path)
+        reader.open()
+    except Exception as err:  # rosbags raises several types for damaged bags
+        raise BagError(f"cannot open bag {path}: {err}") from err
+    return reader
+
+
+def topics(path: str | Path) -> list[TopicInfo]:
+    """Topics of a bag with their types, counts and offered QoS."""
+    reader = _open_reader(path)
+    try:
+        out = []
+        for conn in reader.connections:
+            profiles = list(getattr(conn.ext, "offered_qos_profiles", []) or [])
+            out.append(TopicInfo(
+                conn.topic, conn.msgtype, conn.msgcount,
+                reliable=all(p.reliability != QosReliability.BEST_EFFORT for p in profiles),
+                transient_local=bool(profiles) and all(
+                    p.durability == QosDurability.TRANSIENT_LOCAL for p in profiles)))
+        return out
+    finally:
+        reader.close()
+
+
+def read(path: str | Path, topic_names: Iterable[str] | None = None) -> Iterator[BagMessage]:
+    """Messages of a bag in timestamp order, optionally only some topics.
+
+    A bag truncated mid-file yields the messages before the damage, then raises BagError.
+    """
+    reader = _open_reader(path)
+    try:
+        wanted = set(topic_names) if topic_names else None
+        conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
+        try:
+            for conn, timestamp, raw in reader.messages(connections=conns):
+                yield BagMessage(conn.topic, conn.msgtype, timestamp, bytes(raw))
+        except Exception as err:
+            raise BagError(f"bag {path} is damaged: {err}") from err
+    finally:
+        reader.close()
+
+
+def decode(message: BagMessage):
+    """Deserialize a bag message into a rosbags message object."""
+    return typestore().deserialize_cdr(message.rawdata, message.msgtype)
+
+
+def info(path: str | Path) -> str:
+    """Human-readable summary like ``ros2 bag info``."""
+    reader = _open_reader(path)
+    try:
+        duration = reader.duration * 1e-9 if reader.message_count else 0.0
+        lines = [f"Bag:        {Path(path)}",
+                 f"Duration:   {duration:.3f} s",
+                 f"Start:      {reader.start_time * 1e-9:.3f} s" if reader.message_count else
+                 "Start:      -",
+                 f"Messages:   {reader.message_count}",
+                 "Topics:"]
+        for conn in sorted(reader.connections, key=lambda c: c.topic):
+            lines.append(f"  {conn.topic:32s} {conn.msgtype:40s} {conn.msgcount:8d} msgs")
+        return "\n".join(lines)
+    finally:
+        reader.close()

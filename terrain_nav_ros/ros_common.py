@@ -1,0 +1,90 @@
+"""What every terrain_nav node shares: QoS profiles, parameter declaration, the main() pattern."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from collections.abc import Callable
+
+import rclpy
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
+
+# Camera, IMU and other streams: best effort, newest wins (REP 2003).
+SENSOR_QOS = qos_profile_sensor_data
+# Data products every consumer must get (minutiae, fixes, odometry).
+RELIABLE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
+# Latched data (DEM tiles): a late joiner still receives the last message.
+LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                         history=HistoryPolicy.KEEP_LAST)
+
+
+def declare(node: Node, name: str, default, description: str, *, min_value=None,
+            max_value=None, read_only: bool = False):
+    """Declare a parameter with a description and an optional range; return its value."""
+    descriptor = ParameterDescriptor(description=description, read_only=read_only)
+    if min_value is not None or max_value is not None:
+        lo = min_value if min_value is not None else -sys.float_info.max
+        hi = max_value if max_value is not None else sys.float_info.max
+        if isinstance(default, bool):
+            pass
+        elif isinstance(default, int):
+            descriptor.integer_range = [IntegerRange(
+                from_value=int(max(lo, -2**63)), to_value=int(min(hi, 2**63 - 1)), step=0)]
+        else:
+            descriptor.floating_point_range = [FloatingPointRange(
+                from_value=float(lo), to_value=float(hi), step=0.0)]
+    return node.declare_parameter(name, default, descriptor).value
+
+
+def reject_all_changes(_params) -> SetParametersResult:
+    """on_set_parameters callback for nodes whose parameters only apply at start-up."""
+    return SetParametersResult(successful=False,
+                               reason="parameters of this node apply at start-up only")
+
+
+def message_class(msgtype: str):
+    """The rclpy message class for ``pkg/msg/Name`` (as bags and graph queries name types)."""
+    try:
+        package, kind, name = msgtype.split("/")
+        return getattr(importlib.import_module(f"{package}.{kind}"), name)
+    except (ValueError, ImportError, AttributeError) as err:
+        raise LookupError(f"message type {msgtype} is not available here: {err}") from err
+
+
+def run(node_factory: Callable[[], Node], args=None) -> int:
+    """The Jazzy main() pattern: init, spin, clean shutdown on Ctrl-C or external shutdown."""
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        node = node_factory()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception as err:  # report why a node dies: the graph runner shows the exit code
+        print(f"fatal: {type(err).__name__}: {err}", file=sys.stderr)
+        code = 1
+    finally:
+        if node is not None:
+            close = getattr(node, "close", None)
+            if close is not None:
+                close()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code

@@ -1,0 +1,107 @@
+"""Bag tools: record a real publisher in another process, read the bag with two libraries,
+play it back into the graph and compare values and timing."""
+
+import time
+
+import numpy as np
+import pytest
+from ros_helpers import SpinningNode, start_node, stop, wait_until
+
+from terrain_nav_ros import bags
+
+N = 20
+PERIOD = 0.05
+
+
+def _publish_and_record(bag):
+    from std_msgs.msg import String
+
+    from terrain_nav_msgs.msg import PvaFix
+
+    talker = SpinningNode("talker")
+    try:
+        pubs = (talker.node.create_publisher(String, "/chatter", 10),
+                talker.node.create_publisher(PvaFix, "/nav/pva_fix", 10))
+        recorder = start_node("bag_recorder",
+                              {"output": str(bag), "topics": ["/chatter", "/nav/pva_fix"]})
+        ok = wait_until(lambda: all(p.get_subscription_count() > 0 for p in pubs), 20)
+        assert ok, "recorder never subscribed:\n" + stop(recorder)
+        for i in range(N):
+            pubs[0].publish(String(data=f"hello {i}"))
+            pubs[1].publish(PvaFix(status=PvaFix.STATUS_POSITION, similarity=i / 10,
+                                   num_pairings=i, reason=f"fix {i}"))
+            time.sleep(PERIOD)
+        time.sleep(0.5)
+        log = stop(recorder)
+        assert recorder.returncode == 0, log
+    finally:
+        talker.close()
+
+
+@pytest.fixture(scope="module")
+def recorded_bag(tmp_path_factory):
+    bag = tmp_path_factory.mktemp("bags") / "talk"
+    _publish_and_record(bag)
+    return bag
+
+
+def test_recorded_bag_is_readable_by_rosbags(recorded_bag):
+    info = {t.topic: t for t in bags.topics(recorded_bag)}
+    assert info["/chatter"].msgtype == "std_msgs/msg/String"
+    assert info["/nav/pva_fix"].msgtype == "terrain_nav_msgs/msg/PvaFix"
+    assert info["/chatter"].count == N and info["/nav/pva_fix"].count == N
+    fixes = [bags.decode(m) for m in bags.read(recorded_bag, ["/nav/pva_fix"])]
+    assert [f.num_pairings for f in fixes] == list(range(N))
+    assert fixes[3].reason == "fix 3"
+    assert "Messages:   40" in bags.info(recorded_bag)
+
+
+def test_recorded_bag_is_readable_by_the_mcap_package(recorded_bag):
+    from mcap.reader import make_reader
+
+    (mcap_file,) = recorded_bag.glob("*.mcap")
+    with open(mcap_file, "rb") as stream:
+        reader = make_reader(stream)
+        seen = [(channel.topic, schema.name) for schema, channel, _ in reader.iter_messages()]
+    assert seen.count(("/chatter", "std_msgs/msg/String")) == N
+    assert seen.count(("/nav/pva_fix", "terrain_nav_msgs/msg/PvaFix")) == N
+
+
+def test_play_back_preserves_values_timing_and_remaps(recorded_bag):
+    from rosgraph_msgs.msg import Clock
+    from std_msgs.msg import String
+
+    listener = SpinningNode("listener")
+    got, clocks = [], []
+    listener.node.create_subscription(
+        String, "/replayed", lambda m: got.append((time.monotonic(), m.data)), 10)
+    listener.node.create_subscription(Clock, "/clock", lambda m: clocks.append(m), 10)
+    try:
+        player = start_node("bag_player", {"bag": str(recorded_bag),
+                                           "topics": ["/chatter"],
+                                           "remap": ["/chatter:=/replayed"],
+                                           "wait_for_topics": ["/chatter"]})
+        log = stop(player, timeout=30) if not wait_until(
+            lambda: player.poll() is not None, 30) else player.communicate()[0]
+        assert player.returncode == 0, log
+        assert wait_until(lambda: len(got) == N, 5), f"got {len(got)} of {N}\n{log}"
+    finally:
+        listener.close()
+    assert [d for _, d in got] == [f"hello {i}" for i in range(N)]
+    recorded = np.array([m.timestamp_ns for m in bags.read(recorded_bag, ["/chatter"])]) * 1e-9
+    played = np.array([t for t, _ in got])
+    # Playback keeps the recorded spacing (a behaviour, not a speed target: generous bound).
+    assert np.median(np.abs(np.diff(played) - np.diff(recorded))) < 0.02
+    assert clocks, "no /clock published"
+
+
+def test_missing_and_damaged_bags_raise_bag_error(tmp_path, recorded_bag):
+    with pytest.raises(bags.BagError, match="does not exist"):
+        bags.topics(tmp_path / "nope")
+    damaged = tmp_path / "damaged"
+    damaged.mkdir()
+    for f in recorded_bag.iterdir():
+        data = f.read_bytes()
+        (damaged / f.name).write_bytes(data[: len(data) // 2] if f.suffix == ".mcap" else data)
+    with pytest.raises(bags.BagError):
+        list(bags.read(damaged))

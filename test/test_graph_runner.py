@@ -1,0 +1,142 @@
+"""Graph runner: real node processes exchange messages; a killed node is reported and the
+graph shuts down without leaving processes behind. The launch file names the same nodes."""
+
+import importlib.util
+import io
+import os
+import signal
+import sys
+import threading
+import time
+import types
+from pathlib import Path
+
+import psutil
+import pytest
+import yaml
+from ros_helpers import wait_until
+
+from terrain_nav_ros import bags
+from terrain_nav_ros.graph_runner import GraphError, GraphRunner, load_graph, node_command
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _slow_bag(path, seconds=30.0, hz=10):
+    from rosbags.typesys.stores.ros2_jazzy import std_msgs__msg__String as String
+
+    with bags.BagWriter(path) as writer:
+        for i in range(int(seconds * hz)):
+            writer.write_message("/chatter", int(i * 1e9 / hz), String(data=f"m{i}"),
+                                 "std_msgs/msg/String")
+
+
+def _graph_file(tmp_path, bag, out_bag):
+    params = tmp_path / "params.yaml"
+    params.write_text(yaml.safe_dump({"recorder": {"ros__parameters": {
+        "topics": ["/chatter_remapped"]}}}))
+    graph = tmp_path / "graph.yaml"
+    graph.write_text(yaml.safe_dump({"params_file": "params.yaml", "nodes": [
+        {"name": "recorder", "executable": "bag_recorder",
+         "parameters": {"output": str(out_bag)}},
+        {"name": "player", "executable": "bag_player",
+         "parameters": {"bag": str(bag), "wait_for_topics": ["/chatter"]},
+         "remappings": {"/chatter": "/chatter_remapped"}},
+    ]}))
+    return graph
+
+
+def test_runner_starts_nodes_reports_a_killed_node_and_stops_cleanly(tmp_path):
+    bag, out_bag = tmp_path / "in", tmp_path / "out"
+    _slow_bag(bag)
+    spec = load_graph(_graph_file(tmp_path, bag, out_bag))
+    log = io.StringIO()
+    runner = GraphRunner(spec, out=log, grace=5.0)
+    runner.start()
+    try:
+        runner.wait_until_up(timeout=30)
+        pids = {name: p.pid for name, p in runner.procs.items()}
+        # Messages flow from the player to the recorder through the remapping.
+        assert wait_until(lambda: "subscribed to /chatter_remapped" in log.getvalue(), 20), \
+            log.getvalue()
+        time.sleep(1.5)
+        os.kill(pids["player"], signal.SIGKILL)
+        status = runner.spin(duration=20)
+    finally:
+        codes = runner.shutdown()
+    text = log.getvalue()
+    assert status == 1
+    assert "NODE DIED: player (signal SIGKILL)" in text
+    assert codes["recorder"] == 0, text
+    for pid in pids.values():
+        assert not psutil.pid_exists(pid) or psutil.Process(pid).status() == "zombie"
+    recorded = [bags.decode(m).data for m in bags.read(out_bag)]
+    assert recorded and recorded == [f"m{i}" for i in range(len(recorded))]
+
+
+def test_runner_forwards_stop_request_and_nodes_exit_cleanly(tmp_path):
+    bag, out_bag = tmp_path / "in", tmp_path / "out"
+    _slow_bag(bag, seconds=60)
+    runner = GraphRunner(load_graph(_graph_file(tmp_path, bag, out_bag)), out=io.StringIO())
+    runner.start()
+    try:
+        runner.wait_until_up(timeout=30)
+        threading.Timer(1.0, runner.request_stop).start()
+        assert runner.spin(duration=30) == 0
+    finally:
+        codes = runner.shutdown()
+    assert codes == {"recorder": 0, "player": 0}
+
+
+def test_invalid_graph_files_are_rejected_with_the_reason(tmp_path):
+    bad = tmp_path / "g.yaml"
+    bad.write_text("nodes:\n  - {name: x, executable: no_such_node}\n")
+    with pytest.raises(GraphError, match="unknown executable no_such_node"):
+        load_graph(bad)
+    bad.write_text("params_file: missing.yaml\nnodes: []\n")
+    with pytest.raises(GraphError, match="does not exist"):
+        load_graph(bad)
+
+
+def _stub_launch_modules(monkeypatch):
+    """launch/launch_ros are not installable from PyPI: record what the launch file builds."""
+
+    class Action:
+        def __init__(self, *args, **kwargs):
+            self.args, self.kwargs = args, kwargs
+
+    for name, attrs in {
+        "launch": {"LaunchDescription": Action},
+        "launch.actions": {"DeclareLaunchArgument": Action, "OpaqueFunction": Action},
+        "launch.substitutions": {"LaunchConfiguration": Action},
+        "launch_ros": {},
+        "launch_ros.actions": {"Node": Action},
+    }.items():
+        module = types.ModuleType(name)
+        module.__dict__.update(attrs)
+        monkeypatch.setitem(sys.modules, name, module)
+
+
+def test_launch_file_starts_the_same_nodes_as_the_runner(tmp_path, monkeypatch):
+    _stub_launch_modules(monkeypatch)
+    spec_path = importlib.util.spec_from_file_location(
+        "terrain_nav_launch", REPO / "launch" / "terrain_nav.launch.py")
+    launch_file = importlib.util.module_from_spec(spec_path)
+    spec_path.loader.exec_module(launch_file)
+    graphs = [_graph_file(tmp_path, tmp_path / "a", tmp_path / "b")]
+    if (REPO / "config" / "graph.yaml").exists():
+        graphs.append(REPO / "config" / "graph.yaml")
+    for graph in graphs:
+        spec = load_graph(graph)
+        actions = launch_file.graph_nodes(str(graph), use_sim_time=True)
+        assert [a.kwargs["name"] for a in actions] == [n.name for n in spec.nodes]
+        for action, node in zip(actions, spec.nodes, strict=True):
+            assert action.kwargs["executable"] == node.executable
+            files, overrides = action.kwargs["parameters"][:-1], action.kwargs["parameters"][-1]
+            assert files == [str(spec.params_file)]
+            assert overrides == {**node.parameters, "use_sim_time": True}
+            assert dict(action.kwargs["remappings"]) == node.remappings
+            # The runner passes the same overrides and remappings on the command line.
+            cmd = " ".join(node_command(node, spec.params_file))
+            assert all(f"{k}:=" in cmd for k in node.parameters)
+            assert all(f"{s}:={t}" in cmd for s, t in node.remappings.items())
