@@ -85,6 +85,9 @@ class CreaseParams:
         Derivative and integration scales (px) of the MLSEC-ST structure tensor.
     threshold : float
         Minimum creaseness (of the chosen polarity), in (0, 2]; MLSEC-ST lies in [-2, 2].
+    threshold_low : float
+        Hysteresis: pixels above this creaseness are kept when connected to pixels above
+        ``threshold`` (set equal to ``threshold`` to disable), in (0, threshold].
     contrast_sigma : float
         Scale (px) at which crease contrast is compared with noise.
     contrast_snr : float
@@ -110,6 +113,7 @@ class CreaseParams:
     mlsec_sigma: float = 1.0
     mlsec_rho: float = 2.0
     threshold: float = 0.5
+    threshold_low: float = 0.2
     contrast_sigma: float = 2.0
     contrast_snr: float = 4.0
     min_area: int = 20
@@ -134,6 +138,8 @@ class CreaseParams:
                f"time_step must be in (0, 0.25] for a stable explicit scheme, got "
                f"{self.time_step!r}")
         _check(0 < self.threshold <= 2, f"threshold must be in (0, 2], got {self.threshold!r}")
+        _check(0 < self.threshold_low <= self.threshold,
+               f"threshold_low must be in (0, threshold], got {self.threshold_low!r}")
         _check(self.contrast_snr >= 0, f"contrast_snr must be >= 0, got {self.contrast_snr!r}")
         _check(isinstance(self.min_area, (int, np.integer)) and self.min_area >= 0,
                f"min_area must be an int >= 0, got {self.min_area!r}")
@@ -519,9 +525,19 @@ def crease_mask(creaseness, contrast, noise: float, params: CreaseParams,
     _check(polarity in ("valley", "ridge"), f"polarity must be valley or ridge: {polarity!r}")
     sgn = np.float32(-1.0 if polarity == "valley" else 1.0)
     gate = params.contrast_snr * noise_hessian_std(noise, params.contrast_sigma)
-    mask = (sgn * creaseness > params.threshold) & (-sgn * contrast > gate)
+    strong = -sgn * contrast > gate
     if valid is not None:
-        mask &= valid
+        strong &= valid
+    score = sgn * creaseness
+    mask = strong & (score > params.threshold_low)
+    if params.threshold_low < params.threshold:
+        # Hysteresis: weak creases survive where connected to strong ones; this closes the
+        # gaps MLSEC leaves at confluences, where the flow direction is ambiguous.
+        n, labels = cv2.connectedComponents(mask.view(np.uint8), connectivity=8)
+        seeded = np.zeros(n, bool)
+        seeded[labels[mask & (score > params.threshold)]] = True
+        seeded[0] = False
+        mask = seeded[labels]
     mask = _remove_small(mask, params.min_area)
     holes = _remove_small(~mask, params.min_area, connectivity=4)
     return mask | ~holes if params.min_area > 1 else mask

@@ -1,0 +1,81 @@
+"""Lambertian hillshade of a DEM (numpy), for development, tests and lighting benchmarks.
+
+The flight renderer is the moderngl landmark renderer; this is the simple reference shading
+``I = ambient + (1 - ambient) * max(0, n . s)`` of a north-up DEM, with the surface normal
+``n`` from central differences and the sun direction ``s`` from azimuth (clockwise from
+North, degrees) and elevation above the horizon (degrees). No cast shadows.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["sun_vector", "surface_normals", "hillshade"]
+
+
+def sun_vector(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+    """Unit ENU vector pointing towards the sun.
+
+    Parameters
+    ----------
+    azimuth_deg : float
+        Clockwise from North (0 = N, 90 = E, 315 = NW).
+    elevation_deg : float
+        Above the horizon, in [0, 90].
+    """
+    if not (np.isfinite(azimuth_deg) and np.isfinite(elevation_deg)):
+        raise ValueError("sun azimuth and elevation must be finite")
+    if not 0.0 <= elevation_deg <= 90.0:
+        raise ValueError(f"sun elevation must be in [0, 90] deg, got {elevation_deg}")
+    az, el = np.deg2rad(azimuth_deg), np.deg2rad(elevation_deg)
+    return np.array([np.sin(az) * np.cos(el), np.cos(az) * np.cos(el), np.sin(el)])
+
+
+def surface_normals(dem: np.ndarray, gsd: float = 1.0, z_factor: float = 1.0):
+    """Unit ENU normals (east, north, up components) of a north-up DEM.
+
+    Rows grow southwards, so ``dz/dnorth = -dz/drow / gsd``.
+    """
+    if not (np.isfinite(gsd) and gsd > 0):
+        raise ValueError(f"gsd must be positive, got {gsd}")
+    z = np.asarray(dem, np.float64) * z_factor
+    if z.ndim != 2 or min(z.shape) < 2:
+        raise ValueError(f"dem must be 2-D and at least 2x2, got shape {z.shape}")
+    dz_drow, dz_dcol = np.gradient(z, gsd)
+    nx, ny = -dz_dcol, dz_drow  # -dz/deast, -dz/dnorth
+    norm = np.sqrt(nx * nx + ny * ny + 1.0)
+    return nx / norm, ny / norm, 1.0 / norm
+
+
+def hillshade(dem: np.ndarray, azimuth_deg: float = 315.0, elevation_deg: float = 45.0,
+              gsd: float = 1.0, z_factor: float = 1.0, ambient: float = 0.0,
+              dtype=np.float32) -> np.ndarray:
+    """Lambertian shading of a DEM lit from (azimuth, elevation).
+
+    Parameters
+    ----------
+    dem : (M, N) array
+        Elevations (m); NaN propagates to the output.
+    azimuth_deg, elevation_deg : float
+        Sun position, degrees (azimuth clockwise from North).
+    gsd : float
+        Ground sample distance (m/px).
+    z_factor : float
+        Vertical exaggeration.
+    ambient : float
+        Light added everywhere, in [0, 1).
+    dtype : numpy dtype
+        ``np.uint8`` scales [0, 1] to [0, 255]; a float type returns [0, 1].
+
+    Returns
+    -------
+    (M, N) array of ``dtype``
+    """
+    if not 0.0 <= ambient < 1.0:
+        raise ValueError(f"ambient must be in [0, 1), got {ambient}")
+    sx, sy, sz = sun_vector(azimuth_deg, elevation_deg)
+    nx, ny, nz = surface_normals(dem, gsd, z_factor)
+    shade = ambient + (1.0 - ambient) * np.clip(nx * sx + ny * sy + nz * sz, 0.0, 1.0)
+    if np.dtype(dtype) == np.uint8:
+        return np.round(np.nan_to_num(shade) * 255.0).astype(np.uint8)
+    return shade.astype(dtype)

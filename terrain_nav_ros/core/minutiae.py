@@ -1,0 +1,548 @@
+"""Minutiae of drainage patterns: dissertation chapter 3.3, with fingerprint-style validation.
+
+:func:`extract_features` runs the crease stage (:mod:`terrain_nav_ros.core.creases`) and then
+
+1. crossing numbers (eq. 3.7) of every skeleton pixel through a 256-entry look-up table on the
+   8-neighbour code (one convolution): CN = 1 endings, CN = 3 bifurcations;
+2. the pixel-wise orientation field of 3.3.2 (Sobel gradients, W x W least squares, doubled
+   angle Gaussian smoothing) and its coherence;
+3. the branches leaving every minutia (skeleton minus the junction neighbourhoods, labelled
+   and gathered within a radius by a k-d tree): their directions disambiguate the 180 degree
+   ambiguity of the field and give the crease direction (ending: along its crease; bifurcation:
+   along the stem, the branch that is not part of the narrowest fork);
+4. validation as fingerprint matchers do: margin to the image border and to nodata, spurs
+   (short branch from an ending to a junction: both dropped), short isolated creases, broken
+   creases (two facing endings close together), duplicates and dense clusters; a quality per
+   minutia and a cap on the count by quality.
+
+Angles follow :mod:`terrain_nav_ros.core.minutia_set`: radians from East towards North.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, fields
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .creases import CreaseDetector, CreaseParams, CreaseResult, noise_hessian_std
+from .georef import GeoReference
+from .minutia_set import BIFURCATION, ENDING, MinutiaSet
+
+__all__ = [
+    "MinutiaParams",
+    "Features",
+    "FeatureExtractor",
+    "crossing_number",
+    "orientation_field",
+    "normalised_coordinates",
+    "extract_features",
+    "extract_minutiae",
+]
+
+# 8 neighbours in anticlockwise order P1..P8 (Fig. 3.3), starting East; (d_row, d_col).
+_RING = [(0, 1), (-1, 1), (-1, 0), (-1, -1), (0, -1), (1, -1), (1, 0), (1, 1)]
+
+
+def _ring_kernel() -> np.ndarray:
+    k = np.zeros((3, 3), np.float32)
+    for bit, (dr, dc) in enumerate(_RING):
+        k[1 + dr, 1 + dc] = 2**bit
+    return k
+
+
+def _cn_lut() -> np.ndarray:
+    codes = np.arange(256)
+    bits = (codes[:, None] >> np.arange(8)) & 1
+    return (0.5 * np.abs(bits - np.roll(bits, -1, axis=1)).sum(1)).astype(np.uint8)
+
+
+_RING_KERNEL = _ring_kernel()
+_CN_LUT = _cn_lut()
+
+
+def _check(cond: bool, msg: str):
+    if not cond:
+        raise ValueError(msg)
+
+
+@dataclass(frozen=True)
+class MinutiaParams:
+    """Settings of minutia extraction and validation (orientation defaults: Table 3.1).
+
+    Parameters
+    ----------
+    block_size : int
+        W, the least-squares orientation block (16).
+    orient_sigma : float
+        sigma_s of the Gaussian smoothing the doubled-angle field (3).
+    orient_size : int
+        w_phi, its window (18 = 6 sigma_s; rounded up to odd for OpenCV).
+    border_margin : float
+        Minutiae closer than this (px) to the image border or to nodata are dropped: creases
+        that leave the image end there without being endings.
+    spur_length : int
+        A branch from an ending to a junction shorter than this (px) is a spur: both its
+        ending and its bifurcation are dropped.
+    min_crease_length : int
+        Isolated creases shorter than this (px) are dropped with their endings.
+    break_distance : float
+        Two endings closer than this (px) that face each other are one broken crease.
+    break_angle : float
+        Tolerance (degrees) for "facing each other".
+    duplicate_distance : float
+        Of two minutiae closer than this (px), only the better one is kept.
+    cluster_radius, cluster_size : float, int
+        A minutia with ``cluster_size`` or more others within ``cluster_radius`` px sits in a
+        noisy tangle and is dropped.
+    trace_length : int
+        Radius (px) over which a minutia's branches are followed to get its direction.
+    field_tolerance : float
+        Degrees; when the orientation field disagrees more than this with the traced branch
+        (junctions, curved creases) the traced direction is used.
+    max_minutiae : int
+        Keep at most this many minutiae, best quality first (0: no cap).
+    min_quality : float
+        Drop minutiae with lower quality.
+    """
+
+    block_size: int = 16
+    orient_sigma: float = 3.0
+    orient_size: int = 18
+    border_margin: float = 10.0
+    spur_length: int = 8
+    min_crease_length: int = 12
+    break_distance: float = 10.0
+    break_angle: float = 35.0
+    duplicate_distance: float = 3.0
+    cluster_radius: float = 8.0
+    cluster_size: int = 4
+    trace_length: int = 12
+    field_tolerance: float = 30.0
+    max_minutiae: int = 400
+    min_quality: float = 0.0
+
+    def __post_init__(self):
+        for name in ("block_size", "orient_size", "spur_length", "min_crease_length",
+                     "trace_length", "cluster_size", "max_minutiae"):
+            v = getattr(self, name)
+            _check(isinstance(v, (int, np.integer)) and v >= 0,
+                   f"{name} must be an int >= 0, got {v!r}")
+        _check(self.block_size >= 2, f"block_size must be >= 2, got {self.block_size}")
+        _check(self.orient_size >= 1, f"orient_size must be >= 1, got {self.orient_size}")
+        _check(self.trace_length >= 2, f"trace_length must be >= 2, got {self.trace_length}")
+        _check(self.cluster_size >= 1, f"cluster_size must be >= 1, got {self.cluster_size}")
+        for name in ("orient_sigma",):
+            v = getattr(self, name)
+            _check(np.isfinite(v) and v > 0, f"{name} must be > 0, got {v!r}")
+        for name in ("border_margin", "break_distance", "duplicate_distance",
+                     "cluster_radius"):
+            v = getattr(self, name)
+            _check(np.isfinite(v) and v >= 0, f"{name} must be finite and >= 0, got {v!r}")
+        for name in ("break_angle", "field_tolerance"):
+            v = getattr(self, name)
+            _check(0 <= v <= 180, f"{name} must be in [0, 180] degrees, got {v!r}")
+        _check(0 <= self.min_quality <= 1, f"min_quality must be in [0, 1]: {self.min_quality}")
+
+    @classmethod
+    def from_dict(cls, values: dict) -> MinutiaParams:
+        """Build from a mapping (e.g. ROS parameters), rejecting unknown keys."""
+        names = {f.name for f in fields(cls)}
+        unknown = set(values) - names
+        _check(not unknown, f"unknown minutia parameter(s): {sorted(unknown)}")
+        return cls(**values)
+
+
+# --------------------------------------------------------------------------- primitives
+
+
+def crossing_number(skeleton: np.ndarray) -> np.ndarray:
+    """Crossing number (eq. 3.7) of every skeleton pixel; 0 off the skeleton.
+
+    Parameters
+    ----------
+    skeleton : (M, N) bool array
+
+    Returns
+    -------
+    (M, N) uint8 array
+    """
+    sk = skeleton.astype(np.uint8)
+    code = cv2.filter2D(sk, cv2.CV_32F, _RING_KERNEL, borderType=cv2.BORDER_CONSTANT)
+    cn = _CN_LUT[code.astype(np.uint8)]
+    cn[~skeleton] = 0
+    return cn
+
+
+def orientation_field(image: np.ndarray, block_size: int = 16, sigma: float = 3.0,
+                      size: int = 18):
+    """Pixel-wise crease orientation (3.3.2, eq. 3.10-3.18) and its coherence.
+
+    Sobel gradients give the least-squares gradient orientation over a W x W block; the
+    crease runs perpendicular to it. The orientation is smoothed as the doubled-angle unit
+    vector field with a Gaussian (sigma_s, w_phi) and halved back.
+
+    Returns
+    -------
+    angle : (M, N) float32 array
+        Crease orientation in [0, pi), radians from East towards North (image rows point
+        South, hence the sign flip).
+    coherence : (M, N) float32 array
+        Length of the smoothed doubled-angle vector, in [0, 1]: 1 for parallel creases.
+    """
+    img = np.asarray(image, np.float32)
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)
+    k = (block_size, block_size)
+    sxy = cv2.boxFilter(gx * gy, -1, k)
+    sdd = cv2.boxFilter(gx * gx - gy * gy, -1, k)
+    norm = cv2.magnitude(sdd, 2.0 * sxy)
+    np.maximum(norm, np.float32(1e-30), out=norm)
+    # Crease = gradient + 90 deg; doubled angle adds 180 deg: negate. North-up: y flips.
+    phx = -sdd / norm
+    phy = 2.0 * sxy / norm
+    size = size + 1 - size % 2
+    phx = cv2.GaussianBlur(phx, (size, size), sigma)
+    phy = cv2.GaussianBlur(phy, (size, size), sigma)
+    angle = np.mod(0.5 * np.arctan2(phy, phx), np.pi).astype(np.float32)
+    return angle, cv2.magnitude(phx, phy)
+
+
+def normalised_coordinates(col, row, width: int, height: int):
+    """Eq. 3.8-3.9: x = j / W, y = (H + 1 - i) / H with 1-based row i and column j.
+
+    Returns values in (0, 1]; y grows northwards.
+    """
+    col = np.asarray(col, float)
+    row = np.asarray(row, float)
+    return (col + 1.0) / width, (height - row) / height
+
+
+def _angdiff(a, b):
+    """Absolute angle difference in [0, pi]."""
+    return np.abs(np.angle(np.exp(1j * (np.asarray(a) - np.asarray(b)))))
+
+
+# --------------------------------------------------------------------------- branches
+
+
+@dataclass
+class _Candidates:
+    row: np.ndarray
+    col: np.ndarray
+    kind: np.ndarray
+    angle: np.ndarray = None
+    quality: np.ndarray = None
+    branch_len: np.ndarray = None
+    n_branches: np.ndarray = None
+    keep: np.ndarray = None
+
+
+def _branches(skel, cn, rows, cols, radius):
+    """Directions and sizes of the skeleton branches leaving each minutia.
+
+    The skeleton minus the 3x3 neighbourhoods of junction pixels (CN >= 3) falls apart into
+    branches; the branch pixels within ``radius`` of a minutia whose branch passes within
+    2.5 px of it are its branches. Returns per-minutia arrays of up to 3 branch unit vectors
+    (d_col, d_row; NaN if absent), their pixel counts within the radius, and whole-branch
+    lengths, largest first; plus the labels image and the (minutia, pixel) pairs.
+    """
+    junction = (cn >= 3).astype(np.uint8)
+    near_j = cv2.dilate(junction, np.ones((3, 3), np.uint8)).astype(bool)
+    seg = (skel & ~near_j).astype(np.uint8)
+    nlab, labels, stats, _ = cv2.connectedComponentsWithStats(seg, connectivity=8)
+    seg_len = stats[:, cv2.CC_STAT_AREA]
+    pr, pc = np.nonzero(seg)
+    n = len(rows)
+    vec = np.full((n, 3, 2), np.nan)
+    cnt = np.zeros((n, 3), int)
+    length = np.zeros((n, 3), int)
+    if n == 0 or len(pr) == 0:
+        return vec, cnt, length
+    tree_p = cKDTree(np.column_stack([pr, pc]))
+    tree_m = cKDTree(np.column_stack([rows, cols]))
+    pairs = tree_m.sparse_distance_matrix(tree_p, radius, output_type="ndarray")
+    mi, pj, dist = pairs["i"], pairs["j"], pairs["v"]
+    lab = labels[pr[pj], pc[pj]]
+    key = mi.astype(np.int64) * nlab + lab
+    ukey, inv = np.unique(key, return_inverse=True)
+    g_min = np.full(len(ukey), np.inf)
+    np.minimum.at(g_min, inv, dist)
+    dr = (pr[pj] - rows[mi]).astype(float)
+    dc = (pc[pj] - cols[mi]).astype(float)
+    # Unit offsets of the outer part only: the pixels next to a junction bend towards it.
+    w = (dist >= radius / 3.0) / np.maximum(dist, 1.0)
+    g_dc = np.bincount(inv, dc * w, len(ukey))
+    g_dr = np.bincount(inv, dr * w, len(ukey))
+    g_n = np.bincount(inv, None, len(ukey))
+    g_m = ukey // nlab
+    g_lab = ukey % nlab
+    ok = g_min <= 2.5
+    g_m, g_dc, g_dr, g_n, g_lab = g_m[ok], g_dc[ok], g_dr[ok], g_n[ok], g_lab[ok]
+    # Rank the branches of each minutia by their pixel count, keep the 3 largest.
+    order = np.lexsort((-g_n, g_m))
+    g_m, g_dc, g_dr, g_n, g_lab = (a[order] for a in (g_m, g_dc, g_dr, g_n, g_lab))
+    first = np.searchsorted(g_m, g_m)
+    rank = np.arange(len(g_m)) - first
+    sel = rank < 3
+    norm = np.hypot(g_dc, g_dr)
+    norm[norm == 0] = 1.0
+    vec[g_m[sel], rank[sel], 0] = (g_dc / norm)[sel]
+    vec[g_m[sel], rank[sel], 1] = (g_dr / norm)[sel]
+    cnt[g_m[sel], rank[sel]] = g_n[sel]
+    length[g_m[sel], rank[sel]] = seg_len[g_lab[sel]]
+    return vec, cnt, length
+
+
+def _enu_angle(vec):
+    """ENU angle (from East towards North) of (d_col, d_row) vectors."""
+    return np.mod(np.arctan2(-vec[..., 1], vec[..., 0]), 2 * np.pi)
+
+
+def _stem_direction(vec):
+    """Stem of each bifurcation: the branch outside the narrowest pair of branches."""
+    ang = _enu_angle(vec)  # (n, 3), NaN for missing
+    pairs = np.array([[1, 2], [0, 2], [0, 1]])  # pair opposite to stem candidate k
+    gaps = np.stack([_angdiff(ang[:, a], ang[:, b]) for a, b in pairs], axis=1)
+    gaps = np.where(np.isnan(gaps), np.inf, gaps)
+    stem = np.argmin(gaps, axis=1)
+    out = ang[np.arange(len(ang)), stem]
+    # With fewer than 3 branches the largest one is the best guess.
+    missing = np.isnan(ang).any(axis=1)
+    out[missing] = ang[missing, 0]
+    return out
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def _drop_spurs_and_short(c: _Candidates, length, cnt, p: MinutiaParams):
+    """Spurs: ending whose branch is short and ends at a junction -> drop with that junction.
+
+    Short isolated creases: both endings dropped.
+    """
+    end = c.kind == ENDING
+    blen = length[:, 0]
+    short = end & (blen < max(p.spur_length, 1))
+    bif_idx = np.flatnonzero(c.kind == BIFURCATION)
+    if short.any() and len(bif_idx):
+        tree = cKDTree(np.column_stack([c.row[bif_idx], c.col[bif_idx]]))
+        d, j = tree.query(np.column_stack([c.row[short], c.col[short]]),
+                          distance_upper_bound=p.spur_length + 3)
+        hit = np.isfinite(d)
+        c.keep[np.flatnonzero(short)[hit]] = False
+        c.keep[bif_idx[j[hit]]] = False
+        short[np.flatnonzero(short)[hit]] = False
+    # Remaining short endings: isolated short creases (or spurs from lost junctions).
+    tiny = end & (blen < p.min_crease_length) & (cnt[:, 0] < p.min_crease_length)
+    tiny &= ~np.isnan(c.angle)
+    c.keep[tiny] = False
+    c.keep[end & (length[:, 0] == 0)] = False  # ending not on any branch: noise pixel
+
+
+def _drop_broken_pairs(c: _Candidates, p: MinutiaParams):
+    """Two endings that face each other across a small gap are one broken crease."""
+    idx = np.flatnonzero(c.keep & (c.kind == ENDING))
+    if len(idx) < 2 or p.break_distance <= 0:
+        return
+    tree = cKDTree(np.column_stack([c.row[idx], c.col[idx]]))
+    pairs = tree.query_pairs(p.break_distance, output_type="ndarray")
+    if len(pairs) == 0:
+        return
+    i, j = idx[pairs[:, 0]], idx[pairs[:, 1]]
+    tol = np.deg2rad(p.break_angle)
+    # Direction i -> j (ENU) must be opposite to i's crease and equal to... j's reversed.
+    dir_ij = np.arctan2(-(c.row[j] - c.row[i]), c.col[j] - c.col[i])
+    opposite = _angdiff(c.angle[i], c.angle[j] + np.pi) < tol
+    facing = (_angdiff(dir_ij, c.angle[i] + np.pi) < 1.5 * tol) & \
+             (_angdiff(dir_ij, c.angle[j]) < 1.5 * tol)
+    bad = opposite & facing
+    c.keep[i[bad]] = False
+    c.keep[j[bad]] = False
+
+
+def _drop_duplicates_and_clusters(c: _Candidates, p: MinutiaParams):
+    idx = np.flatnonzero(c.keep)
+    if len(idx) < 2:
+        return
+    pts = np.column_stack([c.row[idx], c.col[idx]])
+    tree = cKDTree(pts)
+    if p.cluster_radius > 0:
+        n_near = tree.query_ball_point(pts, p.cluster_radius, return_length=True) - 1
+        c.keep[idx[n_near >= p.cluster_size]] = False
+    if p.duplicate_distance > 0:
+        pairs = tree.query_pairs(p.duplicate_distance, output_type="ndarray")
+        if len(pairs):
+            i, j = idx[pairs[:, 0]], idx[pairs[:, 1]]
+            worse = np.where(c.quality[i] >= c.quality[j], j, i)
+            c.keep[worse] = False
+
+
+def _border_distance(valid: np.ndarray) -> np.ndarray:
+    """Distance (px) of every pixel to the nearest invalid pixel or the image outside."""
+    padded = np.pad(valid.astype(np.uint8), 1)
+    return cv2.distanceTransform(padded, cv2.DIST_L2, 3)[1:-1, 1:-1]
+
+
+# --------------------------------------------------------------------------- extraction
+
+
+@dataclass
+class Features:
+    """Result of :func:`extract_features`.
+
+    ``minutiae`` is the validated set; ``creases`` the crease-stage result (use
+    ``creases.crease_image()`` for the debug topic); ``orientation``/``coherence`` the
+    smoothed orientation field; ``timings`` seconds per stage.
+    """
+
+    minutiae: MinutiaSet
+    creases: CreaseResult
+    orientation: np.ndarray | None = None
+    coherence: np.ndarray | None = None
+    timings: dict = field(default_factory=dict)
+
+    def crease_image(self) -> np.ndarray:
+        """uint8 debug image of the creases (255 skeleton, 128 crease mask)."""
+        return self.creases.crease_image()
+
+
+def _minutiae_of_skeleton(skel, cres: CreaseResult, angle_field, coherence, dist_border,
+                          cp: CreaseParams, p: MinutiaParams):
+    cn = crossing_number(skel)
+    rows, cols = np.nonzero((cn == 1) | (cn == 3))
+    kind = cn[rows, cols]
+    c = _Candidates(rows, cols, kind)
+    n = len(rows)
+    c.keep = np.ones(n, bool)
+    if n == 0:
+        c.angle = c.quality = np.zeros(0)
+        return c
+    # Bifurcations look twice as far: skeletons bend and widen next to junctions.
+    vec = np.full((n, 3, 2), np.nan)
+    cnt = np.zeros((n, 3), int)
+    length = np.zeros((n, 3), int)
+    for sel, radius in ((kind == ENDING, p.trace_length), (kind == BIFURCATION,
+                                                           2 * p.trace_length)):
+        vec[sel], cnt[sel], length[sel] = _branches(skel, cn, rows[sel], cols[sel], radius)
+    traced = np.where(kind == ENDING, _enu_angle(vec[:, 0]), _stem_direction(vec))
+    # Orientation field (mod pi) disambiguated by the traced branch; trust the branch where
+    # they disagree (junctions, sharp bends) or where nothing could be traced.
+    field_a = angle_field[rows, cols].astype(float)
+    cand = np.where(_angdiff(field_a, traced) <= np.pi / 2, field_a, field_a + np.pi)
+    use_field = _angdiff(cand, traced) <= np.deg2rad(p.field_tolerance)
+    ang = np.where(use_field, cand, traced)
+    ang = np.where(np.isnan(traced), np.nan, ang)
+    c.angle = np.mod(ang, 2 * np.pi)
+    # Quality: field coherence x crease contrast (SNR) x how much branch supports it.
+    snr = np.abs(cres.contrast[rows, cols]) / max(
+        noise_hessian_std(cres.noise, cp.contrast_sigma), 1e-12)
+    q_snr = 1.0 - np.exp(-snr / (2.0 * max(cp.contrast_snr, 1.0)))
+    support = np.clip(cnt[:, 0] / np.where(kind == ENDING, 0.6, 1.2) / p.trace_length, 0, 1)
+    c.quality = (coherence[rows, cols] * q_snr * support).astype(float)
+    c.keep &= dist_border[rows, cols] >= p.border_margin
+    c.keep &= ~np.isnan(c.angle)
+    _drop_spurs_and_short(c, length, cnt, p)
+    _drop_broken_pairs(c, p)
+    _drop_duplicates_and_clusters(c, p)
+    c.keep &= c.quality >= p.min_quality
+    return c
+
+
+class FeatureExtractor:
+    """Creases and minutiae of grey images and DEMs, with fixed settings.
+
+    Parameters
+    ----------
+    crease_params : CreaseParams, optional
+    minutia_params : MinutiaParams, optional
+    """
+
+    def __init__(self, crease_params: CreaseParams | None = None,
+                 minutia_params: MinutiaParams | None = None):
+        self.crease_params = crease_params or CreaseParams()
+        self.minutia_params = minutia_params or MinutiaParams()
+        self._creases = CreaseDetector(self.crease_params)
+
+    def __call__(self, image, georef: GeoReference | None = None, valid_mask=None,
+                 source: str = "image", nodata=None) -> Features:
+        """Extract features; see :func:`extract_features`."""
+        cp, p = self.crease_params, self.minutia_params
+        img = np.asarray(image)
+        if georef is not None:
+            _check(georef.shape == img.shape[:2],
+                   f"georef shape {georef.shape} != image shape {img.shape[:2]}")
+        gsd = georef.gsd if georef is not None else 1.0
+        cres = self._creases(img, valid_mask, source, gsd, nodata)
+        timings = dict(cres.timings)
+        if cres.reason:
+            return Features(MinutiaSet.empty(cres.reason, georef), cres, timings=timings)
+        t0 = time.perf_counter()
+        angle_field, coherence = orientation_field(cres.diffused, p.block_size,
+                                                   p.orient_sigma, p.orient_size)
+        timings["orientation"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        dist_border = _border_distance(cres.valid)
+        parts = []
+        for pol, skel in cres.skeletons.items():
+            c = _minutiae_of_skeleton(skel, cres, angle_field, coherence, dist_border, cp, p)
+            k = c.keep
+            parts.append((c.col[k], c.row[k], c.angle[k], c.kind[k], c.quality[k],
+                          np.full(int(k.sum()), pol == "ridge")))
+        col, row, ang, kind, qual, ridge = (np.concatenate(a) for a in zip(*parts, strict=True))
+        order = np.argsort(-qual, kind="stable")
+        if p.max_minutiae:
+            order = order[:p.max_minutiae]
+        col, row, ang, kind, qual, ridge = (a[order] for a in (col, row, ang, kind, qual,
+                                                               ridge))
+        timings["minutiae"] = time.perf_counter() - t0
+        if len(col) == 0:
+            ms = MinutiaSet.empty("no minutiae survived validation", georef)
+        else:
+            ms = MinutiaSet(col.astype(float), row.astype(float), ang, kind, qual,
+                            georef=georef)
+            h, w = img.shape[:2]
+            x, y = normalised_coordinates(col, row, w, h)
+            ms.extras.update(x_norm=x, y_norm=y, ridge=ridge)
+            if georef is not None:
+                ms.extras["east"], ms.extras["north"] = georef.pixel_to_enu(col, row)
+        return Features(ms, cres, angle_field, coherence, timings)
+
+
+def extract_features(image, georef: GeoReference | None = None, valid_mask=None,
+                     crease_params: CreaseParams | None = None,
+                     params: MinutiaParams | None = None, source: str = "image",
+                     nodata=None) -> Features:
+    """Creases, orientation field and validated minutiae of one raster.
+
+    Parameters
+    ----------
+    image : (M, N) array
+        Grey image (uint8, uint16, float; colour is converted) or, with ``source="dem"``, an
+        elevation grid in metres (its valleys are the terrain's creases).
+    georef : GeoReference, optional
+        Placement of the raster; gives the DEM's gsd and the minutiae's ENU metres.
+    valid_mask : (M, N) bool array, optional
+        False on nodata (outside the camera view, DEM voids).
+    crease_params, params : CreaseParams, MinutiaParams, optional
+    source : {"image", "dem"}
+    nodata : float, optional
+        Void value of a DEM.
+
+    Returns
+    -------
+    Features
+        ``features.minutiae`` is empty with a ``reason`` when there is no drainage.
+    """
+    return FeatureExtractor(crease_params, params)(image, georef, valid_mask, source, nodata)
+
+
+def extract_minutiae(image, georef: GeoReference | None = None, valid_mask=None,
+                     params: MinutiaParams | None = None,
+                     crease_params: CreaseParams | None = None, source: str = "image",
+                     nodata=None) -> MinutiaSet:
+    """Validated minutiae of one raster; see :func:`extract_features`."""
+    return extract_features(image, georef, valid_mask, crease_params, params, source,
+                            nodata).minutiae
