@@ -36,7 +36,7 @@ def samples() -> dict:
         "MinutiaArray": MinutiaArray(
             header=header, georef=cv.georef_to_msg(georef, origin), source=MinutiaArray.SOURCE_DEM,
             minutiae=[Minutia(x=float(i), y=-float(i), col=i + 0.5, row=i + 0.25,
-                              orientation=0.125 * i, type=Minutia.ENDING, quality=0.9)
+                              orientation=0.125 * i, type=Minutia.ENDING, quality=0.75)
                       for i in range(5)], reason=""),
         "GeoImage": cv.geo_image_to_msg(image, georef, header, mask, origin),
         "DemTile": cv.dem_tile_to_msg(heights, georef, header, origin, "EGM96", "EPSG:4326"),
