@@ -14,11 +14,13 @@ from terrain_nav_msgs.srv import GetDemTile
 def _plain(value):
     """Message -> nested dicts and lists of plain values, NaN made comparable."""
     if hasattr(value, "get_fields_and_field_types"):
-        return {k: _plain(getattr(value, k)) for k in value.get_fields_and_field_types()}
+        # float32 fields hold the float32 rounding of what was assigned: compare at that width.
+        return {k: _plain(np.float32(getattr(value, k)) if t == "float" else getattr(value, k))
+                for k, t in value.get_fields_and_field_types().items()}
+    if isinstance(value, float | np.floating):
+        return "nan" if np.isnan(value) else float(value)
     if isinstance(value, list | tuple) or hasattr(value, "tolist"):
         return [_plain(v) for v in (value.tolist() if hasattr(value, "tolist") else value)]
-    if isinstance(value, float) and np.isnan(value):
-        return "nan"
     return value
 
 
