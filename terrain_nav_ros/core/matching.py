@@ -1,0 +1,793 @@
+"""Minutiae-based terrain matching and localisation (dissertation chapter 4).
+
+Pipeline (same for block-vs-block :func:`compare` and camera-in-region :func:`localise`):
+
+1. **Candidates.** Edge correspondences (a pair of minutiae in A matched to a pair in B whose
+   length and two relative angles agree; see :mod:`.descriptors`). Two generators:
+   ``"hash"`` looks every edge of A up in a hash of B's edges (complete, best for blocks);
+   ``"roots"`` first picks, for each minutia of A, the ``k_roots`` minutiae of B with the most
+   similar shape context (+ crease) descriptor and compares only their local edges (the
+   reference-pair selection of dissertation 4.2.2; bounded cost for a large landmark region).
+   Every candidate is a minimal sample: two point correspondences fix a similarity transform.
+   Its vote is weighted by the descriptor similarity of both correspondences.
+2. **Consensus.** Hough voting of the candidate rotations, then of the translations at each
+   rotation peak; the strongest (rotation, translation) cells give hypotheses with their
+   supporting correspondences.
+3. **Registration.** Vectorised 2-point RANSAC over each hypothesis' correspondences, least
+   squares (complex Procrustes) on the inliers, then guided pairing over all minutiae and a
+   final least-squares fit on the pairings, with a covariance from the residuals.
+4. **Pairings** are one-to-one minutiae that agree within ``pos_tol`` px and ``angle_tol`` after
+   the transform.
+5. **Score** (see :func:`significance`): ``-log10`` of the chance of seeing that many pairings
+   between unrelated minutiae, given the densities in the overlap, the tolerances and the
+   size of the searched transform space. One threshold then means one false-match rate at
+   any minutia count and any search area, which ``pairings`` or ``pairings**2/(n1*n2)`` do
+   not give (both are inflated for small sets). :func:`calibrate_threshold` sets the
+   threshold from non-PVA scores.
+
+All internal geometry is in the math frame ``z = col - 1j*row`` (see :mod:`.descriptors`);
+results are reported in pixel coordinates.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from enum import StrEnum
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.special import gammainc, gammaln
+
+from .descriptors import (
+    TWO_PI,
+    EdgeHash,
+    crease_descriptor,
+    from_complex,
+    neighbour_edges,
+    shape_context,
+    to_complex,
+    wrap_angle,
+)
+from .minutia_set import MinutiaSet
+
+
+class Decision(StrEnum):
+    """Outcome of a comparison."""
+
+    MATCH = "match"
+    NO_MATCH = "no_match"
+    NO_DECISION = "no_decision"
+
+
+@dataclass(frozen=True)
+class MatchParams:
+    """Settings of the matcher (the dissertation's Table 4.1, extended).
+
+    Parameters
+    ----------
+    pos_tol : float
+        Pairing radius (px) after the transform.
+    angle_tol : float
+        Pairing tolerance on minutia direction (rad).
+    edge_length_tol : float
+        Tolerance on edge length (px) for candidate edges.
+    edge_angle_tol : float
+        Tolerance on each edge's relative angle (rad) for candidate edges.
+    k_query, k_ref : int
+        Nearest-neighbour edges per minutia on the query (A) and reference (B) side; more on
+        B so that spurious minutiae in B do not push true neighbours out of reach.
+    edge_min, edge_max : float
+        Edge length range (px).
+    rot_bin, trans_bin : float
+        Hough cell size for rotation (rad) and translation (px).
+    n_hypotheses : int
+        Hough cells verified by registration and pairing.
+    ransac_iterations : int
+        Random 2-point samples per hypothesis.
+    estimate_scale : bool
+        Fit a similarity with scale (else rotation + translation only).
+    max_scale_change : float
+        Relative scale difference allowed for candidates and fits when ``estimate_scale``.
+    candidates : {"auto", "hash", "roots"}
+        Candidate generator; ``"auto"`` uses roots when B has more than ``roots_above``
+        minutiae.
+    k_roots : int
+        Descriptor-nearest minutiae of B per minutia of A for the roots generator.
+    roots_above : int
+    use_descriptors : bool
+        Weight votes by descriptor similarity (hash generator).
+    by_kind : bool
+        Shape context split by minutia kind.
+    min_minutiae : int
+        Minimum minutiae in each set below which the answer is "no decision" (dissertation
+        1.4); a set is also undecidable when even a perfect match could not reach
+        ``threshold``.
+    threshold : float
+        Score at and above which two sets match; calibrate it with
+        :func:`calibrate_threshold`.
+    seed : int
+        RANSAC random seed (results are deterministic).
+    """
+
+    pos_tol: float = 5.0
+    angle_tol: float = math.radians(30.0)
+    edge_length_tol: float = 4.0
+    edge_angle_tol: float = math.radians(25.0)
+    k_query: int = 8
+    k_ref: int = 12
+    edge_min: float = 6.0
+    edge_max: float = 160.0
+    rot_bin: float = math.radians(5.0)
+    trans_bin: float = 8.0
+    n_hypotheses: int = 4
+    ransac_iterations: int = 48
+    estimate_scale: bool = False
+    max_scale_change: float = 0.1
+    candidates: str = "auto"
+    k_roots: int = 6
+    roots_above: int = 2000
+    use_descriptors: bool = True
+    by_kind: bool = True
+    min_minutiae: int = 10
+    threshold: float = 3.0
+    seed: int = 0
+
+
+class MinutiaIndex:
+    """A minutia set prepared for matching: tree, edges, descriptors, footprint.
+
+    Build it once per set and reuse it (e.g. the landmark region across camera frames, or
+    each block across the N x N comparisons of a study).
+
+    Parameters
+    ----------
+    ms : MinutiaSet
+    params : MatchParams, optional
+    crease : ndarray, optional
+        Binary crease image in the pixel frame of ``ms``; enables the crease descriptor.
+    """
+
+    def __init__(self, ms: MinutiaSet, params: MatchParams | None = None,
+                 crease: np.ndarray | None = None):
+        p = params or MatchParams()
+        self.set = ms
+        self.params = p
+        self.z = to_complex(ms.col, ms.row)
+        self.angle = ms.angle
+        self.n = len(ms)
+        self.xy = np.column_stack([self.z.real, self.z.imag])
+        self.tree = cKDTree(self.xy) if self.n else None
+        self.edges = neighbour_edges(ms, max(p.k_query, p.k_ref), p.edge_min, p.edge_max,
+                                     tree=self.tree)
+        self.descriptor = shape_context(ms, by_kind=p.by_kind)
+        self.crease = None if crease is None else crease_descriptor(ms, crease)
+        self.footprint = _footprint(ms)
+        self.area = float(abs(cv2.contourArea(self.footprint.astype(np.float32))))
+        self.centroid = complex(self.z.mean()) if self.n else 0j
+        self._hash = None
+
+    def __len__(self) -> int:
+        return self.n
+
+    def edge_hash(self) -> EdgeHash:
+        """Hash of this set's edges (built on first use)."""
+        if self._hash is None:
+            self._hash = EdgeHash(self.edges, self.params.edge_length_tol,
+                                  self.params.edge_angle_tol)
+        return self._hash
+
+
+def _footprint(ms: MinutiaSet) -> np.ndarray:
+    """Outline (4, 2) of the raster in the math frame: georef extent, else point bbox."""
+    if ms.georef is not None and ms.georef.width > 0 and ms.georef.height > 0:
+        c0, c1, r0, r1 = -0.5, ms.georef.width - 0.5, -0.5, ms.georef.height - 0.5
+    elif len(ms):
+        c0, c1 = ms.col.min() - 0.5, ms.col.max() + 0.5
+        r0, r1 = ms.row.min() - 0.5, ms.row.max() + 0.5
+    else:
+        c0 = c1 = r0 = r1 = 0.0
+    return np.array([[c0, -r0], [c1, -r0], [c1, -r1], [c0, -r1]], float)
+
+
+@dataclass
+class MatchResult:
+    """Outcome of :func:`compare` or :func:`localise`.
+
+    Attributes
+    ----------
+    decision : Decision
+    score : float
+        Significance score (see :func:`significance`); -inf when nothing was registered.
+    n_pairings : int
+    pairings : ndarray, shape (m, 2)
+        Index in A and index in B of each pairing.
+    transform : ndarray, shape (2, 3)
+        Pixel transform A -> B: ``[col', row'] = transform @ [col, row, 1]``; the form is
+        ``[[a, b, tx], [-b, a, ty]]`` with ``a = s cos(theta)``, ``b = s sin(theta)``.
+    rotation : float
+        theta (rad), CCW in the north-up map (minutia angles grow by theta).
+    scale : float
+    covariance : ndarray, shape (4, 4)
+        Covariance of (a, b, tx, ty) from the fit residuals.
+    rms : float
+        RMS pairing residual (px).
+    n_a, n_b : int
+        Minutiae in each set.
+    n_overlap : tuple of int
+        Minutiae of A inside B's footprint and of B inside A's, after the transform.
+    expected_chance : float
+        Pairings expected by chance at this transform (Poisson mean).
+    pairing_ratio : float
+        ``n_pairings**2 / (n_overlap_a * n_overlap_b)``, the classical normalised count.
+    reason : str
+        Why the decision is "no decision" or "no match", for logs and messages.
+    """
+
+    decision: Decision
+    score: float = -np.inf
+    n_pairings: int = 0
+    pairings: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.intp))
+    transform: np.ndarray = field(default_factory=lambda: np.full((2, 3), np.nan))
+    rotation: float = np.nan
+    scale: float = np.nan
+    covariance: np.ndarray = field(default_factory=lambda: np.full((4, 4), np.nan))
+    rms: float = np.nan
+    n_a: int = 0
+    n_b: int = 0
+    n_overlap: tuple[int, int] = (0, 0)
+    expected_chance: float = np.nan
+    pairing_ratio: float = 0.0
+    reason: str = ""
+
+    @property
+    def matched(self) -> bool:
+        """True when the decision is a match."""
+        return self.decision == Decision.MATCH
+
+    def apply(self, col, row) -> tuple[np.ndarray, np.ndarray]:
+        """Map pixel coordinates of A into B."""
+        col = np.asarray(col, float)
+        row = np.asarray(row, float)
+        m = self.transform
+        return m[0, 0] * col + m[0, 1] * row + m[0, 2], m[1, 0] * col + m[1, 1] * row + m[1, 2]
+
+    def point_covariance(self, col: float, row: float) -> np.ndarray:
+        """2x2 covariance (px^2) of the image in B of pixel (col, row) of A."""
+        j = np.array([[col, row, 1.0, 0.0], [row, -col, 0.0, 1.0]])
+        return j @ self.covariance @ j.T
+
+
+# --------------------------------------------------------------------------- candidates
+
+
+@dataclass
+class _Votes:
+    """Candidate edge correspondences: (ia -> ib) and (ja -> jb), rotation, weight."""
+
+    ia: np.ndarray
+    ja: np.ndarray
+    ib: np.ndarray
+    jb: np.ndarray
+    theta: np.ndarray
+    weight: np.ndarray
+
+
+def _similarity_matrix(a: MinutiaIndex, b: MinutiaIndex) -> np.ndarray:
+    s = a.descriptor @ b.descriptor.T
+    if a.crease is not None and b.crease is not None:
+        s = 0.5 * (s + np.maximum(a.crease @ b.crease.T, 0.0))
+    return s
+
+
+def _length_tol(p: MatchParams, length):
+    if p.estimate_scale:
+        return p.edge_length_tol + p.max_scale_change * length
+    return np.full(np.shape(length), p.edge_length_tol)
+
+
+def _hash_votes(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> _Votes:
+    ea = a.edges
+    kq = min(p.k_query, ea.k)
+    rows, cols = np.nonzero(ea.valid[:, :kq])
+    length = ea.length[rows, cols]
+    q, rb, cb = b.edge_hash().query(length, ea.beta_i[rows, cols], ea.beta_j[rows, cols],
+                                    _length_tol(p, length), p.edge_angle_tol)
+    ia, qa = rows[q], cols[q]
+    ja, jb = ea.j[ia, qa], b.edges.j[rb, cb]
+    theta = b.edges.direction[rb, cb] - ea.direction[ia, qa]
+    if p.use_descriptors:
+        s = np.maximum(_similarity_matrix(a, b), 0.0)
+        w = s[ia, rb] * s[ja, jb] + 0.05
+    else:
+        w = np.ones(len(ia))
+    return _Votes(ia, ja, rb, jb, theta, w)
+
+
+def _root_votes(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> _Votes:
+    s = _similarity_matrix(a, b)
+    k = min(p.k_roots, b.n)
+    top = np.argpartition(-s, k - 1, axis=1)[:, :k] if k < b.n else np.tile(
+        np.arange(b.n), (a.n, 1))
+    ra = np.repeat(np.arange(a.n), k)
+    rb = top.ravel()
+    ea, eb = a.edges, b.edges
+    kq, kr = min(p.k_query, ea.k), min(p.k_ref, eb.k)
+    la = ea.length[ra, :kq, None]
+    lb = eb.length[rb, None, :kr]
+    tol = _length_tol(p, la)
+    ok = (ea.valid[ra, :kq, None] & eb.valid[rb, None, :kr] & (np.abs(la - lb) <= tol)
+          & (np.abs(wrap_angle(ea.beta_i[ra, :kq, None] - eb.beta_i[rb, None, :kr]))
+             <= p.edge_angle_tol)
+          & (np.abs(wrap_angle(ea.beta_j[ra, :kq, None] - eb.beta_j[rb, None, :kr]))
+             <= p.edge_angle_tol))
+    r, qa, qb = np.nonzero(ok)
+    ia, ib = ra[r], rb[r]
+    ja, jb = ea.j[ia, qa], eb.j[ib, qb]
+    theta = eb.direction[ib, qb] - ea.direction[ia, qa]
+    w = np.maximum(s[ia, ib], 0.0) * np.maximum(s[ja, jb], 0.0) + 0.05
+    return _Votes(ia, ja, ib, jb, theta, w)
+
+
+# --------------------------------------------------------------------------- consensus
+
+
+@dataclass
+class _Hypothesis:
+    c: complex          # rotation (and scale) as a complex factor
+    t: complex          # translation: z_b = c * z_a + t
+    ia: np.ndarray      # supporting correspondences
+    ib: np.ndarray
+    support: float
+
+
+def _rotation_peaks(theta, w, p: MatchParams, n_peaks: int) -> np.ndarray:
+    nb = max(4, int(round(TWO_PI / p.rot_bin)))
+    u = np.mod(theta, TWO_PI) * (nb / TWO_PI) - 0.5
+    b0 = np.floor(u)
+    f = u - b0
+    b0 = b0.astype(np.intp) % nb
+    h = np.bincount(b0, w * (1 - f), nb) + np.bincount((b0 + 1) % nb, w * f, nb)
+    h = h + 0.5 * (np.roll(h, 1) + np.roll(h, -1))
+    is_peak = (h >= np.roll(h, 1)) & (h > np.roll(h, -1)) & (h > 0)
+    idx = np.nonzero(is_peak)[0]
+    idx = idx[np.argsort(-h[idx])][:n_peaks]
+    return (idx + 0.5) * (TWO_PI / nb)
+
+
+def _hypotheses(v: _Votes, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams):
+    if len(v.ia) == 0:
+        return []
+    mid_a = 0.5 * (a.z[v.ia] + a.z[v.ja]) - a.centroid
+    mid_b = 0.5 * (b.z[v.ib] + b.z[v.jb])
+    hyps = []
+    for th0 in _rotation_peaks(v.theta, v.weight, p, p.n_hypotheses):
+        near = np.abs(wrap_angle(v.theta - th0)) <= 1.5 * p.rot_bin
+        if not near.any():
+            continue
+        th = th0 + np.average(wrap_angle(v.theta[near] - th0), weights=v.weight[near])
+        sel = np.nonzero(np.abs(wrap_angle(v.theta - th)) <= 2.0 * p.rot_bin)[0]
+        c = np.exp(1j * th)
+        t = mid_b[sel] - c * mid_a[sel]   # where A's centroid lands in B
+        hyps.extend(_translation_peaks(t, sel, c, v, a, p, n_peaks=2))
+    hyps.sort(key=lambda h: -h.support)
+    return hyps[:p.n_hypotheses]
+
+
+def _translation_peaks(t, sel, c, v: _Votes, a: MinutiaIndex, p: MatchParams, n_peaks):
+    x0, y0 = t.real.min(), t.imag.min()
+    gx = ((t.real - x0) / p.trans_bin).astype(np.intp)
+    gy = ((t.imag - y0) / p.trans_bin).astype(np.intp)
+    nx, ny = gx.max() + 1, gy.max() + 1
+    w = v.weight[sel]
+    h = np.bincount(gy * nx + gx, w, nx * ny).reshape(ny, nx)
+    hp = np.pad(h, 1)
+    # 3x3 box sum so that a cluster split over cell borders still counts as one
+    box = sum(hp[dy:dy + ny, dx:dx + nx] for dy in range(3) for dx in range(3))
+    out = []
+    for _ in range(n_peaks):
+        k = int(np.argmax(box))
+        if box.flat[k] <= 0:
+            break
+        py, px = divmod(k, nx)
+        box[max(0, py - 2):py + 3, max(0, px - 2):px + 3] = 0
+        m = (np.abs(gx - px) <= 1) & (np.abs(gy - py) <= 1)
+        tc = complex(np.average(t[m], weights=w[m]))
+        s = sel[m]
+        ia = np.concatenate([v.ia[s], v.ja[s]])
+        ib = np.concatenate([v.ib[s], v.jb[s]])
+        out.append(_Hypothesis(c, tc - c * a.centroid, ia, ib, float(w[m].sum())))
+    return out
+
+
+# --------------------------------------------------------------------------- registration
+
+
+def fit_similarity(za, zb, w=None, scale: bool = False) -> tuple[complex, complex]:
+    """Least-squares transform ``zb ~ c * za + t`` (complex Procrustes / Umeyama).
+
+    Parameters
+    ----------
+    za, zb : ndarray of complex
+        Corresponding points in the math frame.
+    w : ndarray, optional
+        Weights.
+    scale : bool
+        Estimate a scale (``|c|`` free) or a rigid motion (``|c| = 1``).
+
+    Returns
+    -------
+    c, t : complex
+    """
+    w = np.ones(len(za)) if w is None else np.asarray(w, float)
+    ma = np.sum(w * za) / w.sum()
+    mb = np.sum(w * zb) / w.sum()
+    num = np.sum(w * np.conj(za - ma) * (zb - mb))
+    if scale:
+        c = num / max(np.sum(w * np.abs(za - ma) ** 2), 1e-12)
+    else:
+        c = num / max(abs(num), 1e-12)
+    return complex(c), complex(mb - c * ma)
+
+
+def _ransac(za, zb, dang, p: MatchParams, rng, c0: complex, t0: complex):
+    """Best transform over 2-point samples (and the Hough guess); inlier mask."""
+    m = len(za)
+    n_it = min(p.ransac_iterations, m * (m - 1) // 2)
+    cs, ts = [c0], [t0]
+    if n_it > 0:
+        i = rng.integers(0, m, n_it)
+        j = (i + rng.integers(1, m, n_it)) % m
+        dz = za[j] - za[i]
+        ok = (np.abs(dz) > p.edge_min) & (np.abs(zb[j] - zb[i]) > p.edge_min)
+        c = (zb[j] - zb[i])[ok] / dz[ok]
+        if not p.estimate_scale:
+            c = c / np.abs(c)
+        t = 0.5 * (zb[i] + zb[j])[ok] - c * 0.5 * (za[i] + za[j])[ok]
+        cs.extend(c)
+        ts.extend(t)
+    cs, ts = np.asarray(cs), np.asarray(ts)
+    if p.estimate_scale:
+        keep = np.abs(np.log(np.abs(cs))) <= p.max_scale_change
+        keep[0] = True
+        cs, ts = cs[keep], ts[keep]
+    res = np.abs(cs[:, None] * za[None, :] + ts[:, None] - zb[None, :])
+    ang = np.abs(wrap_angle(dang[None, :] - np.angle(cs)[:, None]))
+    inl = (res <= p.pos_tol) & (ang <= p.angle_tol)
+    best = int(np.argmax(inl.sum(axis=1)))
+    return cs[best], ts[best], inl[best]
+
+
+def _pair(a: MinutiaIndex, b: MinutiaIndex, c: complex, t: complex, p: MatchParams,
+          k: int = 3):
+    """One-to-one pairings (ia, ib) within tolerance after ``z -> c z + t``."""
+    zt = c * a.z + t
+    k = min(k, b.n)
+    d, j = b.tree.query(np.column_stack([zt.real, zt.imag]), k=k,
+                        distance_upper_bound=p.pos_tol)
+    d, j = d.reshape(a.n, k), j.reshape(a.n, k)
+    i = np.repeat(np.arange(a.n), k)
+    d, j = d.ravel(), j.ravel()
+    ok = np.isfinite(d)
+    i, j, d = i[ok], j[ok], d[ok]
+    dang = np.abs(wrap_angle(b.angle[j] - a.angle[i] - np.angle(c)))
+    ok = dang <= p.angle_tol
+    i, j = i[ok], j[ok]
+    cost = d[ok] / p.pos_tol + dang[ok] / p.angle_tol
+    return _greedy_one_to_one(i, j, cost)
+
+
+def _greedy_one_to_one(i, j, cost, rounds: int = 3):
+    """Greedy one-to-one matching by increasing cost, vectorised as rounds of mutual bests.
+
+    In each round a candidate is taken when it is the cheapest remaining one of both its
+    ends; taken ends are then removed. On these sparse graphs three rounds are the greedy
+    result in practice.
+    """
+    order = np.argsort(cost, kind="stable")
+    i, j = i[order], j[order]
+    n_i = int(i.max(initial=-1)) + 1
+    n_j = int(j.max(initial=-1)) + 1
+    out_i, out_j = [], []
+    for _ in range(rounds):
+        if len(i) == 0:
+            break
+        k = np.arange(len(i))
+        first_i = np.empty(n_i, np.intp)
+        first_i[i[::-1]] = k[::-1]      # the last write wins: first occurrence of each i
+        first_j = np.empty(n_j, np.intp)
+        first_j[j[::-1]] = k[::-1]
+        take = (first_i[i] == k) & (first_j[j] == k)
+        out_i.append(i[take])
+        out_j.append(j[take])
+        used_i = np.zeros(n_i, bool)
+        used_i[i[take]] = True
+        used_j = np.zeros(n_j, bool)
+        used_j[j[take]] = True
+        keep = ~used_i[i] & ~used_j[j]
+        i, j = i[keep], j[keep]
+    if not out_i:
+        return np.zeros((0, 2), np.intp)
+    return np.column_stack([np.concatenate(out_i), np.concatenate(out_j)])
+
+
+def _register(h: _Hypothesis, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, rng):
+    """RANSAC + least squares on a hypothesis' correspondences; pairings over all minutiae."""
+    key = np.unique(h.ia * b.n + h.ib)
+    ia, ib = key // b.n, key % b.n
+    c, t = h.c, h.t
+    if len(ia) >= 2:
+        c, t, inl = _ransac(a.z[ia], b.z[ib], b.angle[ib] - a.angle[ia], p, rng, h.c, h.t)
+        if inl.sum() >= 2:
+            c, t = fit_similarity(a.z[ia[inl]], b.z[ib[inl]], scale=p.estimate_scale)
+    return c, t, _pair(a, b, c, t, p)
+
+
+def _refine(a: MinutiaIndex, b: MinutiaIndex, c, t, pairs, p: MatchParams, iterations=2):
+    """Alternate least squares on the pairings and guided re-pairing."""
+    for _ in range(iterations):
+        if len(pairs) < 2:
+            break
+        c1, t1 = fit_similarity(a.z[pairs[:, 0]], b.z[pairs[:, 1]], scale=p.estimate_scale)
+        if p.estimate_scale and abs(math.log(abs(c1))) > p.max_scale_change:
+            break
+        new = _pair(a, b, c1, t1, p)
+        if len(new) < len(pairs):
+            break
+        c, t, pairs = c1, t1, new
+    return c, t, pairs
+
+
+# --------------------------------------------------------------------------- score
+
+
+def poisson_log10_sf(m: int, lam: float) -> float:
+    """log10 P(X >= m) for X ~ Poisson(lam), accurate far into the tail."""
+    if m <= 0:
+        return 0.0
+    if lam <= 0:
+        return -np.inf
+    if m <= lam + 1:
+        return float(np.log10(max(gammainc(m, lam), 1e-300)))
+    # leading term times the geometric bound on the rest of the tail: exact to a few %
+    log_pmf = m * math.log(lam) - lam - gammaln(m + 1)
+    return float((log_pmf - math.log1p(-lam / (m + 1))) / math.log(10))
+
+
+def significance(n_pairings: int, n_a: int, n_b: int, area: float, search_area: float,
+                 radius_a: float, p: MatchParams) -> tuple[float, float]:
+    """Score of a registration: how unlikely its pairings are between unrelated sets.
+
+    Under the null hypothesis (different places) the ``n_b`` minutiae of B in the overlap of
+    ``area`` px^2 are unrelated to A's ``n_a``; each of A's minutiae then finds a partner
+    within ``pos_tol`` and ``angle_tol`` with probability ``n_b * pi pos_tol^2 / area *
+    angle_tol / pi``, so the number of chance pairings is about Poisson with mean ``lam``.
+    The matcher tried many transforms, so the tail probability is multiplied by the number
+    of distinguishable transforms in the search space (``search_area / (pi pos_tol^2)``
+    translations times ``2 pi / (pos_tol / radius_a)`` rotations, a Bonferroni bound).
+
+    Returns
+    -------
+    score : float
+        ``-log10(P(X >= n_pairings) * n_transforms)``: about the base-10 logarithm of
+        how many comparisons of unrelated terrain it takes to see one this good by chance.
+    lam : float
+        The expected number of chance pairings.
+    """
+    cell = math.pi * p.pos_tol ** 2
+    lam = n_a * n_b * cell / max(area, cell) * min(1.0, p.angle_tol / math.pi)
+    lam = min(lam, float(min(n_a, n_b)))
+    n_rot = TWO_PI / min(math.pi, p.pos_tol / max(radius_a, p.pos_tol))
+    log_trials = math.log10(max(search_area / cell, 1.0) * n_rot)
+    return -poisson_log10_sf(n_pairings, lam) - log_trials, lam
+
+
+def calibrate_threshold(non_pva_scores, false_match_rate: float) -> float:
+    """Score threshold giving at most ``false_match_rate`` accepted non-PVA comparisons.
+
+    With enough samples (``n * rate >= 1``) this is the empirical upper quantile (the
+    smallest threshold with at most ``rate * n`` scores at or above it). Rarer rates are
+    extrapolated with an exponential tail fitted to the top 10% of scores (peaks over
+    threshold, generalised Pareto with zero shape), which the significance score follows
+    when its chance model is right (P(score > s) ~ 10**-s).
+
+    Parameters
+    ----------
+    non_pva_scores : array_like
+        Scores of comparisons between different places (non-finite ones are ignored as
+        "no registration").
+    false_match_rate : float
+        Accepted fraction of non-PVA comparisons, in (0, 1).
+
+    Returns
+    -------
+    float
+        The threshold (a score must be >= it to match).
+    """
+    s = np.sort(np.asarray(non_pva_scores, float))
+    s = s[np.isfinite(s)]
+    if not 0 < false_match_rate < 1:
+        raise ValueError("calibrate_threshold: false_match_rate must be in (0, 1)")
+    if len(s) == 0:
+        raise ValueError("calibrate_threshold: no finite non-PVA scores")
+    n = len(s)
+    allowed = int(math.floor(false_match_rate * n))
+    if allowed >= 1:
+        return float(np.nextafter(s[n - allowed - 1], np.inf))
+    n_tail = max(5, n // 10)
+    if n < n_tail + 1:
+        return float(np.nextafter(s[-1], np.inf))
+    u = s[n - n_tail - 1]
+    beta = max(float(np.mean(s[n - n_tail:] - u)), 1e-6)
+    thr = u + beta * math.log((n_tail / n) / false_match_rate)
+    return float(max(thr, np.nextafter(s[-1], np.inf)))
+
+
+# --------------------------------------------------------------------------- front ends
+
+
+def _as_index(x, p: MatchParams, crease=None) -> MinutiaIndex:
+    if isinstance(x, MinutiaIndex):
+        return x
+    return MinutiaIndex(x, p, crease)
+
+
+def _overlap(a: MinutiaIndex, b: MinutiaIndex, c: complex, t: complex):
+    """Minutiae of A inside B's footprint, of B inside A's (mapped), and the overlap area."""
+    fa = a.footprint[:, 0] + 1j * a.footprint[:, 1]
+    fa_b = c * fa + t
+    poly_a = np.column_stack([fa_b.real, fa_b.imag]).astype(np.float32)
+    poly_b = b.footprint.astype(np.float32)
+    area, _ = cv2.intersectConvexConvex(poly_a, poly_b)
+    zt = c * a.z + t
+    in_b = _inside(zt, b.footprint)
+    zb_a = (b.z - t) / c
+    in_a = _inside(zb_a, a.footprint)
+    return int(in_b.sum()), int(in_a.sum()), float(area)
+
+
+def _inside(z, poly) -> np.ndarray:
+    # footprints are axis-aligned rectangles in their own frame
+    return ((z.real >= poly[:, 0].min()) & (z.real <= poly[:, 0].max())
+            & (z.imag >= poly[:, 1].min()) & (z.imag <= poly[:, 1].max()))
+
+
+def _covariance(za, zb, c: complex, t: complex, scale: bool) -> tuple[np.ndarray, float]:
+    """Covariance of pixel-frame (a, b, tx, ty) from the residuals of the fit."""
+    m = len(za)
+    r = zb - (c * za + t)
+    n_par = 4 if scale else 3
+    rms = float(np.sqrt(np.mean(np.abs(r) ** 2))) if m else np.nan
+    if m * 2 <= n_par:
+        return np.full((4, 4), np.nan), rms
+    sigma2 = float(np.sum(np.abs(r) ** 2) / (2 * m - n_par))
+    col, row = from_complex(za)
+    # pixel model: col' = a col + b row + tx ; row' = -b col + a row + ty
+    j = np.zeros((2 * m, 4))
+    j[0::2] = np.column_stack([col, row, np.ones(m), np.zeros(m)])
+    j[1::2] = np.column_stack([row, -col, np.zeros(m), np.ones(m)])
+    try:
+        cov = sigma2 * np.linalg.inv(j.T @ j)
+    except np.linalg.LinAlgError:
+        cov = np.full((4, 4), np.nan)
+    return cov, rms
+
+
+def _pixel_transform(c: complex, t: complex) -> np.ndarray:
+    a, b = c.real, c.imag
+    return np.array([[a, b, t.real], [-b, a, -t.imag]])
+
+
+class Matcher:
+    """Minutiae matcher (settings in the constructor, scikit-image style).
+
+    Parameters
+    ----------
+    params : MatchParams, optional
+    **overrides
+        Fields of :class:`MatchParams` to change, e.g. ``Matcher(threshold=4.0)``.
+    """
+
+    def __init__(self, params: MatchParams | None = None, **overrides):
+        self.params = replace(params or MatchParams(), **overrides)
+
+    def index(self, ms: MinutiaSet, crease: np.ndarray | None = None) -> MinutiaIndex:
+        """Prepare a set for repeated matching."""
+        return MinutiaIndex(ms, self.params, crease)
+
+    def compare(self, a, b, crease_a=None, crease_b=None) -> MatchResult:
+        """Block-vs-block similarity.
+
+        Parameters
+        ----------
+        a, b : MinutiaSet or MinutiaIndex
+        crease_a, crease_b : ndarray, optional
+            Crease images (used only when building indexes here).
+
+        Returns
+        -------
+        MatchResult
+            Transform maps A pixels to B pixels.
+        """
+        a = _as_index(a, self.params, crease_a)
+        b = _as_index(b, self.params, crease_b)
+        ra = float(np.sqrt(a.area / math.pi))
+        rb = float(np.sqrt(b.area / math.pi))
+        search = math.pi * (ra + rb) ** 2   # centre offsets with any overlap
+        return self._match(a, b, search)
+
+    def localise(self, camera, landmark, crease_camera=None,
+                 crease_landmark=None) -> MatchResult:
+        """Find a camera minutia set inside a (much larger) landmark region.
+
+        Parameters
+        ----------
+        camera : MinutiaSet or MinutiaIndex
+        landmark : MinutiaSet or MinutiaIndex
+            Build a :class:`MinutiaIndex` once when the same region serves several frames.
+
+        Returns
+        -------
+        MatchResult
+            Transform maps camera pixels to landmark pixels, with covariance; use
+            :meth:`MatchResult.point_covariance` for e.g. the image centre.
+        """
+        a = _as_index(camera, self.params, crease_camera)
+        b = _as_index(landmark, self.params, crease_landmark)
+        return self._match(a, b, max(b.area, 1.0))
+
+    def _match(self, a: MinutiaIndex, b: MinutiaIndex, search_area: float) -> MatchResult:
+        p = self.params
+        base = MatchResult(Decision.NO_DECISION, n_a=a.n, n_b=b.n)
+        if min(a.n, b.n) < max(p.min_minutiae, 2):
+            base.reason = (f"too few minutiae ({a.n}, {b.n}); at least {p.min_minutiae} "
+                           "needed in each set")
+            return base
+        radius_a = float(np.sqrt(np.mean(np.abs(a.z - a.centroid) ** 2)))
+        # B's minutiae that can fall under A (all of them for blocks of equal size)
+        n_b_under_a = b.n * min(1.0, a.area / max(b.area, 1.0))
+        best_possible, _ = significance(int(min(a.n, n_b_under_a)), a.n, n_b_under_a,
+                                        a.area, search_area, radius_a, p)
+        if best_possible < p.threshold:
+            base.reason = ("too few minutiae: even a perfect match would score "
+                           f"{best_possible:.2f} < threshold {p.threshold:.2f}")
+            return base
+        method = p.candidates
+        if method == "auto":
+            method = "roots" if b.n > p.roots_above else "hash"
+        votes = _root_votes(a, b, p) if method == "roots" else _hash_votes(a, b, p)
+        rng = np.random.default_rng(p.seed)
+        best = None
+        for h in _hypotheses(votes, a, b, p):
+            c, t, pairs = _register(h, a, b, p, rng)
+            if best is None or len(pairs) > len(best[2]):
+                best = (c, t, pairs)
+        base.decision = Decision.NO_MATCH
+        if best is None or len(best[2]) < 2:
+            base.reason = "no consistent transform"
+            return base
+        c, t, pairs = _refine(a, b, *best, p)
+        n_ao, n_bo, area = _overlap(a, b, c, t)
+        n_ao, n_bo = max(n_ao, len(pairs)), max(n_bo, len(pairs))
+        score, lam = significance(len(pairs), n_ao, n_bo, area, search_area, radius_a, p)
+        cov, rms = _covariance(a.z[pairs[:, 0]], b.z[pairs[:, 1]], c, t, p.estimate_scale)
+        ok = score >= p.threshold
+        return MatchResult(
+            decision=Decision.MATCH if ok else Decision.NO_MATCH, score=score,
+            n_pairings=len(pairs), pairings=pairs, transform=_pixel_transform(c, t),
+            rotation=float(np.angle(c)), scale=float(abs(c)), covariance=cov, rms=rms,
+            n_a=a.n, n_b=b.n, n_overlap=(n_ao, n_bo), expected_chance=lam,
+            pairing_ratio=len(pairs) ** 2 / max(n_ao * n_bo, 1),
+            reason="" if ok else f"score {score:.2f} below threshold {p.threshold:.2f}")
+
+
+def compare(a, b, params: MatchParams | None = None, **overrides) -> MatchResult:
+    """Block-vs-block comparison with default or given settings (see :class:`Matcher`)."""
+    return Matcher(params, **overrides).compare(a, b)
+
+
+def localise(camera, landmark, params: MatchParams | None = None,
+             **overrides) -> MatchResult:
+    """Camera-in-landmark-region localisation (see :meth:`Matcher.localise`)."""
+    return Matcher(params, **overrides).localise(camera, landmark)

@@ -1,0 +1,216 @@
+"""Behaviour of the minutiae descriptors and matcher on synthetic drainage-like sets."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+from synthetic_minutiae import (  # noqa: E402
+    crop_set,
+    rigid_transform,
+    terrain_minutiae,
+    transform_set,
+)
+
+from terrain_nav_ros.core.descriptors import (  # noqa: E402
+    EdgeHash,
+    crease_descriptor,
+    neighbour_edges,
+    shape_context,
+    wrap_angle,
+)
+from terrain_nav_ros.core.georef import GeoReference  # noqa: E402
+from terrain_nav_ros.core.matching import (  # noqa: E402
+    Decision,
+    Matcher,
+    calibrate_threshold,
+    compare,
+    localise,
+)
+from terrain_nav_ros.core.minutia_set import MinutiaSet  # noqa: E402
+
+BLOCK = 256
+
+
+@pytest.fixture(scope="module")
+def region():
+    """A 512x512 synthetic drainage pattern: minutiae and skeleton."""
+    return terrain_minutiae((512, 512), seed=11)
+
+
+@pytest.fixture(scope="module")
+def block(region):
+    return crop_set(region[0], 128, 128, BLOCK, BLOCK)
+
+
+def _corner_error(result, m_true, w, h):
+    corners = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1], [w / 2, h / 2]], float)
+    col, row = result.apply(corners[:, 0], corners[:, 1])
+    ref = corners @ m_true[:, :2].T + m_true[:, 2]
+    return float(np.max(np.hypot(col - ref[:, 0], row - ref[:, 1])))
+
+
+def _rotated_copy(ms, degrees, seed, **noise):
+    m = rigid_transform(np.radians(degrees), 7.0, -4.0, centre=(BLOCK / 2, BLOCK / 2))
+    out, src = transform_set(ms, m, (BLOCK, BLOCK), rng=seed, **noise)
+    return out, src, m
+
+
+def test_synthetic_block_is_realistic(block):
+    # the issue's blocks hold about 150 minutiae of both kinds
+    assert 100 <= len(block) <= 220
+    assert set(np.unique(block.kind)) == {1, 3}
+
+
+@pytest.mark.parametrize("degrees", [0.0, 37.0, 90.0, 180.0, -123.0])
+def test_perturbed_copy_matched_with_right_transform(block, degrees):
+    b, src, m = _rotated_copy(block, degrees, seed=int(degrees) % 7)
+    r = compare(block, b)
+    assert r.decision == Decision.MATCH, r.reason
+    assert _corner_error(r, m, BLOCK, BLOCK) < 1.0
+    assert abs(wrap_angle(r.rotation - np.radians(degrees))) < np.radians(1.0)
+    # pairings are one-to-one and mostly the true correspondences
+    assert len(np.unique(r.pairings[:, 0])) == len(np.unique(r.pairings[:, 1])) == r.n_pairings
+    correct = src[r.pairings[:, 1]] == r.pairings[:, 0]
+    assert correct.mean() > 0.9
+    assert r.n_pairings > 0.6 * min(r.n_overlap)
+    assert np.all(np.isfinite(r.covariance)) and r.rms < 3.0
+
+
+def test_score_is_rotation_invariant(block):
+    # a rotated square crop loses its corners, so compare the paired fraction of the overlap
+    for deg in (0.0, 61.0, 150.0, 270.0):
+        b, _, m = _rotated_copy(block, deg, seed=3, pos_sigma=0.0, angle_sigma=0.0,
+                                missing=0.0, spurious=0.0)
+        r = compare(block, b)
+        assert r.decision == Decision.MATCH
+        assert r.n_pairings >= 0.98 * min(r.n_overlap)
+        assert _corner_error(r, m, BLOCK, BLOCK) < 0.05
+
+
+def test_unrelated_blocks_rejected():
+    scores = []
+    sets = [crop_set(terrain_minutiae((384, 384), seed=100 + k)[0], 64, 64, BLOCK, BLOCK)
+            for k in range(5)]
+    matcher = Matcher()
+    idx = [matcher.index(s) for s in sets]
+    for i in range(len(idx)):
+        for j in range(i + 1, len(idx)):
+            r = matcher.compare(idx[i], idx[j])
+            assert r.decision == Decision.NO_MATCH, (i, j, r.score, r.n_pairings)
+            scores.append(r.score)
+    assert max(scores) < matcher.params.threshold
+
+
+def test_localise_rotated_crop_in_region(region):
+    ms = region[0]
+    # camera: a 128x128 view of the region rotated by 25 degrees, centred at (300, 210)
+    theta = np.radians(25.0)
+    centre_cam = np.array([64.0, 64.0])
+    target = np.array([300.0, 210.0])
+    # camera -> region transform, and its inverse applied to the region minutiae
+    c, s = np.cos(theta), np.sin(theta)
+    cam_to_reg = np.column_stack([[[c, s], [-s, c]], target - np.array([[c, s], [-s, c]])
+                                  @ centre_cam])
+    inv = np.linalg.inv(np.vstack([cam_to_reg, [0, 0, 1]]))[:2]
+    cam, _ = transform_set(ms, inv, (128, 128), rng=5)
+    assert len(cam) >= 15
+    r = localise(cam, ms)
+    assert r.decision == Decision.MATCH, r.reason
+    col, row = r.apply(64.0, 64.0)
+    assert np.hypot(col - target[0], row - target[1]) < 1.0
+    assert _corner_error(r, cam_to_reg, 128, 128) < 1.5
+    cov = r.point_covariance(64.0, 64.0)
+    assert np.all(np.linalg.eigvalsh(cov) > 0) and np.trace(cov) < 1.0
+
+
+def test_localise_rejects_a_view_from_elsewhere(region):
+    other = terrain_minutiae((256, 256), seed=999)[0]
+    cam = crop_set(other, 64, 64, 128, 128)
+    r = localise(cam, region[0])
+    assert r.decision != Decision.MATCH
+
+
+def test_too_few_minutiae_is_no_decision(block):
+    few = block.subset(np.arange(6))
+    r = compare(few, block)
+    assert r.decision == Decision.NO_DECISION and "too few" in r.reason
+    assert compare(MinutiaSet.empty("flat"), block).decision == Decision.NO_DECISION
+
+
+def test_too_few_to_ever_reach_threshold_is_no_decision(block):
+    # enough minutiae for the floor, but a perfect match could not be significant
+    r = compare(block.subset(np.arange(12)), block, threshold=40.0)
+    assert r.decision == Decision.NO_DECISION
+
+
+def test_calibrate_threshold_empirical_and_extrapolated():
+    rng = np.random.default_rng(0)
+    scores = rng.exponential(1.0, 2000)
+    thr = calibrate_threshold(scores, 0.01)
+    assert np.mean(scores >= thr) <= 0.01
+    assert np.mean(scores >= np.nextafter(thr, -np.inf) - 0.05) > 0.005
+    # beyond the sample: extrapolated above the maximum, near the exponential quantile
+    thr_rare = calibrate_threshold(scores, 1e-5)
+    assert thr_rare > scores.max()
+    assert abs(thr_rare - np.log(1e5)) < 2.0
+    with pytest.raises(ValueError):
+        calibrate_threshold(scores, 0.0)
+
+
+def test_shape_context_rotation_invariant(block):
+    b, _, _ = _rotated_copy(block, 90.0, seed=0, pos_sigma=0.0, angle_sigma=0.0,
+                            missing=0.0, spurious=0.0)
+    # compare descriptors of minutiae far from the border (no neighbours lost)
+    inner = np.hypot(block.col - 128, block.row - 128) < 40
+    da = shape_context(block)[inner]
+    b_sorted = b.subset(np.lexsort((b.row, b.col)))
+    # find each inner minutia's image in b
+    m = rigid_transform(np.radians(90.0), 7.0, -4.0, centre=(128, 128))
+    col = m[0, 0] * block.col + m[0, 1] * block.row + m[0, 2]
+    row = m[1, 0] * block.col + m[1, 1] * block.row + m[1, 2]
+    d = np.hypot(b_sorted.col[None] - col[inner, None], b_sorted.row[None] - row[inner, None])
+    db = shape_context(b_sorted)[np.argmin(d, axis=1)]
+    assert np.median(np.sum(da * db, axis=1)) > 0.999
+
+
+def test_crease_descriptor_rotation_invariant(region):
+    ms, skel = region
+    inner = ms.subset((np.abs(ms.col - 256) < 150) & (np.abs(ms.row - 256) < 150))
+    da = crease_descriptor(inner, skel)
+    # np.rot90 turns the map 90 degrees CCW: (col, row) -> (row, W-1-col)
+    rot = MinutiaSet(inner.row, 511 - inner.col, inner.angle + np.pi / 2, inner.kind,
+                     inner.quality)
+    db = crease_descriptor(rot, np.rot90(skel))
+    assert np.median(np.sum(da * db, axis=1)) > 0.99
+
+
+def test_edge_hash_equals_brute_force(block):
+    e = neighbour_edges(block, k=8)
+    h = EdgeHash(e, 4.0, np.radians(25))
+    rows, cols = np.nonzero(e.valid)
+    rng = np.random.default_rng(1)
+    ql = e.length[rows, cols] + rng.normal(0, 2, len(rows))
+    qb1 = e.beta_i[rows, cols] + rng.normal(0, 0.2, len(rows))
+    qb2 = e.beta_j[rows, cols] + rng.normal(0, 0.2, len(rows))
+    q, r2, c2 = h.query(ql, np.mod(qb1, 2 * np.pi), np.mod(qb2, 2 * np.pi), 4.0,
+                        np.radians(25))
+    got = set(zip(q.tolist(), (r2 * e.k + c2).tolist(), strict=True))
+    ok = ((np.abs(ql[:, None] - e.length[rows, cols][None]) <= 4.0)
+          & (np.abs(wrap_angle(qb1[:, None] - e.beta_i[rows, cols][None])) <= np.radians(25))
+          & (np.abs(wrap_angle(qb2[:, None] - e.beta_j[rows, cols][None])) <= np.radians(25)))
+    qi, si = np.nonzero(ok)
+    want = set(zip(qi.tolist(), (rows[si] * e.k + cols[si]).tolist(), strict=True))
+    assert got == want
+
+
+def test_georeferenced_sets_keep_their_footprint(block):
+    geo = GeoReference(1000.0, 2000.0, 2.5, BLOCK, BLOCK)
+    a = MinutiaSet(block.col, block.row, block.angle, block.kind, block.quality, georef=geo)
+    r = compare(a, a)
+    assert r.decision == Decision.MATCH
+    assert r.n_pairings == len(a)
+    assert np.allclose(r.transform, [[1, 0, 0], [0, 1, 0]], atol=1e-6)
