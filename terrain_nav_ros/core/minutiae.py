@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .creases import CreaseDetector, CreaseParams, CreaseResult, noise_hessian_std
+from .creases import CreaseDetector, CreaseParams, CreaseResult
 from .georef import GeoReference
 from .minutia_set import BIFURCATION, ENDING, MinutiaSet
 
@@ -236,7 +236,7 @@ class _Candidates:
     angle: np.ndarray = None
     quality: np.ndarray = None
     branch_len: np.ndarray = None
-    n_branches: np.ndarray = None
+    branch_angle: np.ndarray = None
     keep: np.ndarray = None
 
 
@@ -318,28 +318,48 @@ def _stem_direction(vec):
 # --------------------------------------------------------------------------- validation
 
 
-def _drop_spurs_and_short(c: _Candidates, length, cnt, p: MinutiaParams):
-    """Spurs: ending whose branch is short and ends at a junction -> drop with that junction.
+def _drop_spurs_and_short(c: _Candidates, length, cnt, field_a, p: MinutiaParams):
+    """Spurs and short creases, from the branch lengths of the endings.
 
-    Short isolated creases: both endings dropped.
+    * One short ending branch at a bifurcation is a spur: the crease goes on, so both the
+      ending and the bifurcation are dropped.
+    * Two or more short ending branches at one bifurcation are the blunt end of a crease,
+      which skeletonisation splits into a small fork: they become one ending at the
+      bifurcation, pointing along its longest branch.
+    * Other short ending branches are short isolated creases: dropped.
     """
     end = c.kind == ENDING
-    blen = length[:, 0]
-    short = end & (blen < max(p.spur_length, 1))
+    short = end & (length[:, 0] < max(p.spur_length, 1))
     bif_idx = np.flatnonzero(c.kind == BIFURCATION)
     if short.any() and len(bif_idx):
         tree = cKDTree(np.column_stack([c.row[bif_idx], c.col[bif_idx]]))
-        d, j = tree.query(np.column_stack([c.row[short], c.col[short]]),
+        s_idx = np.flatnonzero(short)
+        d, j = tree.query(np.column_stack([c.row[s_idx], c.col[s_idx]]),
                           distance_upper_bound=p.spur_length + 3)
         hit = np.isfinite(d)
-        c.keep[np.flatnonzero(short)[hit]] = False
-        c.keep[bif_idx[j[hit]]] = False
-        short[np.flatnonzero(short)[hit]] = False
-    # Remaining short endings: isolated short creases (or spurs from lost junctions).
-    tiny = end & (blen < p.min_crease_length) & (cnt[:, 0] < p.min_crease_length)
-    tiny &= ~np.isnan(c.angle)
+        c.keep[s_idx[hit]] = False
+        short[s_idx[hit]] = False
+        n_short = np.bincount(j[hit], minlength=len(bif_idx))
+        spur = bif_idx[n_short == 1]
+        c.keep[spur] = False
+        blunt = bif_idx[n_short >= 2]
+        c.kind[blunt] = ENDING
+        c.angle[blunt] = _combine_angles(field_a[blunt], c.branch_angle[blunt], p)
+    tiny = short & (cnt[:, 0] < p.min_crease_length)
     c.keep[tiny] = False
     c.keep[end & (length[:, 0] == 0)] = False  # ending not on any branch: noise pixel
+
+
+def _combine_angles(field_a, traced, p: MinutiaParams):
+    """Orientation field (mod pi) disambiguated by the traced branch direction.
+
+    The traced direction wins where the two disagree by more than ``field_tolerance``
+    (junctions, sharp bends) and NaN stays NaN (nothing traced).
+    """
+    cand = np.where(_angdiff(field_a, traced) <= np.pi / 2, field_a, field_a + np.pi)
+    use_field = _angdiff(cand, traced) <= np.deg2rad(p.field_tolerance)
+    ang = np.where(use_field, cand, traced)
+    return np.mod(np.where(np.isnan(traced), np.nan, ang), 2 * np.pi)
 
 
 def _drop_broken_pairs(c: _Candidates, p: MinutiaParams):
@@ -428,23 +448,17 @@ def _minutiae_of_skeleton(skel, cres: CreaseResult, angle_field, coherence, dist
                                                            2 * p.trace_length)):
         vec[sel], cnt[sel], length[sel] = _branches(skel, cn, rows[sel], cols[sel], radius)
     traced = np.where(kind == ENDING, _enu_angle(vec[:, 0]), _stem_direction(vec))
-    # Orientation field (mod pi) disambiguated by the traced branch; trust the branch where
-    # they disagree (junctions, sharp bends) or where nothing could be traced.
+    c.branch_angle = _enu_angle(vec[:, 0])
     field_a = angle_field[rows, cols].astype(float)
-    cand = np.where(_angdiff(field_a, traced) <= np.pi / 2, field_a, field_a + np.pi)
-    use_field = _angdiff(cand, traced) <= np.deg2rad(p.field_tolerance)
-    ang = np.where(use_field, cand, traced)
-    ang = np.where(np.isnan(traced), np.nan, ang)
-    c.angle = np.mod(ang, 2 * np.pi)
+    c.angle = _combine_angles(field_a, traced, p)
     # Quality: field coherence x crease contrast (SNR) x how much branch supports it.
-    snr = np.abs(cres.contrast[rows, cols]) / max(
-        noise_hessian_std(cres.noise, cp.contrast_sigma), 1e-12)
-    q_snr = 1.0 - np.exp(-snr / (2.0 * max(cp.contrast_snr, 1.0)))
+    snr = np.abs(cres.contrast[rows, cols]) / max(cres.noise, 1e-12)
+    q_snr = 1.0 - np.exp(-snr / (4.0 * max(cp.contrast_snr, 1.0)))
     support = np.clip(cnt[:, 0] / np.where(kind == ENDING, 0.6, 1.2) / p.trace_length, 0, 1)
     c.quality = (coherence[rows, cols] * q_snr * support).astype(float)
     c.keep &= dist_border[rows, cols] >= p.border_margin
+    _drop_spurs_and_short(c, length, cnt, field_a, p)
     c.keep &= ~np.isnan(c.angle)
-    _drop_spurs_and_short(c, length, cnt, p)
     _drop_broken_pairs(c, p)
     _drop_duplicates_and_clusters(c, p)
     c.keep &= c.quality >= p.min_quality

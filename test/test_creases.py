@@ -1,0 +1,150 @@
+"""Crease extraction (dissertation 3.2): diffusion, MLSEC-ST, masks, skeleton."""
+
+import numpy as np
+import pytest
+
+from terrain_nav_ros.core.creases import (
+    CreaseDetector,
+    CreaseParams,
+    crease_diffusion,
+    diffusion_tensor,
+    estimate_noise,
+    mlsec_st,
+    prepare_input,
+)
+
+
+def line_image(n=128, width=3.0, depth=100.0, row=None, bright=False):
+    """Horizontal Gaussian-profile line (dark valley unless ``bright``) on grey 150."""
+    rr = np.arange(n, dtype=float)[:, None] - (n / 2 if row is None else row)
+    profile = depth * np.exp(-(rr**2) / (2 * width**2))
+    return np.broadcast_to(150.0 + (profile if bright else -profile), (n, n)).copy()
+
+
+def test_defaults_are_table_3_1():
+    p = CreaseParams()
+    assert (p.iterations, p.sigma, p.w1, p.rho, p.w2) == (5, 1.0, 5, 1.0, 3)
+    assert (p.epsilon, p.alpha, p.beta) == (0.001, 1.0, 1.0)
+
+
+@pytest.mark.parametrize("bad", [
+    dict(iterations=-1), dict(iterations=2.5), dict(sigma=0), dict(rho=-1.0),
+    dict(w1=4), dict(w2=0), dict(epsilon=0.0), dict(epsilon=1.0), dict(alpha=1.5),
+    dict(beta=-0.1), dict(time_step=0.3), dict(threshold=0.0), dict(threshold=2.5),
+    dict(threshold_low=0.9), dict(min_area=-1), dict(polarity="creek"),
+    dict(contrast_snr=-1.0), dict(mlsec_sigma=float("nan")),
+])
+def test_bad_params_raise(bad):
+    with pytest.raises(ValueError):
+        CreaseParams(**bad)
+
+
+def test_from_dict_rejects_unknown_keys():
+    assert CreaseParams.from_dict({"iterations": 3}).iterations == 3
+    with pytest.raises(ValueError, match="unknown"):
+        CreaseParams.from_dict({"kappa": 1})
+
+
+def test_tensor_eigenvalues_follow_eq_3_5():
+    p = CreaseParams(alpha=0.7, beta=0.9)
+    one, zero = np.ones((1, 1), np.float32), np.zeros((1, 1), np.float32)
+    # Valley along y: positive curvature across (x): D = diag(epsilon, beta).
+    a, b, c = diffusion_tensor(one, zero, zero, p)
+    assert np.allclose([a[0, 0], b[0, 0], c[0, 0]], [p.epsilon, 0, p.beta], atol=1e-6)
+    # Ridge along x: D = diag(alpha, epsilon).
+    a, b, c = diffusion_tensor(zero, zero, -one, p)
+    assert np.allclose([a[0, 0], b[0, 0], c[0, 0]], [p.alpha, 0, p.epsilon], atol=1e-6)
+    # Random Hessians: D is positive semidefinite, epsilon is one eigenvalue, the other
+    # (alpha mu_r + beta mu_v) lies in [0, 1].
+    rng = np.random.default_rng(1)
+    h = rng.normal(size=(3, 50, 50)).astype(np.float32)
+    a, b, c = diffusion_tensor(h[0], h[1], h[2], p)
+    tr, det = a + c, a * c - b * b
+    disc = np.sqrt(np.maximum(tr**2 / 4 - det, 0))
+    assert (tr / 2 - disc >= -1e-6).all()
+    assert (tr / 2 + disc <= 1 + 1e-5).all()
+    assert np.allclose((a - p.epsilon) * (c - p.epsilon) - b * b, 0, atol=1e-5)
+
+
+def test_diffusion_is_stable_and_conserves_mean():
+    rng = np.random.default_rng(0)
+    u = rng.normal(0, 1, (96, 80)).astype(np.float32)
+    out = crease_diffusion(u, CreaseParams(iterations=100, time_step=0.25))
+    assert np.isfinite(out).all()
+    assert np.abs(out).max() <= np.abs(u).max()
+    assert out.mean() == pytest.approx(u.mean(), abs=1e-3)
+    assert out.std() < u.std()
+
+
+def test_diffusion_keeps_crease_and_smooths_along_it():
+    img = line_image(64).astype(np.float32)
+    rng = np.random.default_rng(2)
+    noisy = img + rng.normal(0, 10, img.shape).astype(np.float32)
+    out = crease_diffusion(noisy, CreaseParams(iterations=20))
+    # Still a valley at the same row, and smoother along the line than before.
+    assert abs(int(np.argmin(out[8:-8, 8:-8].mean(1))) + 8 - 32) <= 1
+    assert np.std(np.diff(out[32, 8:-8])) < 0.7 * np.std(np.diff(noisy[32, 8:-8]))
+
+
+def test_mlsec_sign_and_rotation_invariance():
+    # Off-centre line: at an exactly symmetric centre the gradient sign is float noise.
+    valley = line_image(64, row=32.3).astype(np.float32)
+    k = mlsec_st(valley)
+    assert k[32, 32] < -0.5                   # valleys negative
+    assert mlsec_st(-valley)[32, 32] > 0.5    # ridges positive
+    assert np.all(np.abs(k) <= 2 + 1e-5)
+    rot = mlsec_st(np.rot90(valley).copy())
+    # Rotation invariant away from the (reflecting) border.
+    assert np.allclose(np.rot90(k)[8:-8, 8:-8], rot[8:-8, 8:-8], atol=1e-4)
+
+
+def test_estimate_noise_recovers_sigma():
+    rng = np.random.default_rng(3)
+    img = line_image(128) + rng.normal(0, 5, (128, 128))
+    assert estimate_noise(img.astype(np.float32)) == pytest.approx(5.0, rel=0.1)
+
+
+def test_skeleton_of_straight_valley_is_the_valley_line():
+    res = CreaseDetector()(line_image(128, row=50.0).astype(np.uint8))
+    assert res.reason == ""
+    rows, cols = np.nonzero(res.skeletons["valley"])
+    assert np.all(np.abs(rows - 50) <= 1)
+    assert cols.max() - cols.min() > 100
+    assert "ridge" not in res.skeletons
+
+
+def test_ridges_are_valleys_of_the_inverted_image():
+    img = line_image(96, row=40.0, bright=True).astype(np.uint8)
+    ridge = CreaseDetector(CreaseParams(polarity="ridge"))(img).skeletons["ridge"]
+    valley = CreaseDetector()(255 - img).skeletons["valley"]
+    assert ridge.any() and np.array_equal(ridge, valley)
+    both = CreaseDetector(CreaseParams(polarity="both"))(img)
+    assert both.skeletons["ridge"].any() and not both.skeletons["valley"].any()
+
+
+@pytest.mark.parametrize("name,image", [
+    ("constant", np.full((64, 64), 42, np.uint8)),
+    ("flat float", np.zeros((64, 64))),
+    ("white noise", np.random.default_rng(4).normal(100, 20, (128, 128))),
+    ("faint noise", np.random.default_rng(5).integers(120, 123, (128, 128)).astype(np.uint8)),
+    ("smooth slope", np.add.outer(np.arange(96.0), np.arange(96.0))),
+])
+def test_no_drainage_gives_a_reason(name, image):
+    res = CreaseDetector()(image)
+    assert res.reason, name
+    assert not any(s.any() for s in res.skeletons.values())
+
+
+def test_prepare_input_dem_and_nodata():
+    dem = np.add.outer(np.arange(32.0), np.zeros(32)) * 10.0
+    dem[5:8, 5:8] = -32768
+    work, valid, noise, reason = prepare_input(dem, source="dem", gsd=10.0, nodata=-32768)
+    assert reason == "" and not valid[6, 6] and valid.sum() == 32 * 32 - 9
+    assert np.isfinite(work).all() and 4.0 <= work[6, 6] <= 8.0
+    assert work[1, 0] - work[0, 0] == pytest.approx(1.0)   # elevation in pixel units
+    with pytest.raises(ValueError):
+        prepare_input(dem, source="lidar")
+    with pytest.raises(ValueError):
+        prepare_input(np.zeros((4, 4, 4, 4)))
+    colour = np.dstack([line_image(32)] * 3).astype(np.uint8)
+    assert prepare_input(colour)[0].shape == (32, 32)
