@@ -1,0 +1,135 @@
+"""Parameters of the terrain-navigation EKF, with units and defaults.
+
+The names are the ROS parameter names the ``ekf`` node declares (``config/ekf.yaml``), so the
+node can map them one to one with ``EkfParams(**{name: node.get_parameter(name).value ...})``.
+
+IMU defaults: ScanEagle-class tactical/industrial MEMS IMU
+----------------------------------------------------------
+The numbers are representative of the MEMS units flown in ScanEagle-class small UAS
+autopilots (e.g. Analog Devices ADIS1646x/1648x, VectorNav VN-100/VN-300 class), rounded
+up rather than down so a real unit of that class is not over-trusted:
+
+=============================  =====================  ============================================
+gyro_noise_density             1.7e-4 rad/s/sqrt(Hz)  0.01 deg/s/sqrt(Hz) = 0.6 deg/sqrt(h) ARW
+accel_noise_density            1.0e-3 m/s^2/sqrt(Hz)  ~100 micro-g/sqrt(Hz) = 0.06 m/s/sqrt(h) VRW
+gyro_bias_random_walk          5.0e-6 rad/s^2/sqrt(Hz)  bias wanders ~ 25 deg/h (1 sigma) per hour
+accel_bias_random_walk         1.0e-4 m/s^3/sqrt(Hz)  bias wanders ~ 0.6 mg (1 sigma) per hour
+init_gyro_bias_sigma           2.5e-4 rad/s           ~50 deg/h residual turn-on bias after the
+                                                      usual pre-launch gyro zeroing on the ground
+init_accel_bias_sigma          2.0e-2 m/s^2           ~2 mg turn-on bias
+=============================  =====================  ============================================
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+
+@dataclass
+class EkfParams:
+    """Settings of :class:`terrain_nav_ros.core.ekf.TerrainEkf` (SI units throughout).
+
+    Attributes
+    ----------
+    gravity : float
+        Magnitude of gravity (m/s^2); acts along -z of the ENU map frame. Default 9.80665.
+    gyro_noise_density : float
+        Gyro white noise (angle random walk), rad/s/sqrt(Hz). Default 1.7e-4.
+    accel_noise_density : float
+        Accelerometer white noise (velocity random walk), m/s^2/sqrt(Hz). Default 1.0e-3.
+    gyro_bias_random_walk : float
+        Gyro bias random walk, rad/s^2/sqrt(Hz). Default 5.0e-6.
+    accel_bias_random_walk : float
+        Accelerometer bias random walk, m/s^3/sqrt(Hz). Default 1.0e-4.
+    init_position_sigma : float
+        1-sigma position uncertainty when initialising from a pose without covariance (m).
+        Default 10.0.
+    init_velocity_sigma : float
+        1-sigma velocity uncertainty at initialisation (m/s). Default 2.0.
+    init_roll_pitch_sigma : float
+        1-sigma roll/pitch uncertainty at initialisation (rad). Default 0.035 (2 deg).
+    init_yaw_sigma : float
+        1-sigma yaw uncertainty at initialisation (rad). Default 0.087 (5 deg).
+    init_gyro_bias_sigma : float
+        1-sigma gyro turn-on bias left after pre-launch zeroing (rad/s). Default 2.5e-4.
+    init_accel_bias_sigma : float
+        1-sigma accelerometer turn-on bias (m/s^2). Default 2.0e-2.
+    init_mode : str
+        How the filter starts: ``"pose"`` (a pose given with ``set_initial_pose``, re-used
+        after a time-jump reset), ``"gnss"`` (first GNSS fixes), ``"fix"`` (first terrain
+        fixes). Default ``"fix"``.
+    init_min_fix_interval : float
+        When initialising from fixes that carry no velocity, the second fix used to derive
+        velocity and course must be at least this much later than the first (s). Default 10.0.
+    fix_gate_probability : float
+        Chi-square gate probability for terrain fixes (dof = measurement dimension); >= 1
+        disables gating. Default 0.999.
+    baro_gate_probability : float
+        Same for barometric altitude. Default 0.999.
+    gnss_gate_probability : float
+        Same for GNSS position. Default 0.999.
+    reset_after_rejections : int
+        After this many consecutive gated-out measurements from one source, the position is
+        reset to the next one of that source (recovers from divergence); 0 disables.
+        Default 10.
+    history_length : float
+        Length of the state / IMU history used for delayed measurements (s). Measurements
+        older than the history are rejected as stale. Default 3.0.
+    max_future : float
+        A measurement stamped up to this far ahead of the newest IMU sample is queued and
+        applied when the IMU reaches its stamp; further ahead it is rejected (s). Default 0.5.
+    time_jump_reset : float
+        An IMU stamp this much older than the filter time resets the filter (bag loop);
+        smaller backward steps are rejected as out of order (s). Default 1.0.
+    max_imu_dt : float
+        IMU intervals longer than this are integrated but flagged as a gap (s). Default 0.1.
+    nis_history_length : int
+        Number of per-update NIS records kept in the diagnostics. Default 200.
+    """
+
+    gravity: float = 9.80665
+    gyro_noise_density: float = 1.7e-4
+    accel_noise_density: float = 1.0e-3
+    gyro_bias_random_walk: float = 5.0e-6
+    accel_bias_random_walk: float = 1.0e-4
+    init_position_sigma: float = 10.0
+    init_velocity_sigma: float = 2.0
+    init_roll_pitch_sigma: float = float(np.deg2rad(2.0))
+    init_yaw_sigma: float = float(np.deg2rad(5.0))
+    init_gyro_bias_sigma: float = 2.5e-4
+    init_accel_bias_sigma: float = 2.0e-2
+    init_mode: str = "fix"
+    init_min_fix_interval: float = 10.0
+    fix_gate_probability: float = 0.999
+    baro_gate_probability: float = 0.999
+    gnss_gate_probability: float = 0.999
+    reset_after_rejections: int = 10
+    history_length: float = 3.0
+    max_future: float = 0.5
+    time_jump_reset: float = 1.0
+    max_imu_dt: float = 0.1
+    nis_history_length: int = 200
+
+    def __post_init__(self):
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, (int, float)) and not np.isfinite(value):
+                raise ValueError(f"EkfParams.{f.name} must be finite, got {value}")
+        positive = ("gravity", "gyro_noise_density", "accel_noise_density",
+                    "init_position_sigma", "init_velocity_sigma", "init_roll_pitch_sigma",
+                    "init_yaw_sigma", "history_length", "time_jump_reset", "max_imu_dt")
+        for name in positive:
+            if getattr(self, name) <= 0:
+                raise ValueError(f"EkfParams.{name} must be > 0, got {getattr(self, name)}")
+        for name in ("fix_gate_probability", "baro_gate_probability", "gnss_gate_probability"):
+            if not 0.0 < getattr(self, name):
+                raise ValueError(f"EkfParams.{name} must be in (0, 1], got {getattr(self, name)}")
+        if self.init_mode not in ("pose", "gnss", "fix"):
+            raise ValueError("EkfParams.init_mode must be pose, gnss or fix, "
+                             f"not {self.init_mode!r}")
+
+    def gate_probability(self, source: str) -> float:
+        """Gate probability configured for a measurement source (fix, baro, gnss)."""
+        return getattr(self, f"{source}_gate_probability", self.fix_gate_probability)
