@@ -120,7 +120,7 @@ class MinutiaParams:
     cluster_radius: float = 8.0
     cluster_size: int = 4
     trace_length: int = 12
-    field_tolerance: float = 30.0
+    field_tolerance: float = 45.0
     max_minutiae: int = 400
     min_quality: float = 0.0
 
