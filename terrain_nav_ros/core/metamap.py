@@ -41,7 +41,7 @@ from .geodesy import CrsEnuTransform, EnuOrigin, LocalEnuTransform
 from .georef import GeoReference
 from .interpolation import idw_grid
 
-__all__ = ["DemTile", "MetaMap", "OutsideDemError"]
+__all__ = ["DemTile", "MetaMap", "OutsideDemError", "remap_masked"]
 
 _REMAP = {"nearest": cv2.INTER_NEAREST, "bilinear": cv2.INTER_LINEAR,
           "bicubic": cv2.INTER_CUBIC}
@@ -222,8 +222,9 @@ class MetaMap:
 
     def tile_at_geodetic(self, lat: float, lon: float, gsd: float, width: int,
                          height: int) -> DemTile:
-        """Tile centred on a WGS84 position (degrees); the tile itself is in ENU."""
-        e, n, _ = self.origin.geodetic_to_enu(lat, lon, self.origin.alt)
+        """Tile centred on a WGS84 position (degrees), placed at ``reference_height``."""
+        h = self.origin.orthometric_to_ellipsoidal(self.reference_height)
+        e, n, _ = self.origin.geodetic_to_enu(lat, lon, h)
         return self.tile_at(float(e), float(n), gsd, width, height)
 
     def tile(self, georef: GeoReference) -> DemTile:
@@ -276,13 +277,20 @@ class MetaMap:
         cols, rows = dem.crs_to_pixel(x, y)
         if not (np.isfinite(cols).all() and np.isfinite(rows).all()):
             return None  # tile reaches where the DEM's CRS is undefined
+        # DEM cells per tile pixel along tile rows / columns: box-average first when the tile
+        # is much coarser than the DEM, so coarse tiles are not aliased
+        span_c, span_r = max(wc.shape[0] - 1, 1), max(wr.shape[0] - 1, 1)
+        kx = int(np.hypot(cols[0, -1] - cols[0, 0], rows[0, -1] - rows[0, 0]) / span_c)
+        ky = int(np.hypot(cols[-1, 0] - cols[0, 0], rows[-1, 0] - rows[0, 0]) / span_r)
+        kx, ky = (max(kx, 1), max(ky, 1)) if self.interpolation != "nearest" else (1, 1)
         pad = _PAD[self.interpolation]
-        c0, c1 = int(np.floor(cols.min())) - pad, int(np.ceil(cols.max())) + pad + 1
-        r0, r1 = int(np.floor(rows.min())) - pad, int(np.ceil(rows.max())) + pad + 1
-        c0, c1 = max(c0, -pad), min(c1, dem.width + pad)
-        r0, r1 = max(r0, -pad), min(r1, dem.height + pad)
+        c0, c1 = _span(cols, pad * kx, dem.width)
+        r0, r1 = _span(rows, pad * ky, dem.height)
         if c1 <= c0 or r1 <= r0:
             return None
+        # start the averaging blocks where the first tile pixel's footprint starts
+        c0 -= (c0 - round(cols[0, 0] + 0.5 - kx / 2)) % kx
+        r0 -= (r0 - round(rows[0, 0] + 0.5 - ky / 2)) % ky
         if (c1 - c0) * (r1 - r0) > self.max_window_cells:
             raise DemError(f"{dem.name}: request needs a {r1 - r0}x{c1 - c0} cell window; "
                            f"use a finer GSD or a pre-decimated DEM")
@@ -293,12 +301,6 @@ class MetaMap:
             window = fill_voids(big, self.max_void_area)[0][margin:-margin, margin:-margin]
         else:
             window = dem.read_window(r0, c0, r1 - r0, c1 - c0)
-        # DEM cells per tile pixel along tile rows / columns: box-average first when the tile
-        # is much coarser than the DEM, so coarse tiles are not aliased
-        span_c, span_r = max(wc.shape[0] - 1, 1), max(wr.shape[0] - 1, 1)
-        kx = int(np.hypot(cols[0, -1] - cols[0, 0], rows[0, -1] - rows[0, 0]) / span_c)
-        ky = int(np.hypot(cols[-1, 0] - cols[0, 0], rows[-1, 0] - rows[0, 0]) / span_r)
-        kx, ky = (max(kx, 1), max(ky, 1)) if self.interpolation != "nearest" else (1, 1)
         if kx > 1 or ky > 1:
             hh, ww = window.shape[0] // ky, window.shape[1] // kx
             window = cv2.resize(window[:hh * ky, :ww * kx], (ww, hh),
@@ -312,8 +314,53 @@ class MetaMap:
             aspect = (layer.cell_m[0] * kx) / (layer.cell_m[1] * ky)
             return idw_grid(window, map_x, map_y, power=self.idw_power, k=self.idw_k,
                             aspect=aspect)
-        return cv2.remap(window, map_x, map_y, _REMAP[self.interpolation],
-                         borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"))
+        return remap_masked(window, map_x, map_y, self.interpolation)
+
+
+def _span(coords, pad: int, n: int) -> tuple[int, int]:
+    """Window [start, stop) of DEM cells covering ``coords`` plus ``pad``, clipped near 0..n."""
+    lo = max(int(np.floor(coords.min())) - pad, -pad)
+    hi = min(int(np.ceil(coords.max())) + pad + 1, n + pad)
+    return lo, hi
+
+
+def remap_masked(z, map_x, map_y, interpolation: str = "bilinear") -> np.ndarray:
+    """``cv2.remap`` of a raster with NaN holes, NaN-aware.
+
+    Plain remap turns a sample NaN as soon as any neighbour is NaN, even with weight 0. Here
+    bilinear is normalised over the valid neighbours (normalised convolution) and kept where
+    they carry at least half the weight, i.e. within half a cell of data; bicubic is used
+    where its whole 4 x 4 support is valid and falls back to that bilinear value elsewhere.
+    Outside ``z`` is NaN.
+
+    Parameters
+    ----------
+    z : ndarray of float32, shape (rows, cols)
+    map_x, map_y : ndarray of float32
+        Sample positions in ``z`` pixel coordinates (integers are cell centres).
+    interpolation : {"nearest", "bilinear", "bicubic"}
+    """
+    kind = _REMAP[interpolation]
+    nan = float("nan")
+    holes = np.isnan(z)
+    if interpolation == "nearest" or not holes.any():
+        return cv2.remap(z, map_x, map_y, kind, borderMode=cv2.BORDER_CONSTANT,
+                         borderValue=nan)
+    z0 = np.where(holes, np.float32(0), z)
+    valid = (~holes).astype(np.float32)
+    args = dict(borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    num = cv2.remap(z0, map_x, map_y, cv2.INTER_LINEAR, **args)
+    den = cv2.remap(valid, map_x, map_y, cv2.INTER_LINEAR, **args)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.where(den >= 0.5 - 1e-6, num / den, np.float32(nan)).astype(np.float32)
+    if interpolation == "bicubic":
+        # the 4 x 4 support of a sample lies within 2 cells of its nearest cell
+        support = cv2.erode(valid, np.ones((5, 5), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                            borderValue=0)
+        ok = cv2.remap(support, map_x, map_y, cv2.INTER_NEAREST, **args) > 0.5
+        cubic = cv2.remap(z0, map_x, map_y, cv2.INTER_CUBIC, **args)
+        out = np.where(ok, cubic, out)
+    return out
 
 
 def _merge_aligned(dems: list[Dem]) -> list[Dem]:
