@@ -218,13 +218,43 @@ def neighbour_edges(ms: MinutiaSet, k: int = 12, min_length: float = 6.0,
     return EdgeTable(idx, dist, direction, beta_i, beta_j, valid)
 
 
+@dataclass
+class EdgeQuery:
+    """Query edges prepared for :meth:`EdgeHash.lookup` (reusable across hashes).
+
+    Attributes
+    ----------
+    grid : tuple
+        (length_step, n_angle, n_length) of the hashes this query fits.
+    keys : ndarray, shape (m, n_cells)
+        Keys of the cells within tolerance of each query edge.
+    inside : ndarray of bool, same shape
+        False for cells outside the length range.
+    owner : ndarray of intp, shape (m * n_cells,)
+        Query edge of each flattened cell.
+    length, beta_i, beta_j, length_tol : ndarray, shape (m,)
+    angle_tol : float
+    """
+
+    grid: tuple
+    keys: np.ndarray
+    inside: np.ndarray
+    owner: np.ndarray
+    length: np.ndarray
+    beta_i: np.ndarray
+    beta_j: np.ndarray
+    length_tol: np.ndarray
+    angle_tol: float
+
+
 class EdgeHash:
     """Hash table of edge invariants for fast candidate edge correspondences.
 
-    Edges are keyed by their quantised (length, beta_i, beta_j); a query looks up the
-    neighbouring cells of each query edge with ``np.searchsorted`` on the sorted keys and
-    then keeps the pairs within the continuous tolerances. Every stored edge lies in one
-    cell, so each (query, stored) pair is reported at most once.
+    Edges are keyed by their quantised (length, beta_i, beta_j). The key space is small
+    (length cells x angle cells^2), so the table is dense: a cell's entries are found by
+    direct indexing. A query visits the cells within tolerance of each query edge and keeps
+    the stored edges within the continuous tolerances; every stored edge lies in one cell,
+    so each (query, stored) pair is reported at most once.
 
     Parameters
     ----------
@@ -234,16 +264,21 @@ class EdgeHash:
         Length cell size (px); use the length tolerance.
     angle_step : float
         Angle cell size (rad); use the angle tolerance.
+    max_length : float
+        Longest edge length (px) to hash; longer stored edges are dropped. Hashes built with
+        the same three settings accept the same :class:`EdgeQuery`.
     """
 
-    def __init__(self, edges: EdgeTable, length_step: float, angle_step: float):
+    def __init__(self, edges: EdgeTable, length_step: float, angle_step: float,
+                 max_length: float = 160.0):
         self.length_step = float(length_step)
         self.n_angle = max(3, int(np.floor(TWO_PI / angle_step)))
         self.angle_step = TWO_PI / self.n_angle
+        self.n_length = int(np.floor(max_length / self.length_step)) + 1
+        self.grid = (self.length_step, self.n_angle, self.n_length)
         self.edges = edges
-        rows, cols = np.nonzero(edges.valid)
+        rows, cols = np.nonzero(edges.valid & (edges.length <= max_length))
         length = edges.length[rows, cols]
-        self.n_length = int(np.floor(length.max(initial=0.0) / self.length_step)) + 1
         keys = self._keys(length, edges.beta_i[rows, cols], edges.beta_j[rows, cols])
         order = np.argsort(keys, kind="stable")
         self.rows = rows[order]
@@ -252,8 +287,6 @@ class EdgeHash:
         self.length = length[order]
         self.beta_i = edges.beta_i[rows, cols][order]
         self.beta_j = edges.beta_j[rows, cols][order]
-        # dense table: the key space is small (length cells x angle cells^2), so a cell's
-        # entries are found by direct indexing instead of a binary search
         n_keys = self.n_length * self.n_angle ** 2
         self.start = np.concatenate([[0], np.cumsum(np.bincount(keys, minlength=n_keys))])
 
@@ -266,6 +299,44 @@ class EdgeHash:
     def _keys(self, length, beta_i, beta_j):
         ql, q1, q2 = self._cells(length, beta_i, beta_j)
         return (ql * self.n_angle + q1) * self.n_angle + q2
+
+    def prepare(self, length, beta_i, beta_j, length_tol, angle_tol) -> EdgeQuery:
+        """Cells to visit for each query edge (see :meth:`query` for the arguments)."""
+        length = np.asarray(length, float)
+        beta_i = np.asarray(beta_i, float)
+        beta_j = np.asarray(beta_j, float)
+        length_tol = np.broadcast_to(np.asarray(length_tol, float), length.shape)
+        ml = int(np.ceil(length_tol.max(initial=0.0) / self.length_step))
+        ma = min(int(np.ceil(angle_tol / self.angle_step)), (self.n_angle - 1) // 2)
+        ql, q1, q2 = self._cells(length, beta_i, beta_j)
+        dl = np.arange(-ml, ml + 1)
+        da = np.arange(-ma, ma + 1)
+        # all neighbouring cells of every query edge, shape (m, n_l, n_a, n_a)
+        kl = ql[:, None, None, None] + dl[None, :, None, None]
+        k1 = (q1[:, None, None, None] + da[None, None, :, None]) % self.n_angle
+        k2 = (q2[:, None, None, None] + da[None, None, None, :]) % self.n_angle
+        m = len(length)
+        inside = ((kl >= 0) & (kl < self.n_length) & (k1 >= 0) & (k2 >= 0)).reshape(m, -1)
+        keys = ((np.clip(kl, 0, self.n_length - 1) * self.n_angle + k1) * self.n_angle
+                + k2).reshape(m, -1)
+        owner = np.repeat(np.arange(m), keys.shape[1])
+        return EdgeQuery(self.grid, keys, inside, owner, length, beta_i, beta_j,
+                         np.ascontiguousarray(length_tol), float(angle_tol))
+
+    def lookup(self, eq: EdgeQuery):
+        """Stored edges within tolerance of prepared query edges (see :meth:`query`)."""
+        if eq.grid != self.grid:
+            raise ValueError("EdgeHash.lookup: query prepared for a different grid")
+        lo = self.start[eq.keys]
+        counts = np.where(eq.inside, self.start[eq.keys + 1] - lo, 0).ravel()
+        total = int(counts.sum())
+        q = np.repeat(eq.owner, counts)
+        pos = np.repeat(lo.ravel() - (np.cumsum(counts) - counts), counts) + np.arange(total)
+        ok = ((np.abs(self.length[pos] - eq.length[q]) <= eq.length_tol[q])
+              & (np.abs(wrap_angle(self.beta_i[pos] - eq.beta_i[q])) <= eq.angle_tol)
+              & (np.abs(wrap_angle(self.beta_j[pos] - eq.beta_j[q])) <= eq.angle_tol))
+        pos = pos[ok]
+        return q[ok], self.rows[pos], self.cols[pos]
 
     def query(self, length, beta_i, beta_j, length_tol, angle_tol):
         """Stored edges within tolerance of each query edge.
@@ -286,30 +357,4 @@ class EdgeHash:
         rows, cols : ndarray of intp
             The matching stored edge as (minutia, neighbour slot) of the stored EdgeTable.
         """
-        length = np.asarray(length, float)
-        beta_i = np.asarray(beta_i, float)
-        beta_j = np.asarray(beta_j, float)
-        length_tol = np.broadcast_to(np.asarray(length_tol, float), length.shape)
-        ml = int(np.ceil(length_tol.max(initial=0.0) / self.length_step))
-        ma = min(int(np.ceil(angle_tol / self.angle_step)), (self.n_angle - 1) // 2)
-        ql, q1, q2 = self._cells(length, beta_i, beta_j)
-        dl = np.arange(-ml, ml + 1)
-        da = np.arange(-ma, ma + 1)
-        # all neighbouring cells of every query edge, shape (m, n_l, n_a, n_a)
-        kl = ql[:, None, None, None] + dl[None, :, None, None]
-        k1 = (q1[:, None, None, None] + da[None, None, :, None]) % self.n_angle
-        k2 = (q2[:, None, None, None] + da[None, None, None, :]) % self.n_angle
-        inside = (kl >= 0) & (kl < self.n_length)
-        keys = ((np.clip(kl, 0, self.n_length - 1) * self.n_angle + k1) * self.n_angle + k2)
-        lo = self.start[keys]
-        counts = np.where(inside, self.start[keys + 1] - lo, 0).ravel()
-        lo = lo.ravel()
-        total = int(counts.sum())
-        q = np.repeat(np.repeat(np.arange(len(length)), keys[0].size), counts)
-        start = np.repeat(lo - (np.cumsum(counts) - counts), counts)
-        pos = start + np.arange(total)
-        ok = ((np.abs(self.length[pos] - length[q]) <= length_tol[q])
-              & (np.abs(wrap_angle(self.beta_i[pos] - beta_i[q])) <= angle_tol)
-              & (np.abs(wrap_angle(self.beta_j[pos] - beta_j[q])) <= angle_tol))
-        pos = pos[ok]
-        return q[ok], self.rows[pos], self.cols[pos]
+        return self.lookup(self.prepare(length, beta_i, beta_j, length_tol, angle_tol))

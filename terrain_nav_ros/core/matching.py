@@ -83,7 +83,9 @@ class MatchParams:
     rot_bin, trans_bin : float
         Hough cell size for rotation (rad) and translation (px).
     n_hypotheses : int
-        Hough cells verified by registration and pairing.
+        Hough cells verified by registration and pairing (2 rotations x 2 translations).
+    min_support_ratio : float
+        Cells with less than this fraction of the best cell's vote weight are not verified.
     ransac_iterations : int
         Random 2-point samples per hypothesis.
     estimate_scale : bool
@@ -115,13 +117,14 @@ class MatchParams:
     angle_tol: float = math.radians(30.0)
     edge_length_tol: float = 4.0
     edge_angle_tol: float = math.radians(25.0)
-    k_query: int = 8
-    k_ref: int = 12
+    k_query: int = 6
+    k_ref: int = 10
     edge_min: float = 6.0
     edge_max: float = 160.0
     rot_bin: float = math.radians(5.0)
     trans_bin: float = 8.0
     n_hypotheses: int = 4
+    min_support_ratio: float = 0.2
     ransac_iterations: int = 48
     estimate_scale: bool = False
     max_scale_change: float = 0.1
@@ -167,6 +170,7 @@ class MinutiaIndex:
         self.area = float(abs(cv2.contourArea(self.footprint.astype(np.float32))))
         self.centroid = complex(self.z.mean()) if self.n else 0j
         self._hash = None
+        self._query = None
 
     def __len__(self) -> int:
         return self.n
@@ -174,9 +178,23 @@ class MinutiaIndex:
     def edge_hash(self) -> EdgeHash:
         """Hash of this set's edges (built on first use)."""
         if self._hash is None:
-            self._hash = EdgeHash(self.edges, self.params.edge_length_tol,
-                                  self.params.edge_angle_tol)
+            p = self.params
+            self._hash = EdgeHash(self.edges, p.edge_length_tol, p.edge_angle_tol, p.edge_max)
         return self._hash
+
+    def edge_query(self, grid_hash: EdgeHash):
+        """This set's first ``k_query`` edges prepared as hash queries (cached).
+
+        Returns the prepared query and the (minutia, slot) of each query edge.
+        """
+        if self._query is None or self._query[0].grid != grid_hash.grid:
+            p, e = self.params, self.edges
+            rows, cols = np.nonzero(e.valid[:, :min(p.k_query, e.k)])
+            length = e.length[rows, cols]
+            eq = grid_hash.prepare(length, e.beta_i[rows, cols], e.beta_j[rows, cols],
+                                   _length_tol(p, length), p.edge_angle_tol)
+            self._query = (eq, rows, cols)
+        return self._query
 
 
 def _footprint(ms: MinutiaSet) -> np.ndarray:
@@ -289,14 +307,12 @@ def _length_tol(p: MatchParams, length):
 
 def _hash_votes(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> _Votes:
     ea = a.edges
-    kq = min(p.k_query, ea.k)
-    rows, cols = np.nonzero(ea.valid[:, :kq])
-    length = ea.length[rows, cols]
-    q, rb, cb = b.edge_hash().query(length, ea.beta_i[rows, cols], ea.beta_j[rows, cols],
-                                    _length_tol(p, length), p.edge_angle_tol)
+    hb = b.edge_hash()
+    eq, rows, cols = a.edge_query(hb)
+    q, rb, cb = hb.lookup(eq)
     ia, qa = rows[q], cols[q]
     ja, jb = ea.j[ia, qa], b.edges.j[rb, cb]
-    theta = b.edges.direction[rb, cb] - ea.direction[ia, qa]
+    theta = wrap_angle(b.edges.direction[rb, cb] - ea.direction[ia, qa])
     if p.use_descriptors:
         s = np.maximum(_similarity_matrix(a, b), 0.0)
         w = s[ia, rb] * s[ja, jb] + 0.05
@@ -325,7 +341,7 @@ def _root_votes(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> _Votes:
     r, qa, qb = np.nonzero(ok)
     ia, ib = ra[r], rb[r]
     ja, jb = ea.j[ia, qa], eb.j[ib, qb]
-    theta = eb.direction[ib, qb] - ea.direction[ia, qa]
+    theta = wrap_angle(eb.direction[ib, qb] - ea.direction[ia, qa])
     w = np.maximum(s[ia, ib], 0.0) * np.maximum(s[ja, jb], 0.0) + 0.05
     return _Votes(ia, ja, ib, jb, theta, w)
 
@@ -343,48 +359,47 @@ class _Hypothesis:
 
 
 def _rotation_peaks(theta, w, p: MatchParams, n_peaks: int) -> np.ndarray:
+    """Centres of the strongest rotation cells (circular histogram, 3-cell smoothing)."""
     nb = max(4, int(round(TWO_PI / p.rot_bin)))
-    u = np.mod(theta, TWO_PI) * (nb / TWO_PI) - 0.5
-    b0 = np.floor(u)
-    f = u - b0
-    b0 = b0.astype(np.intp) % nb
-    h = np.bincount(b0, w * (1 - f), nb) + np.bincount((b0 + 1) % nb, w * f, nb)
-    h = h + 0.5 * (np.roll(h, 1) + np.roll(h, -1))
+    k = (np.floor((theta + np.pi) * (nb / TWO_PI)).astype(np.intp)) % nb
+    h = np.bincount(k, w, nb)
+    h = h + np.roll(h, 1) + np.roll(h, -1)
     is_peak = (h >= np.roll(h, 1)) & (h > np.roll(h, -1)) & (h > 0)
-    idx = np.nonzero(is_peak)[0]
+    idx = np.flatnonzero(is_peak)
     idx = idx[np.argsort(-h[idx])][:n_peaks]
-    return (idx + 0.5) * (TWO_PI / nb)
+    return (idx + 0.5) * (TWO_PI / nb) - np.pi
 
 
 def _hypotheses(v: _Votes, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams):
+    """Strongest (rotation, translation) Hough cells, best first."""
     if len(v.ia) == 0:
         return []
     mid_a = 0.5 * (a.z[v.ia] + a.z[v.ja]) - a.centroid
     mid_b = 0.5 * (b.z[v.ib] + b.z[v.jb])
     hyps = []
-    for th0 in _rotation_peaks(v.theta, v.weight, p, p.n_hypotheses):
-        near = np.abs(wrap_angle(v.theta - th0)) <= 1.5 * p.rot_bin
-        if not near.any():
+    for th0 in _rotation_peaks(v.theta, v.weight, p, n_peaks=2):
+        d = wrap_angle(v.theta - th0)
+        sel = np.flatnonzero(np.abs(d) <= 2.0 * p.rot_bin)
+        if len(sel) == 0:
             continue
-        th = th0 + np.average(wrap_angle(v.theta[near] - th0), weights=v.weight[near])
-        sel = np.nonzero(np.abs(wrap_angle(v.theta - th)) <= 2.0 * p.rot_bin)[0]
-        c = np.exp(1j * th)
-        t = mid_b[sel] - c * mid_a[sel]   # where A's centroid lands in B
-        hyps.extend(_translation_peaks(t, sel, c, v, a, p, n_peaks=2))
+        w = v.weight[sel]
+        c = np.exp(1j * (th0 + np.dot(w, d[sel]) / w.sum()))
+        # translation of A's centroid at this rotation: a two-stage Hough keeps the
+        # translation cells sharp (a per-vote rotation error would smear them)
+        t = mid_b[sel] - c * mid_a[sel]
+        hyps.extend(_translation_peaks(t, sel, w, c, v, a, p, n_peaks=2))
     hyps.sort(key=lambda h: -h.support)
     return hyps[:p.n_hypotheses]
 
 
-def _translation_peaks(t, sel, c, v: _Votes, a: MinutiaIndex, p: MatchParams, n_peaks):
+def _translation_peaks(t, sel, w, c, v: _Votes, a: MinutiaIndex, p: MatchParams, n_peaks):
     x0, y0 = t.real.min(), t.imag.min()
-    gx = ((t.real - x0) / p.trans_bin).astype(np.intp)
-    gy = ((t.imag - y0) / p.trans_bin).astype(np.intp)
-    nx, ny = gx.max() + 1, gy.max() + 1
-    w = v.weight[sel]
-    h = np.bincount(gy * nx + gx, w, nx * ny).reshape(ny, nx)
-    hp = np.pad(h, 1)
+    gx = ((t.real - x0) * (1.0 / p.trans_bin)).astype(np.intp)
+    gy = ((t.imag - y0) * (1.0 / p.trans_bin)).astype(np.intp)
+    nx, ny = int(gx.max()) + 1, int(gy.max()) + 1
+    h = np.bincount(gy * nx + gx, w, nx * ny).reshape(ny, nx).astype(np.float32)
     # 3x3 box sum so that a cluster split over cell borders still counts as one
-    box = sum(hp[dy:dy + ny, dx:dx + nx] for dy in range(3) for dx in range(3))
+    box = cv2.boxFilter(h, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
     out = []
     for _ in range(n_peaks):
         k = int(np.argmax(box))
@@ -392,12 +407,13 @@ def _translation_peaks(t, sel, c, v: _Votes, a: MinutiaIndex, p: MatchParams, n_
             break
         py, px = divmod(k, nx)
         box[max(0, py - 2):py + 3, max(0, px - 2):px + 3] = 0
-        m = (np.abs(gx - px) <= 1) & (np.abs(gy - py) <= 1)
-        tc = complex(np.average(t[m], weights=w[m]))
+        m = np.flatnonzero((np.abs(gx - px) <= 1) & (np.abs(gy - py) <= 1))
+        wm = w[m]
+        tc = complex(np.dot(wm, t[m]) / wm.sum())
         s = sel[m]
         ia = np.concatenate([v.ia[s], v.ja[s]])
         ib = np.concatenate([v.ib[s], v.jb[s]])
-        out.append(_Hypothesis(c, tc - c * a.centroid, ia, ib, float(w[m].sum())))
+        out.append(_Hypothesis(c, tc - c * a.centroid, ia, ib, float(wm.sum())))
     return out
 
 
@@ -535,7 +551,10 @@ def _refine(a: MinutiaIndex, b: MinutiaIndex, c, t, pairs, p: MatchParams, itera
         new = _pair(a, b, c1, t1, p)
         if len(new) < len(pairs):
             break
+        grown = len(new) > len(pairs)
         c, t, pairs = c1, t1, new
+        if not grown:
+            break   # same pairing count: the fit has settled
     return c, t, pairs
 
 
@@ -759,7 +778,10 @@ class Matcher:
         votes = _root_votes(a, b, p) if method == "roots" else _hash_votes(a, b, p)
         rng = np.random.default_rng(p.seed)
         best = None
-        for h in _hypotheses(votes, a, b, p):
+        hyps = _hypotheses(votes, a, b, p)
+        for h in hyps:
+            if h.support < p.min_support_ratio * hyps[0].support:
+                break   # a clear winner: weak cells cannot beat it
             c, t, pairs = _register(h, a, b, p, rng)
             if best is None or len(pairs) > len(best[2]):
                 best = (c, t, pairs)
