@@ -4,7 +4,7 @@ Same height field (exact bilinear interpolation between pixel centres, clamped a
 same cameras, same box and same shading formula as :mod:`terrain_nav_ros.core.renderer`, but
 found by brute force: every ray is marched in fine fixed steps (default 0.1 DEM cell) from
 where it enters the tile's box to where it leaves, and the first sample below the surface is
-refined by the same bisection + secant step. Vectorised over pixels with numpy, float64.
+refined by the same secant + bisection + secant steps. Vectorised over pixels with numpy, float64.
 It exists to test the GPU renderer, not to be fast.
 """
 
@@ -58,6 +58,13 @@ def bilinear_local(grid: np.ndarray, gsd: float, xy: np.ndarray) -> np.ndarray:
     return top * (1 - wr) + bot * wr
 
 
+def _secant(lo, hi, g_lo, g_hi):
+    """Secant estimate of the crossing in brackets [lo (above), hi (below)]."""
+    denom = g_lo - g_hi
+    ok = denom > 0
+    return np.where(ok, lo + (hi - lo) * g_lo / np.where(ok, denom, 1.0), hi)
+
+
 def _box_interval(o: np.ndarray, d: np.ndarray, box: np.ndarray):
     """Slab test: entry and exit ray parameters of the box [0, box] (arrays (N,))."""
     safe = np.where(np.abs(d) < 1e-12, 1e-12, d)
@@ -75,7 +82,7 @@ class ReferenceRaycaster:
     georef : GeoReference
     step_cells : float
         Fixed marching step along each ray, in DEM cells.
-    refine_steps, ambient, albedo
+    refine_steps, hit_eps_cells, ambient, albedo
         As in the GPU renderer (same defaults).
     shadow_offset_cells : float
         Start of the shadow ray above the hit point, towards the sun (DEM cells); keep it
@@ -83,7 +90,8 @@ class ReferenceRaycaster:
     """
 
     def __init__(self, heights, georef: GeoReference, *, step_cells: float = 0.1,
-                 refine_steps: int = 8, ambient: float = 0.25, albedo: AlbedoRamp | None = None,
+                 refine_steps: int = 8, hit_eps_cells: float = 1e-3, ambient: float = 0.25,
+                 albedo: AlbedoRamp | None = None,
                  shadow_offset_cells: float = 0.25):
         h = validate_terrain(heights, georef)
         self.frame = TerrainFrame.from_heights(h, georef)
@@ -91,6 +99,7 @@ class ReferenceRaycaster:
         self.normals = normal_map(h, georef.gsd)
         self.step = step_cells * georef.gsd
         self.refine_steps = refine_steps
+        self.hit_eps = hit_eps_cells * georef.gsd
         self.ambient = ambient
         self.albedo_table = (albedo or AlbedoRamp()).table()
         # The shadow ray starts this far towards the sun; the GPU uses its min step.
@@ -103,47 +112,57 @@ class ReferenceRaycaster:
     def trace(self, o: np.ndarray, d: np.ndarray, t0: np.ndarray, t1: np.ndarray) -> np.ndarray:
         """First surface crossing of rays o + t d within [t0, t1]; NaN where none.
 
-        The first sample is at t0; a ray that starts below the surface hits at t0.
+        Same decision rules as the shader: a ray starting below the surface hits at t0, a
+        later sample within ``hit_eps`` above the surface is a hit, and the first sample
+        below it is refined against the previous (above) sample.
         """
         n = len(o)
         t_hit = np.full(n, np.nan)
-        lo = np.full(n, np.nan)
-        hi = np.full(n, np.nan)
+        lo, hi = np.full(n, np.nan), np.full(n, np.nan)
+        g_lo, g_hi = np.full(n, np.nan), np.full(n, np.nan)
         t = t0.astype(float).copy()
-        t_prev = t.copy()
+        t_prev, g_prev = t.copy(), np.zeros(n)
         active = t0 <= t1
         first = True
         while active.any():
             idx = np.flatnonzero(active)
-            below = self.gap(o[idx] + t[idx, None] * d[idx]) <= 0
-            hits = idx[below]
+            g = self.gap(o[idx] + t[idx, None] * d[idx])
+            below = g <= 0
+            near = ~below & (g < self.hit_eps) & (not first)
             if first:
-                t_hit[hits] = t[hits]
+                t_hit[idx[below]] = t[idx[below]]
             else:
-                lo[hits], hi[hits] = t_prev[hits], t[hits]
-            done = below | (t[idx] >= t1[idx])
+                b = idx[below]
+                lo[b], hi[b], g_lo[b], g_hi[b] = t_prev[b], t[b], g_prev[b], g[below]
+            t_hit[idx[near]] = t[idx[near]]
+            done = below | near | (t[idx] >= t1[idx])
             active[idx[done]] = False
-            idx = idx[~done]
-            t_prev[idx] = t[idx]
+            keep = ~done
+            idx, g = idx[keep], g[keep]
+            t_prev[idx], g_prev[idx] = t[idx], g
             t[idx] = np.minimum(t[idx] + self.step, t1[idx])
             first = False
         todo = np.isfinite(lo)
         if todo.any():
-            t_hit[todo] = self._refine(o[todo], d[todo], lo[todo], hi[todo])
+            t_hit[todo] = self._refine(o[todo], d[todo], lo[todo], hi[todo], g_lo[todo],
+                                       g_hi[todo])
         return t_hit
 
-    def _refine(self, o, d, lo, hi):
-        """Bisection then one secant step, as in the shader."""
-        for _ in range(self.refine_steps):
-            mid = 0.5 * (lo + hi)
-            above = self.gap(o + mid[:, None] * d) > 0
-            lo = np.where(above, mid, lo)
-            hi = np.where(above, hi, mid)
-        g_lo = self.gap(o + lo[:, None] * d)
-        g_hi = self.gap(o + hi[:, None] * d)
-        denom = g_lo - g_hi
-        ok = denom > 0
-        return np.where(ok, lo + (hi - lo) * g_lo / np.where(ok, denom, 1.0), hi)
+    def _refine(self, o, d, lo, hi, g_lo, g_hi):
+        """Secant guess, bisection until within ``hit_eps``, final secant (as the shader)."""
+        result = np.full(len(o), np.nan)
+        open_ = np.ones(len(o), bool)
+        for k in range(self.refine_steps):
+            mid = _secant(lo, hi, g_lo, g_hi) if k == 0 else 0.5 * (lo + hi)
+            g = self.gap(o + mid[:, None] * d)
+            close = open_ & (np.abs(g) < self.hit_eps)
+            result[close] = mid[close]
+            open_ &= ~close
+            above = g > 0
+            lo, g_lo = np.where(above, mid, lo), np.where(above, g, g_lo)
+            hi, g_hi = np.where(above, hi, mid), np.where(above, g_hi, g)
+        result[open_] = _secant(lo, hi, g_lo, g_hi)[open_]
+        return result
 
     def shade(self, p: np.ndarray, sun_local: np.ndarray, shadows: bool) -> np.ndarray:
         """Lambert shading of tile-local surface points with the elevation albedo."""

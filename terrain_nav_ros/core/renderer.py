@@ -9,16 +9,16 @@ Pipeline (one draw call per frame):
   plug in. Only back faces are drawn: every pixel the box covers gets exactly one fragment,
   also when the camera is inside the box.
 * Textures: the height map (R32F), a tangent-space normal map (central differences, RGBA32F),
-  a 3-D distance map (R32F, conservative Euclidean distance from each voxel centre to the
-  voxelised terrain, :func:`build_distance_map`), a per-voxel-column Lipschitz map (largest
+  a 3-D distance map (R32F, lower bound of the Euclidean distance from each voxel centre to
+  the terrain, :func:`build_distance_map`), a per-voxel-column Lipschitz map (largest
   terrain slope near the column, R32F) and an elevation albedo ramp (vegetation, rock, snow).
 * Vertex shader: projects the box, passes tangent-space eye and light vectors.
 * Fragment shader: sphere-traces the view ray. Each step is the largest *safe* one: the
   distance-map bound, or the slope (Lipschitz) bound for the current column, whichever is
-  larger, never less than ``min_step``. The first sample below the surface is refined by
-  bisection and a final secant step against the exactly bilinear height map, then shaded with
-  normal-mapped Lambert lighting of a directional sun and the albedo ramp; optionally a second
-  trace towards the sun casts shadows.
+  larger, never less than ``min_step``. The first sample below the surface is refined by a
+  secant step, bisection and a final secant step against the exactly bilinear height map,
+  then shaded with normal-mapped Lambert lighting of a directional sun and the albedo
+  ramp; optionally a second trace towards the sun casts shadows.
 * Render targets: RGBA32F colour (alpha: 1 hit, 0 miss, -1 step budget exhausted) and RGBA32F
   tile-local hit position, read back as numpy arrays.
 
@@ -272,12 +272,11 @@ def normal_map(heights: np.ndarray, gsd: float) -> np.ndarray:
 
 @dataclass(frozen=True)
 class DistanceMap:
-    """Conservative 3-D distance map over a tile's box.
+    """Conservative 3-D distance map over a tile's box (see :func:`build_distance_map`).
 
-    ``values[k, j, i]`` (z, north, east order) is a lower bound, minus half a voxel diagonal,
-    of the distance (m) from voxel centre ``((i, j, k) + 0.5) * voxel`` to the terrain
-    solid; so for any point ``p``, ``values[nearest voxel] - |p - centre|`` bounds its
-    distance to the terrain from below.
+    ``values[k, j, i]`` (z, north, east order) is a lower bound of the distance (m) from
+    voxel centre ``((i, j, k) + 0.5) * voxel`` to the terrain solid; so for any point ``p``,
+    ``values[nearest voxel] - |p - centre|`` bounds its distance to the terrain from below.
     """
 
     values: np.ndarray
@@ -322,15 +321,42 @@ def distance_map_shape(frame: TerrainFrame, cells_per_voxel: float = 4.0,
     return nx, ny, nz
 
 
-def build_distance_map(heights: np.ndarray, frame: TerrainFrame,
-                       shape_xyz: tuple[int, int, int] | None = None) -> DistanceMap:
-    """Voxelise the height field and take its Euclidean distance transform.
+def _envelope_distance(col_max: np.ndarray, voxel: np.ndarray, nz: int,
+                       radius: int) -> np.ndarray:
+    """Exact distance from voxel centres to the columns ``footprint x (-inf, col_max]``.
 
-    A voxel is marked solid when any point of its box may lie in or below the bilinear
-    surface (its bottom is below the highest height sample touching its footprint), so every
-    terrain point lies within half a voxel diagonal of a marked centre; subtracting that half
-    diagonal from the centre-to-centre EDT makes the map a lower bound (sphere tracing with it
-    cannot step through the surface).
+    Only columns within ``radius`` voxels are searched; farther ones are at least
+    ``(radius + 0.5)`` voxels away, which caps the result (still a lower bound).
+    """
+    ny, nx = col_max.shape
+    z = ((np.arange(nz) + 0.5) * voxel[2]).astype(np.float32)[:, None, None]
+    padded = np.pad(col_max.astype(np.float32), radius, constant_values=-np.inf)
+    best = np.full((nz, ny, nx), np.inf, np.float32)
+    for dj in range(-radius, radius + 1):
+        for di in range(-radius, radius + 1):
+            # From a column centre to the nearest edge of the column (di, dj) away.
+            h2 = ((max(abs(di) - 0.5, 0.0) * voxel[0]) ** 2
+                  + (max(abs(dj) - 0.5, 0.0) * voxel[1]) ** 2)
+            m = padded[radius + dj:radius + dj + ny, radius + di:radius + di + nx]
+            dz = np.maximum(z - m, 0.0)
+            np.minimum(best, dz * dz + np.float32(h2), out=best)
+    return np.minimum(np.sqrt(best), np.float32((radius + 0.5) * min(voxel[0], voxel[1])))
+
+
+def build_distance_map(heights: np.ndarray, frame: TerrainFrame,
+                       shape_xyz: tuple[int, int, int] | None = None,
+                       near_radius: int = 3) -> DistanceMap:
+    """Lower bounds of the distance from each voxel centre to the terrain.
+
+    The terrain solid lies inside the *envelope*: each voxel column's footprint from below up
+    to the highest height sample touching it (a bilinear patch never exceeds its corners).
+    Two bounds are combined, taking the larger:
+
+    * far field: mark voxels whose bottom is below their column's envelope, take scipy's
+      Euclidean distance transform between voxel centres and subtract half a voxel diagonal
+      (every solid point is that close to a marked centre);
+    * near field: the exact distance to the envelope columns within ``near_radius`` voxels,
+      which is much tighter close to the surface, where sphere tracing spends its steps.
 
     Parameters
     ----------
@@ -339,6 +365,8 @@ def build_distance_map(heights: np.ndarray, frame: TerrainFrame,
     frame : TerrainFrame
     shape_xyz : (nx, ny, nz), optional
         Voxel counts; default :func:`distance_map_shape`.
+    near_radius : int, optional
+        Search radius (voxels) of the near-field bound; 0 uses the EDT bound alone.
 
     Returns
     -------
@@ -350,8 +378,10 @@ def build_distance_map(heights: np.ndarray, frame: TerrainFrame,
     z_bottom = np.arange(nz) * voxel[2]
     solid = z_bottom[:, None, None] <= col_max[None, :, :]
     edt = ndimage.distance_transform_edt(~solid, sampling=(voxel[2], voxel[1], voxel[0]))
-    half_diag = 0.5 * float(np.linalg.norm(voxel))
-    return DistanceMap((edt - half_diag).astype(np.float32), voxel)
+    values = (edt - 0.5 * float(np.linalg.norm(voxel))).astype(np.float32)
+    if near_radius > 0:
+        np.maximum(values, _envelope_distance(col_max, voxel, nz, near_radius), out=values)
+    return DistanceMap(values, voxel)
 
 
 def build_lipschitz_map(heights: np.ndarray, frame: TerrainFrame, nx: int, ny: int) -> np.ndarray:
@@ -506,10 +536,13 @@ uniform float u_z0;
 uniform vec2 u_albedo_range;   // elevations of the first and last ramp entries
 uniform int u_albedo_n;
 uniform float u_min_step;
+uniform float u_lod_step;     // extra min step per metre from the eye (pixel footprint)
 uniform int u_max_steps;
 uniform int u_refine_steps;
+uniform float u_hit_eps;      // gap (m) that counts as on the surface
 uniform float u_ambient;
 uniform bool u_shadows;
+uniform bool u_slope_steps;
 uniform bool u_ortho;
 uniform vec3 u_cam;
 in vec3 v_pos;
@@ -536,42 +569,57 @@ vec4 bilinear(sampler2D tex, vec2 xy) {
 float gap(vec3 p) { return p.z - bilinear(u_height, p.xy).r; }
 
 // Largest step along d from p that cannot cross the surface.
-float safe_step(vec3 p, vec3 d, float g) {
+float safe_step(vec3 p, vec3 d, float g, float min_step) {
     ivec3 idx = clamp(ivec3(floor(p / u_voxel)), ivec3(0), u_dm_size - 1);
     vec3 centre = (vec3(idx) + 0.5) * u_voxel;
     float s = texelFetch(u_dist, idx, 0).r - length(p - centre);
     // Slope bound: the gap shrinks at most by (L |d_xy| - d_z) per metre, valid while the
     // step stays within one voxel horizontally (the Lipschitz map covers the neighbours).
+    if (!u_slope_steps) return max(s, min_step);
     float l = texelFetch(u_lip, idx.xy, 0).r;
     float dxy = length(d.xy);
     float rate = l * dxy - d.z;
     float cap = dxy > 1e-6 ? min(u_voxel.x, u_voxel.y) / dxy : 1e30;
     float s_lip = rate > 0.0 ? min(g / rate, cap) : cap;
-    return max(max(s, s_lip), u_min_step);
+    return max(max(s, s_lip), min_step);
 }
 
-// Bisection between a point above (lo) and below (hi) the surface, then one secant step.
-float refine(vec3 o, vec3 d, float lo, float hi) {
-    for (int k = 0; k < u_refine_steps; ++k) {
-        float mid = 0.5 * (lo + hi);
-        if (gap(o + mid * d) > 0.0) lo = mid; else hi = mid;
-    }
-    float g_lo = gap(o + lo * d);
-    float g_hi = gap(o + hi * d);
+// Secant estimate of the crossing in a bracket [lo (above), hi (below)].
+float secant(float lo, float hi, float g_lo, float g_hi) {
     return g_lo - g_hi > 0.0 ? lo + (hi - lo) * g_lo / (g_lo - g_hi) : hi;
 }
 
+// Refine a bracket: a secant guess first (exact where the surface is locally planar, e.g.
+// after a slope step landed on it), then bisection until the gap is within u_hit_eps,
+// then a final secant step.
+float refine(vec3 o, vec3 d, float lo, float hi, float g_lo, float g_hi) {
+    for (int k = 0; k < u_refine_steps; ++k) {
+        float mid = k == 0 ? secant(lo, hi, g_lo, g_hi) : 0.5 * (lo + hi);
+        float g = gap(o + mid * d);
+        if (abs(g) < u_hit_eps) return mid;
+        if (g > 0.0) { lo = mid; g_lo = g; } else { hi = mid; g_hi = g; }
+    }
+    return secant(lo, hi, g_lo, g_hi);
+}
+
 // First crossing of the ray o + t d, t in [t0, t1]: t >= 0 hit, -1 miss, -2 out of steps.
-float trace(vec3 o, vec3 d, float t0, float t1) {
+// A ray starting below the surface hits at t0; one that converges to within u_hit_eps
+// above it (slope steps approach the surface from above) hits there. The smallest step
+// grows with the distance from the eye, eye_dist + t, to a fraction of a pixel footprint.
+float trace(vec3 o, vec3 d, float t0, float t1, float eye_dist) {
     float t_prev = t0;
+    float g_prev = 0.0;
     float t = t0;
     for (int i = 0; i < u_max_steps; ++i) {
         vec3 p = o + t * d;
         float g = gap(p);
-        if (g <= 0.0) return i == 0 ? t : refine(o, d, t_prev, t);
+        if (g <= 0.0) return i == 0 ? t : refine(o, d, t_prev, t, g_prev, g);
+        if (g < u_hit_eps && i > 0) return t;
         if (t >= t1) return -1.0;
         t_prev = t;
-        t = min(t + safe_step(p, d, g), t1);
+        g_prev = g;
+        float min_step = max(u_min_step, u_lod_step * (eye_dist + t));
+        t = min(t + safe_step(p, d, g, min_step), t1);
     }
     return -2.0;
 }
@@ -611,7 +659,7 @@ void main() {
         t0 = max(box_interval(o, d).x, 0.0);
         t1 = dot(v_pos - o, d);
     }
-    float t = trace(o, d, t0, t1);
+    float t = trace(o, d, t0, t1, 0.0);
     if (t < 0.0) {
         out_color = vec4(0.0, 0.0, 0.0, t < -1.5 ? -1.0 : 0.0);
         out_hit = vec4(0.0);
@@ -623,7 +671,7 @@ void main() {
     float diffuse = max(dot(n, l), 0.0);
     if (u_shadows && diffuse > 0.0) {
         vec3 s0 = p + l * u_min_step;
-        float ts = trace(s0, l, 0.0, max(box_interval(s0, l).y, 0.0));
+        float ts = trace(s0, l, 0.0, max(box_interval(s0, l).y, 0.0), t);
         if (ts >= 0.0) diffuse = 0.0;  // an unresolved shadow ray (-2) counts as lit
     }
     vec3 rgb = albedo(p.z + u_z0) * (u_ambient + (1.0 - u_ambient) * diffuse);
@@ -656,8 +704,14 @@ class LandmarkRenderer:
     min_step_cells : float
         Smallest tracing step, in DEM cells; features thinner than this along a grazing ray
         may be stepped over.
+    lod_pixels : float
+        Perspective views: the smallest step also grows to this fraction of the pixel
+        footprint at the ray's distance (0 disables), which keeps far, grazing rays cheap.
     refine_steps : int
-        Bisection steps after the first sample below the surface.
+        Most refinement steps (secant, then bisection) after the first sample below the
+        surface.
+    hit_eps_cells : float
+        A gap below this many DEM cells counts as on the surface.
     cells_per_voxel : float
         Distance-map resolution: DEM cells per voxel (at most ``max_voxels`` per axis).
     max_voxels : int
@@ -665,23 +719,31 @@ class LandmarkRenderer:
         Fraction of the albedo seen in full shadow.
     shadows : bool
         Default for cast shadows (can be overridden per call).
+    slope_steps : bool
+        Also take slope-bound (Lipschitz) steps where they are longer than the distance-map
+        step; off gives plain distance-map sphere tracing.
     albedo : AlbedoRamp
     """
 
-    def __init__(self, ctx, *, max_steps: int = 128, min_step_cells: float = 0.25,
-                 refine_steps: int = 8, cells_per_voxel: float = 4.0, max_voxels: int = 256,
-                 ambient: float = 0.25, shadows: bool = False,
+    def __init__(self, ctx, *, max_steps: int = 256, min_step_cells: float = 0.25,
+                 lod_pixels: float = 0.5,
+                 refine_steps: int = 8, hit_eps_cells: float = 1e-3,
+                 cells_per_voxel: float = 4.0, max_voxels: int = 256,
+                 ambient: float = 0.25, shadows: bool = False, slope_steps: bool = True,
                  albedo: AlbedoRamp | None = None):
         if ctx.version_code < 330:
             raise EGLUnavailableError(f"OpenGL 3.3 needed, context has {ctx.version_code}")
         self.ctx = ctx
         self.max_steps = int(max_steps)
         self.min_step_cells = float(min_step_cells)
+        self.lod_pixels = float(lod_pixels)
         self.refine_steps = int(refine_steps)
+        self.hit_eps_cells = float(hit_eps_cells)
         self.cells_per_voxel = float(cells_per_voxel)
         self.max_voxels = int(max_voxels)
         self.ambient = float(ambient)
         self.shadows = bool(shadows)
+        self.slope_steps = bool(slope_steps)
         self.albedo = albedo or AlbedoRamp()
         self.program = ctx.program(vertex_shader=VERTEX_SHADER,
                                    fragment_shader=FRAGMENT_SHADER)
@@ -786,6 +848,7 @@ class LandmarkRenderer:
             "u_albedo_range": (lo, hi), "u_albedo_n": n,
             "u_min_step": self.min_step_cells * g.gsd, "u_max_steps": self.max_steps,
             "u_refine_steps": self.refine_steps, "u_ambient": self.ambient,
+            "u_slope_steps": self.slope_steps, "u_hit_eps": self.hit_eps_cells * g.gsd,
             **uniforms,
         }
         prog = self.program
@@ -851,6 +914,7 @@ class LandmarkRenderer:
         if out.width == 0 or out.height == 0:
             raise ValueError(f"empty output raster {out.width}x{out.height}")
         uniforms = {"u_ortho": True, "u_view_dir": (0.0, 0.0, -1.0), "u_cam": (0.0, 0.0, 0.0),
+                    "u_lod_step": 0.0,
                     "u_sun": tuple(resolve_sun(sun)),
                     "u_shadows": self.shadows if shadows is None else bool(shadows)}
         return self._draw(out.width, out.height, ortho_nadir_mvp(self.frame, out), uniforms,
@@ -885,6 +949,7 @@ class LandmarkRenderer:
             raise ValueError(f"camera at {p} is below the terrain surface")
         uniforms = {"u_ortho": False, "u_view_dir": (0.0, 0.0, -1.0),
                     "u_cam": tuple(local), "u_sun": tuple(resolve_sun(sun)),
+                    "u_lod_step": self.lod_pixels / max(camera.fx, camera.fy),
                     "u_shadows": self.shadows if shadows is None else bool(shadows)}
         return self._draw(camera.width, camera.height,
                           pinhole_mvp(camera, self.frame, p, r), uniforms, None)
