@@ -14,6 +14,10 @@ from terrain_nav_ros.core.renderer import (
     NoTerrainVisibleError,
     PinholeCamera,
     RendererError,
+    TerrainFrame,
+    albedo_lookup,
+    bilinear_local,
+    build_distance_map,
     create_headless_context,
 )
 from terrain_nav_ros.core.sun import solar_position, sun_direction_enu
@@ -113,6 +117,30 @@ def test_sun_direction_enu_axes():
     np.testing.assert_allclose(sun_direction_enu(123.0, 90.0), [0, 0, 1], atol=1e-12)
 
 
+# ----------------------------------------------------------------------------- distance map
+def test_distance_map_is_a_lower_bound():
+    from scipy.spatial import cKDTree
+
+    h, g = peak_tile(n=48)
+    frame = TerrainFrame.from_heights(h, g)
+    dmap = build_distance_map(h, frame, (12, 12, 8))
+    h_local = h - frame.z0
+    # Dense samples of the bilinear surface: the true distance is at most the nearest one.
+    fine = (np.arange(4 * g.width) + 0.5) * g.gsd / 4
+    xy = np.stack(np.meshgrid(fine, fine), -1).reshape(-1, 2)
+    surface = np.column_stack([xy, bilinear_local(h_local, g.gsd, xy)])
+    rng = np.random.default_rng(0)
+    p = rng.uniform([0, 0, 0], frame.size, size=(4000, 3))
+    idx = np.minimum((p / dmap.voxel).astype(int), np.array(dmap.shape_xyz) - 1)
+    centre = (idx + 0.5) * dmap.voxel
+    bound = dmap.values[idx[:, 2], idx[:, 1], idx[:, 0]] - np.linalg.norm(p - centre, axis=1)
+    above = p[:, 2] > bilinear_local(h_local, g.gsd, p[:, :2])
+    upper = cKDTree(surface).query(p)[0]
+    assert np.all(bound[above] <= upper[above] + 1e-3)
+    assert np.all(bound[~above] <= 1e-3)
+    assert np.mean(bound[above] > 0.2 * upper[above]) > 0.3  # and it is useful
+
+
 # ----------------------------------------------------------------------------- nadir
 def test_nadir_georeference_is_exact(renderer):
     h, g = peak_tile()
@@ -165,6 +193,33 @@ def test_oblique_view_matches_reference(renderer):
                                                        shadows=True)
     assert 0.3 < gpu.mask.mean() < 1.0  # sees terrain and sky
     assert_matches_reference(gpu, ref, g.gsd)
+
+
+def test_plain_distance_map_sphere_tracing_matches_reference(ctx):
+    # The dissertation's scheme alone: no slope steps, no level of detail, coarse voxels.
+    h, g = peak_tile()
+    cx, cy = g.centre
+    pos = np.array([cx + 1600.0, cy + 900.0, 1500.0])
+    r = look_at(pos, [cx, cy, 1000.0])
+    cam = PinholeCamera(60.0, 60.0, 31.5, 31.5, 64, 64)
+    renderer = LandmarkRenderer(ctx, slope_steps=False, lod_pixels=0.0, cells_per_voxel=8)
+    try:
+        renderer.set_terrain(h, g)
+        gpu = renderer.render_perspective(cam, pos, r, sun=(90.0, 40.0))
+    finally:
+        renderer.release()
+    ref = ReferenceRaycaster(h, g).render_perspective(cam, pos, r, sun=(90.0, 40.0))
+    assert_matches_reference(gpu, ref, g.gsd)
+
+
+def test_sun_below_horizon_leaves_ambient_only(renderer):
+    h, g = peak_tile(n=32)
+    renderer.set_terrain(h, g)
+    night = renderer.render_nadir(sun=(90.0, -5.0))
+    ref = ReferenceRaycaster(h, g).render_nadir(sun=(90.0, -5.0))
+    albedo = albedo_lookup(*renderer.albedo.table(), night.hit_enu[..., 2])
+    np.testing.assert_allclose(night.rgb, albedo * renderer.ambient, atol=1e-5)
+    np.testing.assert_allclose(night.rgb, ref.rgb, atol=1e-5)
 
 
 def test_ridge_occludes_valley_first_intersection_wins(ctx):
@@ -249,6 +304,8 @@ def test_view_without_terrain_raises(renderer):
         renderer.render_perspective(cam, [cx + 5000.0, cy, 1500.0], away)
     with pytest.raises(NoTerrainVisibleError):
         renderer.render_nadir(GeoReference(1e6, 1e6, 30.0, 16, 16))
+    with pytest.raises(ValueError, match="empty"):
+        renderer.render_nadir(GeoReference(cx, cy, 30.0, 0, 16))
     assert issubclass(NoTerrainVisibleError, RuntimeError)
 
 

@@ -20,6 +20,7 @@ from .renderer import (
     RenderResult,
     TerrainFrame,
     albedo_lookup,
+    bilinear_local,
     normal_map,
     resolve_sun,
     validate_pose,
@@ -27,35 +28,6 @@ from .renderer import (
 )
 
 __all__ = ["ReferenceRaycaster", "bilinear_local"]
-
-
-def bilinear_local(grid: np.ndarray, gsd: float, xy: np.ndarray) -> np.ndarray:
-    """Bilinear sample of a north-up raster at tile-local (x east, y north) metres.
-
-    Parameters
-    ----------
-    grid : ndarray (rows, cols) or (rows, cols, k)
-    gsd : float
-    xy : ndarray (..., 2)
-
-    Returns
-    -------
-    ndarray (...) or (..., k)
-    """
-    rows, cols = grid.shape[:2]
-    fc = xy[..., 0] / gsd - 0.5
-    fr = rows - xy[..., 1] / gsd - 0.5
-    c0, r0 = np.floor(fc), np.floor(fr)
-    wc, wr = fc - c0, fr - r0
-    a_c = np.clip(c0, 0, cols - 1).astype(int)
-    b_c = np.clip(c0 + 1, 0, cols - 1).astype(int)
-    a_r = np.clip(r0, 0, rows - 1).astype(int)
-    b_r = np.clip(r0 + 1, 0, rows - 1).astype(int)
-    if grid.ndim == 3:
-        wc, wr = wc[..., None], wr[..., None]
-    top = grid[a_r, a_c] * (1 - wc) + grid[a_r, b_c] * wc
-    bot = grid[b_r, a_c] * (1 - wc) + grid[b_r, b_c] * wc
-    return top * (1 - wr) + bot * wr
 
 
 def _secant(lo, hi, g_lo, g_hi):
@@ -168,7 +140,7 @@ class ReferenceRaycaster:
         """Lambert shading of tile-local surface points with the elevation albedo."""
         n = bilinear_local(self.normals, self.frame.georef.gsd, p[:, :2])
         n /= np.linalg.norm(n, axis=-1, keepdims=True)
-        diffuse = np.maximum(n @ sun_local, 0.0)
+        diffuse = np.maximum(n @ sun_local, 0.0) if sun_local[2] > 0 else np.zeros(len(p))
         if shadows:
             lit = diffuse > 0
             s0 = p[lit] + sun_local * self.shadow_offset

@@ -41,7 +41,7 @@ from .sun import sun_direction_enu
 __all__ = [
     "AlbedoRamp", "DistanceMap", "EGLUnavailableError", "InvalidTerrainError",
     "LandmarkRenderer", "NoTerrainVisibleError", "PinholeCamera", "RenderResult",
-    "RendererError", "TerrainFrame", "build_distance_map", "build_lipschitz_map",
+    "RendererError", "TerrainFrame", "bilinear_local", "build_distance_map", "build_lipschitz_map",
     "create_headless_context", "normal_map", "resolve_sun",
 ]
 
@@ -257,6 +257,38 @@ def validate_terrain(heights, georef: GeoReference) -> np.ndarray:
         raise InvalidTerrainError(f"heights contain {int(bad.sum())} NaN/inf values; fill "
                                   "voids (e.g. IDW interpolation) before rendering")
     return h
+
+
+def bilinear_local(grid: np.ndarray, gsd: float, xy: np.ndarray) -> np.ndarray:
+    """Bilinear sample of a north-up raster at tile-local (x east, y north) metres.
+
+    Pixel centres are the samples; outside them the edge values are held (clamp to edge).
+    The shader's ``bilinear`` does the same arithmetic.
+
+    Parameters
+    ----------
+    grid : ndarray (rows, cols) or (rows, cols, k)
+    gsd : float
+    xy : ndarray (..., 2)
+
+    Returns
+    -------
+    ndarray (...) or (..., k)
+    """
+    rows, cols = grid.shape[:2]
+    fc = xy[..., 0] / gsd - 0.5
+    fr = rows - xy[..., 1] / gsd - 0.5
+    c0, r0 = np.floor(fc), np.floor(fr)
+    wc, wr = fc - c0, fr - r0
+    a_c = np.clip(c0, 0, cols - 1).astype(int)
+    b_c = np.clip(c0 + 1, 0, cols - 1).astype(int)
+    a_r = np.clip(r0, 0, rows - 1).astype(int)
+    b_r = np.clip(r0 + 1, 0, rows - 1).astype(int)
+    if grid.ndim == 3:
+        wc, wr = wc[..., None], wr[..., None]
+    top = grid[a_r, a_c] * (1 - wc) + grid[a_r, b_c] * wc
+    bot = grid[b_r, a_c] * (1 - wc) + grid[b_r, b_c] * wc
+    return top * (1 - wr) + bot * wr
 
 
 def normal_map(heights: np.ndarray, gsd: float) -> np.ndarray:
@@ -668,7 +700,7 @@ void main() {
     vec3 p = o + t * d;
     vec3 n = normalize(bilinear(u_normal, p.xy).xyz);
     vec3 l = normalize(v_light);
-    float diffuse = max(dot(n, l), 0.0);
+    float diffuse = l.z > 0.0 ? max(dot(n, l), 0.0) : 0.0;  // no direct light at night
     if (u_shadows && diffuse > 0.0) {
         vec3 s0 = p + l * u_min_step;
         float ts = trace(s0, l, 0.0, max(box_interval(s0, l).y, 0.0), t);
@@ -788,7 +820,7 @@ class LandmarkRenderer:
         self.albedo = ramp
         self._set_albedo(ramp)
 
-    def set_terrain(self, heights, georef: GeoReference, *, distance_map_shape=None):
+    def set_terrain(self, heights, georef: GeoReference, *, distance_map_voxels=None):
         """Upload a height tile and build its normal, distance and slope maps.
 
         Parameters
@@ -796,7 +828,7 @@ class LandmarkRenderer:
         heights : array_like (rows, cols)
             Heights (m), north-up, matching ``georef``.
         georef : GeoReference
-        distance_map_shape : (nx, ny, nz), optional
+        distance_map_voxels : (nx, ny, nz), optional
             Override the distance-map resolution.
 
         Raises
@@ -806,8 +838,8 @@ class LandmarkRenderer:
         """
         h = validate_terrain(heights, georef)
         frame = TerrainFrame.from_heights(h, georef)
-        shape = distance_map_shape or globals()["distance_map_shape"](
-            frame, self.cells_per_voxel, self.max_voxels)
+        shape = distance_map_voxels or distance_map_shape(frame, self.cells_per_voxel,
+                                                          self.max_voxels)
         dmap = build_distance_map(h, frame, shape)
         lip = build_lipschitz_map(h, frame, shape[0], shape[1])
         normals = normal_map(h, georef.gsd)
@@ -959,7 +991,6 @@ class LandmarkRenderer:
         return bool(0 <= local[0] <= size[0] and 0 <= local[1] <= size[1])
 
     def _height_local(self, xy) -> float:
-        from .raycast_reference import bilinear_local
         return float(bilinear_local(self.heights - self.frame.z0, self.frame.georef.gsd,
                                     np.asarray(xy, float)[None])[0])
 
