@@ -227,6 +227,8 @@ class MatchResult:
     rotation : float
         theta (rad), CCW in the north-up map (minutia angles grow by theta).
     scale : float
+    scale_estimated : bool
+        Whether the scale was fitted (else it is 1 by construction).
     covariance : ndarray, shape (4, 4)
         Covariance of (a, b, tx, ty) from the fit residuals.
     rms : float
@@ -250,6 +252,7 @@ class MatchResult:
     transform: np.ndarray = field(default_factory=lambda: np.full((2, 3), np.nan))
     rotation: float = np.nan
     scale: float = np.nan
+    scale_estimated: bool = False
     covariance: np.ndarray = field(default_factory=lambda: np.full((4, 4), np.nan))
     rms: float = np.nan
     n_a: int = 0
@@ -798,7 +801,8 @@ class Matcher:
         return MatchResult(
             decision=Decision.MATCH if ok else Decision.NO_MATCH, score=score,
             n_pairings=len(pairs), pairings=pairs, transform=_pixel_transform(c, t),
-            rotation=float(np.angle(c)), scale=float(abs(c)), covariance=cov, rms=rms,
+            rotation=float(np.angle(c)), scale=float(abs(c)),
+            scale_estimated=p.estimate_scale, covariance=cov, rms=rms,
             n_a=a.n, n_b=b.n, n_overlap=(n_ao, n_bo), expected_chance=lam,
             pairing_ratio=len(pairs) ** 2 / max(n_ao * n_bo, 1),
             reason="" if ok else f"score {score:.2f} below threshold {p.threshold:.2f}")

@@ -1,0 +1,143 @@
+"""PVA fixes from minutiae registrations: ground-match position and PnP pose."""
+
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from scipy import ndimage
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+from synthetic_minutiae import terrain_minutiae, transform_set  # noqa: E402
+
+from terrain_nav_ros.core.georef import GeoReference  # noqa: E402
+from terrain_nav_ros.core.matching import Decision, MatchResult, localise  # noqa: E402
+from terrain_nav_ros.core.minutia_set import MinutiaSet  # noqa: E402
+from terrain_nav_ros.core.pva_fix import (  # noqa: E402
+    STATUS_NO_FIX,
+    STATUS_POSITION,
+    STATUS_POSITION_ATTITUDE,
+    dem_heights,
+    fix_from_ground_match,
+    fix_from_pnp,
+    velocity_from_fixes,
+)
+
+
+def _look_at(forward, up):
+    """Camera optical (x right, y down, z forward) -> ENU rotation."""
+    z = np.asarray(forward, float) / np.linalg.norm(forward)
+    y = -(np.asarray(up, float) - (np.dot(up, z)) * z)
+    y /= np.linalg.norm(y)
+    return np.column_stack([np.cross(y, z), y, z])
+
+
+def _rot_z(angle):
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+
+
+def _affine_from(fn):
+    """2x3 affine pixel map from a function of (col, row) arrays (exact for affine fn)."""
+    src = np.array([[0, 0], [100, 0], [0, 100]], np.float32)
+    dst = np.column_stack(fn(src[:, 0].astype(float), src[:, 1].astype(float)))
+    return cv2.getAffineTransform(src, dst.astype(np.float32)).astype(float)
+
+
+def test_ground_match_fix_recovers_position_and_heading():
+    land_geo = GeoReference(5000.0, 8000.0, 2.0, 512, 512)
+    land, _ = terrain_minutiae((512, 512), seed=21)
+    land = MinutiaSet(land.col, land.row, land.angle, land.kind, land.quality, georef=land_geo)
+    true_c = np.array([5520.0, 7490.0, 900.0])
+    prior_c = true_c + np.array([14.0, -9.0, 0.0])
+    yaw_err = np.radians(4.0)
+    cam_geo = GeoReference.centred(prior_c[0], prior_c[1], 2.0, 128, 128)
+
+    def land_to_cam(col, row):
+        e, n = land_geo.pixel_to_enu(col, row)
+        d = _rot_z(-yaw_err)[:2, :2] @ np.vstack([e - true_c[0], n - true_c[1]])
+        return cam_geo.enu_to_pixel(prior_c[0] + d[0], prior_c[1] + d[1])
+
+    cam, _ = transform_set(land, _affine_from(land_to_cam), (128, 128), rng=4)
+    result = localise(cam, land)
+    assert result.decision == Decision.MATCH
+    fix = fix_from_ground_match(result, cam_geo, land_geo, prior_c, np.eye(3), 0.0)
+    assert fix.status == STATUS_POSITION
+    assert np.hypot(*(fix.position[:2] - true_c[:2])) < 1.0
+    assert abs(fix.yaw_correction - yaw_err) < np.radians(0.5)
+    assert np.all(np.linalg.eigvalsh(fix.covariance[:2, :2]) > 0)
+    assert np.all(np.diag(fix.covariance)[3:] == -1)
+    assert fix.num_pairings == result.n_pairings > 10
+
+
+@pytest.fixture(scope="module")
+def pnp_scene():
+    rng = np.random.default_rng(3)
+    land_geo = GeoReference(0.0, 2000.0, 2.0, 1000, 1000)
+    dem_geo = GeoReference(0.0, 2000.0, 10.0, 200, 200)
+    dem = ndimage.gaussian_filter(rng.normal(size=(200, 200)), 12)
+    dem = 1500.0 + 150.0 * dem / np.abs(dem).max()
+    n = 400
+    land = MinutiaSet(rng.uniform(0, 999, n), rng.uniform(0, 999, n), rng.uniform(0, 6, n),
+                      np.ones(n, np.uint8), np.ones(n), georef=land_geo)
+    east, north = land.enu()
+    heights = dem_heights(dem, dem_geo, east, north)
+    centre = np.array([1000.0, 1000.0, 3200.0])
+    rot = _look_at([0.15, 0.1, -1.0], [np.sin(0.5), np.cos(0.5), 0.0])
+    k = np.array([[900.0, 0, 320], [0, 900.0, 240], [0, 0, 1]])
+    r_cw = rot.T
+    pts = np.column_stack([east, north, heights])
+    uv = cv2.projectPoints(pts, cv2.Rodrigues(r_cw)[0], -r_cw @ centre, k, None)[0][:, 0]
+    seen = (uv[:, 0] >= 0) & (uv[:, 0] < 640) & (uv[:, 1] >= 0) & (uv[:, 1] < 480)
+    idx = np.flatnonzero(seen)
+    cam_px = uv[idx] + rng.normal(0, 0.5, (len(idx), 2))
+    pairs = np.column_stack([np.arange(len(idx)), idx])
+    wrong = rng.random(len(idx)) < 0.1      # 10% wrong pairings: PnP must reject them
+    pairs[wrong, 1] = rng.integers(0, n, wrong.sum())
+    result = MatchResult(Decision.MATCH, score=50.0, n_pairings=len(pairs), pairings=pairs,
+                         n_a=len(idx), n_b=n)
+    return dict(result=result, cam_px=cam_px, enu=(east, north), heights=heights, k=k,
+                centre=centre, rot=rot)
+
+
+def test_pnp_fix_recovers_pose_with_consistent_covariance(pnp_scene):
+    s = pnp_scene
+    assert s["result"].n_pairings >= 30
+    prior_c = s["centre"] + [40.0, -25.0, 30.0]
+    prior_r = _rot_z(np.radians(2.0)) @ s["rot"]
+    fix = fix_from_pnp(s["result"], s["cam_px"], s["enu"], s["heights"], s["k"],
+                       prior_position=prior_c, prior_rotation=prior_r)
+    assert fix.status == STATUS_POSITION_ATTITUDE, fix.reason
+    err = fix.position - s["centre"]
+    # 1700 m range, 0.5 px noise, 40 degree field of view: metres, not decimetres
+    assert np.linalg.norm(err) < 8.0
+    # the error is consistent with the reported covariance (chi-square, 3 dof, p = 0.001)
+    assert err @ np.linalg.solve(fix.covariance[:3, :3], err) < 16.3
+    d_rot = cv2.Rodrigues(fix.rotation @ s["rot"].T)[0].ravel()
+    assert np.degrees(np.linalg.norm(d_rot)) < 0.3
+    assert np.all(np.linalg.eigvalsh(fix.covariance) > 0)
+
+
+def test_pnp_fix_without_prior_and_with_too_few_points(pnp_scene):
+    s = pnp_scene
+    fix = fix_from_pnp(s["result"], s["cam_px"], s["enu"], s["heights"], s["k"])
+    assert fix.status == STATUS_POSITION_ATTITUDE
+    assert np.linalg.norm(fix.position - s["centre"]) < 8.0
+    r = s["result"]
+    few = MatchResult(Decision.MATCH, pairings=r.pairings[:4], n_pairings=4)
+    assert fix_from_pnp(few, s["cam_px"], s["enu"], s["heights"], s["k"]).status == \
+        STATUS_NO_FIX
+
+
+def test_no_match_gives_no_fix_with_reason():
+    r = MatchResult(Decision.NO_DECISION, reason="too few minutiae (3, 200)")
+    fix = fix_from_ground_match(r, GeoReference(0, 0, 1, 10, 10), GeoReference(0, 0, 1, 10, 10),
+                                [0, 0, 100], np.eye(3), 0.0)
+    assert fix.status == STATUS_NO_FIX and "too few" in fix.reason
+
+
+def test_velocity_from_fixes():
+    v, cov = velocity_from_fixes([0, 0, 100], np.eye(6), 1.0, [20, -10, 100], np.eye(6), 3.0)
+    assert np.allclose(v, [10, -5, 0]) and np.allclose(cov, np.eye(3) * 0.5)
