@@ -331,6 +331,24 @@ def test_bad_pose_and_order_errors(ctx, renderer):
         renderer.render_nadir(sun=(np.nan, 30.0))
 
 
+def test_step_budget_exhaustion_is_reported(ctx):
+    h, g = peak_tile(n=32)
+    cx, cy = g.centre
+    pos = np.array([cx - 1200.0, cy, 1400.0])
+    r = look_at(pos, [cx, cy, 1000.0])
+    cam = PinholeCamera(30.0, 30.0, 15.5, 15.5, 32, 32)
+    renderer = LandmarkRenderer(ctx, max_steps=4, slope_steps=False)
+    try:
+        renderer.set_terrain(h, g)
+        res = renderer.render_perspective(cam, pos, r)
+        assert res.unresolved > 0 and res.mask.sum() + res.unresolved <= res.mask.size
+        renderer.max_steps = 1
+        with pytest.raises(RendererError, match="max_steps"):
+            renderer.render_perspective(cam, pos, r)
+    finally:
+        renderer.release()
+
+
 def test_missing_egl_gives_clear_error(monkeypatch):
     import moderngl
 

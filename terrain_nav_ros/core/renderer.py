@@ -681,10 +681,10 @@ void main() {
     float t0;
     float t1;
     if (u_ortho) {
-        // Start outside the box, behind the back-face point.
-        o = v_pos - d * 2.0 * length(u_box);
-        vec2 tb = box_interval(o, d);
-        t0 = tb.x;
+        // Start on the box top above the back-face point (d points down), so t stays small
+        // and float32 keeps millimetre precision.
+        o = v_pos - d * ((u_box.z - v_pos.z) / max(-d.z, 1e-6));
+        t0 = max(box_interval(o, d).x, 0.0);
         t1 = dot(v_pos - o, d);
     } else {
         o = u_cam;
@@ -791,6 +791,8 @@ class LandmarkRenderer:
     # -- resources
     def _texture(self, name: str, data: np.ndarray, *, dims: int = 2):
         """(Re)upload a float32 texture; reuse the GL object when the size is unchanged."""
+        import moderngl
+
         data = np.ascontiguousarray(data, dtype=np.float32)
         comps = 1 if data.ndim == dims else data.shape[-1]
         size = tuple(reversed(data.shape[:dims]))
@@ -800,14 +802,10 @@ class LandmarkRenderer:
                 tex.release()
             make = self.ctx.texture3d if dims == 3 else self.ctx.texture
             tex = make(size, comps, dtype="f4")
-            tex.filter = (self._nearest(), self._nearest())
+            tex.filter = (moderngl.NEAREST, moderngl.NEAREST)  # exact texelFetch sampling
             self._textures[name] = tex
         tex.write(data.tobytes())
         return tex
-
-    def _nearest(self):
-        import moderngl
-        return moderngl.NEAREST
 
     def _set_albedo(self, ramp: AlbedoRamp):
         table, lo, hi = ramp.table()
@@ -915,9 +913,11 @@ class LandmarkRenderer:
         unresolved = int(np.count_nonzero(flag < -0.5))
         miss = flag < 0.5
         if miss.all():
+            if unresolved:
+                raise RendererError(f"no ray resolved: {unresolved} ran out of max_steps="
+                                    f"{self.max_steps} before hitting or leaving the tile")
             raise NoTerrainVisibleError(
-                "the view sees no terrain (camera outside or facing away from the tile)"
-                + (f"; {unresolved} rays ran out of steps" if unresolved else ""))
+                "the view sees no terrain (camera outside or facing away from the tile)")
         hit_local = hit.reshape(height, width, 4)[..., :3].copy()
         hit_local[miss] = np.nan
         # The shader writes black for misses, so rgb needs no masking.
