@@ -5,6 +5,7 @@
 #   3. terrain_nav_msgs (and the tf2_msgs interface the wheels lack) built into the venv,
 #   4. this package installed in development mode, with its ament index entries.
 # Fast and silent when nothing changed (a stamp of the inputs is kept in the venv).
+# config/ and launch/ are linked into the venv's share/, so editing them needs no re-run.
 # Usage: scripts/setup.sh [--force] [--quiet]
 set -euo pipefail
 
@@ -24,9 +25,10 @@ say() { echo "[setup] $*" >&2; }
 
 inputs_digest() {
   (cd "$REPO" && cat requirements/lock.txt scripts/setup.sh setup.py setup.cfg package.xml \
+     terrain_nav_ros/executables.py \
      terrain_nav_msgs/CMakeLists.txt terrain_nav_msgs/package.xml terrain_nav_msgs/msg/* \
      terrain_nav_msgs/srv/* vendor/tf2_msgs/CMakeLists.txt vendor/tf2_msgs/msg/* \
-     resource/* config/* launch/* 2>/dev/null || true) | sha256sum | cut -d' ' -f1
+     resource/* 2>/dev/null || true) | sha256sum | cut -d' ' -f1
 }
 
 if [[ $FORCE -eq 0 && -f "$STAMP" && "$(cat "$STAMP")" == "$(inputs_digest)" ]]; then

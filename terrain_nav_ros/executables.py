@@ -9,6 +9,7 @@ and by ``launch/terrain_nav.launch.py``'s test. This module must stay import-fre
 NODES = {
     "bag_player": "terrain_nav_ros.bag_player_node:main",
     "bag_recorder": "terrain_nav_ros.bag_recorder_node:main",
+    "metamap": "terrain_nav_ros.metamap_node:main",
 }
 
 # Command-line tools that are not nodes.

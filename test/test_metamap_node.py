@@ -1,0 +1,78 @@
+"""metamap node: a client in another process gets the right tile, an explicit error outside
+the DEM, and a latched tile around the aircraft from odometry."""
+
+import numpy as np
+import pytest
+from ros_helpers import SpinningNode, start_node, stop, wait_until
+
+from terrain_nav_msgs.msg import DemTile
+from terrain_nav_msgs.srv import GetDemTile
+from terrain_nav_ros import conversions as cv
+from terrain_nav_ros.core.dem_io import sample_dem
+from terrain_nav_ros.core.metamap import MetaMap
+from terrain_nav_ros.ros_common import LATCHED_QOS
+
+
+@pytest.fixture(scope="module")
+def metamap_process():
+    proc = start_node("metamap", {"gsd": 50.0, "interpolation": "bilinear",
+                                  "camera_footprint_radius": 1000.0, "min_tile_size": 64})
+    client = SpinningNode("metamap_client")
+    yield client
+    client.close()
+    log = stop(proc)
+    assert proc.returncode == 0, log
+
+
+def _call(client, request, timeout=20.0):
+    cli = client.node.create_client(GetDemTile, "/metamap/get_tile")
+    assert cli.wait_for_service(timeout_sec=timeout), "metamap service never appeared"
+    future = cli.call_async(request)
+    assert wait_until(future.done, timeout), "no response"
+    return future.result()
+
+
+def test_service_returns_the_tile_the_core_computes(metamap_process):
+    request = GetDemTile.Request(center_frame=GetDemTile.Request.CENTER_ENU, center_x=1000.0,
+                                 center_y=-2000.0, width=40, height=30, gsd=50.0)
+    response = _call(metamap_process, request)
+    assert response.success, response.message
+    heights, georef = cv.msg_to_dem_tile(response.tile)
+    assert georef.shape == (30, 40) and georef.gsd == 50.0
+    assert georef.centre == pytest.approx((1000.0, -2000.0))
+    expected = MetaMap(sample_dem(), interpolation="bilinear", fill_voids=True,
+                       heights="enu").tile(georef).elevation
+    np.testing.assert_allclose(heights, expected, atol=1e-3)
+    # Within the Jacksboro DEM range (236..1076 m; orthometric ~ ENU up near the origin).
+    assert 230 < np.nanmin(heights) < np.nanmax(heights) < 1080
+
+
+def test_geodetic_request_and_outside_request(metamap_process):
+    response = _call(metamap_process, GetDemTile.Request(
+        center_frame=GetDemTile.Request.CENTER_GEODETIC, center_x=36.6, center_y=-84.25,
+        width=16, height=16, gsd=100.0))
+    assert response.success, response.message
+    far = _call(metamap_process, GetDemTile.Request(
+        center_frame=GetDemTile.Request.CENTER_ENU, center_x=5e5, center_y=5e5, width=16,
+        height=16, gsd=10.0))
+    assert not far.success and "outside" in far.message
+
+
+def test_odometry_triggers_a_latched_tile_around_the_aircraft(metamap_process):
+    from nav_msgs.msg import Odometry
+
+    node = metamap_process.node
+    tiles = []
+    node.create_subscription(DemTile, "/metamap/tile", tiles.append, LATCHED_QOS)
+    pub = node.create_publisher(Odometry, "/nav/odometry", 10)
+    odom = Odometry()
+    odom.pose.pose.position.x, odom.pose.pose.position.y = 500.0, 800.0
+    odom.twist.twist.linear.x = 30.0
+    odom.pose.covariance = cv.array_to_covariance(np.diag([100.0, 100, 100, 1, 1, 1]))
+    assert wait_until(lambda: pub.get_subscription_count() > 0, 20)
+    assert wait_until(lambda: (pub.publish(odom), bool(tiles))[1], 20, period=0.3)
+    heights, georef = cv.msg_to_dem_tile(tiles[0])
+    west, east, south, north = georef.extent
+    # Footprint 1000 m + 3 sigma (30 m) around now and 5 s ahead (150 m east).
+    assert west <= 500 - 1030 and east >= 650 + 1030 and south <= 800 - 1030
+    assert np.isfinite(heights).mean() > 0.99
