@@ -1,0 +1,216 @@
+#!/usr/bin/env python3
+"""Feature-extractor benchmark: speed per image size and repeatability across lighting.
+
+Reports (never asserts):
+
+* single-thread time per image at 512^2, 1024^2, 2048^2 (targets 40 / 160 / 700 ms median)
+  with the share of each stage, on hillshades of the real SRTM tile N44E005;
+* repeatability on real DEMs (../shared/data/dem): the same patch shaded with the sun at
+  az 315 / el 45 and at az 135 / el 30, and DEM-direct creases vs the shaded image. A
+  minutia is repeated when the other set has one within 2 px and 20 deg (one-to-one, kinds
+  ignored: a crease end seen with the opposite polarity can be a fork); the rate is
+  matches / min(n_a, n_b) (Mikolajczyk's repeatability), also given as matches / mean.
+
+Usage::
+
+    .venv/bin/python benchmarks/bench_features.py              # everything
+    .venv/bin/python benchmarks/bench_features.py --no-timing  # repeatability only
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[_var] = "1"
+
+import argparse  # noqa: E402
+import statistics  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+from scipy.spatial import cKDTree  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from terrain_nav_ros.core.creases import CreaseParams  # noqa: E402
+from terrain_nav_ros.core.georef import GeoReference  # noqa: E402
+from terrain_nav_ros.core.hillshade import hillshade  # noqa: E402
+from terrain_nav_ros.core.minutiae import FeatureExtractor, MinutiaParams  # noqa: E402
+
+cv2.setNumThreads(1)
+
+DATA = Path(os.environ.get("TERRAIN_NAV_DATA", REPO.parent / "shared" / "data"))
+STAGES = ("prepare", "diffusion", "mlsec", "mask", "skeleton", "orientation", "minutiae")
+SUN_A = (315.0, 45.0)
+SUN_B = (135.0, 30.0)
+
+
+def read_dem(name):
+    """Elevations (float64, NaN voids) and ground sample distance (m) of a shared DEM."""
+    import rasterio
+
+    with rasterio.open(DATA / "dem" / name) as ds:
+        band = ds.read(1, masked=True)
+        res = abs(ds.res[0])
+        # CRS-less grids: degrees if the cell is tiny (front_range), else metres (halffork).
+        geographic = ds.crs.is_geographic if ds.crs is not None else res < 0.01
+    dem = np.ma.filled(band.astype(np.float64), np.nan)
+    if geographic:  # 3 arc-second tiles: about 90 m north-south
+        res = res * 111_320.0
+    return dem, res
+
+
+def fill_voids(dem):
+    from scipy.ndimage import distance_transform_edt
+
+    bad = ~np.isfinite(dem)
+    if bad.any():
+        idx = distance_transform_edt(bad, return_distances=False, return_indices=True)
+        dem = dem[tuple(idx)]
+    return dem
+
+
+# --------------------------------------------------------------------------- timing
+
+
+def timing(sizes, repeats, extractor):
+    dem, gsd = read_dem("N44E005.hgt")
+    shaded = hillshade(fill_voids(dem), *SUN_A, gsd=gsd, dtype=np.uint8)
+    print(f"\n## Time per image (single thread), hillshade of N44E005 "
+          f"({shaded.shape[1]}x{shaded.shape[0]}, crops; 2048 = cubic upsampling)")
+    print("| size | median ms | target ms | minutiae | " + " | ".join(STAGES) + " |")
+    print("|---|---|---|---|" + "---|" * len(STAGES))
+    targets = {512: 40, 1024: 160, 2048: 700}
+    for n in sizes:
+        if n <= min(shaded.shape):
+            img = np.ascontiguousarray(shaded[:n, :n])
+        else:
+            img = cv2.resize(shaded, (n, n), interpolation=cv2.INTER_CUBIC)
+        extractor(img)  # warm-up
+        totals, shares = [], {s: [] for s in STAGES}
+        for _ in range(repeats.get(n, 3)):
+            t0 = time.perf_counter()
+            feats = extractor(img)
+            totals.append(time.perf_counter() - t0)
+            for s in STAGES:
+                shares[s].append(feats.timings.get(s, 0.0))
+        med = statistics.median(totals)
+        cells = " | ".join(f"{100 * statistics.median(shares[s]) / med:.0f}%" for s in STAGES)
+        print(f"| {n} | {1000 * med:.0f} | {targets.get(n, '-')} | {len(feats.minutiae)} | "
+              f"{cells} |", flush=True)
+
+
+# --------------------------------------------------------------------------- repeatability
+
+
+def match_count(a, b, max_px=2.0, max_deg=20.0):
+    """One-to-one matches (greedy by distance) within max_px and max_deg."""
+    if len(a) == 0 or len(b) == 0:
+        return 0
+    ta, tb = cKDTree(np.column_stack([a.col, a.row])), cKDTree(np.column_stack([b.col, b.row]))
+    pairs = ta.sparse_distance_matrix(tb, max_px, output_type="ndarray")
+    i, j, d = pairs["i"], pairs["j"], pairs["v"]
+    dang = np.abs(np.angle(np.exp(1j * (a.angle[i] - b.angle[j]))))
+    ok = dang <= np.deg2rad(max_deg)
+    i, j, d = i[ok], j[ok], d[ok]
+    used_a, used_b, n = set(), set(), 0
+    for k in np.argsort(d, kind="stable"):
+        if i[k] not in used_a and j[k] not in used_b:
+            used_a.add(i[k])
+            used_b.add(j[k])
+            n += 1
+    return n
+
+
+def rates(a, b):
+    m = match_count(a, b)
+    lo = min(len(a), len(b))
+    mean = 0.5 * (len(a) + len(b))
+    return (m / lo if lo else float("nan")), (m / mean if mean else float("nan")), m
+
+
+PATCHES = [
+    ("gredos", "gredos_25m_epsg23030.tif", (slice(None), slice(None))),
+    ("bigtujunga W", "bigtujunga_srtm30m_utm11.tif", (slice(0, 512), slice(0, 512))),
+    ("bigtujunga E", "bigtujunga_srtm30m_utm11.tif", (slice(0, 512), slice(600, 1112))),
+    ("halffork", "halffork_5m.asc", (slice(None), slice(None))),
+]
+
+
+def repeatability(configs):
+    print("\n## Repeatability across lighting (2 px, 20 deg; matches/min and matches/mean)")
+    print("Controls: DEM vs DEM + 1 m white noise; shade 315/45 vs 315/40 (5 deg elevation).")
+    print("| settings | patch | n(315/45) | n(135/30) | 315/45 vs 135/30 | n(DEM) | "
+          "DEM vs 315/45 | DEM vs 135/30 | control DEM+noise | control 315/40 |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    summary = {}
+    rng = np.random.default_rng(0)
+    for label, (cp, mp, dem_cp) in configs.items():
+        ext = FeatureExtractor(cp, mp)
+        ext_dem = FeatureExtractor(dem_cp, mp)
+        acc = []
+        for pname, fname, window in PATCHES:
+            dem, gsd = read_dem(fname)
+            dem = dem[window]
+            valid = np.isfinite(dem)
+            geo = GeoReference(0.0, 0.0, gsd, dem.shape[1], dem.shape[0])
+            filled = fill_voids(dem)
+
+            def shade(az, el, filled=filled, gsd=gsd):
+                return hillshade(filled, az, el, gsd=gsd, dtype=np.uint8)
+
+            a = ext(shade(*SUN_A), geo, valid).minutiae
+            b = ext(shade(*SUN_B), geo, valid).minutiae
+            a2 = ext(shade(315.0, 40.0), geo, valid).minutiae
+            d = ext_dem(dem, geo, valid, source="dem").minutiae
+            dn = ext_dem(dem + rng.normal(0.0, 1.0, dem.shape), geo, valid,
+                         source="dem").minutiae
+            r = [rates(a, b), rates(d, a), rates(d, b), rates(d, dn), rates(a, a2)]
+            acc.append(r)
+            cells = " | ".join(f"{x[0]:.0%} / {x[1]:.0%}" for x in r[:1])
+            print(f"| {label} | {pname} | {len(a)} | {len(b)} | {cells} | {len(d)} | "
+                  + " | ".join(f"{x[0]:.0%} / {x[1]:.0%}" for x in r[1:]) + " |", flush=True)
+        summary[label] = [np.nanmean([x[k][0] for x in acc]) for k in range(5)]
+    print("\nMean repeatability (matches/min) over the patches: 315/45 vs 135/30, "
+          "DEM vs 315/45, DEM vs 135/30, control DEM+noise, control 315/40")
+    for label, vals in summary.items():
+        print(f"- {label}: " + ", ".join(f"{v:.0%}" for v in vals))
+
+
+def configs():
+    """Settings compared: (shaded-image crease params, minutia params, DEM crease params)."""
+    mp = MinutiaParams(max_minutiae=0)
+    default = CreaseParams()
+    both = CreaseParams(polarity="both")
+    coarse = CreaseParams(polarity="both", sigma=2.0, w1=9, rho=2.0, w2=7, mlsec_sigma=2.0,
+                          mlsec_rho=4.0)
+    return {
+        "Table 3.1, valleys (default)": (default, mp, default),
+        "Table 3.1, valleys+ridges": (both, mp, both),
+        "sigma=rho=2, MLSEC 2/4, valleys+ridges": (coarse, mp, coarse),
+    }
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--no-timing", action="store_true")
+    ap.add_argument("--no-repeatability", action="store_true")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[512, 1024, 2048])
+    args = ap.parse_args(argv)
+    if not (DATA / "dem").is_dir():
+        sys.exit(f"real data not found at {DATA} (set TERRAIN_NAV_DATA)")
+    print(f"# bench_features  (cv2 threads {cv2.getNumThreads()}, OMP threads "
+          f"{os.environ['OMP_NUM_THREADS']})")
+    if not args.no_timing:
+        timing(args.sizes, {512: 15, 1024: 7, 2048: 3}, FeatureExtractor())
+    if not args.no_repeatability:
+        repeatability(configs())
+
+
+if __name__ == "__main__":
+    main()
