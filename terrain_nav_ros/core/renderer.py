@@ -852,6 +852,7 @@ class LandmarkRenderer:
         else:
             self._vbo.write(box.tobytes())
         self.frame, self.heights, self.distance_map = frame, h, dmap
+        self._h_local = h - frame.z0
 
     def _fbo(self, width: int, height: int):
         key = (width, height)
@@ -906,9 +907,11 @@ class LandmarkRenderer:
         # Both projections flip y (row 0 at the framebuffer bottom), which flips winding.
         ctx.front_face = "cw"
         self._vao.render(moderngl.TRIANGLES)
-        color = np.frombuffer(fbo.read(components=4, attachment=0, dtype="f4"), np.float32)
-        hit = np.frombuffer(fbo.read(components=4, attachment=1, dtype="f4"), np.float32)
-        color = color.reshape(height, width, 4)
+        # Fresh, writable arrays each frame (results must not alias the next frame's).
+        color = np.empty((height, width, 4), np.float32)
+        hit = np.empty((height, width, 4), np.float32)
+        fbo.read_into(color, components=4, attachment=0, dtype="f4")
+        fbo.read_into(hit, components=4, attachment=1, dtype="f4")
         flag = color[..., 3]
         unresolved = int(np.count_nonzero(flag < -0.5))
         miss = flag < 0.5
@@ -918,7 +921,7 @@ class LandmarkRenderer:
                                     f"{self.max_steps} before hitting or leaving the tile")
             raise NoTerrainVisibleError(
                 "the view sees no terrain (camera outside or facing away from the tile)")
-        hit_local = hit.reshape(height, width, 4)[..., :3].copy()
+        hit_local = hit[..., :3]
         hit_local[miss] = np.nan
         # The shader writes black for misses, so rgb needs no masking.
         return RenderResult(color[..., :3], hit_local, frame.offset, unresolved, georef)
@@ -991,14 +994,16 @@ class LandmarkRenderer:
         return bool(0 <= local[0] <= size[0] and 0 <= local[1] <= size[1])
 
     def _height_local(self, xy) -> float:
-        return float(bilinear_local(self.heights - self.frame.z0, self.frame.georef.gsd,
+        return float(bilinear_local(self._h_local, self.frame.georef.gsd,
                                     np.asarray(xy, float)[None])[0])
 
     def release(self):
         """Free the GL objects (the context stays the caller's)."""
-        for obj in [*self._textures.values(), *self._fbos.values(), self._vbo, self._vao,
-                    self.program]:
+        attachments = [t for f in self._fbos.values() for t in f.color_attachments]
+        for obj in [*self._textures.values(), *self._fbos.values(), *attachments, self._vbo,
+                    self._vao, self.program]:
             if obj is not None:
                 obj.release()
         self._textures.clear()
         self._fbos.clear()
+        self._vbo = self._vao = None
