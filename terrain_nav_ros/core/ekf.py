@@ -40,8 +40,8 @@ never raises and never stops the filter.
 from __future__ import annotations
 
 import bisect
-import math
 import itertools
+import math
 from collections import Counter, deque
 from dataclasses import dataclass, field
 from enum import StrEnum

@@ -49,9 +49,15 @@ class EkfParams:
     init_velocity_sigma : float
         1-sigma velocity uncertainty at initialisation (m/s). Default 2.0.
     init_roll_pitch_sigma : float
-        1-sigma roll/pitch uncertainty at initialisation (rad). Default 0.035 (2 deg).
+        1-sigma roll/pitch uncertainty at initialisation (rad). Default 0.0087 (0.5 deg),
+        what accelerometer levelling or a hand-over from the autopilot's AHRS gives.
     init_yaw_sigma : float
-        1-sigma yaw uncertainty at initialisation (rad). Default 0.087 (5 deg).
+        1-sigma yaw uncertainty at initialisation (rad). Default 0.035 (2 deg), a hand-over
+        from GNSS-aided heading. Larger initial attitude errors make any EKF of this kind
+        overconfident in yaw (it linearises at a tilted/rotated estimate, which invents yaw
+        information in straight flight): with 2 / 5 deg the Monte Carlo NEES grew to ~18 for
+        15 states; with 0.5 / 2 deg it stays at 15. Use larger values when that is the truth
+        (the filter still converges in turns), but expect an optimistic yaw sigma.
     init_gyro_bias_sigma : float
         1-sigma gyro turn-on bias left after pre-launch zeroing (rad/s). Default 2.5e-4.
     init_accel_bias_sigma : float
@@ -96,8 +102,8 @@ class EkfParams:
     accel_bias_random_walk: float = 1.0e-4
     init_position_sigma: float = 10.0
     init_velocity_sigma: float = 2.0
-    init_roll_pitch_sigma: float = float(np.deg2rad(2.0))
-    init_yaw_sigma: float = float(np.deg2rad(5.0))
+    init_roll_pitch_sigma: float = float(np.deg2rad(0.5))
+    init_yaw_sigma: float = float(np.deg2rad(2.0))
     init_gyro_bias_sigma: float = 2.5e-4
     init_accel_bias_sigma: float = 2.0e-2
     init_mode: str = "fix"

@@ -7,9 +7,9 @@ From the commands the simulator builds, on the IMU time grid:
 * heading ``psi`` (counter-clockwise from East) by integrating the turn rate;
 * ENU velocity ``V [cos g cos psi, cos g sin psi, sin g]`` with flight-path angle ``g``;
 * position as the trapezoidal integral of velocity;
-* attitude ``Rz(psi) Ry(-g) Rx(phi)`` with zero angle of attack and sideslip, and the bank of a
-  coordinated turn ``phi = atan(-V psi' / g0)`` (right turn -> right wing down -> phi > 0 in
-  FLU);
+* attitude ``Rz(psi) Ry(-g) Rx(phi)`` with zero angle of attack and sideslip, and the bank of
+  a coordinated turn (zero lateral specific force; about ``atan(-V psi' / g0)`` when level, so
+  a right turn gives right wing down, ``phi > 0`` in FLU);
 * ideal IMU angular rate and specific force by :func:`~.strapdown.inverse_mechanisation`,
   so that integrating them with the filter's mechanisation reproduces the truth exactly.
 
@@ -101,6 +101,19 @@ def _cumtrapz(y, dt):
     return out
 
 
+def _coordinated_bank(heading, gamma, turn_rate, gamma_rate, speed, gravity):
+    """Bank angle that puts the specific force in the body x-z plane (no sideslip force).
+
+    With body x along the velocity, ``y0`` the horizontal left axis and ``z0 = x0 x y0``,
+    the body y axis after banking by ``phi`` is ``cos(phi) y0 + sin(phi) z0``; zero lateral
+    specific force gives ``phi = atan2(-f.y0, f.z0)`` with ``f = a + g z_up``.
+    """
+    cg = np.cos(gamma)
+    f_y0 = speed * cg * turn_rate              # lateral (centripetal) acceleration
+    f_z0 = speed * gamma_rate + gravity * cg   # normal acceleration plus gravity component
+    return np.arctan2(-f_y0, f_z0)
+
+
 def simulate_trajectory(segments, rate_hz: float = 200.0, speed: float = 30.0,
                         start_position=(0.0, 0.0, 500.0), start_heading: float = 0.0,
                         ramp_s: float = 4.0, gravity: float = GRAVITY) -> Truth:
@@ -139,7 +152,7 @@ def simulate_trajectory(segments, rate_hz: float = 200.0, speed: float = 30.0,
     cg = np.cos(gamma)
     velocity = speed * np.stack([cg * np.cos(heading), cg * np.sin(heading), np.sin(gamma)], -1)
     position = np.asarray(start_position, dtype=float) + _cumtrapz(velocity, dt)
-    bank = np.arctan(-speed * turn_rate / gravity)
+    bank = _coordinated_bank(heading, gamma, turn_rate, np.gradient(gamma, dt), speed, gravity)
     quaternion = quat_from_euler(bank, -gamma, heading)
     gyro, accel = inverse_mechanisation(t, velocity, quaternion, gravity)
     return Truth(t, position, velocity, quaternion, gyro, accel)

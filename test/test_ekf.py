@@ -1,0 +1,435 @@
+"""Behaviour of the ROS-free EKF core (issue 7) on simulated flights with known truth.
+
+Runtime budget: under ~60 s on two cores. The IMU runs at 100 Hz here (the filter is rate
+agnostic; the benchmark uses 200 Hz) and Monte Carlo sets are small but seeded.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from terrain_nav_ros.core.ekf import EkfParams, Reason, TerrainEkf
+from terrain_nav_ros.core.imu_sim import (
+    ImuErrorModel,
+    simulate_baro,
+    simulate_fixes,
+    simulate_imu,
+)
+from terrain_nav_ros.core.strapdown import (
+    StrapdownStep,
+    attitude_error,
+    quat_exp,
+    quat_multiply,
+    quat_to_euler,
+)
+from terrain_nav_ros.core.trajectory_sim import (
+    Segment,
+    climbing_flight,
+    simulate_trajectory,
+    straight_flight,
+    survey_flight,
+    turning_flight,
+)
+
+RATE = 100.0
+SCENARIOS = {"straight": straight_flight, "turning": turning_flight,
+             "climbing": climbing_flight}
+
+
+# ----------------------------------------------------------------------------- helpers
+def start_filter(truth, params, rng=None, k=0):
+    """Filter initialised at epoch ``k``: truth perturbed by a draw from P0 (or exact)."""
+    ekf = TerrainEkf(params)
+    P0 = ekf.default_covariance()
+    e = rng.multivariate_normal(np.zeros(15), P0) if rng is not None else np.zeros(15)
+    q0 = quat_multiply(quat_exp(-e[6:9]), truth.quaternion[k])   # truth = Exp(e) * est
+    out = ekf.initialize(truth.t[k], truth.position[k] - e[:3], truth.velocity[k] - e[3:6],
+                         q0, P0)
+    assert out.reason == Reason.INITIALIZED
+    return ekf
+
+
+def error_state(truth, imu, k, state):
+    """15-vector truth - estimate in the filter's state order."""
+    return np.r_[truth.position[k] - state.position, truth.velocity[k] - state.velocity,
+                 attitude_error(truth.quaternion[k], state.quaternion),
+                 imu.gyro_bias[k] - state.gyro_bias, imu.accel_bias[k] - state.accel_bias]
+
+
+def run(ekf, truth, imu, fixes=None, baro=None, delay=0.0, every=1.0):
+    """Feed IMU at its stamps and measurements at ``stamp + delay``.
+
+    Returns the sampled epochs, NEES there, horizontal errors, and the outcome of each fix.
+    """
+    n = len(truth)
+    kinds = [np.zeros(n - 1, int)]
+    arrive = [truth.t[1:]]
+    index = [np.arange(1, n)]
+    if fixes is not None:
+        kinds.append(np.ones(len(fixes.t), int))
+        arrive.append(fixes.t + delay)
+        index.append(np.arange(len(fixes.t)))
+    if baro is not None:
+        kinds.append(np.full(len(baro[0]), 2))
+        arrive.append(baro[0] + delay)
+        index.append(np.arange(len(baro[0])))
+    kinds, arrive, index = (np.concatenate(a) for a in (kinds, arrive, index))
+    order = np.lexsort((kinds, arrive))   # IMU before measurements arriving at the same time
+    stride = int(round(every * RATE))
+    epochs, nees, herr, fix_out = [], [], [], {}
+    for kind, i in zip(kinds[order].tolist(), index[order].tolist(), strict=True):
+        if kind == 0:
+            ekf.process_imu(truth.t[i], imu.gyro[i], imu.accel[i])
+            if i % stride == 0:
+                s = ekf.state
+                e = error_state(truth, imu, i, s)
+                epochs.append(i)
+                nees.append(e @ np.linalg.solve(s.covariance, e))
+                herr.append(np.hypot(e[0], e[1]))
+        elif kind == 1:
+            att = None if fixes.attitude is None else fixes.attitude[i]
+            fix_out[i] = ekf.process_fix(fixes.t[i], fixes.position[i], fixes.covariance[i],
+                                         quaternion=att)
+        else:
+            ekf.process_baro(baro[0][i], baro[1][i], 1.5**2)
+    return np.array(epochs), np.array(nees), np.array(herr), fix_out
+
+
+def flight(segments, seed, params):
+    rng = np.random.default_rng(seed)
+    truth = simulate_trajectory(segments, rate_hz=RATE)
+    imu = simulate_imu(truth, ImuErrorModel.from_params(params), rng)
+    return rng, truth, imu
+
+
+# ----------------------------------------------------------------------------- mechanisation
+@pytest.mark.parametrize("scenario", ["turning", "climbing"])
+def test_ideal_imu_reproduces_truth(scenario):
+    """The simulator's IMU is the exact inverse of the filter's discrete mechanisation."""
+    truth = simulate_trajectory(SCENARIOS[scenario](60.0), rate_hz=RATE)
+    step = StrapdownStep()
+    x = np.zeros(15)
+    x[:3], x[3:6] = truth.position[0], truth.velocity[0]
+    q = truth.quaternion[0].copy()
+    for k in range(1, len(truth)):
+        step.step(x, q, truth.gyro[k], truth.accel[k], truth.t[k] - truth.t[k - 1])
+    np.testing.assert_allclose(x[:3], truth.position[-1], atol=1e-6)
+    np.testing.assert_allclose(x[3:6], truth.velocity[-1], atol=1e-8)
+    assert np.linalg.norm(attitude_error(truth.quaternion[-1], q)) < 1e-9
+    # Physically sensible: 30 m/s, coordinated turns have no lateral specific force.
+    assert np.allclose(np.linalg.norm(truth.velocity, axis=1), 30.0)
+    assert np.abs(truth.accel[:, 1]).max() < 1e-3   # O(dt^2) from sampling the ramps
+
+
+def test_trajectory_attitude_conventions():
+    """REP 103: a left turn banks left wing down (negative roll), climbing is nose up
+    (negative pitch in FLU), yaw follows the course counter-clockwise from East."""
+    truth = simulate_trajectory([Segment(20.0, np.deg2rad(3.0), np.deg2rad(5.0))],
+                                rate_hz=50.0, ramp_s=0.0)
+    roll, pitch, yaw = quat_to_euler(truth.quaternion[500])
+    assert roll < 0 and pitch == pytest.approx(-np.deg2rad(5.0))
+    v = truth.velocity[500]
+    assert yaw == pytest.approx(np.arctan2(v[1], v[0]))
+
+
+# ----------------------------------------------------------------------------- consistency
+@pytest.mark.parametrize("scenario", list(SCENARIOS))
+def test_nees_consistency(scenario):
+    """Monte Carlo NEES of the full 15-state within the chi-square 95 % bounds for >= 90 %
+    of the epochs, and the per-run NEES inside its own bounds for most epochs.
+
+    Truth initial errors and biases are drawn from the filter's prior; fixes every 2 s with
+    sigma 20 m, no outliers. Averaging over runs is needed because single runs of the weakly
+    observable states (yaw and horizontal accelerometer bias in straight flight) keep their
+    prior draw for the whole run.
+    """
+    params = EkfParams(init_mode="pose")
+    runs = 8
+    nees = []
+    for seed in range(runs):
+        rng, truth, imu = flight(SCENARIOS[scenario](120.0), 100 + seed, params)
+        fixes = simulate_fixes(truth, rng, period=2.0, sigma=20.0)
+        _, n, _, _ = run(start_filter(truth, params, rng), truth, imu, fixes)
+        nees.append(n)
+    nees = np.array(nees)
+    lo, hi = chi2.ppf([0.025, 0.975], 15 * runs) / runs
+    avg = nees.mean(axis=0)
+    assert np.mean((avg > lo) & (avg < hi)) >= 0.90, (avg.min(), avg.max(), lo, hi)
+    lo1, hi1 = chi2.ppf([0.025, 0.975], 15)
+    assert np.mean((nees > lo1) & (nees < hi1)) >= 0.80
+
+
+def test_biases_converge():
+    """With terrain fixes carrying attitude (PvaFix) and baro, on a manoeuvring flight, the
+    six bias estimates end within 3 sigma of the simulated (random-walking) biases and their
+    sigmas shrink well below the prior."""
+    params = EkfParams(init_mode="pose")
+    rng, truth, imu = flight(survey_flight(300.0, leg_s=30.0), 7, params)
+    fixes = simulate_fixes(truth, rng, period=1.0, sigma=5.0,
+                           attitude_sigma=np.deg2rad(0.5))
+    baro = simulate_baro(truth, rng, period=0.5, sigma=1.5)
+    ekf = start_filter(truth, params, rng)
+    run(ekf, truth, imu, fixes, baro)
+    s = ekf.state
+    sig = np.sqrt(np.diag(s.covariance))
+    err_g = imu.gyro_bias[-1] - s.gyro_bias
+    err_a = imu.accel_bias[-1] - s.accel_bias
+    assert np.all(np.abs(err_g) < 3 * sig[9:12]), (err_g, sig[9:12])
+    assert np.all(np.abs(err_a) < 3 * sig[12:15]), (err_a, sig[12:15])
+    assert np.all(sig[9:12] < 0.3 * params.init_gyro_bias_sigma)
+    assert np.all(sig[12:15] < 0.3 * params.init_accel_bias_sigma)
+    # and the estimate moved from zero towards the truth
+    assert np.linalg.norm(err_a) < 0.3 * np.linalg.norm(imu.accel_bias[-1])
+
+
+# ----------------------------------------------------------------------------- GPS-denied flight
+@pytest.fixture(scope="module")
+def ten_minute_flight():
+    params = EkfParams(init_mode="pose")
+    rng, truth, imu = flight(survey_flight(600.0), 2024, params)
+    fixes = simulate_fixes(truth, rng, period=2.0, sigma=20.0, outlier_rate=0.05,
+                           outlier_offset=500.0)
+    baro = simulate_baro(truth, rng, period=0.5, sigma=1.5)
+    init_rng = np.random.default_rng(5)
+    return params, truth, imu, fixes, baro, init_rng
+
+
+def test_fused_vs_dead_reckoning(ten_minute_flight):
+    """10 min at 30 m/s, fixes every 2 s (20 m) with 5 % gross outliers 500 m off."""
+    params, truth, imu, fixes, baro, init_rng = ten_minute_flight
+    assert fixes.outlier.sum() >= 5
+    state0 = init_rng.bit_generator.state
+    fused = start_filter(truth, params, init_rng)
+    _, _, herr, out = run(fused, truth, imu, fixes, baro)
+    rms = np.sqrt(np.mean(herr**2))
+    assert rms <= 15.0, rms
+    accepted = np.array([out[i].accepted for i in range(len(fixes.t))])
+    assert not accepted[fixes.outlier].any(), "an outlier got through the gate"
+    assert all(out[i].reason == Reason.GATED for i in np.flatnonzero(fixes.outlier))
+    assert accepted[~fixes.outlier].mean() > 0.97
+    d = fused.diagnostics
+    assert d.rejected["fix"] == np.count_nonzero(~accepted)
+    assert d.time_since_last_fix <= 4.0
+
+    init_rng.bit_generator.state = state0   # same initial error for the IMU-only run
+    dr = start_filter(truth, params, init_rng)
+    _, _, herr_dr, _ = run(dr, truth, imu)
+    assert herr_dr[-1] > 300.0, herr_dr[-1]
+    assert np.sqrt(np.mean(herr_dr**2)) > 10 * rms
+    # The IMU-only covariance admits it: its position sigma grew accordingly.
+    assert dr.diagnostics.position_sigma > 100.0
+
+
+# ----------------------------------------------------------------------------- timing
+def _short_flight(seed=3):
+    params = EkfParams(init_mode="pose")
+    rng, truth, imu = flight(turning_flight(40.0), seed, params)
+    fixes = simulate_fixes(truth, rng, period=2.0, sigma=10.0, start=1.013)
+    fixes = type(fixes)(fixes.t + 0.0013, fixes.position, fixes.covariance, None,
+                        fixes.outlier, fixes.index)   # stamps between IMU samples
+    return params, truth, imu, fixes
+
+
+@pytest.mark.parametrize("delay", [0.5, -0.3])
+def test_delayed_fix_matches_on_time(delay):
+    """Fixes arriving 0.5 s late (rewind + re-propagation), or early (queued), give the
+    same estimate as fixes applied on time."""
+    params, truth, imu, fixes = _short_flight()
+    ref = TerrainEkf(params)
+    ref.initialize(0.0, truth.position[0], truth.velocity[0], truth.quaternion[0])
+    # On time: each fix arrives right after the first IMU sample at or past its stamp.
+    run(ref, truth, imu, fixes, delay=0.5 / RATE)
+    ekf = TerrainEkf(params)
+    ekf.initialize(0.0, truth.position[0], truth.velocity[0], truth.quaternion[0])
+    _, _, _, out = run(ekf, truth, imu, fixes, delay=delay)
+    expected = Reason.QUEUED if delay < 0 else Reason.OK
+    assert all(o.reason == expected for o in out.values())
+    a, b = ref.state, ekf.state
+    np.testing.assert_allclose(b.position, a.position, atol=1e-6)
+    np.testing.assert_allclose(b.velocity, a.velocity, atol=1e-8)
+    np.testing.assert_allclose(b.covariance, a.covariance, atol=1e-9, rtol=1e-7)
+    assert np.linalg.norm(attitude_error(a.quaternion, b.quaternion)) < 1e-9
+    assert ref.diagnostics.accepted["fix"] == ekf.diagnostics.accepted["fix"] == len(fixes.t)
+
+
+def test_out_of_order_fixes_and_late_baro():
+    """Two fixes arriving in reverse order, and a late baro, still give the on-time result."""
+    params, truth, imu, fixes = _short_flight()
+    filters = [TerrainEkf(params) for _ in range(2)]
+    for f in filters:
+        f.initialize(0.0, truth.position[0], truth.velocity[0], truth.quaternion[0])
+    k_end = int(20 * RATE)
+    for k in range(1, k_end + 1):
+        for f in filters:
+            f.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
+        if k == int(10 * RATE):   # on time
+            filters[0].process_fix(9.2, truth.position[920] + 3.0, np.eye(3) * 25.0)
+            filters[0].process_fix(9.7, truth.position[970] - 2.0, np.eye(3) * 25.0)
+            filters[0].process_baro(9.9, truth.position[990, 2] + 1.0, 2.0)
+        if k == int(10.5 * RATE):   # late and reversed
+            filters[1].process_baro(9.9, truth.position[990, 2] + 1.0, 2.0)
+            filters[1].process_fix(9.7, truth.position[970] - 2.0, np.eye(3) * 25.0)
+            filters[1].process_fix(9.2, truth.position[920] + 3.0, np.eye(3) * 25.0)
+    # filters[0] applied them in stamp order too (each rewinds to its own stamp)
+    a, b = filters[0].state, filters[1].state
+    np.testing.assert_allclose(a.position, b.position, atol=1e-6)
+    np.testing.assert_allclose(a.covariance, b.covariance, atol=1e-9, rtol=1e-7)
+
+
+# ----------------------------------------------------------------------------- bad input
+def test_bad_inputs_rejected_with_reasons():
+    params = EkfParams(init_mode="pose", history_length=2.0)
+    _, truth, imu = flight(straight_flight(30.0), 1, params)
+    ekf = TerrainEkf(params)
+    assert ekf.process_imu(0.0, imu.gyro[0], imu.accel[0]).reason == Reason.NOT_INITIALIZED
+    assert ekf.process_fix(0.0, truth.position[0], np.eye(3)).reason == Reason.NOT_INITIALIZED
+    ekf.initialize(0.0, truth.position[0], truth.velocity[0], truth.quaternion[0])
+    for k in range(1, 1001):
+        assert ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k]).accepted
+    t = truth.t[1000]
+    bad_imu = [
+        ((t + 0.01, [np.nan, 0, 0], imu.accel[0]), Reason.NON_FINITE),
+        ((t + 0.01, imu.gyro[0], [0, np.inf, 9.8]), Reason.NON_FINITE),
+        ((np.nan, imu.gyro[0], imu.accel[0]), Reason.NON_FINITE),
+        ((t + 0.01, [0, 0], imu.accel[0]), Reason.BAD_SHAPE),
+        ((t, imu.gyro[1000], imu.accel[1000]), Reason.DUPLICATE),
+        ((t - 0.05, imu.gyro[995], imu.accel[995]), Reason.OUT_OF_ORDER),
+    ]
+    for args, reason in bad_imu:
+        out = ekf.process_imu(*args)
+        assert not out.accepted and out.reason == reason, (args, out)
+    pos = truth.position[990]
+    bad_fix = [
+        (dict(covariance=np.diag([1.0, -1.0, 1.0])), Reason.BAD_COVARIANCE),
+        (dict(covariance=np.ones((3, 3))), Reason.BAD_COVARIANCE),           # singular
+        (dict(covariance=np.array([[1, 2, 0], [0, 1, 0], [0, 0, 1.0]])), Reason.BAD_COVARIANCE),
+        (dict(covariance=np.eye(3) * np.nan), Reason.NON_FINITE),
+        (dict(covariance=np.eye(6)), Reason.BAD_SHAPE),
+        (dict(covariance=np.eye(6), quaternion=[0, 0, 0, 2.0]), Reason.BAD_QUATERNION),
+        (dict(covariance=np.eye(3), stamp=t - 5.0), Reason.STALE),
+        (dict(covariance=np.eye(3), stamp=t + 5.0), Reason.TOO_FAR_AHEAD),
+        (dict(covariance=np.eye(3), position=pos + [900.0, 0, 0]), Reason.GATED),
+    ]
+    for kw, reason in bad_fix:
+        kw = {"stamp": truth.t[990], "position": pos} | kw
+        out = ekf.process_fix(**kw)
+        assert not out.accepted and out.reason == reason, (kw, out)
+    assert ekf.process_baro(t, 500.0, 0.0).reason == Reason.BAD_COVARIANCE
+    good = ekf.process_fix(truth.t[995], truth.position[995], np.eye(3) * 4.0)
+    assert good.accepted and good.nis is not None
+    assert ekf.process_fix(truth.t[995], pos, np.eye(3)).reason == Reason.DUPLICATE
+    # the filter kept running and is still on track
+    for k in range(1001, 1500):
+        assert ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k]).accepted
+    assert np.linalg.norm(ekf.state.position - truth.position[1499]) < 10.0
+    d = ekf.diagnostics
+    assert d.input_rejections["imu:non_finite_value"] == 3
+    assert d.input_rejections["fix:covariance_not_positive_definite"] == 3
+    assert d.rejected["fix"] == 1 and d.accepted["fix"] == 1
+    assert d.records[-1].accepted and not d.records[-2].accepted
+
+
+def test_time_jump_backwards_resets():
+    """A bag loop (IMU jumps back by more than time_jump_reset) resets the filter, which
+    re-initialises from the configured pose and keeps running."""
+    params = EkfParams(init_mode="pose")
+    _, truth, imu = flight(straight_flight(10.0), 2, params)
+    ekf = TerrainEkf(params)
+    ekf.set_initial_pose(truth.position[0], truth.velocity[0], truth.quaternion[0])
+    assert ekf.process_imu(truth.t[0], imu.gyro[0], imu.accel[0]).reason == Reason.INITIALIZED
+    for k in range(1, 800):
+        ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
+    out = ekf.process_imu(truth.t[0], imu.gyro[0], imu.accel[0])
+    assert out.reason == Reason.TIME_JUMP_RESET
+    assert ekf.initialized and ekf.t == truth.t[0]
+    assert ekf.diagnostics.resets == 1
+    for k in range(1, 300):
+        assert ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k]).accepted
+    np.testing.assert_allclose(ekf.state.position, truth.position[299], atol=2.0)
+
+
+# ----------------------------------------------------------------------------- initialisation
+def test_init_from_two_fixes_and_from_pva_fix():
+    params = EkfParams(init_mode="fix")
+    rng, truth, imu = flight(straight_flight(40.0), 4, params)
+    ekf = TerrainEkf(params)
+    k1, k2, late = 500, 1700, 100
+    for k in range(1, k2 + late + 1):
+        out = ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
+        assert out.reason == Reason.NOT_INITIALIZED
+        if k in (k1, k2 + late):   # the second fix arrives 1 s after its stamp
+            j = k if k == k1 else k2
+            out = ekf.process_fix(truth.t[j], truth.position[j] + rng.normal(0, 5, 3),
+                                  np.eye(3) * 25.0)
+            assert out.reason == (Reason.WAITING_FOR_INIT if k == k1 else Reason.INITIALIZED)
+    # IMU received while waiting was replayed from the fix stamp up to now.
+    assert ekf.t == truth.t[k2 + late]
+    s = ekf.state
+    assert np.linalg.norm(s.velocity - truth.velocity[k2 + late]) < 3.0
+    yaw_err = attitude_error(truth.quaternion[k2 + late], s.quaternion)[2]
+    assert abs(yaw_err) < 3 * np.sqrt(s.covariance[8, 8])
+
+    # A full PVA fix initialises at once, with its own covariance.
+    ekf = TerrainEkf(params)
+    cov = np.diag([4.0] * 3 + [0.25] * 3 + [1e-4] * 3)
+    out = ekf.process_fix(1.0, truth.position[100], cov, velocity=truth.velocity[100],
+                          quaternion=truth.quaternion[100])
+    assert out.reason == Reason.INITIALIZED
+    np.testing.assert_allclose(ekf.state.covariance[6:9, 6:9], np.eye(3) * 1e-4)
+
+    # GNSS mode ignores terrain fixes until GNSS arrives.
+    ekf = TerrainEkf(EkfParams(init_mode="gnss"))
+    assert ekf.process_fix(1.0, truth.position[100], np.eye(3)).reason == Reason.NOT_INITIALIZED
+    assert ekf.process_gnss(1.0, truth.position[100], np.eye(3)).reason == \
+        Reason.WAITING_FOR_INIT
+    assert ekf.process_gnss(12.0, truth.position[1200], np.eye(3)).reason == \
+        Reason.INITIALIZED
+
+
+def test_gate_and_nis_records():
+    """The gate is chi2.ppf(p, dof) with dof = measurement dimension; NIS is recorded."""
+    params = EkfParams(init_mode="pose", fix_gate_probability=0.99, baro_gate_probability=0.95)
+    _, truth, imu = flight(straight_flight(5.0), 9, params)
+    ekf = start_filter(truth, params)
+    for k in range(1, 200):
+        ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
+    t = truth.t[199]
+    fix = ekf.process_fix(t, truth.position[199], np.eye(3) * 9.0,
+                          quaternion=truth.quaternion[199])
+    assert fix.reason == Reason.BAD_SHAPE   # attitude needs a 6x6 covariance
+    fix = ekf.process_fix(t, truth.position[199], np.eye(6) * 9e-4 + np.diag([9.0] * 3 + [0] * 3),
+                          quaternion=truth.quaternion[199])
+    assert fix.gate == pytest.approx(chi2.ppf(0.99, 6))
+    baro = ekf.process_baro(t, truth.position[199, 2], 1.0)
+    assert baro.gate == pytest.approx(chi2.ppf(0.95, 1))
+    recs = list(ekf.diagnostics.records)
+    assert [(r.source, r.dim) for r in recs] == [("fix", 6), ("baro", 1)]
+    assert recs[0].nis == pytest.approx(fix.nis) and ekf.diagnostics.last_nis("baro") > 0
+
+
+def test_position_reset_after_consecutive_rejections():
+    """A filter started 2 km off rejects the (correct) fixes, then resets onto them."""
+    params = EkfParams(init_mode="pose", reset_after_rejections=3)
+    rng, truth, imu = flight(straight_flight(30.0), 11, params)
+    ekf = TerrainEkf(params)
+    ekf.initialize(0.0, truth.position[0] + [2000.0, 0, 0], truth.velocity[0],
+                   truth.quaternion[0])
+    reasons = []
+    for k in range(1, len(truth)):
+        ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
+        if k % 200 == 0:
+            out = ekf.process_fix(truth.t[k], truth.position[k] + rng.normal(0, 5, 3),
+                                  np.eye(3) * 25.0)
+            reasons.append(out.reason)
+    assert reasons[:4] == [Reason.GATED] * 3 + [Reason.POSITION_RESET]
+    assert all(r == Reason.OK for r in reasons[4:])
+    assert np.linalg.norm(ekf.state.position - truth.position[-1]) < 20.0
+    assert ekf.diagnostics.position_resets == 1
+
+
+def test_core_modules_are_ros_free():
+    assert not any(m == "rclpy" or m.startswith("rclpy.") for m in sys.modules)
