@@ -214,3 +214,29 @@ def test_georeferenced_sets_keep_their_footprint(block):
     assert r.decision == Decision.MATCH
     assert r.n_pairings == len(a)
     assert np.allclose(r.transform, [[1, 0, 0], [0, 1, 0]], atol=1e-6)
+
+
+def test_localise_with_descriptor_roots(region):
+    # the generator used for large landmark regions: descriptor-nearest root pairs
+    ms = region[0]
+    theta, size, target = np.radians(-70.0), 256, np.array([250.0, 260.0])
+    c, s = np.cos(theta), np.sin(theta)
+    rot = np.array([[c, s], [-s, c]])
+    cam_to_reg = np.column_stack([rot, target - rot @ np.array([size / 2, size / 2])])
+    inv = np.linalg.inv(np.vstack([cam_to_reg, [0, 0, 1]]))[:2]
+    cam, _ = transform_set(ms, inv, (size, size), rng=8)
+    r = Matcher(candidates="roots").localise(cam, ms)
+    assert r.decision == Decision.MATCH, r.reason
+    assert _corner_error(r, cam_to_reg, size, size) < 1.0
+
+
+def test_crease_descriptor_in_matching(region, block):
+    ms, skel = region
+    crease_block = skel[128:128 + BLOCK, 128:128 + BLOCK]
+    m = rigid_transform(np.radians(90.0), 0.0, 0.0, centre=((BLOCK - 1) / 2, (BLOCK - 1) / 2))
+    b, _ = transform_set(block, m, (BLOCK, BLOCK), rng=2)
+    crease_b = np.rot90(crease_block)   # the same 90-degree CCW turn as m
+    matcher = Matcher()
+    r = matcher.compare(matcher.index(block, crease_block), matcher.index(b, crease_b))
+    assert r.decision == Decision.MATCH
+    assert _corner_error(r, m, BLOCK, BLOCK) < 1.0

@@ -283,6 +283,8 @@ class EdgeHash:
         order = np.argsort(keys, kind="stable")
         self.rows = rows[order]
         self.cols = cols[order]
+        self.j = edges.j[rows, cols][order]
+        self.direction = edges.direction[rows, cols][order]
         # invariants in key order, so the tolerance filter reads contiguous 1-D arrays
         self.length = length[order]
         self.beta_i = edges.beta_i[rows, cols][order]
@@ -324,7 +326,16 @@ class EdgeHash:
                          np.ascontiguousarray(length_tol), float(angle_tol))
 
     def lookup(self, eq: EdgeQuery):
-        """Stored edges within tolerance of prepared query edges (see :meth:`query`)."""
+        """Stored edges within tolerance of prepared query edges.
+
+        Returns
+        -------
+        q : ndarray of intp
+            Index of the query edge.
+        pos : ndarray of intp
+            Position of the stored edge in this hash's key-ordered arrays (``rows``,
+            ``cols``, ``j``, ``direction``, ...).
+        """
         if eq.grid != self.grid:
             raise ValueError("EdgeHash.lookup: query prepared for a different grid")
         lo = self.start[eq.keys]
@@ -335,8 +346,7 @@ class EdgeHash:
         ok = ((np.abs(self.length[pos] - eq.length[q]) <= eq.length_tol[q])
               & (np.abs(wrap_angle(self.beta_i[pos] - eq.beta_i[q])) <= eq.angle_tol)
               & (np.abs(wrap_angle(self.beta_j[pos] - eq.beta_j[q])) <= eq.angle_tol))
-        pos = pos[ok]
-        return q[ok], self.rows[pos], self.cols[pos]
+        return q[ok], pos[ok]
 
     def query(self, length, beta_i, beta_j, length_tol, angle_tol):
         """Stored edges within tolerance of each query edge.
@@ -357,4 +367,5 @@ class EdgeHash:
         rows, cols : ndarray of intp
             The matching stored edge as (minutia, neighbour slot) of the stored EdgeTable.
         """
-        return self.lookup(self.prepare(length, beta_i, beta_j, length_tol, angle_tol))
+        q, pos = self.lookup(self.prepare(length, beta_i, beta_j, length_tol, angle_tol))
+        return q, self.rows[pos], self.cols[pos]

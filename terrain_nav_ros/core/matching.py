@@ -185,7 +185,7 @@ class MinutiaIndex:
     def edge_query(self, grid_hash: EdgeHash):
         """This set's first ``k_query`` edges prepared as hash queries (cached).
 
-        Returns the prepared query and the (minutia, slot) of each query edge.
+        Returns the prepared query and, per query edge, its two minutiae and direction.
         """
         if self._query is None or self._query[0].grid != grid_hash.grid:
             p, e = self.params, self.edges
@@ -193,7 +193,7 @@ class MinutiaIndex:
             length = e.length[rows, cols]
             eq = grid_hash.prepare(length, e.beta_i[rows, cols], e.beta_j[rows, cols],
                                    _length_tol(p, length), p.edge_angle_tol)
-            self._query = (eq, rows, cols)
+            self._query = (eq, rows, e.j[rows, cols], e.direction[rows, cols])
         return self._query
 
 
@@ -309,19 +309,17 @@ def _length_tol(p: MatchParams, length):
 
 
 def _hash_votes(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> _Votes:
-    ea = a.edges
     hb = b.edge_hash()
-    eq, rows, cols = a.edge_query(hb)
-    q, rb, cb = hb.lookup(eq)
-    ia, qa = rows[q], cols[q]
-    ja, jb = ea.j[ia, qa], b.edges.j[rb, cb]
-    theta = wrap_angle(b.edges.direction[rb, cb] - ea.direction[ia, qa])
+    eq, qi, qj, qdir = a.edge_query(hb)
+    q, pos = hb.lookup(eq)
+    ia, ja, ib, jb = qi[q], qj[q], hb.rows[pos], hb.j[pos]
+    theta = wrap_angle(hb.direction[pos] - qdir[q])
     if p.use_descriptors:
-        s = np.maximum(_similarity_matrix(a, b), 0.0)
-        w = s[ia, rb] * s[ja, jb] + 0.05
+        s = np.maximum(_similarity_matrix(a, b), 0.0).ravel()
+        w = s[ia * b.n + ib] * s[ja * b.n + jb] + 0.05
     else:
         w = np.ones(len(ia))
-    return _Votes(ia, ja, rb, jb, theta, w)
+    return _Votes(ia, ja, ib, jb, theta, w)
 
 
 def _root_votes(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> _Votes:
@@ -370,6 +368,8 @@ def _rotation_peaks(theta, w, p: MatchParams, n_peaks: int) -> np.ndarray:
     is_peak = (h >= np.roll(h, 1)) & (h > np.roll(h, -1)) & (h > 0)
     idx = np.flatnonzero(is_peak)
     idx = idx[np.argsort(-h[idx])][:n_peaks]
+    # weak rotation peaks beside a dominant one are not worth a translation search
+    idx = idx[h[idx] >= p.min_support_ratio * h[idx[0]]] if len(idx) else idx
     return (idx + 0.5) * (TWO_PI / nb) - np.pi
 
 
