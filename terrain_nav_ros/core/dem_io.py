@@ -28,6 +28,7 @@ about 1 m, 1 % of a cell. Heights are metres above the geoid (NAVD88 or EGM96).
 from __future__ import annotations
 
 import glob
+import mmap
 import os
 import re
 from collections.abc import Callable
@@ -97,7 +98,11 @@ class Dem:
     @classmethod
     def from_array(cls, array, transform, crs=None, nodata=None, name="<array>",
                    crs_guessed=False):
-        """Wrap a 2-D array (ndarray or ``np.memmap``) as a DEM; windows are views, not copies.
+        """Wrap a 2-D array (ndarray or ``np.memmap``) as a DEM.
+
+        Windows are float32 copies. For a ``np.memmap`` the pages read are released from the
+        process's resident set after each window (``MADV_DONTNEED``), so RSS stays near the
+        working set instead of growing towards the file size.
 
         Parameters
         ----------
@@ -116,8 +121,15 @@ class Dem:
             transform = Affine.from_gdal(*transform)
         crs = None if crs is None else CRS.from_user_input(crs)
 
+        mapping = getattr(array, "_mmap", None) if isinstance(array, np.memmap) else None
+
         def read(r0, r1, c0, c1):
-            return _to_float(array[r0:r1, c0:c1], nodata)
+            block = _to_float(array[r0:r1, c0:c1], nodata)
+            if mapping is not None:
+                # unmap the pages just copied: they stay in the page cache (the next read is a
+                # cheap minor fault) but no longer count in this process's resident set
+                mapping.madvise(mmap.MADV_DONTNEED)
+            return block
 
         return cls(name, transform, array.shape[1], array.shape[0], crs, np.dtype(array.dtype),
                    nodata, read, crs_guessed)
@@ -181,15 +193,19 @@ class Dem:
 
     def read_window(self, row0: int, col0: int, nrows: int, ncols: int) -> np.ndarray:
         """Read ``nrows x ncols`` cells from (row0, col0); cells outside the DEM are NaN."""
-        out = np.full((nrows, ncols), np.nan, dtype=np.float32)
         r0, r1 = max(row0, 0), min(row0 + nrows, self.height)
         c0, c1 = max(col0, 0), min(col0 + ncols, self.width)
+        block = None
         if r1 > r0 and c1 > c0:
             try:
                 block = self._read(r0, r1, c0, c1)
             except (RasterioError, OSError) as exc:
                 raise DemError(f"{self.name}: cannot read rows {r0}:{r1}, cols {c0}:{c1} "
                                f"(truncated or corrupt data?): {exc}") from exc
+            if block.shape == (nrows, ncols):  # wholly inside: already a fresh float32 array
+                return block
+        out = np.full((nrows, ncols), np.nan, dtype=np.float32)
+        if block is not None:
             out[r0 - row0:r1 - row0, c0 - col0:c1 - col0] = block
         return out
 
@@ -216,12 +232,13 @@ class Dem:
 
 
 def _to_float(block, nodata) -> np.ndarray:
-    """float32 copy of a storage block with nodata -> NaN."""
-    out = np.asarray(block, dtype=np.float32)
-    if np.may_share_memory(out, block):  # never hand out (or NaN-poke) the source's memory
-        out = out.copy()
+    """float32 copy of a storage block with nodata -> NaN (one copy, one compare)."""
+    out = np.array(block, dtype=np.float32, copy=True)  # never hand out the source's memory
     if nodata is not None and not np.isnan(nodata):
-        out[np.asarray(block) == nodata] = np.nan
+        if np.float32(nodata) == nodata:
+            out[out == np.float32(nodata)] = np.nan
+        else:  # nodata not representable in float32 (e.g. an int32 sentinel): compare raw
+            out[np.asarray(block) == nodata] = np.nan
     return out
 
 

@@ -80,20 +80,18 @@ class DemTile:
         return float(1.0 - self.nodata.mean()) if self.nodata.size else 0.0
 
 
-def _hat_weights(nodes: np.ndarray, n: int) -> np.ndarray:
-    """(n, len(nodes)) matrix of linear-interpolation weights from nodes to 0..n-1."""
-    x = np.arange(n, dtype=float)
-    k = np.clip(np.searchsorted(nodes, x, side="right") - 1, 0, len(nodes) - 2)
-    t = (x - nodes[k]) / (nodes[k + 1] - nodes[k])
-    w = np.zeros((n, len(nodes)), dtype=np.float32)
-    w[np.arange(n), k] = 1.0 - t
-    w[np.arange(n), k + 1] = t
-    return w
+def _control_nodes(n: int, step: int) -> np.ndarray:
+    """Pixel positions of control nodes: cell centres of ``step``-pixel blocks, one extra
+    block beyond each end, so that ``cv2.resize`` by ``step`` interpolates them linearly at
+    every pixel (its sample-centre convention) and the crop never reaches the clamped border."""
+    return (np.arange(-1, -(-n // step) + 1) + 0.5) * step - 0.5
 
 
-def _nodes(n: int, step: int) -> np.ndarray:
-    return np.unique(np.r_[np.arange(0, n - 1, step), n - 1]).astype(float) if n > 1 \
-        else np.array([0.0, 1.0])
+def _expand(ctrl: np.ndarray, step: int, h: int, w: int) -> np.ndarray:
+    """Bilinear expansion of a control grid (see :func:`_control_nodes`) to h x w float32."""
+    big = cv2.resize(ctrl.astype(np.float32), (ctrl.shape[1] * step, ctrl.shape[0] * step),
+                     interpolation=cv2.INTER_LINEAR)
+    return np.ascontiguousarray(big[step:step + h, step:step + w])
 
 
 class _Layer:
@@ -243,11 +241,11 @@ class MetaMap:
             A DEM window cannot be read, or the request needs an unreasonably large window.
         """
         h, w = georef.shape
-        out = np.full((h, w), np.nan, dtype=np.float32)
         if h == 0 or w == 0:
-            return DemTile(out, np.ones((h, w), bool), georef, self.heights)
-        rn, cn = _nodes(h, self.control_step), _nodes(w, self.control_step)
-        wr, wc = _hat_weights(rn, h), _hat_weights(cn, w)
+            return DemTile(np.zeros((h, w), np.float32), np.ones((h, w), bool), georef,
+                           self.heights)
+        out = None
+        rn, cn = _control_nodes(h, self.control_step), _control_nodes(w, self.control_step)
         ne, nn = georef.pixel_to_enu(cn[None, :], rn[:, None])
         ne, nn = np.broadcast_arrays(ne, nn)
         west, east_edge, south, north_edge = georef.extent
@@ -257,25 +255,32 @@ class MetaMap:
             if le <= west or lw >= east_edge or ln <= south or ls >= north_edge:
                 continue
             hit = True
-            z = self._sample_layer(layer, ne, nn, wr, wc)
-            if z is not None:
+            z = self._sample_layer(layer, ne, nn, h, w)
+            if z is None:
+                continue
+            if out is None:
+                out = z
+            else:
                 np.copyto(out, z, where=np.isnan(out))
-            if not np.isnan(out).any():
+            nodata = np.isnan(out)
+            if not nodata.any():
                 break
         if not hit:
             raise OutsideDemError(
                 f"tile centred at ENU ({georef.centre[0]:.1f}, {georef.centre[1]:.1f}) m, "
                 f"{w}x{h} px at {georef.gsd} m/px, is outside every loaded DEM "
                 f"(ENU bounds {[tuple(round(v) for v in b) for b in self.enu_bounds]})")
+        if out is None:
+            out, nodata = np.full((h, w), np.nan, dtype=np.float32), np.ones((h, w), bool)
         if self.heights == "enu":
             up = self.origin.surface_up(*georef.pixel_to_enu(np.arange(w)[None, :],
                                                              np.arange(h)[:, None]),
                                         height=self.origin.alt)
             h_ell = self.origin.orthometric_to_ellipsoidal(out)
             out = (up + (h_ell - self.origin.alt)).astype(np.float32)
-        return DemTile(out, np.isnan(out), georef, self.heights)
+        return DemTile(out, nodata, georef, self.heights)
 
-    def _sample_layer(self, layer: _Layer, ne, nn, wr, wc):
+    def _sample_layer(self, layer: _Layer, ne, nn, h: int, w: int):
         dem = layer.dem
         x, y = layer.transform.from_enu(ne, nn, self.reference_height)
         cols, rows = dem.crs_to_pixel(x, y)
@@ -283,7 +288,8 @@ class MetaMap:
             return None  # tile reaches where the DEM's CRS is undefined
         # DEM cells per tile pixel along tile rows / columns: box-average first when the tile
         # is much coarser than the DEM, so coarse tiles are not aliased
-        span_c, span_r = max(wc.shape[0] - 1, 1), max(wr.shape[0] - 1, 1)
+        step = self.control_step
+        span_c, span_r = step * (cols.shape[1] - 1), step * (cols.shape[0] - 1)
         kx = int(np.hypot(cols[0, -1] - cols[0, 0], rows[0, -1] - rows[0, 0]) / span_c)
         ky = int(np.hypot(cols[-1, 0] - cols[0, 0], rows[-1, 0] - rows[0, 0]) / span_r)
         kx, ky = (max(kx, 1), max(ky, 1)) if self.interpolation != "nearest" else (1, 1)
@@ -293,8 +299,11 @@ class MetaMap:
         if c1 <= c0 or r1 <= r0:
             return None
         # start the averaging blocks where the first tile pixel's footprint starts
-        c0 -= (c0 - round(cols[0, 0] + 0.5 - kx / 2)) % kx
-        r0 -= (r0 - round(rows[0, 0] + 0.5 - ky / 2)) % ky
+        f = 0.5 + 0.5 / step  # tile pixel (0, 0) in control-node units
+        wts = np.array([[(1 - f) * (1 - f), (1 - f) * f], [f * (1 - f), f * f]])
+        col00, row00 = (wts * cols[:2, :2]).sum(), (wts * rows[:2, :2]).sum()
+        c0 -= (c0 - round(col00 + 0.5 - kx / 2)) % kx
+        r0 -= (r0 - round(row00 + 0.5 - ky / 2)) % ky
         if (c1 - c0) * (r1 - r0) > self.max_window_cells:
             raise DemError(f"{dem.name}: request needs a {r1 - r0}x{c1 - c0} cell window; "
                            f"use a finer GSD or a pre-decimated DEM")
@@ -312,8 +321,7 @@ class MetaMap:
         # bilinear expansion of the control grid: relative float32 maps (1e-4 px precision)
         cols = (cols - c0 + 0.5) / kx - 0.5
         rows = (rows - r0 + 0.5) / ky - 0.5
-        map_x = (wr @ cols.astype(np.float32) @ wc.T).astype(np.float32, copy=False)
-        map_y = (wr @ rows.astype(np.float32) @ wc.T).astype(np.float32, copy=False)
+        map_x, map_y = _expand(cols, step, h, w), _expand(rows, step, h, w)
         if self.interpolation == "idw":
             aspect = (layer.cell_m[0] * kx) / (layer.cell_m[1] * ky)
             return idw_grid(window, map_x, map_y, power=self.idw_power, k=self.idw_k,
