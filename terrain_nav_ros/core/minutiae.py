@@ -6,10 +6,10 @@
    8-neighbour code (one convolution): CN = 1 endings, CN = 3 bifurcations;
 2. the pixel-wise orientation field of 3.3.2 (Sobel gradients, W x W least squares, doubled
    angle Gaussian smoothing) and its coherence;
-3. the branches leaving every minutia (skeleton minus the junction neighbourhoods, labelled
-   and gathered within a radius by a k-d tree): their directions disambiguate the 180 degree
-   ambiguity of the field and give the crease direction (ending: along its crease; bifurcation:
-   along the stem, the branch that is not part of the narrowest fork);
+3. the branches leaving every minutia, followed along the skeleton by vectorised walkers (all
+   minutiae step together): their directions disambiguate the 180 degree ambiguity of the
+   field and give the crease direction (ending: along its crease; bifurcation: along the
+   stem, the branch that is not part of the narrowest fork), their lengths reveal spurs;
 4. validation as fingerprint matchers do: margin to the image border and to nodata, spurs
    (short branch from an ending to a junction: both dropped), short isolated creases, broken
    creases (two facing endings close together), duplicates and dense clusters; a quality per
@@ -220,11 +220,6 @@ def normalised_coordinates(col, row, width: int, height: int):
     return (col + 1.0) / width, (height - row) / height
 
 
-def _angdiff(a, b):
-    """Absolute angle difference in [0, pi]."""
-    return np.abs(np.angle(np.exp(1j * (np.asarray(a) - np.asarray(b)))))
-
-
 # --------------------------------------------------------------------------- branches
 
 
@@ -235,119 +230,195 @@ class _Candidates:
     kind: np.ndarray
     angle: np.ndarray = None
     quality: np.ndarray = None
-    branch_len: np.ndarray = None
-    branch_angle: np.ndarray = None
     keep: np.ndarray = None
 
 
-def _branches(skel, cn, rows, cols, radius):
-    """Directions and sizes of the skeleton branches leaving each minutia.
+def _branch_start_lut() -> np.ndarray:
+    """For each 8-neighbour code, the ring index starting each branch (-1: none), up to 4.
 
-    The skeleton minus the 3x3 neighbourhoods of junction pixels (CN >= 3) falls apart into
-    branches; the branch pixels within ``radius`` of a minutia whose branch passes within
-    2.5 px of it are its branches. Returns per-minutia arrays of up to 3 branch unit vectors
-    (d_col, d_row; NaN if absent), their pixel counts within the radius, and whole-branch
-    lengths, largest first; plus the labels image and the (minutia, pixel) pairs.
+    A branch is a run of consecutive set neighbours; its start is the run's 4-neighbour
+    when it has one (the skeleton continues straight from there), else its first pixel.
     """
-    junction = (cn >= 3).astype(np.uint8)
-    near_j = cv2.dilate(junction, np.ones((3, 3), np.uint8)).astype(bool)
-    seg = (skel & ~near_j).astype(np.uint8)
-    nlab, labels, stats, _ = cv2.connectedComponentsWithStats(seg, connectivity=8)
-    seg_len = stats[:, cv2.CC_STAT_AREA]
-    pr, pc = np.nonzero(seg)
-    n = len(rows)
-    vec = np.full((n, 3, 2), np.nan)
-    cnt = np.zeros((n, 3), int)
-    length = np.zeros((n, 3), int)
-    if n == 0 or len(pr) == 0:
-        return vec, cnt, length
-    tree_p = cKDTree(np.column_stack([pr, pc]))
-    tree_m = cKDTree(np.column_stack([rows, cols]))
-    pairs = tree_m.sparse_distance_matrix(tree_p, radius, output_type="ndarray")
-    mi, pj, dist = pairs["i"], pairs["j"], pairs["v"]
-    lab = labels[pr[pj], pc[pj]]
-    key = mi.astype(np.int64) * nlab + lab
-    ukey, inv = np.unique(key, return_inverse=True)
-    g_min = np.full(len(ukey), np.inf)
-    np.minimum.at(g_min, inv, dist)
-    dr = (pr[pj] - rows[mi]).astype(float)
-    dc = (pc[pj] - cols[mi]).astype(float)
-    # Unit offsets of the outer part only: the pixels next to a junction bend towards it.
-    w = (dist >= radius / 3.0) / np.maximum(dist, 1.0)
-    g_dc = np.bincount(inv, dc * w, len(ukey))
-    g_dr = np.bincount(inv, dr * w, len(ukey))
-    g_n = np.bincount(inv, None, len(ukey))
-    g_m = ukey // nlab
-    g_lab = ukey % nlab
-    ok = g_min <= 2.5
-    g_m, g_dc, g_dr, g_n, g_lab = g_m[ok], g_dc[ok], g_dr[ok], g_n[ok], g_lab[ok]
-    # Rank the branches of each minutia by their pixel count, keep the 3 largest.
-    order = np.lexsort((-g_n, g_m))
-    g_m, g_dc, g_dr, g_n, g_lab = (a[order] for a in (g_m, g_dc, g_dr, g_n, g_lab))
-    first = np.searchsorted(g_m, g_m)
-    rank = np.arange(len(g_m)) - first
-    sel = rank < 3
-    norm = np.hypot(g_dc, g_dr)
-    norm[norm == 0] = 1.0
-    vec[g_m[sel], rank[sel], 0] = (g_dc / norm)[sel]
-    vec[g_m[sel], rank[sel], 1] = (g_dr / norm)[sel]
-    cnt[g_m[sel], rank[sel]] = g_n[sel]
-    length[g_m[sel], rank[sel]] = seg_len[g_lab[sel]]
-    return vec, cnt, length
+    lut = np.full((256, 4), -1, np.int8)
+    for code in range(1, 255):  # 0: isolated, 255: interior; neither starts branches
+        bits = [(code >> k) & 1 for k in range(8)]
+        z = bits.index(0)
+        runs, cur = [], []
+        for k in range(1, 9):
+            i = (z + k) % 8
+            if bits[i]:
+                cur.append(i)
+            elif cur:
+                runs.append(cur)
+                cur = []
+        if cur:
+            runs.append(cur)
+        for j, run in enumerate(runs[:4]):
+            even = [i for i in run if i % 2 == 0]
+            lut[code, j] = even[0] if even else run[0]
+    return lut
+
+
+_START_LUT = _branch_start_lut()
+_OFFS = np.array(_RING, np.int64)
+FREE_END, JUNCTION = 1, 2
+
+
+def _walk(skel_p, junc_p, r0, c0, first, steps, skip=0):
+    """Follow skeleton branches from (r0, c0) through neighbour ``first``, all at once.
+
+    Works on the skeleton padded by one pixel (coordinates already shifted). At every step
+    each walker moves to the unvisited skeleton neighbour farthest from its previous pixel
+    (so it runs straight through the redundant corner pixels of 8-connected lines), never
+    returns next to its start, and
+    stops at a free end or on reaching a junction pixel farther than ``skip`` pixels
+    (Chebyshev) from its start: junction clusters are a few pixels wide.
+
+    Returns
+    -------
+    path : (n, steps + 1, 2) int array
+        Pixels visited (row, col), the last one repeated after a stop.
+    length : (n,) int
+        Steps taken.
+    stop : (n,) int
+        0 still running after ``steps``, FREE_END, or JUNCTION.
+    """
+    n = len(r0)
+    start = np.column_stack([r0, c0]).astype(np.int64)
+    cur = start + _OFFS[first]
+    prev, prev2 = start.copy(), start.copy()
+    path = np.empty((n, steps + 1, 2), np.int64)
+    path[:, 0] = start
+    path[:, 1] = cur
+    length = np.ones(n, np.int64)
+    stop = np.zeros(n, np.int8)
+    # A branch leaving a junction may start on another junction pixel of the same cluster.
+    stop[junc_p[cur[:, 0], cur[:, 1]] & ~junc_p[start[:, 0], start[:, 1]]] = JUNCTION
+    for k in range(2, steps + 1):
+        run = stop == 0
+        nb = cur[:, None, :] + _OFFS[None]                          # (n, 8, 2)
+        cand = skel_p[nb[..., 0], nb[..., 1]]
+        for q in (prev, prev2):
+            cand &= ~np.all(nb == q[:, None, :], axis=2)
+        # Never step back next to the start: the neighbours of a junction touch each other.
+        cand &= np.abs(nb - start[:, None, :]).max(2) > 1
+        score = np.where(cand, ((nb - prev[:, None, :]) ** 2).sum(2), -1)
+        best = score.argmax(1)
+        moved = run & (score.max(1) > 0)
+        stop[run & ~moved] = FREE_END
+        nxt = np.where(moved[:, None], nb[np.arange(n), best], cur)
+        prev2 = np.where(moved[:, None], prev, prev2)
+        prev = np.where(moved[:, None], cur, prev)
+        cur = nxt
+        length += moved
+        path[:, k] = cur
+        hit = moved & junc_p[cur[:, 0], cur[:, 1]] & (np.abs(cur - start).max(1) > skip)
+        stop[hit] = JUNCTION
+    return path, length, stop
+
+
+def _direction(path, length, upto):
+    """Unit (d_row, d_col) of a traced branch: mean offset of its outer two thirds."""
+    k = np.arange(path.shape[1])[None, :]
+    last = np.minimum(length, upto)[:, None]
+    w = ((k >= np.maximum(last // 3, 1)) & (k <= last)).astype(float)
+    off = (path - path[:, :1]).astype(float)
+    v = (off * w[..., None]).sum(1)
+    norm = np.hypot(v[:, 0], v[:, 1])
+    v[norm == 0] = np.nan
+    return v / np.where(norm == 0, 1.0, norm)[:, None]
 
 
 def _enu_angle(vec):
-    """ENU angle (from East towards North) of (d_col, d_row) vectors."""
-    return np.mod(np.arctan2(-vec[..., 1], vec[..., 0]), 2 * np.pi)
+    """ENU angle (from East towards North) of (d_row, d_col) vectors."""
+    return np.mod(np.arctan2(-vec[..., 0], vec[..., 1]), 2 * np.pi)
 
 
-def _stem_direction(vec):
+def _stem_direction(ang):
     """Stem of each bifurcation: the branch outside the narrowest pair of branches."""
-    ang = _enu_angle(vec)  # (n, 3), NaN for missing
     pairs = np.array([[1, 2], [0, 2], [0, 1]])  # pair opposite to stem candidate k
     gaps = np.stack([_angdiff(ang[:, a], ang[:, b]) for a, b in pairs], axis=1)
     gaps = np.where(np.isnan(gaps), np.inf, gaps)
-    stem = np.argmin(gaps, axis=1)
-    out = ang[np.arange(len(ang)), stem]
-    # With fewer than 3 branches the largest one is the best guess.
+    out = ang[np.arange(len(ang)), np.argmin(gaps, axis=1)]
     missing = np.isnan(ang).any(axis=1)
-    out[missing] = ang[missing, 0]
+    out[missing] = np.nan
     return out
 
 
-# --------------------------------------------------------------------------- validation
+def _trace_minutiae(skel, cn, c: _Candidates, p: MinutiaParams):
+    """Trace the branches of every candidate; set directions, support and spur decisions.
 
+    * Ending: one branch. Reaching a junction within ``spur_length`` makes it a spur (the
+      ending is dropped; the bifurcation it hangs from is handled from its side), a free
+      end within ``min_crease_length`` a short isolated crease (dropped).
+    * Bifurcation: three branches; the stem is the one outside the narrowest fork. One
+      branch running to a free end within ``spur_length`` is a spur: the bifurcation and that
+      ending go. Two or more are the blunt end of a crease split by skeletonisation: the
+      bifurcation becomes one ending pointing along its long branch, the short ends go.
 
-def _drop_spurs_and_short(c: _Candidates, length, cnt, field_a, p: MinutiaParams):
-    """Spurs and short creases, from the branch lengths of the endings.
-
-    * One short ending branch at a bifurcation is a spur: the crease goes on, so both the
-      ending and the bifurcation are dropped.
-    * Two or more short ending branches at one bifurcation are the blunt end of a crease,
-      which skeletonisation splits into a small fork: they become one ending at the
-      bifurcation, pointing along its longest branch.
-    * Other short ending branches are short isolated creases: dropped.
+    Returns the traced ENU angle and the support (traced length / trace length, <= 1).
     """
-    end = c.kind == ENDING
-    short = end & (length[:, 0] < max(p.spur_length, 1))
-    bif_idx = np.flatnonzero(c.kind == BIFURCATION)
-    if short.any() and len(bif_idx):
-        tree = cKDTree(np.column_stack([c.row[bif_idx], c.col[bif_idx]]))
-        s_idx = np.flatnonzero(short)
-        d, j = tree.query(np.column_stack([c.row[s_idx], c.col[s_idx]]),
-                          distance_upper_bound=p.spur_length + 3)
-        hit = np.isfinite(d)
-        c.keep[s_idx[hit]] = False
-        short[s_idx[hit]] = False
-        n_short = np.bincount(j[hit], minlength=len(bif_idx))
-        spur = bif_idx[n_short == 1]
-        c.keep[spur] = False
-        blunt = bif_idx[n_short >= 2]
-        c.kind[blunt] = ENDING
-        c.angle[blunt] = _combine_angles(field_a[blunt], c.branch_angle[blunt], p)
-    tiny = short & (cnt[:, 0] < p.min_crease_length)
-    c.keep[tiny] = False
-    c.keep[end & (length[:, 0] == 0)] = False  # ending not on any branch: noise pixel
+    n = len(c.row)
+    skel_p = np.pad(skel, 1)
+    junc_p = np.pad(cn >= 3, 1)
+    code = cv2.filter2D(skel.astype(np.uint8), cv2.CV_32F, _RING_KERNEL,
+                        borderType=cv2.BORDER_CONSTANT)[c.row, c.col].astype(np.uint8)
+    starts = _START_LUT[code]
+    traced = np.full(n, np.nan)
+    support = np.zeros(n)
+    at_end = {}  # padded pixel of a short free branch end -> dropped ending there
+    end = np.flatnonzero(c.kind == ENDING)
+    L = p.trace_length
+    if len(end):
+        steps = max(L, p.spur_length, p.min_crease_length)
+        path, length, stop = _walk(skel_p, junc_p, c.row[end] + 1, c.col[end] + 1,
+                                   starts[end, 0], steps)
+        traced[end] = _enu_angle(_direction(path, length, L))
+        support[end] = np.minimum(length, L) / L
+        spur = (stop == JUNCTION) & (length < p.spur_length)
+        short = (stop == FREE_END) & (length < p.min_crease_length)
+        c.keep[end[spur | short]] = False
+    bif = np.flatnonzero(c.kind == BIFURCATION)
+    if len(bif):
+        steps = 2 * L  # skeletons bend and widen next to junctions: look further
+        ang = np.full((len(bif), 3), np.nan)
+        lens = np.zeros((len(bif), 3), np.int64)
+        free_short = np.zeros((len(bif), 3), bool)
+        tips = np.zeros((len(bif), 3, 2), np.int64)
+        for j in range(3):
+            has = starts[bif, j] >= 0
+            if not has.any():
+                continue
+            path, length, stop = _walk(skel_p, junc_p, c.row[bif[has]] + 1,
+                                       c.col[bif[has]] + 1, starts[bif[has], j], steps, 2)
+            ang[has, j] = _enu_angle(_direction(path, length, steps))
+            lens[has, j] = length
+            free_short[has, j] = (stop == FREE_END) & (length < p.spur_length)
+            tips[has, j] = path[np.arange(len(length)), length]
+        traced[bif] = _stem_direction(ang)
+        support[bif] = np.minimum(lens.min(1), steps) / steps
+        n_short = free_short.sum(1)
+        c.keep[bif[n_short == 1]] = False
+        blunt = n_short >= 2
+        if blunt.any():
+            longest = np.argmax(np.where(free_short, -1, lens), axis=1)
+            c.kind[bif[blunt]] = ENDING
+            traced[bif[blunt]] = ang[blunt, longest[blunt]]
+            support[bif[blunt]] = np.minimum(lens[blunt, longest[blunt]], L) / L
+        for (b, j) in zip(*np.nonzero(free_short & (n_short >= 1)[:, None]), strict=True):
+            at_end[tuple(tips[b, j])] = True
+        if at_end and len(end):
+            # Drop the endings at the tips of those short branches.
+            tip_img = np.zeros(skel_p.shape, bool)
+            t = np.array(list(at_end))
+            tip_img[t[:, 0], t[:, 1]] = True
+            c.keep[end[tip_img[c.row[end] + 1, c.col[end] + 1]]] = False
+    return traced, support
+
+
+def _angdiff(a, b):
+    """Absolute angle difference in [0, pi]."""
+    return np.abs(np.angle(np.exp(1j * (np.asarray(a) - np.asarray(b)))))
 
 
 def _combine_angles(field_a, traced, p: MinutiaParams):
@@ -433,31 +504,21 @@ def _minutiae_of_skeleton(skel, cres: CreaseResult, angle_field, coherence, dist
                           cp: CreaseParams, p: MinutiaParams):
     cn = crossing_number(skel)
     rows, cols = np.nonzero((cn == 1) | (cn == 3))
-    kind = cn[rows, cols]
+    kind = cn[rows, cols].copy()
     c = _Candidates(rows, cols, kind)
     n = len(rows)
     c.keep = np.ones(n, bool)
     if n == 0:
         c.angle = c.quality = np.zeros(0)
         return c
-    # Bifurcations look twice as far: skeletons bend and widen next to junctions.
-    vec = np.full((n, 3, 2), np.nan)
-    cnt = np.zeros((n, 3), int)
-    length = np.zeros((n, 3), int)
-    for sel, radius in ((kind == ENDING, p.trace_length), (kind == BIFURCATION,
-                                                           2 * p.trace_length)):
-        vec[sel], cnt[sel], length[sel] = _branches(skel, cn, rows[sel], cols[sel], radius)
-    traced = np.where(kind == ENDING, _enu_angle(vec[:, 0]), _stem_direction(vec))
-    c.branch_angle = _enu_angle(vec[:, 0])
+    traced, support = _trace_minutiae(skel, cn, c, p)
     field_a = angle_field[rows, cols].astype(float)
     c.angle = _combine_angles(field_a, traced, p)
-    # Quality: field coherence x crease contrast (SNR) x how much branch supports it.
+    # Quality: field coherence x crease contrast (SNR) x traced branch support.
     snr = np.abs(cres.contrast[rows, cols]) / max(cres.noise, 1e-12)
     q_snr = 1.0 - np.exp(-snr / (4.0 * max(cp.contrast_snr, 1.0)))
-    support = np.clip(cnt[:, 0] / np.where(kind == ENDING, 0.6, 1.2) / p.trace_length, 0, 1)
     c.quality = (coherence[rows, cols] * q_snr * support).astype(float)
     c.keep &= dist_border[rows, cols] >= p.border_margin
-    _drop_spurs_and_short(c, length, cnt, field_a, p)
     c.keep &= ~np.isnan(c.angle)
     _drop_broken_pairs(c, p)
     _drop_duplicates_and_clusters(c, p)
