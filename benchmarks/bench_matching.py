@@ -60,11 +60,18 @@ def _timeit(fn, repeat):
     return 1e3 * float(np.median(times)), 1e3 * float(np.min(times))
 
 
-def _camera_version(ms, size, rng):
-    """Block seen again: random rotation, small shift, 1.5 px / 10 deg noise, 20%/20%."""
+NOISE = {
+    "test": dict(pos_sigma=1.5, angle_sigma=np.radians(10), missing=0.2, spurious=0.2),
+    "hard": dict(pos_sigma=2.5, angle_sigma=np.radians(20), missing=0.35, spurious=0.35),
+}
+
+
+def _camera_version(ms, size, rng, noise="test"):
+    """Block seen again: random rotation, small shift, positional/angle noise, missing and
+    spurious minutiae (see :data:`NOISE`)."""
     m = rigid_transform(rng.uniform(0, 2 * np.pi), *rng.uniform(-8, 8, 2),
                         centre=(size / 2, size / 2))
-    out, _ = transform_set(ms, m, (size, size), rng=rng)
+    out, _ = transform_set(ms, m, (size, size), rng=rng, **NOISE[noise])
     return out, m
 
 
@@ -106,10 +113,39 @@ def bench_speed(matcher, repeat):
     print(f"localise, incl. both index builds: median {med:.1f} ms, min {best:.1f} ms")
     med, _ = _timeit(lambda: matcher.index(land), 3)
     print(f"  landmark index build alone: {med:.1f} ms")
+    _localise_accuracy(matcher, land, il)
 
 
-def _study(matcher, n_terrains, size, seed):
-    """Blocks of ``size`` px from random terrains, each with a camera version."""
+def _localise_accuracy(matcher, land, il, n_views=8):
+    """Random 512^2 views (any rotation, anywhere) of the 2048^2 landmark, both noise levels."""
+    rng = np.random.default_rng(7)
+    for noise in NOISE:
+        errs, nees, found = [], [], 0
+        for _ in range(n_views):
+            theta = rng.uniform(0, 2 * np.pi)
+            target = rng.uniform(400, 1648, 2)
+            c, s = np.cos(theta), np.sin(theta)
+            rot = np.array([[c, s], [-s, c]])
+            cam_to_land = np.column_stack([rot, target - rot @ np.array([256.0, 256.0])])
+            inv = np.linalg.inv(np.vstack([cam_to_land, [0, 0, 1]]))[:2]
+            cam, _ = transform_set(land, inv, (512, 512), rng=rng, **NOISE[noise])
+            r = matcher.localise(cam, il)
+            if r.decision != Decision.MATCH:
+                continue
+            found += 1
+            e = np.subtract(r.apply(256.0, 256.0), target)
+            errs.append(np.hypot(*e))
+            nees.append(e @ np.linalg.solve(r.point_covariance(256.0, 256.0), e))
+        if errs:
+            print(f"  localisation, noise '{noise}': {found}/{n_views} views found; centre error "
+                  f"median {np.median(errs):.2f} px, max {np.max(errs):.2f} px; mean NEES "
+                  f"{np.mean(nees):.2f} (2 if the covariance is right)")
+        else:
+            print(f"  localisation, noise '{noise}': 0/{n_views} views found")
+
+
+def _study(matcher, n_terrains, size, seed, noise):
+    """Blocks of ``size`` px from random terrains, each with a camera version; all pairs."""
     rng = np.random.default_rng(seed)
     blocks, cams = [], []
     per_side = 512 // size
@@ -119,51 +155,66 @@ def _study(matcher, n_terrains, size, seed):
             for bx in range(per_side):
                 b = crop_set(terrain, bx * size, by * size, size, size)
                 blocks.append(matcher.index(b))
-                cams.append(matcher.index(_camera_version(b, size, rng)[0]))
+                cams.append(matcher.index(_camera_version(b, size, rng, noise)[0]))
     n = len(blocks)
     res = [[matcher.compare(cams[i], blocks[j]) for j in range(n)] for i in range(n)]
-    score = np.array([[r.score for r in row] for row in res])
-    undecided = np.array([[r.decision == Decision.NO_DECISION for r in row] for row in res])
-    counts = np.array([len(b) for b in blocks])
-    return score, undecided, counts
+    get = {
+        "score": lambda r: r.score,
+        "pairings": lambda r: r.n_pairings,
+        "ratio": lambda r: r.pairing_ratio,
+        "undecided": lambda r: r.decision == Decision.NO_DECISION,
+    }
+    out = {k: np.array([[f(r) for r in row] for row in res]) for k, f in get.items()}
+    out["counts"] = np.array([len(b) for b in blocks])
+    return out
 
 
-def bench_accuracy(matcher, n_terrains, rate):
-    print(f"\nPVA / non-PVA study: {n_terrains} random terrains per size, blocks cut on a grid,"
-          " camera versions rotated at random with 1.5 px / 10 deg noise, 20% missing, "
-          "20% spurious")
+def bench_accuracy(matcher, n_terrains, rate, noise):
+    print(f"\nPVA / non-PVA study, noise '{noise}' {NOISE[noise]}: {n_terrains} random "
+          "terrains of 512^2 per block size, blocks cut on a grid, camera versions at random "
+          "rotations; all camera x block pairs compared")
     out = {}
     for size in (256, 128):
-        score, undecided, counts = _study(matcher, n_terrains, size, seed=size)
-        n = len(score)
-        pva = np.diag(score)
+        st = _study(matcher, n_terrains, size, seed=size, noise=noise)
+        n = len(st["score"])
         off = ~np.eye(n, dtype=bool)
-        non = score[off]
-        out[size] = (pva, non, undecided, counts)
-        print(f"  {size}^2 blocks: {n} blocks, minutiae per block {counts.min()}-{counts.max()} "
-              f"(median {np.median(counts):.0f}); no-decision: {undecided.diagonal().sum()} PVA,"
-              f" {undecided[off].sum()} non-PVA")
-        print(f"    PVA scores:     min {np.nanmin(pva):7.1f}  5% {np.percentile(pva, 5):7.1f}"
+        out[size] = st, off
+        und = st["undecided"]
+        pva = np.diag(st["score"])
+        non = st["score"][off]
+        print(f"  {size}^2 blocks: {n} blocks, minutiae per block {st['counts'].min()}-"
+              f"{st['counts'].max()} (median {np.median(st['counts']):.0f}); no-decision: "
+              f"{und.diagonal().sum()} PVA, {und[off].sum()} non-PVA")
+        print(f"    PVA scores:     min {np.min(pva):7.1f}  5% {np.percentile(pva, 5):7.1f}"
               f"  median {np.median(pva):7.1f}")
         fin = non[np.isfinite(non)]
         print(f"    non-PVA scores: median {np.median(fin):7.2f}  99% "
               f"{np.percentile(fin, 99):7.2f}  max {fin.max():7.2f}  ({len(non)} pairs)")
+    print("  why the significance score: non-PVA 99th percentile / PVA 1st percentile of each"
+          " candidate score, per block size (one threshold must separate both sizes)")
+    for key in ("pairings", "ratio", "score"):
+        row = []
+        for size, (st, off) in out.items():
+            row.append(f"{size}^2: {np.percentile(st[key][off], 99):7.3f} / "
+                       f"{np.percentile(np.diag(st[key]), 1):7.3f}")
+        print(f"    {key:9s} " + "   ".join(row))
     # calibrate on half of the non-PVA pairs (both sizes pooled), evaluate on the other half
     rng = np.random.default_rng(0)
-    pooled = np.concatenate([out[s][1] for s in out])
+    pooled = np.concatenate([st["score"][off] for st, off in out.values()])
     perm = rng.permutation(len(pooled))
     cal, held = pooled[perm[: len(pooled) // 2]], pooled[perm[len(pooled) // 2:]]
     thr = calibrate_threshold(cal, rate)
-    print(f"\n  threshold calibrated for false-match rate {rate:g} on {len(cal)} non-PVA pairs:"
+    print(f"  threshold calibrated for false-match rate {rate:g} on {len(cal)} non-PVA pairs:"
           f" {thr:.2f}  (default in MatchParams: {matcher.params.threshold})")
     held = held[np.isfinite(held)]
     print(f"  held-out non-PVA false accepts: {(held >= thr).sum()} / {len(held)}")
-    for size, (pva, non, undecided, _) in out.items():
-        decided = ~undecided.diagonal()
+    for size, (st, off) in out.items():
+        decided = ~st["undecided"].diagonal()
+        pva = np.diag(st["score"])
         miss = (pva[decided] < thr).sum()
         print(f"  {size}^2 PVA misses: {miss} / {decided.sum()} decided "
-              f"({100 * miss / max(decided.sum(), 1):.1f}%); non-PVA accepted "
-              f"(all pairs): {(non >= thr).sum()} / {len(non)}")
+              f"({100 * miss / max(decided.sum(), 1):.1f}%); non-PVA accepted (all pairs): "
+              f"{(st['score'][off] >= thr).sum()} / {off.sum()}")
 
 
 def main():
@@ -174,7 +225,8 @@ def main():
     matcher = Matcher()
     print(f"numpy {np.__version__}, OpenCV {cv2.__version__}, single thread")
     bench_speed(matcher, repeat=40 if args.quick else 200)
-    bench_accuracy(matcher, n_terrains=2 if args.quick else 4, rate=args.rate)
+    for noise in NOISE:
+        bench_accuracy(matcher, n_terrains=2 if args.quick else 4, rate=args.rate, noise=noise)
 
 
 if __name__ == "__main__":

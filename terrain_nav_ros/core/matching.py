@@ -675,7 +675,33 @@ def _inside(z, poly) -> np.ndarray:
             & (z.imag >= poly[:, 1].min()) & (z.imag <= poly[:, 1].max()))
 
 
-def _covariance(za, zb, c: complex, t: complex, scale: bool) -> tuple[np.ndarray, float]:
+def truncated_sigma2(mean_r2: float, radius: float) -> float:
+    """Per-axis variance of isotropic 2-D Gaussian errors seen only within ``radius``.
+
+    Pairings exist only where the residual is below the pairing radius, so the mean squared
+    residual underestimates the noise when the noise is not small against the radius. For a
+    truncated Rayleigh radius ``E[r^2 | r < T] = 2 s - T^2 e^(-T^2/2s) / (1 - e^(-T^2/2s))``
+    (``s`` the per-axis variance), increasing in ``s`` up to ``T^2 / 2``; solved by bisection.
+    """
+    t2 = radius * radius
+    if mean_r2 <= 0:
+        return 0.0
+    if mean_r2 >= 0.5 * t2 * 0.999:
+        return t2   # residuals uniform over the disc: the noise is at least the radius
+
+    def mean_r2_of(s):
+        q = math.exp(-t2 / (2 * s))
+        return 2 * s - t2 * q / (1 - q)
+
+    lo, hi = 0.5 * mean_r2, t2
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if mean_r2_of(mid) < mean_r2 else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def _covariance(za, zb, c: complex, t: complex, scale: bool,
+                radius: float) -> tuple[np.ndarray, float]:
     """Covariance of pixel-frame (a, b, tx, ty) from the residuals of the fit."""
     m = len(za)
     r = zb - (c * za + t)
@@ -683,7 +709,9 @@ def _covariance(za, zb, c: complex, t: complex, scale: bool) -> tuple[np.ndarray
     rms = float(np.sqrt(np.mean(np.abs(r) ** 2))) if m else np.nan
     if m * 2 <= n_par:
         return np.full((4, 4), np.nan), rms
-    sigma2 = float(np.sum(np.abs(r) ** 2) / (2 * m - n_par))
+    # unbiased for the fitted parameters, then corrected for the pairing-radius truncation
+    mean_r2 = float(np.sum(np.abs(r) ** 2)) * 2.0 / (2 * m - n_par)
+    sigma2 = truncated_sigma2(mean_r2, radius)
     col, row = from_complex(za)
     # pixel model: col' = a col + b row + tx ; row' = -b col + a row + ty
     j = np.zeros((2 * m, 4))
@@ -796,7 +824,8 @@ class Matcher:
         n_ao, n_bo, area = _overlap(a, b, c, t)
         n_ao, n_bo = max(n_ao, len(pairs)), max(n_bo, len(pairs))
         score, lam = significance(len(pairs), n_ao, n_bo, area, search_area, radius_a, p)
-        cov, rms = _covariance(a.z[pairs[:, 0]], b.z[pairs[:, 1]], c, t, p.estimate_scale)
+        cov, rms = _covariance(a.z[pairs[:, 0]], b.z[pairs[:, 1]], c, t, p.estimate_scale,
+                               p.pos_tol)
         ok = score >= p.threshold
         return MatchResult(
             decision=Decision.MATCH if ok else Decision.NO_MATCH, score=score,
