@@ -69,6 +69,23 @@ def _cmd_bag_record(args) -> int:
     return _exec_node("bag_recorder", params)
 
 
+def _cmd_simulate(args) -> int:
+    from dataclasses import fields
+
+    from .flight_sim import SimConfig, simulate
+
+    cfg = SimConfig()
+    for f in fields(SimConfig):
+        value = getattr(args, f.name, None)
+        if value is not None:
+            setattr(cfg, f.name, tuple(value) if isinstance(value, list) else value)
+    summary = simulate(cfg, args.output)
+    print(f"wrote {args.output}: {summary['duration_s']:.0f} s over {summary['dem']}, "
+          f"{summary['camera_frames']} camera frames, GNSS denied after "
+          f"{summary['gnss_denied_after_s']:.0f} s")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="terrain-nav", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -105,6 +122,30 @@ def build_parser() -> argparse.ArgumentParser:
     record.add_argument("--topics", nargs="+", help="only these topics (default: all)")
     record.add_argument("--exclude", nargs="+", help="never these topics")
     record.set_defaults(func=_cmd_bag_record)
+    sim = sub.add_parser("simulate", help="simulate a flight over a DEM into an MCAP bag")
+    sim.add_argument("-o", "--output", required=True, help="new bag directory")
+    sim.add_argument("--dem", help="DEM file (default: the embedded Jacksboro DEM)")
+    sim.add_argument("--duration", type=float, help="flight time [s] (default 120)")
+    sim.add_argument("--pattern", choices=["survey", "turns", "straight"])
+    sim.add_argument("--speed", type=float, help="airspeed [m/s] (default 30)")
+    sim.add_argument("--agl", type=float, help="height above the highest terrain [m]")
+    sim.add_argument("--heading", type=float, help="initial heading [deg from East, CCW]")
+    sim.add_argument("--start-east", dest="start_east", type=float, help="start E [m]")
+    sim.add_argument("--start-north", dest="start_north", type=float, help="start N [m]")
+    sim.add_argument("--wind", type=float, nargs=2, metavar=("E", "N"), help="wind [m/s]")
+    sim.add_argument("--camera-rate", dest="camera_rate", type=float, help="frames/s")
+    sim.add_argument("--camera-width", dest="camera_width", type=int)
+    sim.add_argument("--camera-height", dest="camera_height", type=int)
+    sim.add_argument("--camera-hfov", dest="camera_hfov", type=float, help="[deg]")
+    sim.add_argument("--image-format", dest="image_format", choices=["jpeg", "rgb8", "mono8"])
+    sim.add_argument("--imu-rate", dest="imu_rate", type=float, help="[Hz] (default 200)")
+    sim.add_argument("--sun", type=float, nargs=2, metavar=("AZ", "EL"),
+                     help="camera sun azimuth/elevation [deg]")
+    sim.add_argument("--gnss-denied-after", dest="gnss_denied_after", type=float,
+                     help="GNSS lost from this time [s]")
+    sim.add_argument("--gnss-denial", dest="gnss_denial", choices=["stop", "nofix"])
+    sim.add_argument("--seed", type=int)
+    sim.set_defaults(func=_cmd_simulate)
     return parser
 
 
