@@ -838,11 +838,15 @@ class LandmarkRenderer:
         Raises
         ------
         InvalidTerrainError
-            Empty, mismatched or non-finite heights.
+            Empty, mismatched or non-finite heights, or larger than a GL texture.
         """
         import moderngl
 
         h = validate_terrain(heights, georef)
+        limit = int(self.ctx.info["GL_MAX_TEXTURE_SIZE"])
+        if max(h.shape) > limit:
+            raise InvalidTerrainError(f"tile {h.shape} exceeds the GL texture limit {limit}; "
+                                      "split it into smaller tiles")
         frame = TerrainFrame.from_heights(h, georef)
         shape = distance_map_voxels or distance_map_shape(frame, self.cells_per_voxel,
                                                           self.max_voxels)

@@ -6,10 +6,10 @@ Global Monitoring Laboratory), a low-precision form of Meeus, *Astronomical Algo
 longitude with the nutation/aberration term, corrected obliquity, declination and the
 equation of time, then the local hour angle. They are evaluated vectorised in numpy.
 
-Accuracy: the truncated series are good to about 0.01 deg in declination and 0.1 min in the
-equation of time for 1901-2099 (Meeus' stated accuracy of the low-precision solar
-coordinates), i.e. a few hundredths of a degree in azimuth and elevation; on the NREL SPA
-reference case (Reda & Andreas 2008, Table A4.1) this module is within 0.01 deg in both.
+Accuracy: Meeus gives about 0.01 deg for these low-precision solar coordinates within a few
+centuries of 2000, i.e. a few hundredths of a degree in azimuth and elevation at most; on
+the NREL SPA reference case (Reda & Andreas 2008: Golden, CO, 2003-10-17 12:30:30 -07:00)
+this module is within 0.003 deg of SPA's azimuth and zenith (checked by the tests).
 Refraction uses NOAA's piecewise standard-atmosphere model (~0.5 deg at the horizon, where
 real refraction varies by tenths of a degree with the weather). ``Delta T`` (TT - UT, ~69 s) is
 ignored, which costs < 0.001 deg. For terrain shading this is far below what matters.
