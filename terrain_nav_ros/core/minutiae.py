@@ -284,37 +284,49 @@ def _walk(skel_p, junc_p, r0, c0, first, steps, skip=0):
         0 still running after ``steps``, FREE_END, or JUNCTION.
     """
     n = len(r0)
-    start = np.column_stack([r0, c0]).astype(np.int64)
-    cur = start + _OFFS[first]
-    prev, prev2 = start.copy(), start.copy()
+    dr, dc = _OFFS[:, 0], _OFFS[:, 1]
+    sr, sc = np.asarray(r0, np.int64), np.asarray(c0, np.int64)
+    cr, cc = sr + dr[first], sc + dc[first]
     path = np.empty((n, steps + 1, 2), np.int64)
-    path[:, 0] = start
-    path[:, 1] = cur
+    path[:, 0, 0], path[:, 0, 1] = sr, sc
+    path[:, 1, 0], path[:, 1, 1] = cr, cc
     length = np.ones(n, np.int64)
     stop = np.zeros(n, np.int8)
     # A branch leaving a junction may start on another junction pixel of the same cluster.
-    stop[junc_p[cur[:, 0], cur[:, 1]] & ~junc_p[start[:, 0], start[:, 1]]] = JUNCTION
+    stop[junc_p[cr, cc] & ~junc_p[sr, sc]] = JUNCTION
+    # Only running walkers are stepped (index arrays shrink as walkers stop).
+    act = np.flatnonzero(stop == 0)
+    pr, pc = sr[act], sc[act]            # previous pixel
+    qr, qc = sr[act], sc[act]            # the one before
+    cr, cc = cr[act], cc[act]
     for k in range(2, steps + 1):
-        run = stop == 0
-        nb = cur[:, None, :] + _OFFS[None]                          # (n, 8, 2)
-        cand = skel_p[nb[..., 0], nb[..., 1]]
-        for q in (prev, prev2):
-            cand &= ~np.all(nb == q[:, None, :], axis=2)
+        if len(act) == 0:
+            break
+        nr, nc = cr[:, None] + dr, cc[:, None] + dc               # (m, 8)
+        cand = skel_p[nr, nc]
+        cand &= ~((nr == pr[:, None]) & (nc == pc[:, None]))
+        cand &= ~((nr == qr[:, None]) & (nc == qc[:, None]))
         # Never step back next to the start: the neighbours of a junction touch each other.
-        cand &= np.abs(nb - start[:, None, :]).max(2) > 1
-        score = np.where(cand, ((nb - prev[:, None, :]) ** 2).sum(2), -1)
+        cand &= np.maximum(np.abs(nr - sr[act, None]), np.abs(nc - sc[act, None])) > 1
+        score = np.where(cand, (nr - pr[:, None]) ** 2 + (nc - pc[:, None]) ** 2, -1)
         best = score.argmax(1)
-        moved = run & (score.max(1) > 0)
-        stop[run & ~moved] = FREE_END
-        nxt = np.where(moved[:, None], nb[np.arange(n), best], cur)
-        prev2 = np.where(moved[:, None], prev, prev2)
-        prev = np.where(moved[:, None], cur, prev)
-        cur = nxt
-        length += moved
-        path[:, k] = cur
-        hit = moved & junc_p[cur[:, 0], cur[:, 1]] & (np.abs(cur - start).max(1) > skip)
-        stop[hit] = JUNCTION
-    return path, length, stop
+        moved = score[np.arange(len(act)), best] > 0
+        stop[act[~moved]] = FREE_END
+        sel = np.flatnonzero(moved)
+        act = act[sel]
+        qr, qc = pr[sel], pc[sel]
+        pr, pc = cr[sel], cc[sel]
+        cr, cc = nr[sel, best[sel]], nc[sel, best[sel]]
+        length[act] += 1
+        path[act, k, 0] = cr
+        path[act, k, 1] = cc
+        hit = junc_p[cr, cc] & (np.maximum(np.abs(cr - sr[act]), np.abs(cc - sc[act])) > skip)
+        stop[act[hit]] = JUNCTION
+        keep = ~hit
+        act, qr, qc, pr, pc, cr, cc = (a[keep] for a in (act, qr, qc, pr, pc, cr, cc))
+    # Repeat each walker's last pixel after it stopped.
+    idx = np.minimum(np.arange(steps + 1)[None, :], length[:, None])
+    return np.take_along_axis(path, idx[..., None], axis=1), length, stop
 
 
 def _direction(path, length, upto):
