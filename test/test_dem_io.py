@@ -10,6 +10,7 @@ from affine import Affine
 from terrain_nav_ros.core.dem_io import (
     Dem,
     DemError,
+    dem_files,
     fill_voids,
     mosaic,
     open_dem,
@@ -353,3 +354,28 @@ def test_bad_npz(tmp_path):
     p = tmp_path / "bad.npz"
     np.savez(p, elevation=np.zeros((3, 3)))
     _assert_dem_error(p, "npz")
+
+
+def test_window_reads_are_lazy(tmp_path):
+    psutil = pytest.importorskip("psutil")
+    n = 3000  # 36 MB of float32
+    path = tmp_path / "big.tif"
+    with rasterio.open(path, "w", driver="GTiff", width=n, height=n, count=1, dtype="float32",
+                       crs="EPSG:32611", transform=Affine(10, 0, 4e5, 0, -10, 3.8e6)) as ds:
+        for r0 in range(0, n, 500):
+            ds.write(np.full((500, n), r0, np.float32), 1, window=((r0, r0 + 500), (0, n)))
+    proc = psutil.Process()
+    before = proc.memory_info().rss
+    dem = open_dem(path)
+    win = dem.read_window(2000, 1000, 256, 256)
+    grown = proc.memory_info().rss - before
+    assert win.shape == (256, 256) and (win == 2000).all()
+    assert grown < 8 * 2**20  # far less than the 36 MB file
+
+
+def test_dem_files_expands_dirs_and_globs(shared_data):
+    files = dem_files([shared_data / "dem", str(shared_data / "imagery" / "*dem*.tif")])
+    names = [f.split("/")[-1] for f in files]
+    assert "N44E005.hgt" in names and "rmnp_dem_4326.tif" in names
+    assert "rmnp_rgb_4326.tif" not in names and "README.md" not in names
+    assert files == sorted(set(files))

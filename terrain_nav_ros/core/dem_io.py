@@ -45,7 +45,7 @@ from rasterio.windows import Window
 from scipy import ndimage as ndi
 
 __all__ = [
-    "DemError", "Dem", "open_dem", "sample_dem", "mosaic", "fill_voids", "SRTM_VOID",
+    "DemError", "Dem", "open_dem", "sample_dem", "mosaic", "fill_voids", "dem_files", "SRTM_VOID",
 ]
 
 #: SRTM void marker.

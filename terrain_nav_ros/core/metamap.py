@@ -7,13 +7,15 @@ mission :class:`~.geodesy.EnuOrigin`, :meth:`MetaMap.tile` returns the elevation
 How a tile is sampled, per DEM:
 
 1. ENU -> DEM CRS is exact (pyproj) on a coarse control grid of tile pixels (every
-   ``control_step`` px) and bilinearly interpolated in between. The map is smooth (projection
-   scale and meridian convergence vary slowly), so the interpolation error is far below a
-   millimetre for tiles of tens of kilometres; rotation by meridian convergence is kept.
+   ``control_step`` px) and bilinearly interpolated in between (one ``cv2.resize``). The map
+   is smooth (projection scale and meridian convergence vary slowly): against per-pixel exact
+   transforms the sample positions differ by <= 2e-4 cell for a 1024^2 tile at 8.5 m and
+   <= 1e-3 cell for a 61 km tile (float32). Rotation by meridian convergence is kept.
 2. Only the DEM window under the tile footprint is read (memory-mapped where possible), then
-   ``cv2.remap`` samples it (bilinear by default: OpenCV quantises sample positions to 1/32
-   cell). Coarser-than-native requests are first box-averaged by the integer part of the
-   scale to avoid aliasing.
+   ``cv2.remap`` samples it (bilinear by default). OpenCV quantises sample positions to 1/32
+   cell, the dominant position error (<= 1/64 cell, 0.15 m on a 10 m grid). Voids are handled
+   by normalised convolution (:func:`remap_masked`). Coarser-than-native requests are first
+   box-averaged by the integer part of the scale to avoid aliasing.
 3. Several DEMs: aligned tiles of one CRS become one :func:`~.dem_io.mosaic` (no seams); the
    rest fill the remaining NaN cells in the order given.
 
