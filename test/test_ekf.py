@@ -433,3 +433,18 @@ def test_position_reset_after_consecutive_rejections():
 
 def test_core_modules_are_ros_free():
     assert not any(m == "rclpy" or m.startswith("rclpy.") for m in sys.modules)
+
+
+def test_gnss_compare_only():
+    """fuse_gnss=False: GNSS is scored (NIS recorded) but leaves the estimate untouched."""
+    params = EkfParams(init_mode="pose", fuse_gnss=False)
+    _, truth, imu = flight(straight_flight(5.0), 12, params)
+    ekf = start_filter(truth, params)
+    for k in range(1, 200):
+        ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
+    before = ekf.state
+    out = ekf.process_gnss(truth.t[199], truth.position[199] + [30.0, 0, 0], np.eye(3) * 4.0)
+    assert out.reason == Reason.COMPARED_ONLY and out.nis > 0
+    np.testing.assert_array_equal(ekf.state.position, before.position)
+    assert ekf.diagnostics.last_nis("gnss") == pytest.approx(out.nis)
+    assert ekf.diagnostics.rejected["gnss"] == 0

@@ -91,6 +91,7 @@ class Reason(StrEnum):
     STALE = "older_than_history"
     TOO_FAR_AHEAD = "too_far_in_future"
     GATED = "chi_square_gate"
+    COMPARED_ONLY = "compared_not_fused"
     TIME_JUMP_RESET = "time_jump_backwards_reset"
 
 
@@ -101,7 +102,8 @@ class Outcome:
     Attributes
     ----------
     accepted : bool
-        True if the input changed (or will change, when queued) the estimate.
+        True if the input changed the estimate. For ``QUEUED`` it means "taken": the gate
+        decision is made when the IMU reaches the stamp and shows up in the diagnostics.
     reason : Reason
     nis : float or None
         Normalised innovation squared of a measurement update.
@@ -605,7 +607,13 @@ class TerrainEkf:
 
     def process_gnss(self, stamp: float, position, covariance) -> Outcome:
         """GNSS position already converted to the ENU map frame (m), with its 3x3 covariance
-        (NavSatFix's ``position_covariance`` is ENU)."""
+        (NavSatFix's ``position_covariance`` is ENU).
+
+        With ``fuse_gnss=False`` GNSS only initialises the filter (``init_mode="gnss"``) and
+        is otherwise compared with the estimate: its NIS is recorded (reason
+        ``COMPARED_ONLY``) but the state is not updated, so a GPS-denied run can be scored
+        against GNSS while it is still available.
+        """
         return self.process_fix(stamp, position, covariance, source="gnss")
 
     def process_baro(self, stamp: float, altitude: float, variance: float) -> Outcome:
@@ -698,6 +706,8 @@ class TerrainEkf:
         w = np.linalg.solve(L, y)
         nis = float(w @ w)
         gate = _gate(self.params.gate_probability(meas.source), len(z))
+        if meas.source == "gnss" and not self.params.fuse_gnss:
+            return Outcome(False, Reason.COMPARED_ONLY, nis, gate)
         if nis > gate:
             return Outcome(False, Reason.GATED, nis, gate)
         self.kf.update(z.reshape(-1, 1), HJacobian=lambda _x: H, Hx=lambda x: H @ x, R=meas.R)
@@ -734,6 +744,12 @@ class TerrainEkf:
         """Count an evaluation once; on re-application only fix up a changed decision."""
         d = self._diag
         first = meas.outcome is None
+        if outcome.reason == Reason.COMPARED_ONLY:
+            if first:
+                d.records.append(UpdateRecord(meas.stamp, meas.source, len(meas.z),
+                                              outcome.nis, outcome.gate, False))
+            meas.outcome = outcome
+            return
         if first or meas.outcome.accepted != outcome.accepted:
             if not first:
                 (d.accepted if meas.outcome.accepted else d.rejected)[meas.source] -= 1

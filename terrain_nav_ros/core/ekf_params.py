@@ -76,6 +76,9 @@ class EkfParams:
         Same for barometric altitude. Default 0.999.
     gnss_gate_probability : float
         Same for GNSS position. Default 0.999.
+    fuse_gnss : bool
+        If False, GNSS is used to initialise and is compared with the estimate (NIS
+        recorded) but never updates it. Default True.
     reset_after_rejections : int
         After this many consecutive gated-out measurements from one source, the position is
         reset to the next one of that source (recovers from divergence); 0 disables.
@@ -111,6 +114,7 @@ class EkfParams:
     fix_gate_probability: float = 0.999
     baro_gate_probability: float = 0.999
     gnss_gate_probability: float = 0.999
+    fuse_gnss: bool = True
     reset_after_rejections: int = 10
     history_length: float = 3.0
     max_future: float = 0.5
