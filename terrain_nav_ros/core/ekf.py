@@ -35,6 +35,17 @@ estimate. Measurements older than the history are stale.
 
 Every public ``process_*`` method returns an :class:`Outcome` with a :class:`Reason`; bad input
 never raises and never stops the filter.
+
+Mapping for the ROS node (kept out of this module)
+--------------------------------------------------
+* ``sensor_msgs/Imu`` in ``base_link`` (FLU) -> ``process_imu(stamp, angular_velocity,
+  linear_acceleration)``; rotate first if the IMU frame differs.
+* ``PvaFix`` -> ``process_fix(stamp, position, covariance, velocity=..., quaternion=...)`` with
+  the covariance ordered ``[position, velocity?, attitude?]``.
+* ``NavSatFix`` -> ENU through the mission's pyproj transformer -> ``process_gnss``.
+* Barometric altitude minus the map origin height -> ``process_baro``.
+* Output: :attr:`TerrainEkf.state` (``NavState``; ``pose_covariance()`` gives the 6x6 ROS
+  Pose layout) and :attr:`TerrainEkf.diagnostics` (``EkfDiagnostics``).
 """
 
 from __future__ import annotations
@@ -543,7 +554,8 @@ class TerrainEkf:
                 if meas.stamp > self.t:
                     self._predict(meas.stamp, gyro, accel)
                 self._evaluate(meas)
-        self._predict(t_new, gyro, accel)
+        if t_new > self.t:   # not already there because a measurement sat at t_new
+            self._predict(t_new, gyro, accel)
         self._store(gyro, accel)
 
     def _store(self, gyro, accel):
@@ -641,17 +653,16 @@ class TerrainEkf:
             return self._refuse(source, Reason.NOT_INITIALIZED)
         if any(o.stamp == meas.stamp and o.source == source for o in self._log):
             return self._refuse(source, Reason.DUPLICATE)
-        if source in self._reset_armed:
-            meas.reset = True
-            self._reset_armed.discard(source)
-        if meas.stamp > self.t:
-            if meas.stamp - self.t > self.params.max_future:
-                return self._refuse(source, Reason.TOO_FAR_AHEAD)
-            bisect.insort(self._log, meas, key=lambda o: o.key)
-            return Outcome(True, Reason.QUEUED)
+        if meas.stamp - self.t > self.params.max_future:
+            return self._refuse(source, Reason.TOO_FAR_AHEAD)
         if meas.stamp < self._history[0].t:
             return self._refuse(source, Reason.STALE)
+        if source in self._reset_armed:   # divergence recovery armed by _record
+            meas.reset = True
+            self._reset_armed.discard(source)
         bisect.insort(self._log, meas, key=lambda o: o.key)
+        if meas.stamp > self.t:
+            return Outcome(True, Reason.QUEUED)
         self._apply_in_past(meas)
         return meas.outcome
 
