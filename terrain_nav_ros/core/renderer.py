@@ -937,8 +937,9 @@ class LandmarkRenderer:
                 "the view sees no terrain (camera outside or facing away from the tile)")
         hit_local = hit[..., :3]
         hit_local[miss] = np.nan
-        # The shader writes black for misses, so rgb needs no masking.
-        return RenderResult(color[..., :3], hit_local, frame.offset, unresolved, georef)
+        # The shader writes black for misses, so rgb needs no masking; contiguous for OpenCV.
+        return RenderResult(np.ascontiguousarray(color[..., :3]), hit_local, frame.offset,
+                            unresolved, georef)
 
     def render_nadir(self, georef: GeoReference | None = None, sun=(315.0, 45.0), *,
                      shadows: bool | None = None) -> RenderResult:
