@@ -32,7 +32,7 @@ def test_defaults_are_table_3_1():
     dict(w1=4), dict(w2=0), dict(epsilon=0.0), dict(epsilon=1.0), dict(alpha=1.5),
     dict(beta=-0.1), dict(time_step=0.3), dict(threshold=0.0), dict(threshold=2.5),
     dict(threshold_low=0.9), dict(min_area=-1), dict(polarity="creek"),
-    dict(contrast_snr=-1.0), dict(mlsec_sigma=float("nan")),
+    dict(contrast_snr=-1.0), dict(mlsec_sigma=float("nan")), dict(tensor_update=0),
 ])
 def test_bad_params_raise(bad):
     with pytest.raises(ValueError):
