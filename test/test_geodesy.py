@@ -83,13 +83,17 @@ def test_scalars_and_broadcasting():
     assert e.shape == (3, 4)
 
 
-def test_surface_up_is_constant_height_surface():
-    o = EnuOrigin(44.0, 5.0, 500.0)
-    lat, lon, _ = random_points(o, n=500, radius_deg=0.1, seed=2)
-    for h in (500.0, 2500.0):
-        e, n, u = o.geodetic_to_enu(lat, lon, h)
-        assert np.abs(o.surface_up(e, n, h) - u).max() < 0.05  # ellipsoid vs sphere
+@pytest.mark.parametrize("radius_deg,tol", [(0.1, 0.002), (0.3, 0.02)])
+def test_surface_up_is_constant_height_surface(radius_deg, tol):
+    for o in ORIGINS:
+        lat, lon, _ = random_points(o, n=500, radius_deg=radius_deg, seed=2)
+        for h in (o.alt, o.alt + 2000.0):
+            e, n, u = o.geodetic_to_enu(lat, lon, h)
+            assert np.abs(o.surface_up(e, n, h) - u).max() < tol
+    o = ORIGINS[0]
     assert o.surface_up(10_000.0, 0.0) == pytest.approx(-1e8 / (2 * EARTH_RADIUS), rel=0.01)
+    grid = o.surface_up(np.arange(3.0)[None, :], np.arange(4.0)[:, None])
+    assert grid.shape == (4, 3)
 
 
 def test_datum_helpers():

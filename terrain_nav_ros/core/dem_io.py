@@ -31,6 +31,7 @@ import glob
 import mmap
 import os
 import re
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -334,8 +335,11 @@ def _open_gdal(path: Path, crs_given: bool = False) -> Dem:
         ds.close()
         return dem
 
+    lock = threading.Lock()  # a GDAL dataset handle must not be used by two threads at once
+
     def read(r0, r1, c0, c1):
-        block = ds.read(1, window=Window(c0, r0, c1 - c0, r1 - r0))
+        with lock:
+            block = ds.read(1, window=Window(c0, r0, c1 - c0, r1 - r0))
         return _to_float(block, nodata)
 
     return Dem(str(path), ds.transform, ds.width, ds.height, crs, np.dtype(ds.dtypes[0]),
@@ -367,7 +371,8 @@ def _memmap_if_possible(ds, path: Path):
     h, w, dtype = ds.height, ds.width, np.dtype(ds.dtypes[0])
     if ds.driver == "SRTMHGT":
         return np.memmap(path, dtype=">i2", mode="r", shape=(h, w))
-    if ds.compression is not None or ds.profile.get("tiled") or ds.profile.get("photometric"):
+    if ds.compression is not None or ds.profile.get("tiled") or dtype.kind not in "iuf" or \
+            ds.tags(1, ns="IMAGE_STRUCTURE").get("NBITS"):  # packed sub-byte samples
         return None
     rows_per_strip = ds.block_shapes[0][0]
     nstrips = -(-h // rows_per_strip)

@@ -33,6 +33,7 @@ for 3-D work in the ``map`` frame.
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import cv2
@@ -140,7 +141,8 @@ class MetaMap:
     idw_power, idw_k : float, int
         IDW exponent and neighbourhood when ``interpolation="idw"``.
     heights : {"orthometric", "enu"}
-        What tile values mean (see module notes).
+        What tile values mean (see module notes). DEMs in local metres always give their
+        stored heights.
     reference_height : float, optional
         Orthometric height (m) of the surface on which tile pixels are placed. Default the
         origin's (``origin.alt - origin.geoid_undulation``).
@@ -151,12 +153,19 @@ class MetaMap:
         Spacing (tile pixels) of the exact-transform control grid.
     max_window_cells : int
         Refuse requests needing a larger DEM window (coarse GSD over a huge area).
+    prefill_max_cells : int
+        With ``fill_voids``, DEMs up to this many cells are filled once, whole, at
+        construction (in memory); larger ones are filled per read window.
+
+    Notes
+    -----
+    :meth:`tile` is serialised by a lock, so one instance can serve several executor threads.
     """
 
     def __init__(self, dems, origin: EnuOrigin | None = None, *, interpolation="bilinear",
                  fill_voids=False, max_void_area=256, idw_power=2.0, idw_k=8,
                  heights="orthometric", reference_height=None, local_origin=None,
-                 control_step=32, max_window_cells=64_000_000):
+                 control_step=32, max_window_cells=64_000_000, prefill_max_cells=16_000_000):
         dems = [dems] if isinstance(dems, Dem) else list(dems)
         if not dems:
             raise DemError("MetaMap: no DEM given")
@@ -187,7 +196,17 @@ class MetaMap:
             self.local_origin = tuple(map(float, local_origin))
         else:
             self.local_origin = None
-        self.layers = [_Layer(d, self._transform_for(d)) for d in _merge_aligned(dems)]
+        merged = _merge_aligned(dems)
+        # small DEMs are void-filled once, whole (consistent across tiles, and no per-tile
+        # cost); big ones window by window
+        self._window_fill = []
+        for i, d in enumerate(merged):
+            small = d.width * d.height <= prefill_max_cells
+            if self.fill_voids and small:
+                merged[i] = d.filled(self.max_void_area)
+            self._window_fill.append(self.fill_voids and not small)
+        self.layers = [_Layer(d, self._transform_for(d)) for d in merged]
+        self._lock = threading.Lock()  # GDAL handles and PROJ contexts are not thread-safe
 
     @staticmethod
     def _default_origin(dem: Dem) -> EnuOrigin:
@@ -227,12 +246,14 @@ class MetaMap:
     def tile_at_geodetic(self, lat: float, lon: float, gsd: float, width: int,
                          height: int) -> DemTile:
         """Tile centred on a WGS84 position (degrees), placed at ``reference_height``."""
+        if self.local_origin is not None:
+            raise DemError("MetaMap: DEMs in local metres have no geodetic position")
         h = self.origin.orthometric_to_ellipsoidal(self.reference_height)
         e, n, _ = self.origin.geodetic_to_enu(lat, lon, h)
         return self.tile_at(float(e), float(n), gsd, width, height)
 
     def tile(self, georef: GeoReference) -> DemTile:
-        """Sample the DEMs on ``georef``.
+        """Sample the DEMs on ``georef`` (thread-safe).
 
         Raises
         ------
@@ -242,6 +263,10 @@ class MetaMap:
         DemError
             A DEM window cannot be read, or the request needs an unreasonably large window.
         """
+        with self._lock:
+            return self._tile(georef)
+
+    def _tile(self, georef: GeoReference) -> DemTile:
         h, w = georef.shape
         if h == 0 or w == 0:
             return DemTile(np.zeros((h, w), np.float32), np.ones((h, w), bool), georef,
@@ -252,12 +277,12 @@ class MetaMap:
         ne, nn = np.broadcast_arrays(ne, nn)
         west, east_edge, south, north_edge = georef.extent
         hit = False
-        for layer in self.layers:
+        for layer, window_fill in zip(self.layers, self._window_fill, strict=True):
             lw, le, ls, ln = layer.enu_bounds
             if le <= west or lw >= east_edge or ln <= south or ls >= north_edge:
                 continue
             hit = True
-            z = self._sample_layer(layer, ne, nn, h, w)
+            z = self._sample_layer(layer, ne, nn, h, w, window_fill)
             if z is None:
                 continue
             if out is None:
@@ -274,15 +299,14 @@ class MetaMap:
                 f"(ENU bounds {[tuple(round(v) for v in b) for b in self.enu_bounds]})")
         if out is None:
             out, nodata = np.full((h, w), np.nan, dtype=np.float32), np.ones((h, w), bool)
-        if self.heights == "enu":
-            up = self.origin.surface_up(*georef.pixel_to_enu(np.arange(w)[None, :],
-                                                             np.arange(h)[:, None]),
-                                        height=self.origin.alt)
-            h_ell = self.origin.orthometric_to_ellipsoidal(out)
-            out = (up + (h_ell - self.origin.alt)).astype(np.float32)
+        if self.heights == "enu" and self.local_origin is None:
+            # u = ellipsoidal height above the origin + the curvature drop of that surface
+            east, north = georef.pixel_to_enu(np.arange(w), np.arange(h))
+            out += self.origin.surface_up(east[None, :], north[:, None]).astype(np.float32)
+            out += np.float32(self.origin.geoid_undulation - self.origin.alt)
         return DemTile(out, nodata, georef, self.heights)
 
-    def _sample_layer(self, layer: _Layer, ne, nn, h: int, w: int):
+    def _sample_layer(self, layer: _Layer, ne, nn, h: int, w: int, window_fill: bool):
         dem = layer.dem
         x, y = layer.transform.from_enu(ne, nn, self.reference_height)
         cols, rows = dem.crs_to_pixel(x, y)
@@ -309,7 +333,7 @@ class MetaMap:
         if (c1 - c0) * (r1 - r0) > self.max_window_cells:
             raise DemError(f"{dem.name}: request needs a {r1 - r0}x{c1 - c0} cell window; "
                            f"use a finer GSD or a pre-decimated DEM")
-        if self.fill_voids:
+        if window_fill:
             margin = int(np.ceil(np.sqrt(self.max_void_area)))
             big = dem.read_window(r0 - margin, c0 - margin, r1 - r0 + 2 * margin,
                                   c1 - c0 + 2 * margin)
