@@ -473,3 +473,15 @@ def test_gnss_compare_only():
     np.testing.assert_array_equal(ekf.state.position, before.position)
     assert ekf.diagnostics.last_nis("gnss") == pytest.approx(out.nis)
     assert ekf.diagnostics.rejected["gnss"] == 0
+
+
+def test_process_noise_closed_form():
+    """The filter's cached Q(dt) equals the documented closed form for any IMU period."""
+    from terrain_nav_ros.core.strapdown import process_noise
+
+    p = EkfParams()
+    ekf = TerrainEkf(p)
+    for dt in (0.005, 0.0049, 0.02, 1.0):
+        expected = process_noise(dt, p.gyro_noise_density, p.accel_noise_density,
+                                 p.gyro_bias_random_walk, p.accel_bias_random_walk)
+        np.testing.assert_allclose(ekf._process_noise(dt), expected, rtol=1e-12, atol=0)
