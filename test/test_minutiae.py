@@ -263,3 +263,26 @@ def test_dem_with_voids_keeps_clear_of_them(shared_data):
     dist = distance_transform_edt(np.pad(valid, 1))[1:-1, 1:-1]
     assert np.all(dist[ms.row.astype(int), ms.col.astype(int)] >= p.border_margin - 1)
     assert not any(s[~valid].any() for s in feats.creases.skeletons.values())
+
+
+# --------------------------------------------------------------------------- hillshade
+
+
+def test_hillshade_lambert_and_relief_from_shading():
+    from terrain_nav_ros.core.hillshade import relief_from_shading, sun_vector
+
+    flat = np.zeros((16, 16))
+    assert np.allclose(hillshade(flat, 315, 45), np.sin(np.deg2rad(45)), atol=1e-6)
+    ramp = np.add.outer(np.zeros(16), np.arange(16.0))  # rises to the east
+    assert hillshade(ramp, 270, 45).mean() > hillshade(ramp, 90, 45).mean()
+    assert hillshade(ramp, 90, 45, dtype=np.uint8).dtype == np.uint8
+    assert np.allclose(np.linalg.norm(sun_vector(123, 17)), 1.0)
+    with pytest.raises(ValueError):
+        sun_vector(0, 95)
+    rr, cc = np.mgrid[0:128, 0:128].astype(float)
+    hills = 30 * np.exp(-((rr - 50) ** 2 + (cc - 70) ** 2) / 300) \
+        - 20 * np.exp(-((rr - 90) ** 2 + (cc - 30) ** 2) / 200)
+    for az, el in ((315, 45), (135, 30)):
+        relief = relief_from_shading(hillshade(hills, az, el, dtype=np.uint8), az, el)
+        # Hills and hollows come back with the right sign (what runs towards the sun is lost).
+        assert np.corrcoef(relief.ravel(), hills.ravel())[0, 1] > 0.6
