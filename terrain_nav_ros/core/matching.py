@@ -380,17 +380,19 @@ def _hypotheses(v: _Votes, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams):
     mid_a = 0.5 * (a.z[v.ia] + a.z[v.ja]) - a.centroid
     mid_b = 0.5 * (b.z[v.ib] + b.z[v.jb])
     hyps = []
+    best = 0.0
     for th0 in _rotation_peaks(v.theta, v.weight, p, n_peaks=2):
         d = wrap_angle(v.theta - th0)
         sel = np.flatnonzero(np.abs(d) <= 2.0 * p.rot_bin)
-        if len(sel) == 0:
-            continue
         w = v.weight[sel]
+        if len(sel) == 0 or w.sum() < p.min_support_ratio * best:
+            continue   # none of its cells could pass the verification cut in _match
         c = np.exp(1j * (th0 + np.dot(w, d[sel]) / w.sum()))
         # translation of A's centroid at this rotation: a two-stage Hough keeps the
         # translation cells sharp (a per-vote rotation error would smear them)
         t = mid_b[sel] - c * mid_a[sel]
         hyps.extend(_translation_peaks(t, sel, w, c, v, a, p, n_peaks=2))
+        best = max(h.support for h in hyps) if hyps else 0.0
     hyps.sort(key=lambda h: -h.support)
     return hyps[:p.n_hypotheses]
 
@@ -713,12 +715,13 @@ def _covariance(za, zb, c: complex, t: complex, scale: bool,
     mean_r2 = float(np.sum(np.abs(r) ** 2)) * 2.0 / (2 * m - n_par)
     sigma2 = truncated_sigma2(mean_r2, radius)
     col, row = from_complex(za)
-    # pixel model: col' = a col + b row + tx ; row' = -b col + a row + ty
-    j = np.zeros((2 * m, 4))
-    j[0::2] = np.column_stack([col, row, np.ones(m), np.zeros(m)])
-    j[1::2] = np.column_stack([row, -col, np.zeros(m), np.ones(m)])
+    # pixel model: col' = a col + b row + tx ; row' = -b col + a row + ty; the Jacobian rows
+    # [col, row, 1, 0] and [row, -col, 0, 1] give this normal matrix in closed form
+    sc, sr, s2 = col.sum(), row.sum(), float(np.sum(col * col + row * row))
+    jtj = np.array([[s2, 0.0, sc, sr], [0.0, s2, sr, -sc], [sc, sr, m, 0.0],
+                    [sr, -sc, 0.0, m]])
     try:
-        cov = sigma2 * np.linalg.inv(j.T @ j)
+        cov = sigma2 * np.linalg.inv(jtj)
     except np.linalg.LinAlgError:
         cov = np.full((4, 4), np.nan)
     return cov, rms
