@@ -7,7 +7,7 @@ test_messages.py receives them in another process and compares field by field.
 import numpy as np
 from std_msgs.msg import Header
 
-from terrain_nav_msgs.msg import GeoReference, Minutia, MinutiaArray, PvaFix
+from terrain_nav_msgs.msg import Minutia, MinutiaArray, PvaFix
 from terrain_nav_ros import conversions as cv
 from terrain_nav_ros.core.georef import GeoReference as CoreGeoReference
 

@@ -1,0 +1,117 @@
+"""landmark_renderer: render each DEM tile into a georeferenced landmark image (dissertation 2.2).
+
+Subscribes to the latched ``/metamap/tile``; for every new tile it uploads the heights to the
+GPU renderer (moderngl, headless EGL: Mesa llvmpipe on a CPU-only computer) and publishes the
+orthographic nadir render as a north-up ``terrain_nav_msgs/GeoImage`` on ``/landmark/image``
+(latched too), on the tile's own grid or at another GSD. The sun is fixed or follows the
+tile's stamp (date, time and place: the light the camera saw). The GL context is created once.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+
+import numpy as np
+from rclpy.node import Node
+
+from terrain_nav_msgs.msg import DemTile, GeoImage
+
+from . import conversions as cv
+from .core.georef import GeoReference
+from .core.renderer import AlbedoRamp, LandmarkRenderer, RendererError, create_headless_context
+from .core.sun import solar_position
+from .ros_common import LATCHED_QOS, declare, reject_all_changes, run
+
+
+class LandmarkRendererNode(Node):
+    """Nadir landmark images of the metamap's tiles."""
+
+    def __init__(self):
+        super().__init__("landmark_renderer")
+        self.gsd = declare(self, "gsd", 0.0, "landmark GSD [m/px]; 0 = the tile's", min_value=0.0)
+        self.sun_policy = declare(self, "sun_policy", "fixed",
+                                  "fixed: sun_azimuth/sun_elevation; stamp: solar position at "
+                                  "the tile's stamp and the ENU origin")
+        self.sun = (declare(self, "sun_azimuth", 315.0, "sun azimuth, clockwise from north "
+                            "[deg]", min_value=0.0, max_value=360.0),
+                    declare(self, "sun_elevation", 45.0, "sun elevation [deg]",
+                            min_value=1.0, max_value=90.0))
+        self.shadows = declare(self, "shadows", False, "cast shadows (3-4x slower on a CPU)")
+        albedo = AlbedoRamp(
+            tree_line=declare(self, "tree_line", 2400.0, "vegetation -> rock elevation [m]"),
+            snow_line=declare(self, "snow_line", 3400.0, "rock -> snow elevation [m]"))
+        max_steps = declare(self, "max_steps", 256, "sphere-tracing step budget per ray",
+                            min_value=8, max_value=4096)
+        if self.sun_policy not in ("fixed", "stamp"):
+            raise ValueError(f"sun_policy must be 'fixed' or 'stamp', not {self.sun_policy!r}")
+        self.add_on_set_parameters_callback(reject_all_changes)
+        self.renderer = LandmarkRenderer(create_headless_context(), max_steps=max_steps,
+                                         albedo=albedo, shadows=self.shadows)
+        info = self.renderer.ctx.info
+        self.get_logger().info(f"OpenGL: {info['GL_RENDERER']} ({info['GL_VERSION']})")
+        self.pub = self.create_publisher(GeoImage, "/landmark/image", LATCHED_QOS)
+        self.create_subscription(DemTile, "/metamap/tile", self.on_tile, LATCHED_QOS)
+        self.rendered = 0
+
+    def sun_for(self, msg: DemTile):
+        """(azimuth, elevation) for a tile under the configured policy."""
+        if self.sun_policy == "fixed":
+            return self.sun
+        when = dt.datetime.fromtimestamp(cv.stamp_to_sec(msg.header.stamp), dt.UTC)
+        az, el = solar_position(when, msg.georef.enu_origin_latitude,
+                                msg.georef.enu_origin_longitude)
+        if el < 5.0:
+            self.get_logger().warning(f"sun only {float(el):.1f} deg high at the tile's stamp; "
+                                      f"using {self.sun}", throttle_duration_sec=60.0)
+            return self.sun
+        return float(az), float(el)
+
+    def on_tile(self, msg: DemTile) -> None:
+        try:
+            heights, georef = cv.msg_to_dem_tile(msg)
+        except cv.ConversionError as err:
+            self.get_logger().error(f"bad DemTile: {err}")
+            return
+        void = ~np.isfinite(heights)
+        if void.all():
+            self.get_logger().warning("DemTile has no valid elevation; no landmark")
+            return
+        filled = np.where(void, np.nanmin(heights), heights)
+        out = georef if self.gsd <= 0 else GeoReference.centred(
+            *georef.centre, self.gsd, round(georef.width * georef.gsd / self.gsd),
+            round(georef.height * georef.gsd / self.gsd))
+        try:
+            self.renderer.set_terrain(filled, georef)
+            result = self.renderer.render_nadir(out, sun=self.sun_for(msg))
+        except (RendererError, ValueError) as err:
+            self.get_logger().error(f"cannot render tile: {err}")
+            return
+        valid = result.mask
+        if void.any():  # landmark pixels over DEM voids carry no information
+            col, row = georef.enu_to_pixel(*out.pixel_to_enu(
+                np.arange(out.width)[None, :], np.arange(out.height)[:, None]))
+            r = np.clip(np.rint(row).astype(int), 0, georef.height - 1)
+            c = np.clip(np.rint(col).astype(int), 0, georef.width - 1)
+            valid &= ~void[r, c]
+        image = self.renderer_output(result.grey)
+        self.pub.publish(cv.geo_image_to_msg(
+            image, out, msg.header, valid, cv.enu_origin_of(msg.georef), msg.georef.source_crs))
+        self.rendered += 1
+        self.get_logger().info(f"landmark {out.width}x{out.height} px at {out.gsd:g} m/px "
+                               f"centred ({out.centre[0]:.0f}, {out.centre[1]:.0f}) m")
+
+    @staticmethod
+    def renderer_output(grey: np.ndarray) -> np.ndarray:
+        """Linear grey in [0, 1] -> uint8 with the same display gamma a camera applies."""
+        return np.clip(np.rint(255.0 * np.clip(grey, 0, 1) ** (1 / 2.2)), 0, 255).astype(np.uint8)
+
+    def close(self) -> None:
+        self.renderer.release()
+
+
+def main(args=None):
+    return run(LandmarkRendererNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

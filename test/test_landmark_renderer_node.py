@@ -1,0 +1,46 @@
+"""landmark_renderer node: a DemTile from another process becomes a georeferenced, correctly
+lit landmark image; voids are masked; a malformed tile does not kill the node."""
+
+import numpy as np
+from ros_helpers import SpinningNode, start_node, stop, wait_until
+from std_msgs.msg import Header
+
+from terrain_nav_msgs.msg import DemTile, GeoImage
+from terrain_nav_ros import conversions as cv
+from terrain_nav_ros.core.georef import GeoReference
+from terrain_nav_ros.ros_common import LATCHED_QOS
+
+
+def _peak_tile():
+    georef = GeoReference.centred(1000.0, 2000.0, 10.0, 96, 80)
+    east, north = georef.pixel_to_enu(np.arange(96)[None, :], np.arange(80)[:, None])
+    heights = 500.0 + 300.0 * np.exp(-((east - 1000) ** 2 + (north - 2000) ** 2) / 150.0**2)
+    heights = heights.astype(np.float32)
+    heights[:, :10] = np.nan  # a void along the west edge
+    return heights, georef
+
+
+def test_tile_becomes_a_lit_georeferenced_landmark():
+    node = start_node("landmark_renderer", {"sun_azimuth": 315.0, "sun_elevation": 45.0})
+    client = SpinningNode("landmark_client")
+    got = []
+    try:
+        client.node.create_subscription(GeoImage, "/landmark/image", got.append, LATCHED_QOS)
+        pub = client.node.create_publisher(DemTile, "/metamap/tile", LATCHED_QOS)
+        assert wait_until(lambda: pub.get_subscription_count() > 0, 20), stop(node)
+        bad = DemTile(header=Header(frame_id="map"))
+        bad.georef.width, bad.georef.height, bad.georef.gsd = 4, 4, 1.0  # no elevations
+        pub.publish(bad)
+        heights, georef = _peak_tile()
+        pub.publish(cv.dem_tile_to_msg(heights, georef, Header(frame_id="map")))
+        assert wait_until(lambda: got, 60), stop(node)
+        assert node.poll() is None, "node died on a malformed tile"
+    finally:
+        client.close()
+        log = stop(node)
+    image, out_georef, valid = cv.msg_to_geo_image(got[-1])
+    assert out_georef == georef, log
+    assert not valid[:, :9].any() and valid[:, 12:].all()
+    # Sun from the north-west: the NW flank of the peak is lit, the SE flank in shade.
+    row, col = np.round(georef.enu_to_pixel(1000.0, 2000.0)).astype(int)
+    assert image[row - 10, col - 10] > image[row, col] > image[row + 10, col + 10]
