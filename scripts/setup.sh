@@ -12,7 +12,6 @@ set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 VENV="${TERRAIN_NAV_VENV:-$REPO/.venv}"
 LOCK="$REPO/requirements/lock.txt"
-STAMP="$VENV/.terrain_nav_setup_stamp"
 FORCE=0
 for arg in "$@"; do
   case "$arg" in
@@ -23,15 +22,16 @@ done
 
 say() { echo "[setup] $*" >&2; }
 
-inputs_digest() {
-  (cd "$REPO" && cat requirements/lock.txt scripts/setup.sh setup.py setup.cfg package.xml \
-     terrain_nav_ros/executables.py \
-     terrain_nav_msgs/CMakeLists.txt terrain_nav_msgs/package.xml terrain_nav_msgs/msg/* \
-     terrain_nav_msgs/srv/* vendor/tf2_msgs/CMakeLists.txt vendor/tf2_msgs/msg/* \
-     resource/* 2>/dev/null || true) | sha256sum | cut -d' ' -f1
-}
+# One stamp per step, so a change re-runs only the steps it affects.
+digest_of() { (cd "$REPO" && cat "$@" 2>/dev/null || true) | sha256sum | cut -d' ' -f1; }
+DEPS_DIGEST="$(digest_of requirements/lock.txt scripts/setup.sh)"
+MSGS_DIGEST="$(digest_of requirements/lock.txt terrain_nav_msgs/CMakeLists.txt \
+  terrain_nav_msgs/package.xml terrain_nav_msgs/msg/* terrain_nav_msgs/srv/* \
+  vendor/tf2_msgs/CMakeLists.txt vendor/tf2_msgs/package.xml vendor/tf2_msgs/msg/*)"
+PKG_DIGEST="$(digest_of setup.py setup.cfg package.xml terrain_nav_ros/executables.py resource/*)"
+stamp_ok() { [[ $FORCE -eq 0 && -f "$VENV/.setup-$1" && "$(cat "$VENV/.setup-$1")" == "$2" ]]; }
 
-if [[ $FORCE -eq 0 && -f "$STAMP" && "$(cat "$STAMP")" == "$(inputs_digest)" ]]; then
+if stamp_ok deps "$DEPS_DIGEST" && stamp_ok msgs "$MSGS_DIGEST" && stamp_ok pkg "$PKG_DIGEST"; then
   exit 0
 fi
 
@@ -77,6 +77,7 @@ if [[ ! -x "$VENV/bin/python" ]]; then
   "$PY" -m venv "$VENV"
 fi
 VPY="$VENV/bin/python"
+if ! stamp_ok deps "$DEPS_DIGEST"; then
 say "installing pinned requirements (requirements/lock.txt)"
 "$VPY" -m pip install -q --disable-pip-version-check --upgrade pip==26.3 >/dev/null
 "$VPY" -m pip install -q --disable-pip-version-check -r "$LOCK"
@@ -88,6 +89,9 @@ NP_INCLUDE="$("$VPY" -c 'import numpy; print(numpy.get_include())')"
   xargs -0 -r sed -i \
     -e "s#/opt/python/cp311-cp311/lib/python3.11/site-packages/numpy/_core/include#$NP_INCLUDE#g" \
     -e "s#/opt/python/cp311-cp311/include/python3.11#$PY_INCLUDE#g"
+
+echo "$DEPS_DIGEST" >"$VENV/.setup-deps"
+fi
 
 # --- 3. interface packages, built with plain cmake into the venv prefix ---
 build_interfaces() {
@@ -103,13 +107,18 @@ build_interfaces() {
   cmake --install "$build" >>"$build.log" 2>&1 || { tail -50 "$build.log" >&2; exit 1; }
 }
 mkdir -p "$REPO/build"
-if ! "$VPY" -c 'import tf2_msgs.msg' 2>/dev/null || [[ -f "$VENV/share/tf2_msgs/terrain_nav_vendored" ]]; then
-  build_interfaces "$REPO/vendor/tf2_msgs"
-  touch "$VENV/share/tf2_msgs/terrain_nav_vendored"
+if ! stamp_ok msgs "$MSGS_DIGEST"; then
+  if ! "$VPY" -c 'import tf2_msgs.msg' 2>/dev/null ||
+     [[ -f "$VENV/share/tf2_msgs/terrain_nav_vendored" ]]; then
+    build_interfaces "$REPO/vendor/tf2_msgs"
+    touch "$VENV/share/tf2_msgs/terrain_nav_vendored"
+  fi
+  build_interfaces "$REPO/terrain_nav_msgs"
+  echo "$MSGS_DIGEST" >"$VENV/.setup-msgs"
 fi
-build_interfaces "$REPO/terrain_nav_msgs"
 
 # --- 4. this package, editable, plus what colcon would install into share/ ---
+if ! stamp_ok pkg "$PKG_DIGEST"; then
 say "installing terrain_nav_ros (editable)"
 "$VPY" -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation -e "$REPO" \
   >"$REPO/build/pip-editable.log" 2>&1 || { cat "$REPO/build/pip-editable.log" >&2; exit 1; }
@@ -123,5 +132,6 @@ ln -s "$REPO/launch" "$SHARE/launch"
 
 "$VPY" -c 'import rclpy, terrain_nav_msgs.msg, terrain_nav_ros' ||
   { say "set-up finished but the imports fail"; exit 1; }
-inputs_digest >"$STAMP"
+echo "$PKG_DIGEST" >"$VENV/.setup-pkg"
+fi
 say "done in $(( $(date +%s) - start )) s"
