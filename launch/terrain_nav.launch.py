@@ -20,7 +20,7 @@ from terrain_nav_ros.graph_runner import load_graph
 def graph_nodes(graph_path, use_sim_time=False):
     """launch_ros Node actions for every node of a graph file."""
     spec = load_graph(graph_path)
-    params_files = [str(spec.params_file)] if spec.params_file else []
+    params_files = [str(p) for p in spec.params_files]
     return [
         Node(package="terrain_nav_ros", executable=node.executable, name=node.name,
              output="screen", respawn=False,

@@ -32,7 +32,7 @@ def _cmd_graph(args) -> int:
 def _exec_node(executable: str, params: dict) -> int:
     from .graph_runner import NodeSpec, node_command
 
-    cmd = node_command(NodeSpec(executable, executable, parameters=params), None)
+    cmd = node_command(NodeSpec(executable, executable, parameters=params))
     os.execv(cmd[0], cmd)
     return 1  # not reached
 

@@ -2,12 +2,12 @@
 
 The graph is described once, in a YAML file (``config/graph.yaml``)::
 
-    params_file: terrain_nav.yaml      # ROS 2 parameters file, relative to this file
+    params_files: [terrain_nav.yaml]   # ROS 2 parameters files, relative to this file
     nodes:
-      - name: metamap                  # node name; its block in params_file
+      - name: metamap                  # node name; its block in the params files
         executable: metamap            # an entry of terrain_nav_ros.executables.NODES
         required: true                 # if it dies, the whole graph is stopped
-        parameters: {gsd: 5.0}         # overrides on top of params_file
+        parameters: {gsd: 5.0}         # overrides on top of the params files
         remappings: {/in: /out}
 
 ``launch/terrain_nav.launch.py`` builds the same nodes from the same file for normal ROS
@@ -54,7 +54,7 @@ class GraphSpec:
     """The nodes and their shared parameters file."""
 
     nodes: list[NodeSpec]
-    params_file: Path | None = None
+    params_files: list[Path] = field(default_factory=list)
 
 
 def load_graph(path: str | Path) -> GraphSpec:
@@ -64,10 +64,13 @@ def load_graph(path: str | Path) -> GraphSpec:
         doc = yaml.safe_load(path.read_text()) or {}
     except (OSError, yaml.YAMLError) as err:
         raise GraphError(f"cannot read graph file {path}: {err}") from err
-    params_file = doc.get("params_file")
-    params_path = (path.parent / params_file).resolve() if params_file else None
-    if params_path is not None and not params_path.is_file():
-        raise GraphError(f"{path}: params_file {params_path} does not exist")
+    names = doc.get("params_files") or []
+    if isinstance(names, str):
+        names = [names]
+    params_paths = [(path.parent / name).resolve() for name in names]
+    for params_path in params_paths:
+        if not params_path.is_file():
+            raise GraphError(f"{path}: params file {params_path} does not exist")
     nodes = []
     for entry in doc.get("nodes") or []:
         unknown = set(entry) - {"name", "executable", "required", "parameters", "remappings"}
@@ -86,7 +89,7 @@ def load_graph(path: str | Path) -> GraphSpec:
         raise GraphError(f"{path}: duplicate node names in {names}")
     if not nodes:
         raise GraphError(f"{path}: no nodes")
-    return GraphSpec(nodes, params_path)
+    return GraphSpec(nodes, params_paths)
 
 
 def _yaml_scalar(value) -> str:
@@ -95,7 +98,7 @@ def _yaml_scalar(value) -> str:
         "\n...").removesuffix("...").strip()
 
 
-def node_command(spec: NodeSpec, params_file: Path | None, extra_parameters: dict | None = None,
+def node_command(spec: NodeSpec, params_files=(), extra_parameters: dict | None = None,
                  ) -> list[str]:
     """The command line that starts one node with its parameters and remappings."""
     script = Path(sys.executable).parent / spec.executable
@@ -108,7 +111,7 @@ def node_command(spec: NodeSpec, params_file: Path | None, extra_parameters: dic
         cmd = [sys.executable, "-c", f"import sys; from {module} import {function}; "
                f"sys.exit({function}())"]
     cmd += ["--ros-args", "-r", f"__node:={spec.name}"]
-    if params_file is not None:
+    for params_file in params_files:
         cmd += ["--params-file", str(params_file)]
     for key, value in {**spec.parameters, **(extra_parameters or {})}.items():
         cmd += ["-p", f"{key}:={_yaml_scalar(value)}"]
@@ -158,7 +161,7 @@ class GraphRunner:
         if self.log_dir:
             self.log_dir.mkdir(parents=True, exist_ok=True)
         for spec in self.spec.nodes:
-            cmd = node_command(spec, self.spec.params_file, self.extra_parameters)
+            cmd = node_command(spec, self.spec.params_files, self.extra_parameters)
             proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                     stdin=subprocess.DEVNULL, text=True, bufsize=1,
                                     env=os.environ.copy(), start_new_session=True)

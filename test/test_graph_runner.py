@@ -36,7 +36,7 @@ def _graph_file(tmp_path, bag, out_bag):
     params.write_text(yaml.safe_dump({"recorder": {"ros__parameters": {
         "topics": ["/chatter_remapped"]}}}))
     graph = tmp_path / "graph.yaml"
-    graph.write_text(yaml.safe_dump({"params_file": "params.yaml", "nodes": [
+    graph.write_text(yaml.safe_dump({"params_files": ["params.yaml"], "nodes": [
         {"name": "recorder", "executable": "bag_recorder",
          "parameters": {"output": str(out_bag)}},
         {"name": "player", "executable": "bag_player",
@@ -93,7 +93,7 @@ def test_invalid_graph_files_are_rejected_with_the_reason(tmp_path):
     bad.write_text("nodes:\n  - {name: x, executable: no_such_node}\n")
     with pytest.raises(GraphError, match="unknown executable no_such_node"):
         load_graph(bad)
-    bad.write_text("params_file: missing.yaml\nnodes: []\n")
+    bad.write_text("params_files: [missing.yaml]\nnodes: []\n")
     with pytest.raises(GraphError, match="does not exist"):
         load_graph(bad)
 
@@ -133,10 +133,10 @@ def test_launch_file_starts_the_same_nodes_as_the_runner(tmp_path, monkeypatch):
         for action, node in zip(actions, spec.nodes, strict=True):
             assert action.kwargs["executable"] == node.executable
             files, overrides = action.kwargs["parameters"][:-1], action.kwargs["parameters"][-1]
-            assert files == [str(spec.params_file)]
+            assert files == [str(p) for p in spec.params_files]
             assert overrides == {**node.parameters, "use_sim_time": True}
             assert dict(action.kwargs["remappings"]) == node.remappings
             # The runner passes the same overrides and remappings on the command line.
-            cmd = " ".join(node_command(node, spec.params_file))
+            cmd = " ".join(node_command(node, spec.params_files))
             assert all(f"{k}:=" in cmd for k in node.parameters)
             assert all(f"{s}:={t}" in cmd for s, t in node.remappings.items())
