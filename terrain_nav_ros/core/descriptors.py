@@ -81,19 +81,24 @@ def shape_context(ms: MinutiaSet, n_radial: int = 4, n_angular: int = 8,
     size = n_ch * n_radial * n_angular
     if n < 2:
         return np.zeros((n, size), np.float32)
-    z = to_complex(ms.col, ms.row)
-    tree = cKDTree(np.column_stack([z.real, z.imag]))
+    x, y = ms.col, -ms.row
+    tree = cKDTree(np.column_stack([x, y]))
     pairs = tree.query_pairs(r_outer, output_type="ndarray")
-    i = np.concatenate([pairs[:, 0], pairs[:, 1]])
-    j = np.concatenate([pairs[:, 1], pairs[:, 0]])
-    d = z[j] - z[i]
-    r = np.maximum(np.abs(d), 1e-9)
-    rb = np.floor(np.log(r / r_inner) / np.log(r_outer / r_inner) * (n_radial - 1) + 1)
-    rb = np.clip(rb, 0, n_radial - 1).astype(np.intp)
-    u = np.mod(np.angle(d) - ms.angle[i], TWO_PI) * (n_angular / TWO_PI) - 0.5
-    a0 = np.floor(u)
+    p, q = pairs[:, 0], pairs[:, 1]
+    dx, dy = x[q] - x[p], y[q] - y[p]
+    # each unordered pair serves both directions: same radius, direction + pi
+    edges2 = (r_inner * (r_outer / r_inner) ** (np.arange(n_radial) / (n_radial - 1))) ** 2
+    rb = np.minimum(np.searchsorted(edges2, dx * dx + dy * dy, side="right"), n_radial - 1)
+    direction = np.arctan2(dy, dx)
+    i = np.concatenate([p, q])
+    j = np.concatenate([q, p])
+    rb = np.concatenate([rb, rb])
+    phi = np.concatenate([direction, direction + np.pi]) - ms.angle[i]
+    # phi is in (-3 pi, 2 pi]: shift u positive so that truncation is floor
+    u = phi * (n_angular / TWO_PI) + (3 * n_angular - 0.5)
+    a0 = u.astype(np.intp)
     f = u - a0
-    a0 = a0.astype(np.intp) % n_angular
+    a0 %= n_angular
     a1 = (a0 + 1) % n_angular
     ch = (ms.kind[j] == BIFURCATION).astype(np.intp) if by_kind else 0
     base = ((i * n_ch + ch) * n_radial + rb) * n_angular
