@@ -240,3 +240,10 @@ def test_crease_descriptor_in_matching(region, block):
     r = matcher.compare(matcher.index(block, crease_block), matcher.index(b, crease_b))
     assert r.decision == Decision.MATCH
     assert _corner_error(r, m, BLOCK, BLOCK) < 1.0
+
+
+def test_index_must_match_the_matcher_settings(block):
+    idx = Matcher().index(block)
+    with pytest.raises(ValueError, match="other settings"):
+        Matcher(k_ref=14).compare(idx, idx)
+    assert Matcher(threshold=5.0).compare(idx, idx).decision == Decision.MATCH

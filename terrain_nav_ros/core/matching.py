@@ -651,8 +651,17 @@ def calibrate_threshold(non_pva_scores, false_match_rate: float) -> float:
 # --------------------------------------------------------------------------- front ends
 
 
+# settings baked into a MinutiaIndex (edges, hash, descriptors)
+_INDEX_FIELDS = ("k_query", "k_ref", "edge_min", "edge_max", "edge_length_tol",
+                 "edge_angle_tol", "by_kind", "estimate_scale", "max_scale_change")
+
+
 def _as_index(x, p: MatchParams, crease=None) -> MinutiaIndex:
     if isinstance(x, MinutiaIndex):
+        bad = [f for f in _INDEX_FIELDS if getattr(x.params, f) != getattr(p, f)]
+        if bad:
+            raise ValueError(f"MinutiaIndex built with other settings ({', '.join(bad)}): "
+                             "build it with this Matcher's index()")
         return x
     return MinutiaIndex(x, p, crease)
 
