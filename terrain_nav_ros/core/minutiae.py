@@ -158,6 +158,13 @@ class MinutiaParams:
 # --------------------------------------------------------------------------- primitives
 
 
+def _neighbour_code(skeleton: np.ndarray) -> np.ndarray:
+    """8-bit code of the 8 neighbours (bit k: ring neighbour P_{k+1} is set), uint8."""
+    code = cv2.filter2D(skeleton.astype(np.uint8), cv2.CV_32F, _RING_KERNEL,
+                        borderType=cv2.BORDER_CONSTANT)
+    return code.astype(np.uint8)
+
+
 def crossing_number(skeleton: np.ndarray) -> np.ndarray:
     """Crossing number (eq. 3.7) of every skeleton pixel; 0 off the skeleton.
 
@@ -169,9 +176,7 @@ def crossing_number(skeleton: np.ndarray) -> np.ndarray:
     -------
     (M, N) uint8 array
     """
-    sk = skeleton.astype(np.uint8)
-    code = cv2.filter2D(sk, cv2.CV_32F, _RING_KERNEL, borderType=cv2.BORDER_CONSTANT)
-    cn = _CN_LUT[code.astype(np.uint8)]
+    cn = _CN_LUT[_neighbour_code(skeleton)]
     cn[~skeleton] = 0
     return cn
 
@@ -264,15 +269,46 @@ _OFFS = np.array(_RING, np.int64)
 FREE_END, JUNCTION = 1, 2
 
 
-def _walk(skel_p, junc_p, r0, c0, first, steps, skip=0):
+def _next_lut() -> np.ndarray:
+    """Walker's next ring index for [neighbour code, ring index of the previous pixel,
+    ring index of the one before (8: not adjacent)]; -1 where the branch ends.
+
+    The next pixel is the set neighbour farthest from the previous pixel, never one of the
+    last two pixels: this runs straight through the redundant corner pixels of 8-connected
+    skeletons.
+    """
+    bits = ((np.arange(256)[:, None] >> np.arange(8)) & 1).astype(bool)      # (256, 8)
+    offs = np.vstack([_OFFS, [[0, 0]]])                                    # 8: none
+    score = ((offs[:, None, :] - _OFFS[None, :, :]) ** 2).sum(-1)         # (9 from, 8)
+    k = np.arange(8)
+    ok = (bits[:, None, None, :] & (k != np.arange(9)[:, None, None])[None]
+          & (k != np.arange(9)[None, :, None])[None])                      # (256, 9, 9, 8)
+    sc = np.where(ok, score[None, :, None, :], 0)
+    best = sc.argmax(-1).astype(np.int8)
+    best[sc.max(-1) == 0] = -1
+    return best
+
+
+def _ring_index5() -> np.ndarray:
+    idx = np.full((5, 5), 8, np.int8)
+    for k, (dr, dc) in enumerate(_RING):
+        idx[dr + 2, dc + 2] = k
+    return idx
+
+
+_NEXT_LUT = _next_lut()
+_RING5 = _ring_index5()
+
+
+def _walk(skel_p, code_p, junc_p, r0, c0, first, steps, skip=0):
     """Follow skeleton branches from (r0, c0) through neighbour ``first``, all at once.
 
-    Works on the skeleton padded by one pixel (coordinates already shifted). At every step
-    each walker moves to the unvisited skeleton neighbour farthest from its previous pixel
-    (so it runs straight through the redundant corner pixels of 8-connected lines), never
-    returns next to its start, and
-    stops at a free end or on reaching a junction pixel farther than ``skip`` pixels
-    (Chebyshev) from its start: junction clusters are a few pixels wide.
+    Works on the skeleton padded by one pixel (coordinates already shifted); ``code_p`` is
+    the 8-neighbour code of every pixel. The first step away from the start looks at the
+    actual neighbours and never comes back next to the start (the neighbours of a junction
+    touch each other); later steps use a look-up table (:func:`_next_lut`). Walkers stop at
+    a free end or on reaching a junction pixel farther than ``skip`` pixels (Chebyshev)
+    from their start: junction clusters are a few pixels wide.
 
     Returns
     -------
@@ -294,36 +330,44 @@ def _walk(skel_p, junc_p, r0, c0, first, steps, skip=0):
     stop = np.zeros(n, np.int8)
     # A branch leaving a junction may start on another junction pixel of the same cluster.
     stop[junc_p[cr, cc] & ~junc_p[sr, sc]] = JUNCTION
-    # Only running walkers are stepped (index arrays shrink as walkers stop).
     act = np.flatnonzero(stop == 0)
-    pr, pc = sr[act], sc[act]            # previous pixel
-    qr, qc = sr[act], sc[act]            # the one before
+    if steps < 2 or len(act) == 0:
+        return path, length, stop
+    # Step 2 on the real neighbours, excluding the start's own neighbourhood.
     cr, cc = cr[act], cc[act]
-    for k in range(2, steps + 1):
-        if len(act) == 0:
-            break
-        nr, nc = cr[:, None] + dr, cc[:, None] + dc               # (m, 8)
-        cand = skel_p[nr, nc]
-        cand &= ~((nr == pr[:, None]) & (nc == pc[:, None]))
-        cand &= ~((nr == qr[:, None]) & (nc == qc[:, None]))
-        # Never step back next to the start: the neighbours of a junction touch each other.
-        cand &= np.maximum(np.abs(nr - sr[act, None]), np.abs(nc - sc[act, None])) > 1
-        score = np.where(cand, (nr - pr[:, None]) ** 2 + (nc - pc[:, None]) ** 2, -1)
-        best = score.argmax(1)
-        moved = score[np.arange(len(act)), best] > 0
-        stop[act[~moved]] = FREE_END
-        sel = np.flatnonzero(moved)
-        act = act[sel]
-        qr, qc = pr[sel], pc[sel]
-        pr, pc = cr[sel], cc[sel]
-        cr, cc = nr[sel, best[sel]], nc[sel, best[sel]]
-        length[act] += 1
-        path[act, k, 0] = cr
-        path[act, k, 1] = cc
+    nr, nc = cr[:, None] + dr, cc[:, None] + dc                                # (m, 8)
+    cand = skel_p[nr, nc] & (np.maximum(np.abs(nr - sr[act, None]),
+                                        np.abs(nc - sc[act, None])) > 1)
+    score = np.where(cand, (nr - sr[act, None]) ** 2 + (nc - sc[act, None]) ** 2, 0)
+    k = score.argmax(1)
+    moved = score[np.arange(len(act)), k] > 0
+    stop[act[~moved]] = FREE_END
+    act, k, cr, cc = act[moved], k[moved], cr[moved], cc[moved]
+    # Ring index of the previous pixel (and the one before) seen from the current one.
+    frm = (k + 4) % 8
+    prev_rel = np.column_stack([sr[act] - cr, sc[act] - cc])           # start rel. to cur
+    cr, cc = cr + dr[k], cc + dc[k]
+    frm2 = _RING5[prev_rel[:, 0] - dr[k] + 2, prev_rel[:, 1] - dc[k] + 2] \
+        if len(act) else np.zeros(0, np.int8)
+    length[act] += 1
+    path[act, 2, 0], path[act, 2, 1] = cr, cc
+    for step in range(2, steps + 1):
         hit = junc_p[cr, cc] & (np.maximum(np.abs(cr - sr[act]), np.abs(cc - sc[act])) > skip)
         stop[act[hit]] = JUNCTION
-        keep = ~hit
-        act, qr, qc, pr, pc, cr, cc = (a[keep] for a in (act, qr, qc, pr, pc, cr, cc))
+        if step == steps:
+            break
+        k = _NEXT_LUT[code_p[cr, cc], frm, frm2].astype(np.int64)
+        moved = (k >= 0) & ~hit
+        stop[act[(k < 0) & ~hit]] = FREE_END
+        act, k, cr, cc, frm = act[moved], k[moved], cr[moved], cc[moved], frm[moved]
+        if len(act) == 0:
+            break
+        # The previous pixel seen from the new one: old "from" offset minus the move.
+        frm2 = _RING5[dr[frm] - dr[k] + 2, dc[frm] - dc[k] + 2]
+        frm = (k + 4) % 8
+        cr, cc = cr + dr[k], cc + dc[k]
+        length[act] += 1
+        path[act, step + 1, 0], path[act, step + 1, 1] = cr, cc
     # Repeat each walker's last pixel after it stopped.
     idx = np.minimum(np.arange(steps + 1)[None, :], length[:, None])
     return np.take_along_axis(path, idx[..., None], axis=1), length, stop
@@ -373,9 +417,8 @@ def _trace_minutiae(skel, cn, c: _Candidates, p: MinutiaParams):
     n = len(c.row)
     skel_p = np.pad(skel, 1)
     junc_p = np.pad(cn >= 3, 1)
-    code = cv2.filter2D(skel.astype(np.uint8), cv2.CV_32F, _RING_KERNEL,
-                        borderType=cv2.BORDER_CONSTANT)[c.row, c.col].astype(np.uint8)
-    starts = _START_LUT[code]
+    code_p = np.pad(_neighbour_code(skel), 1)
+    starts = _START_LUT[code_p[c.row + 1, c.col + 1]]
     traced = np.full(n, np.nan)
     support = np.zeros(n)
     at_end = {}  # padded pixel of a short free branch end -> dropped ending there
@@ -383,7 +426,7 @@ def _trace_minutiae(skel, cn, c: _Candidates, p: MinutiaParams):
     L = p.trace_length
     if len(end):
         steps = max(L, p.spur_length, p.min_crease_length)
-        path, length, stop = _walk(skel_p, junc_p, c.row[end] + 1, c.col[end] + 1,
+        path, length, stop = _walk(skel_p, code_p, junc_p, c.row[end] + 1, c.col[end] + 1,
                                    starts[end, 0], steps)
         traced[end] = _enu_angle(_direction(path, length, L))
         support[end] = np.minimum(length, L) / L
@@ -401,7 +444,7 @@ def _trace_minutiae(skel, cn, c: _Candidates, p: MinutiaParams):
             has = starts[bif, j] >= 0
             if not has.any():
                 continue
-            path, length, stop = _walk(skel_p, junc_p, c.row[bif[has]] + 1,
+            path, length, stop = _walk(skel_p, code_p, junc_p, c.row[bif[has]] + 1,
                                        c.col[bif[has]] + 1, starts[bif[has], j], steps, 2)
             ang[has, j] = _enu_angle(_direction(path, length, steps))
             lens[has, j] = length
