@@ -92,8 +92,11 @@ def test_surface_up_is_constant_height_surface(radius_deg, tol):
             assert np.abs(o.surface_up(e, n, h) - u).max() < tol
     o = ORIGINS[0]
     assert o.surface_up(10_000.0, 0.0) == pytest.approx(-1e8 / (2 * EARTH_RADIUS), rel=0.01)
-    grid = o.surface_up(np.arange(3.0)[None, :], np.arange(4.0)[:, None])
-    assert grid.shape == (4, 3)
+    east, north = np.linspace(-30e3, 30e3, 7), np.linspace(-20e3, 25e3, 5)
+    grid = o.surface_up(east[None, :], north[:, None], 3000.0)
+    fast = o.surface_up_grid(east, north, 3000.0)
+    assert fast.shape == (5, 7) and fast.dtype == np.float32
+    assert np.abs(fast - grid).max() < 1e-3
 
 
 def test_datum_helpers():

@@ -112,6 +112,22 @@ class EnuOrigin:
         q = np.square(east) / (2.0 * (n + height)) + np.square(north) / (2.0 * (m + height))
         return (height - self.alt) - q * (1.0 + q / (2.0 * (EARTH_RADIUS + height)))
 
+    def surface_up_grid(self, east, north, height=None) -> np.ndarray:
+        """:meth:`surface_up` on the grid ``east`` (columns) x ``north`` (rows), as float32.
+
+        Separable, so a 1024 x 1024 grid costs a few float32 passes, not float64 ones.
+        """
+        height = self.alt if height is None else height
+        m, n = self.radii
+        qe = (np.square(np.asarray(east, dtype=float)) / (2.0 * (n + height))).astype(np.float32)
+        qn = (np.square(np.asarray(north, dtype=float)) / (2.0 * (m + height))).astype(np.float32)
+        q = np.add.outer(qn, qe)
+        up = np.float32(height - self.alt) - q
+        q *= q
+        q *= np.float32(1.0 / (2.0 * (EARTH_RADIUS + height)))
+        up -= q
+        return up
+
     @property
     def radii(self) -> tuple[float, float]:
         """WGS84 radii of curvature (M meridional, N prime vertical) at the origin, metres."""

@@ -91,7 +91,9 @@ def _control_nodes(n: int, step: int) -> np.ndarray:
 
 
 def _expand(ctrl: np.ndarray, step: int, h: int, w: int) -> np.ndarray:
-    """Bilinear expansion of a control grid (see :func:`_control_nodes`) to h x w float32."""
+    """Bilinear expansion of a control grid (see :func:`_control_nodes`) to h x w float32.
+
+    ``ctrl`` may have a trailing channel axis (up to 4 channels)."""
     big = cv2.resize(ctrl.astype(np.float32), (ctrl.shape[1] * step, ctrl.shape[0] * step),
                      interpolation=cv2.INTER_LINEAR)
     return np.ascontiguousarray(big[step:step + h, step:step + w])
@@ -302,7 +304,7 @@ class MetaMap:
         if self.heights == "enu" and self.local_origin is None:
             # u = ellipsoidal height above the origin + the curvature drop of that surface
             east, north = georef.pixel_to_enu(np.arange(w), np.arange(h))
-            out += self.origin.surface_up(east[None, :], north[:, None]).astype(np.float32)
+            out += self.origin.surface_up_grid(east, north)
             out += np.float32(self.origin.geoid_undulation - self.origin.alt)
         return DemTile(out, nodata, georef, self.heights)
 
@@ -337,7 +339,9 @@ class MetaMap:
             margin = int(np.ceil(np.sqrt(self.max_void_area)))
             big = dem.read_window(r0 - margin, c0 - margin, r1 - r0 + 2 * margin,
                                   c1 - c0 + 2 * margin)
-            window = fill_voids(big, self.max_void_area)[0][margin:-margin, margin:-margin]
+            if np.isnan(big).any():
+                big = fill_voids(big, self.max_void_area)[0]
+            window = big[margin:-margin, margin:-margin]
         else:
             window = dem.read_window(r0, c0, r1 - r0, c1 - c0)
         if kx > 1 or ky > 1:
@@ -347,20 +351,23 @@ class MetaMap:
         # bilinear expansion of the control grid: relative float32 maps (1e-4 px precision)
         cols = (cols - c0 + 0.5) / kx - 0.5
         rows = (rows - r0 + 0.5) / ky - 0.5
-        map_x, map_y = _expand(cols, step, h, w), _expand(rows, step, h, w)
+        # one 2-channel map (x, y): a single resize and copy, and cv2.remap takes it as is
+        maps = _expand(np.dstack([cols, rows]), step, h, w)
+        map_x, map_y = maps[..., 0], maps[..., 1]
         if self.interpolation == "idw":
             aspect = (layer.cell_m[0] * kx) / (layer.cell_m[1] * ky)
             return idw_grid(window, map_x, map_y, power=self.idw_power, k=self.idw_k,
                             aspect=aspect)
         if self.interpolation == "spline":
-            return _spline_sample(window, map_x, map_y)
-        return remap_masked(window, map_x, map_y, self.interpolation)
+            return _spline_sample(window, maps)
+        return remap_masked(window, maps, None, self.interpolation)
 
 
-def _spline_sample(z, map_x, map_y) -> np.ndarray:
+def _spline_sample(z, maps) -> np.ndarray:
     """Cubic B-spline samples; voids filled by nearest for the fit, then masked as bilinear."""
+    map_x, map_y = maps[..., 0], maps[..., 1]
     holes = np.isnan(z)
-    mask = np.isnan(remap_masked(z, map_x, map_y, "bilinear")) if holes.any() else None
+    mask = np.isnan(remap_masked(z, maps, None, "bilinear")) if holes.any() else None
     if holes.any():
         if holes.all():
             return np.full(map_x.shape, np.nan, np.float32)
@@ -382,7 +389,7 @@ def _span(coords, pad: int, n: int) -> tuple[int, int]:
     return lo, hi
 
 
-def remap_masked(z, map_x, map_y, interpolation: str = "bilinear") -> np.ndarray:
+def remap_masked(z, map_x, map_y=None, interpolation: str = "bilinear") -> np.ndarray:
     """``cv2.remap`` of a raster with NaN holes, NaN-aware.
 
     Plain remap turns a sample NaN as soon as any neighbour is NaN, even with weight 0. Here
@@ -395,11 +402,15 @@ def remap_masked(z, map_x, map_y, interpolation: str = "bilinear") -> np.ndarray
     ----------
     z : ndarray of float32, shape (rows, cols)
     map_x, map_y : ndarray of float32
-        Sample positions in ``z`` pixel coordinates (integers are cell centres).
+        Sample positions in ``z`` pixel coordinates (integers are cell centres); or ``map_x``
+        of shape (h, w, 2) holding (x, y) and ``map_y=None``.
     interpolation : {"nearest", "bilinear", "bicubic"}
     """
     kind = _REMAP[interpolation]
     nan = float("nan")
+    # OpenCV (4.x Python bindings) misreads strided map views: always pass contiguous maps
+    map_x = np.ascontiguousarray(map_x)
+    map_y = None if map_y is None else np.ascontiguousarray(map_y)
     holes = np.isnan(z)
     if interpolation == "nearest" or not holes.any():
         return cv2.remap(z, map_x, map_y, kind, borderMode=cv2.BORDER_CONSTANT,
