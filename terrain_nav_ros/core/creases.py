@@ -551,17 +551,23 @@ def crease_mask(creaseness, contrast, noise: float, params: CreaseParams,
         strong &= valid
     score = sgn * creaseness
     mask = strong & (score > params.threshold_low)
+    if not mask.any():
+        return mask
+    # One labelling for both tests. Hysteresis: weak creases survive where connected to
+    # strong ones, which closes the gaps MLSEC leaves at confluences (ambiguous flow
+    # direction); and components must have min_area pixels.
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.view(np.uint8), connectivity=8)
+    keep = stats[:, cv2.CC_STAT_AREA] >= params.min_area
     if params.threshold_low < params.threshold:
-        # Hysteresis: weak creases survive where connected to strong ones; this closes the
-        # gaps MLSEC leaves at confluences, where the flow direction is ambiguous.
-        n, labels = cv2.connectedComponents(mask.view(np.uint8), connectivity=8)
         seeded = np.zeros(n, bool)
         seeded[labels[mask & (score > params.threshold)]] = True
-        seeded[0] = False
-        mask = seeded[labels]
-    mask = _remove_small(mask, params.min_area)
+        keep &= seeded
+    keep[0] = False
+    mask = keep[labels]
+    if params.min_area <= 1:
+        return mask
     holes = _remove_small(~mask, params.min_area, connectivity=4)
-    return mask | ~holes if params.min_area > 1 else mask
+    return mask | ~holes
 
 
 def skeletonize_creases(mask: np.ndarray) -> np.ndarray:

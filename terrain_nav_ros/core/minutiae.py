@@ -37,6 +37,7 @@ __all__ = [
     "FeatureExtractor",
     "crossing_number",
     "orientation_field",
+    "doubled_angle_field",
     "normalised_coordinates",
     "extract_features",
     "extract_minutiae",
@@ -197,6 +198,18 @@ def orientation_field(image: np.ndarray, block_size: int = 16, sigma: float = 3.
     coherence : (M, N) float32 array
         Length of the smoothed doubled-angle vector, in [0, 1]: 1 for parallel creases.
     """
+    phx, phy = doubled_angle_field(image, block_size, sigma, size)
+    angle = np.mod(0.5 * np.arctan2(phy, phx), np.pi).astype(np.float32)
+    return angle, cv2.magnitude(phx, phy)
+
+
+def doubled_angle_field(image: np.ndarray, block_size: int = 16, sigma: float = 3.0,
+                        size: int = 18):
+    """Smoothed doubled-angle unit field (cos 2 theta, sin 2 theta) of the crease orientation.
+
+    The intermediate of :func:`orientation_field` (eq. 3.14-3.17); theta is measured from
+    East towards North. Evaluate ``0.5 * arctan2`` only where the angle is needed.
+    """
     img = np.asarray(image, np.float32)
     gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)
@@ -209,10 +222,7 @@ def orientation_field(image: np.ndarray, block_size: int = 16, sigma: float = 3.
     phx = -sdd / norm
     phy = 2.0 * sxy / norm
     size = size + 1 - size % 2
-    phx = cv2.GaussianBlur(phx, (size, size), sigma)
-    phy = cv2.GaussianBlur(phy, (size, size), sigma)
-    angle = np.mod(0.5 * np.arctan2(phy, phx), np.pi).astype(np.float32)
-    return angle, cv2.magnitude(phx, phy)
+    return cv2.GaussianBlur(phx, (size, size), sigma), cv2.GaussianBlur(phy, (size, size), sigma)
 
 
 def normalised_coordinates(col, row, width: int, height: int):
@@ -540,23 +550,35 @@ class Features:
     """Result of :func:`extract_features`.
 
     ``minutiae`` is the validated set; ``creases`` the crease-stage result (use
-    ``creases.crease_image()`` for the debug topic); ``orientation``/``coherence`` the
-    smoothed orientation field; ``timings`` seconds per stage.
+    ``creases.crease_image()`` for the debug topic); ``phi`` the smoothed doubled-angle
+    orientation field (``orientation``/``coherence`` derive the angle and its coherence on
+    demand); ``timings`` seconds per stage.
     """
 
     minutiae: MinutiaSet
     creases: CreaseResult
-    orientation: np.ndarray | None = None
-    coherence: np.ndarray | None = None
+    phi: tuple | None = None
     timings: dict = field(default_factory=dict)
+
+    @property
+    def orientation(self) -> np.ndarray | None:
+        """Crease orientation in [0, pi) from East towards North (see orientation_field)."""
+        if self.phi is None:
+            return None
+        return np.mod(0.5 * np.arctan2(self.phi[1], self.phi[0]), np.pi).astype(np.float32)
+
+    @property
+    def coherence(self) -> np.ndarray | None:
+        """Orientation coherence in [0, 1]."""
+        return None if self.phi is None else cv2.magnitude(*self.phi)
 
     def crease_image(self) -> np.ndarray:
         """uint8 debug image of the creases (255 skeleton, 128 crease mask)."""
         return self.creases.crease_image()
 
 
-def _minutiae_of_skeleton(skel, cres: CreaseResult, angle_field, coherence, dist_border,
-                          cp: CreaseParams, p: MinutiaParams):
+def _minutiae_of_skeleton(skel, cres: CreaseResult, phi, dist_border, cp: CreaseParams,
+                          p: MinutiaParams):
     cn = crossing_number(skel)
     rows, cols = np.nonzero((cn == 1) | (cn == 3))
     kind = cn[rows, cols].copy()
@@ -567,12 +589,13 @@ def _minutiae_of_skeleton(skel, cres: CreaseResult, angle_field, coherence, dist
         c.angle = c.quality = np.zeros(0)
         return c
     traced, support = _trace_minutiae(skel, cn, c, p)
-    field_a = angle_field[rows, cols].astype(float)
+    phx, phy = phi[0][rows, cols].astype(float), phi[1][rows, cols].astype(float)
+    field_a = np.mod(0.5 * np.arctan2(phy, phx), np.pi)
     c.angle = _combine_angles(field_a, traced, p)
     # Quality: field coherence x crease contrast (SNR) x traced branch support.
     snr = np.abs(cres.contrast[rows, cols]) / max(cres.noise, 1e-12)
     q_snr = 1.0 - np.exp(-snr / (4.0 * max(cp.contrast_snr, 1.0)))
-    c.quality = (coherence[rows, cols] * q_snr * support).astype(float)
+    c.quality = (np.hypot(phx, phy) * q_snr * support).astype(float)
     c.keep &= dist_border[rows, cols] >= p.border_margin
     c.keep &= ~np.isnan(c.angle)
     _drop_broken_pairs(c, p)
@@ -610,14 +633,13 @@ class FeatureExtractor:
         if cres.reason:
             return Features(MinutiaSet.empty(cres.reason, georef), cres, timings=timings)
         t0 = time.perf_counter()
-        angle_field, coherence = orientation_field(cres.diffused, p.block_size,
-                                                   p.orient_sigma, p.orient_size)
+        phi = doubled_angle_field(cres.diffused, p.block_size, p.orient_sigma, p.orient_size)
         timings["orientation"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         dist_border = _border_distance(cres.valid)
         parts = []
         for pol, skel in cres.skeletons.items():
-            c = _minutiae_of_skeleton(skel, cres, angle_field, coherence, dist_border, cp, p)
+            c = _minutiae_of_skeleton(skel, cres, phi, dist_border, cp, p)
             k = c.keep
             parts.append((c.col[k], c.row[k], c.angle[k], c.kind[k], c.quality[k],
                           np.full(int(k.sum()), pol == "ridge")))
@@ -638,7 +660,7 @@ class FeatureExtractor:
             ms.extras.update(x_norm=x, y_norm=y, ridge=ridge)
             if georef is not None:
                 ms.extras["east"], ms.extras["north"] = georef.pixel_to_enu(col, row)
-        return Features(ms, cres, angle_field, coherence, timings)
+        return Features(ms, cres, phi, timings)
 
 
 def extract_features(image, georef: GeoReference | None = None, valid_mask=None,
