@@ -223,43 +223,15 @@ def neighbour_edges(ms: MinutiaSet, k: int = 12, min_length: float = 6.0,
     return EdgeTable(idx, dist, direction, beta_i, beta_j, valid)
 
 
-@dataclass
-class EdgeQuery:
-    """Query edges prepared for :meth:`EdgeHash.lookup` (reusable across hashes).
-
-    Attributes
-    ----------
-    grid : tuple
-        (length_step, n_angle, n_length) of the hashes this query fits.
-    keys : ndarray, shape (m, n_cells)
-        Keys of the cells within tolerance of each query edge.
-    inside : ndarray of bool, same shape
-        False for cells outside the length range.
-    owner : ndarray of intp, shape (m * n_cells,)
-        Query edge of each flattened cell.
-    length, beta_i, beta_j, length_tol : ndarray, shape (m,)
-    angle_tol : float
-    """
-
-    grid: tuple
-    keys: np.ndarray
-    inside: np.ndarray
-    owner: np.ndarray
-    length: np.ndarray
-    beta_i: np.ndarray
-    beta_j: np.ndarray
-    length_tol: np.ndarray
-    angle_tol: float
-
-
 class EdgeHash:
     """Hash table of edge invariants for fast candidate edge correspondences.
 
-    Edges are keyed by their quantised (length, beta_i, beta_j). The key space is small
-    (length cells x angle cells^2), so the table is dense: a cell's entries are found by
-    direct indexing. A query visits the cells within tolerance of each query edge and keeps
-    the stored edges within the continuous tolerances; every stored edge lies in one cell,
-    so each (query, stored) pair is reported at most once.
+    Edges are keyed by their quantised (length, beta_i, beta_j). Each stored edge is filed
+    under every cell within ``reach`` cells of its own, so that a query visits the single
+    cell of each query edge: the stored side pays the tolerance once, at build time, and a
+    look-up is one table read per query edge. The key space is small (length cells x angle
+    cells^2), so the table is dense (direct indexing, no binary search). Candidates are then
+    cut to the continuous tolerances; each (query, stored) pair is reported at most once.
 
     Parameters
     ----------
@@ -268,34 +240,49 @@ class EdgeHash:
     length_step : float
         Length cell size (px); use the length tolerance.
     angle_step : float
-        Angle cell size (rad); use the angle tolerance.
+        Angle cell size (rad); use the angle tolerance (rounded down to divide 2 pi).
     max_length : float
-        Longest edge length (px) to hash; longer stored edges are dropped. Hashes built with
-        the same three settings accept the same :class:`EdgeQuery`.
+        Longest edge length (px) to hash; longer stored edges are dropped.
+    length_reach : int
+        Neighbouring length cells each edge is filed under: queries may use a length
+        tolerance up to ``length_reach * length_step`` (raise it for scale-tolerant queries).
     """
 
     def __init__(self, edges: EdgeTable, length_step: float, angle_step: float,
-                 max_length: float = 160.0):
+                 max_length: float = 160.0, length_reach: int = 1):
         self.length_step = float(length_step)
         self.n_angle = max(3, int(np.floor(TWO_PI / angle_step)))
         self.angle_step = TWO_PI / self.n_angle
         self.n_length = int(np.floor(max_length / self.length_step)) + 1
-        self.grid = (self.length_step, self.n_angle, self.n_length)
+        self.length_reach = int(length_reach)
         self.edges = edges
         rows, cols = np.nonzero(edges.valid & (edges.length <= max_length))
-        length = edges.length[rows, cols]
-        keys = self._keys(length, edges.beta_i[rows, cols], edges.beta_j[rows, cols])
-        order = np.argsort(keys, kind="stable")
-        self.rows = rows[order]
-        self.cols = cols[order]
-        self.j = edges.j[rows, cols][order]
-        self.direction = edges.direction[rows, cols][order]
-        # invariants in key order, so the tolerance filter reads contiguous 1-D arrays
-        self.length = length[order]
-        self.beta_i = edges.beta_i[rows, cols][order]
-        self.beta_j = edges.beta_j[rows, cols][order]
+        # per stored edge, contiguous 1-D arrays for the tolerance cut and the caller
+        self.rows, self.cols = rows, cols
+        self.length = edges.length[rows, cols]
+        self.beta_i = edges.beta_i[rows, cols]
+        self.beta_j = edges.beta_j[rows, cols]
+        self.j = edges.j[rows, cols]
+        self.direction = edges.direction[rows, cols]
+        ql, q1, q2 = self._cells(self.length, self.beta_i, self.beta_j)
+        dl = np.arange(-self.length_reach, self.length_reach + 1)
+        da = np.arange(-1, 2)
+        kl = ql[:, None, None, None] + dl[None, :, None, None]
+        k1 = (q1[:, None, None, None] + da[None, None, :, None]) % self.n_angle
+        k2 = (q2[:, None, None, None] + da[None, None, None, :]) % self.n_angle
+        inside = np.broadcast_to((kl >= 0) & (kl < self.n_length), k1.shape[:1] + (
+            len(dl), 3, 3)).reshape(len(ql), -1)
+        keys = ((kl * self.n_angle + k1) * self.n_angle + k2).reshape(len(ql), -1)[inside]
+        entry = np.broadcast_to(np.arange(len(ql))[:, None], inside.shape)[inside]
         n_keys = self.n_length * self.n_angle ** 2
+        # small key space: numpy's stable sort of 16-bit integers is a radix sort
+        order = np.argsort(keys.astype(np.int16 if n_keys < 2 ** 15 else np.int32),
+                           kind="stable")
+        self.entry = entry[order]
         self.start = np.concatenate([[0], np.cumsum(np.bincount(keys, minlength=n_keys))])
+
+    def __len__(self) -> int:
+        return len(self.length)
 
     def _cells(self, length, beta_i, beta_j):
         ql = np.floor(np.asarray(length) / self.length_step).astype(np.intp)
@@ -303,57 +290,7 @@ class EdgeHash:
         q2 = np.floor(np.asarray(beta_j) / self.angle_step).astype(np.intp) % self.n_angle
         return ql, q1, q2
 
-    def _keys(self, length, beta_i, beta_j):
-        ql, q1, q2 = self._cells(length, beta_i, beta_j)
-        return (ql * self.n_angle + q1) * self.n_angle + q2
-
-    def prepare(self, length, beta_i, beta_j, length_tol, angle_tol) -> EdgeQuery:
-        """Cells to visit for each query edge (see :meth:`query` for the arguments)."""
-        length = np.asarray(length, float)
-        beta_i = np.asarray(beta_i, float)
-        beta_j = np.asarray(beta_j, float)
-        length_tol = np.broadcast_to(np.asarray(length_tol, float), length.shape)
-        ml = int(np.ceil(length_tol.max(initial=0.0) / self.length_step))
-        ma = min(int(np.ceil(angle_tol / self.angle_step)), (self.n_angle - 1) // 2)
-        ql, q1, q2 = self._cells(length, beta_i, beta_j)
-        dl = np.arange(-ml, ml + 1)
-        da = np.arange(-ma, ma + 1)
-        # all neighbouring cells of every query edge, shape (m, n_l, n_a, n_a)
-        kl = ql[:, None, None, None] + dl[None, :, None, None]
-        k1 = (q1[:, None, None, None] + da[None, None, :, None]) % self.n_angle
-        k2 = (q2[:, None, None, None] + da[None, None, None, :]) % self.n_angle
-        m = len(length)
-        inside = ((kl >= 0) & (kl < self.n_length) & (k1 >= 0) & (k2 >= 0)).reshape(m, -1)
-        keys = ((np.clip(kl, 0, self.n_length - 1) * self.n_angle + k1) * self.n_angle
-                + k2).reshape(m, -1)
-        owner = np.repeat(np.arange(m), keys.shape[1])
-        return EdgeQuery(self.grid, keys, inside, owner, length, beta_i, beta_j,
-                         np.ascontiguousarray(length_tol), float(angle_tol))
-
-    def lookup(self, eq: EdgeQuery):
-        """Stored edges within tolerance of prepared query edges.
-
-        Returns
-        -------
-        q : ndarray of intp
-            Index of the query edge.
-        pos : ndarray of intp
-            Position of the stored edge in this hash's key-ordered arrays (``rows``,
-            ``cols``, ``j``, ``direction``, ...).
-        """
-        if eq.grid != self.grid:
-            raise ValueError("EdgeHash.lookup: query prepared for a different grid")
-        lo = self.start[eq.keys]
-        counts = np.where(eq.inside, self.start[eq.keys + 1] - lo, 0).ravel()
-        total = int(counts.sum())
-        q = np.repeat(eq.owner, counts)
-        pos = np.repeat(lo.ravel() - (np.cumsum(counts) - counts), counts) + np.arange(total)
-        ok = ((np.abs(self.length[pos] - eq.length[q]) <= eq.length_tol[q])
-              & (np.abs(wrap_angle(self.beta_i[pos] - eq.beta_i[q])) <= eq.angle_tol)
-              & (np.abs(wrap_angle(self.beta_j[pos] - eq.beta_j[q])) <= eq.angle_tol))
-        return q[ok], pos[ok]
-
-    def query(self, length, beta_i, beta_j, length_tol, angle_tol):
+    def lookup(self, length, beta_i, beta_j, length_tol, angle_tol):
         """Stored edges within tolerance of each query edge.
 
         Parameters
@@ -361,16 +298,44 @@ class EdgeHash:
         length, beta_i, beta_j : ndarray, shape (m,)
             Query edge invariants.
         length_tol : float or ndarray (m,)
-            Absolute length tolerance (px) per query edge.
+            Absolute length tolerance (px) per query edge, at most
+            ``length_reach * length_step``.
         angle_tol : float
-            Tolerance (rad) on each of the two relative angles.
+            Tolerance (rad) on each of the two relative angles, at most ``angle_step``.
 
         Returns
         -------
         q : ndarray of intp
             Index of the query edge.
-        rows, cols : ndarray of intp
-            The matching stored edge as (minutia, neighbour slot) of the stored EdgeTable.
+        e : ndarray of intp
+            Index of the stored edge in this hash's per-edge arrays (``rows``, ``cols``,
+            ``j``, ``direction``, ``length``, ...).
         """
-        q, pos = self.lookup(self.prepare(length, beta_i, beta_j, length_tol, angle_tol))
-        return q, self.rows[pos], self.cols[pos]
+        length = np.asarray(length, float)
+        length_tol = np.broadcast_to(np.asarray(length_tol, float), length.shape)
+        if (length_tol.max(initial=0.0) > self.length_reach * self.length_step + 1e-9
+                or angle_tol > self.angle_step + 1e-12):
+            raise ValueError("EdgeHash.lookup: tolerance wider than the hash was built for")
+        ql, q1, q2 = self._cells(length, beta_i, beta_j)
+        ok = ql < self.n_length
+        key = (np.minimum(ql, self.n_length - 1) * self.n_angle + q1) * self.n_angle + q2
+        lo = self.start[key]
+        counts = np.where(ok, self.start[key + 1] - lo, 0)
+        total = int(counts.sum())
+        q = np.repeat(np.arange(len(length)), counts)
+        e = self.entry[np.repeat(lo - (np.cumsum(counts) - counts), counts)
+                       + np.arange(total)]
+        keep = ((np.abs(self.length[e] - length[q]) <= length_tol[q])
+                & (np.abs(wrap_angle(self.beta_i[e] - np.asarray(beta_i)[q])) <= angle_tol)
+                & (np.abs(wrap_angle(self.beta_j[e] - np.asarray(beta_j)[q])) <= angle_tol))
+        return q[keep], e[keep]
+
+    def query(self, length, beta_i, beta_j, length_tol, angle_tol):
+        """Like :meth:`lookup`, returning the stored edges as (minutia, slot) of the table.
+
+        Returns
+        -------
+        q, rows, cols : ndarray of intp
+        """
+        q, e = self.lookup(length, beta_i, beta_j, length_tol, angle_tol)
+        return q, self.rows[e], self.cols[e]

@@ -179,21 +179,23 @@ class MinutiaIndex:
         """Hash of this set's edges (built on first use)."""
         if self._hash is None:
             p = self.params
-            self._hash = EdgeHash(self.edges, p.edge_length_tol, p.edge_angle_tol, p.edge_max)
+            reach = 1
+            if p.estimate_scale:
+                reach = int(np.ceil(_length_tol(p, p.edge_max) / p.edge_length_tol))
+            self._hash = EdgeHash(self.edges, p.edge_length_tol, p.edge_angle_tol, p.edge_max,
+                                  length_reach=reach)
         return self._hash
 
-    def edge_query(self, grid_hash: EdgeHash):
-        """This set's first ``k_query`` edges prepared as hash queries (cached).
-
-        Returns the prepared query and, per query edge, its two minutiae and direction.
-        """
-        if self._query is None or self._query[0].grid != grid_hash.grid:
+    def edge_query(self):
+        """This set's first ``k_query`` edges as hash queries (cached): invariants, length
+        tolerance, and per edge its two minutiae and direction."""
+        if self._query is None:
             p, e = self.params, self.edges
             rows, cols = np.nonzero(e.valid[:, :min(p.k_query, e.k)])
             length = e.length[rows, cols]
-            eq = grid_hash.prepare(length, e.beta_i[rows, cols], e.beta_j[rows, cols],
-                                   _length_tol(p, length), p.edge_angle_tol)
-            self._query = (eq, rows, e.j[rows, cols], e.direction[rows, cols])
+            self._query = (length, e.beta_i[rows, cols], e.beta_j[rows, cols],
+                           _length_tol(p, length), rows, e.j[rows, cols],
+                           e.direction[rows, cols])
         return self._query
 
 
@@ -310,10 +312,10 @@ def _length_tol(p: MatchParams, length):
 
 def _hash_votes(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> _Votes:
     hb = b.edge_hash()
-    eq, qi, qj, qdir = a.edge_query(hb)
-    q, pos = hb.lookup(eq)
-    ia, ja, ib, jb = qi[q], qj[q], hb.rows[pos], hb.j[pos]
-    theta = wrap_angle(hb.direction[pos] - qdir[q])
+    length, beta_i, beta_j, tol, qi, qj, qdir = a.edge_query()
+    q, e = hb.lookup(length, beta_i, beta_j, tol, p.edge_angle_tol)
+    ia, ja, ib, jb = qi[q], qj[q], hb.rows[e], hb.j[e]
+    theta = wrap_angle(hb.direction[e] - qdir[q])
     if p.use_descriptors:
         s = np.maximum(_similarity_matrix(a, b), 0.0).ravel()
         w = s[ia * b.n + ib] * s[ja * b.n + jb] + 0.05
@@ -705,7 +707,7 @@ def truncated_sigma2(mean_r2: float, radius: float) -> float:
         return 2 * s - t2 * q / (1 - q)
 
     lo, hi = 0.5 * mean_r2, t2
-    for _ in range(40):
+    for _ in range(30):   # relative precision ~1e-9
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if mean_r2_of(mid) < mean_r2 else (lo, mid)
     return 0.5 * (lo + hi)
