@@ -5,6 +5,8 @@ is read at once, elevations only on demand, window by window. Uncompressed singl
 GeoTIFFs with contiguous strips and SRTM ``.hgt`` tiles are memory-mapped with numpy (a
 1024 x 1024 window of a 10812 x 10812 tile touches ~4 MB); everything else goes through
 rasterio/GDAL windowed reads. Windows come back as float32 with NaN for nodata/voids.
+GDAL keeps read blocks in its own cache (default 5 % of RAM): a long-running process reading
+tiled or compressed files should set ``GDAL_CACHEMAX`` (e.g. 64 MB) in its environment.
 
 Pixel convention (as in :mod:`.georef`): ``Dem.transform`` is the GDAL affine transform of
 pixel *corners*; integer pixel coordinates (col, row) are pixel *centres*.

@@ -136,8 +136,9 @@ class MetaMap:
         the exact cubic B-spline (``scipy.ndimage.map_coordinates``, order 3), several times
         slower; ``idw`` uses :func:`~.interpolation.idw_grid` (slowest).
     fill_voids : bool
-        Fill voids of at most ``max_void_area`` cells in each read window before sampling
-        (voids cut by the window edge stay void).
+        Fill voids of at most ``max_void_area`` cells (:func:`~.dem_io.fill_voids`) before
+        sampling: DEMs up to ``prefill_max_cells`` once, whole, at construction; bigger ones
+        in each read window (voids cut by the window edge then stay void).
     max_void_area : int
         Largest void (DEM cells) that is filled.
     idw_power, idw_k : float, int
