@@ -12,7 +12,8 @@ import array
 import numpy as np
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseWithCovariance
-from sensor_msgs.msg import CameraInfo, Image
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
 from terrain_nav_msgs.msg import DemTile, GeoImage, Minutia, MinutiaArray
@@ -138,6 +139,25 @@ def array_to_image(arr: np.ndarray, encoding: str | None = None, header: Header 
     return msg
 
 
+def compressed_image_to_array(msg: CompressedImage) -> tuple[np.ndarray, str]:
+    """sensor_msgs/CompressedImage (JPEG, PNG) -> (array, encoding of the array).
+
+    Colour images come back as ``bgr8`` (OpenCV's order), grey ones as ``mono8``/``mono16``.
+    """
+    import cv2
+
+    data = np.frombuffer(msg.data, dtype=np.uint8)
+    arr = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if arr is None:
+        raise ConversionError(f"cannot decode compressed image (format '{msg.format}', "
+                              f"{data.size} bytes)")
+    if arr.ndim == 2:
+        return arr, "mono16" if arr.dtype == np.uint16 else "mono8"
+    if arr.shape[2] == 4:
+        arr = cv2.cvtColor(arr, cv2.COLOR_BGRA2BGR)
+    return arr, "bgr8"
+
+
 def to_grey(arr: np.ndarray, encoding: str) -> np.ndarray:
     """Colour or grey image array (as decoded from ``encoding``) -> single-channel array.
 
@@ -205,6 +225,13 @@ def array_to_covariance(cov: np.ndarray) -> np.ndarray:
     if cov.ndim != 2 or cov.shape[0] != cov.shape[1]:
         raise ConversionError(f"covariance must be square, got shape {cov.shape}")
     return np.ascontiguousarray(cov).reshape(-1)
+
+
+def odometry_to_arrays(msg: Odometry) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+    """Odometry -> (stamp ns, position (3,), quaternion xyzw (4,), pose covariance (6, 6))."""
+    p, q = msg.pose.pose.position, msg.pose.pose.orientation
+    return (stamp_to_ns(msg.header.stamp), np.array([p.x, p.y, p.z]),
+            np.array([q.x, q.y, q.z, q.w]), covariance_to_array(msg.pose.covariance, 6))
 
 
 def pose_with_covariance(position, quaternion_xyzw, cov6: np.ndarray) -> PoseWithCovariance:

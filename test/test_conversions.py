@@ -107,3 +107,22 @@ def test_minutiae_round_trip():
         np.testing.assert_allclose(getattr(back, name), getattr(m, name), rtol=1e-6)
     empty = cv.msg_to_minutiae(cv.minutiae_to_msg(MinutiaSet.empty("flat", georef), Header(), 1))
     assert len(empty) == 0 and empty.reason == "flat"
+
+
+def test_compressed_image_and_odometry():
+    import cv2
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import CompressedImage
+
+    rgb = RNG.integers(0, 256, (6, 8, 3), dtype=np.uint8)
+    ok, png = cv2.imencode(".png", rgb)
+    arr, enc = cv.compressed_image_to_array(CompressedImage(format="png", data=png.tobytes()))
+    assert enc == "bgr8"
+    np.testing.assert_array_equal(arr, rgb)
+    with pytest.raises(cv.ConversionError, match="cannot decode"):
+        cv.compressed_image_to_array(CompressedImage(format="jpeg", data=b"garbage"))
+    odom = Odometry()
+    odom.header.stamp = cv.ns_to_stamp(5_000_000_123)
+    odom.pose = cv.pose_with_covariance([1, 2, 3], [0, 0, 0, 1], np.eye(6) * 2)
+    stamp, p, q, cov = cv.odometry_to_arrays(odom)
+    assert stamp == 5_000_000_123 and list(p) == [1, 2, 3] and q[3] == 1 and cov[5, 5] == 2
