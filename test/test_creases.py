@@ -148,3 +148,23 @@ def test_prepare_input_dem_and_nodata():
         prepare_input(np.zeros((4, 4, 4, 4)))
     colour = np.dstack([line_image(32)] * 3).astype(np.uint8)
     assert prepare_input(colour)[0].shape == (32, 32)
+
+
+def test_strip_processing_is_exact():
+    from terrain_nav_ros.core.creases import (
+        _diffusion_in_strips,
+        _Workspace,
+        diffusion_step,
+        normalised_hessian,
+    )
+
+    rng = np.random.default_rng(6)
+    img = rng.normal(0, 20, (90, 61)).astype(np.float32)
+    p = CreaseParams(w1=7, sigma=1.5)
+    ref, ws = img.copy(), _Workspace(img.shape)
+    for _ in range(p.iterations):
+        diffusion_step(ref, *diffusion_tensor(*normalised_hessian(ref, p, ws), p, ws),
+                       p.time_step, ws)
+    for rows in (5, 32, None):
+        assert np.array_equal(_diffusion_in_strips(img.copy(), p, rows), ref)
+    assert np.array_equal(crease_diffusion(img, p), ref)
