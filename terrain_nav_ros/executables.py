@@ -9,6 +9,7 @@ and by ``launch/terrain_nav.launch.py``'s test. This module must stay import-fre
 NODES = {
     "bag_player": "terrain_nav_ros.bag_player_node:main",
     "bag_recorder": "terrain_nav_ros.bag_recorder_node:main",
+    "camera_ingest": "terrain_nav_ros.camera_ingest_node:main",
     "metamap": "terrain_nav_ros.metamap_node:main",
     "landmark_renderer": "terrain_nav_ros.landmark_renderer_node:main",
 }

@@ -1,0 +1,192 @@
+"""camera_ingest: camera frames -> north-up ground images at the landmark GSD.
+
+Subscribes to the camera (``/camera/image_raw`` as sensor_msgs/Image in any common encoding,
+or ``/camera/image_raw/compressed`` with ``image_transport: compressed``), its
+``/camera/camera_info``, the navigation estimate ``/nav/odometry`` and the DEM tile
+``/metamap/tile``. Each frame is undistorted with the CameraInfo lens model and projected
+onto the mean terrain plane under the view (homography from the pose interpolated at the
+frame's stamp), then published as a ``terrain_nav_msgs/GeoImage`` on ``/camera/image_ground``
+with a validity mask. Frames that cannot be projected (no estimate or tile yet, no
+calibration, camera above the horizon, undecodable image) are dropped with a throttled
+log line that says why; the count of each reason is kept in ``self.drops``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+
+import numpy as np
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+
+from terrain_nav_msgs.msg import DemTile, GeoImage
+
+from . import conversions as cv
+from .core.camera_mount import camera_rotation, mount_rotation
+from .core.georef import GeoReference
+from .core.ground_projection import (
+    CameraIntrinsics,
+    CameraPose,
+    footprint_georef,
+    project_to_ground,
+)
+from .core.pose_buffer import PoseBuffer, StampedPose
+from .ros_common import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, declare, run
+
+
+class CameraIngestNode(Node):
+    """Projects camera frames onto the ground for the feature extractor."""
+
+    def __init__(self):
+        super().__init__("camera_ingest")
+        self.gsd = declare(self, "gsd", 20.0, "ground image GSD; use the landmark GSD [m/px]",
+                           min_value=0.01)
+        self.max_size = declare(self, "max_size", 1024, "largest ground image side [px]",
+                                min_value=16, max_value=8192)
+        self.max_range_factor = declare(
+            self, "max_range_factor", 3.0,
+            "ground farther than this x height above ground is not projected [-]",
+            min_value=0.1)
+        transport = declare(self, "image_transport", "raw", "raw | compressed")
+        mount = [math.radians(v) for v in declare(
+            self, "mount_rpy", [0.0, 0.0, 0.0],
+            "camera tilt from the nadir mount, roll/pitch/yaw about body FLU [deg]")]
+        self.max_pose_gap = declare(self, "max_pose_gap", 0.25,
+                                    "largest time between a frame and the estimate [s]",
+                                    min_value=0.0)
+        self.frame_id = declare(self, "frame_id", "map", "frame of the ground images")
+        self.r_body_optical = mount_rotation(*mount)
+        self.poses = PoseBuffer(horizon=5.0, max_extrapolation=self.max_pose_gap)
+        self.intrinsics: CameraIntrinsics | None = None
+        self.calibration_problem = "no CameraInfo received yet"
+        self.tile: tuple[np.ndarray, GeoReference] | None = None
+        self.tile_origin = (0.0, 0.0, 0.0)
+        self.drops: Counter = Counter()
+        self.published = 0
+        self.pub = self.create_publisher(GeoImage, "/camera/image_ground", RELIABLE_QOS)
+        if transport == "compressed":
+            self.create_subscription(CompressedImage, "/camera/image_raw/compressed",
+                                     self.on_compressed, SENSOR_QOS)
+        elif transport == "raw":
+            self.create_subscription(Image, "/camera/image_raw", self.on_image, SENSOR_QOS)
+        else:
+            raise ValueError(f"image_transport must be 'raw' or 'compressed', not {transport!r}")
+        self.create_subscription(CameraInfo, "/camera/camera_info", self.on_info, SENSOR_QOS)
+        self.create_subscription(Odometry, "/nav/odometry", self.on_odometry, RELIABLE_QOS)
+        self.create_subscription(DemTile, "/metamap/tile", self.on_tile, LATCHED_QOS)
+
+    # -- inputs ----------------------------------------------------------------------------
+    def on_info(self, msg: CameraInfo) -> None:
+        try:
+            k, d, _model, (w, h) = cv.camera_info_to_intrinsics(msg)
+        except cv.ConversionError as err:
+            self.intrinsics, self.calibration_problem = None, str(err)
+            return
+        self.intrinsics = CameraIntrinsics.from_matrix(k, w, h, tuple(d))
+        self.calibration_problem = self.intrinsics.problem()
+
+    def on_odometry(self, msg: Odometry) -> None:
+        stamp, p, q, cov = cv.odometry_to_arrays(msg)
+        reason = self.poses.add(StampedPose(stamp * 1e-9, p, q, cov))
+        if reason:
+            self.get_logger().warning(f"odometry ignored: {reason}", throttle_duration_sec=5.0)
+
+    def on_tile(self, msg: DemTile) -> None:
+        try:
+            self.tile = cv.msg_to_dem_tile(msg)
+            self.tile_origin = cv.enu_origin_of(msg.georef)
+        except cv.ConversionError as err:
+            self.get_logger().error(f"bad DemTile ignored: {err}")
+
+    def on_image(self, msg: Image) -> None:
+        try:
+            arr = cv.image_to_array(msg)
+        except cv.ConversionError as err:
+            self.drop(str(err))
+            return
+        self.ingest(arr, msg.encoding, msg.header)
+
+    def on_compressed(self, msg: CompressedImage) -> None:
+        try:
+            arr, encoding = cv.compressed_image_to_array(msg)
+        except cv.ConversionError as err:
+            self.drop(str(err))
+            return
+        self.ingest(arr, encoding, msg.header)
+
+    # -- projection ------------------------------------------------------------------------
+    def drop(self, reason: str) -> None:
+        key = reason.split(":")[0][:60]
+        self.drops[key] += 1
+        self.get_logger().warning(f"frame dropped: {reason}", throttle_duration_sec=2.0)
+
+    def terrain_height(self, east: float, north: float, radius: float) -> float | None:
+        """Mean DEM height within ``radius`` of (east, north), from the latest tile."""
+        if self.tile is None:
+            return None
+        heights, georef = self.tile
+        c0, r0 = georef.enu_to_pixel(east - radius, north + radius)
+        c1, r1 = georef.enu_to_pixel(east + radius, north - radius)
+        c0, r0 = max(int(c0), 0), max(int(r0), 0)
+        c1, r1 = min(int(c1) + 1, georef.width), min(int(r1) + 1, georef.height)
+        if c1 <= c0 or r1 <= r0:
+            return None
+        window = heights[r0:r1, c0:c1]
+        return float(np.nanmean(window)) if np.isfinite(window).any() else None
+
+    def ingest(self, image: np.ndarray, encoding: str, header) -> None:
+        if self.intrinsics is None or self.calibration_problem:
+            self.drop(self.calibration_problem or "no CameraInfo")
+            return
+        pose, reason = self.poses.at(cv.stamp_to_sec(header.stamp))
+        if pose is None:
+            self.drop(reason)
+            return
+        camera = CameraPose(pose.position, camera_rotation(pose.quaternion, self.r_body_optical))
+        # Terrain plane: mean height near nadir, then over the footprint it implies.
+        plane = self.terrain_height(pose.position[0], pose.position[1], 200.0)
+        if plane is None:
+            self.drop("no DEM tile under the aircraft yet")
+            return
+        agl = pose.position[2] - plane
+        max_range = self.max_range_factor * max(agl, 1.0)
+        georef = footprint_georef(self.intrinsics, camera, plane, self.gsd, max_range)
+        if georef is not None:
+            centre = georef.centre
+            better = self.terrain_height(centre[0], centre[1],
+                                         0.5 * max(georef.width, georef.height) * self.gsd)
+            if better is not None and better < pose.position[2]:
+                plane = better
+                georef = footprint_georef(self.intrinsics, camera, plane, self.gsd, max_range)
+        if georef is None:
+            self.drop("camera is pointing at or above the horizon")
+            return
+        georef = self._capped(georef)
+        ground = project_to_ground(image, self.intrinsics, camera, plane, georef,
+                                   bgr=encoding.startswith("bgr"))
+        if ground.image is None:
+            self.drop(ground.reason)
+            return
+        out = cv.geo_image_to_msg(ground.image, georef, cv.make_header(header.stamp,
+                                                                       self.frame_id),
+                                  ground.valid, self.tile_origin)
+        self.pub.publish(out)
+        self.published += 1
+
+    def _capped(self, georef: GeoReference) -> GeoReference:
+        """Same centre, at most max_size pixels a side."""
+        if max(georef.width, georef.height) <= self.max_size:
+            return georef
+        return GeoReference.centred(*georef.centre, georef.gsd,
+                                    min(georef.width, self.max_size),
+                                    min(georef.height, self.max_size))
+
+
+def main(args=None):
+    return run(CameraIngestNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

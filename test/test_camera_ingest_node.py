@@ -1,0 +1,73 @@
+"""camera_ingest node: frames of known geometry land where the geometry says; frames that
+cannot be projected are dropped without killing the node."""
+
+import numpy as np
+from nav_msgs.msg import Odometry
+from ros_helpers import SpinningNode, start_node, stop, wait_until
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import Header
+
+from terrain_nav_msgs.msg import DemTile, GeoImage
+from terrain_nav_ros import conversions as cv
+from terrain_nav_ros.core.georef import GeoReference
+from terrain_nav_ros.ros_common import LATCHED_QOS
+
+F, W, H = 500.0, 400, 300
+CAMERA = np.array([1000.0, 2000.0, 1100.0])  # 1000 m above a flat terrain at 100 m
+
+
+def _frame(stamp_ns):
+    image = np.full((H, W), 40, np.uint8)
+    image[148:153, 198:203] = 250          # principal point (199.5, 149.5): straight down
+    image[148:153, 298:303] = 250          # 100 px right of it: right wing = south (heading E)
+    return cv.array_to_image(image, "mono8", cv.make_header(stamp_ns, "camera_optical"))
+
+
+def test_frames_are_projected_to_the_right_place_and_bad_frames_dropped():
+    node = start_node("camera_ingest", {"gsd": 5.0})
+    client = SpinningNode("ingest_client")
+    got = []
+    try:
+        n = client.node
+        n.create_subscription(GeoImage, "/camera/image_ground", got.append, 10)
+        pubs = {t: n.create_publisher(m, t, q) for t, m, q in (
+            ("/camera/image_raw", Image, 10), ("/camera/camera_info", CameraInfo, 10),
+            ("/nav/odometry", Odometry, 10), ("/metamap/tile", DemTile, LATCHED_QOS))}
+        assert wait_until(lambda: all(p.get_subscription_count() for p in pubs.values()), 20)
+        stamp = 1_000_000_000_000
+        pubs["/camera/image_raw"].publish(_frame(stamp))  # no calibration yet: dropped
+        info = cv.intrinsics_to_camera_info(np.array([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2],
+                                                      [0, 0, 1]]), [0] * 5, W, H)
+        pubs["/camera/camera_info"].publish(info)
+        tile = GeoReference.centred(1000.0, 2000.0, 20.0, 200, 200)
+        pubs["/metamap/tile"].publish(cv.dem_tile_to_msg(
+            np.full(tile.shape, 100.0, np.float32), tile, Header(frame_id="map")))
+        odom = Odometry(header=cv.make_header(stamp, "map"))
+        odom.pose = cv.pose_with_covariance(CAMERA, [0, 0, 0, 1], np.eye(6))  # heading east
+
+        def publish_and_check():
+            pubs["/camera/camera_info"].publish(info)
+            pubs["/nav/odometry"].publish(odom)
+            pubs["/camera/image_raw"].publish(_frame(stamp))
+            return bool(got)
+
+        assert wait_until(publish_and_check, 30, period=0.3), stop(node)
+        assert node.poll() is None
+    finally:
+        client.close()
+        log = stop(node)
+    image, georef, valid = cv.msg_to_geo_image(got[0])
+    assert georef.gsd == 5.0
+    lab = image > 150
+    from scipy import ndimage
+
+    labels, count = ndimage.label(lab)
+    assert count == 2, log
+    centres = ndimage.center_of_mass(lab, labels, [1, 2])
+    ground = sorted(zip(*georef.pixel_to_enu([c for _, c in centres], [r for r, _ in centres]),
+                        strict=True), key=lambda p: -p[1])
+    # Straight down and 100 px * 1000 m / 500 px = 200 m south; within half a pixel.
+    np.testing.assert_allclose(ground[0], (1000.0, 2000.0), atol=2.5)
+    np.testing.assert_allclose(ground[1], (1000.0, 1800.0), atol=2.5)
+    assert valid.mean() > 0.9
+    assert "CameraInfo" in log or "calibrat" in log or "dropped" in log
