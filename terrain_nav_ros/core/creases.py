@@ -243,6 +243,8 @@ def prepare_input(image, valid_mask=None, source: str = "image", gsd: float = 1.
     _check(np.isfinite(gsd) and gsd > 0, f"gsd must be positive, got {gsd!r}")
     img = np.asarray(image)
     if img.ndim == 3 and img.shape[2] in (3, 4):
+        if img.dtype not in (np.uint8, np.uint16, np.float32):
+            img = img.astype(np.float32)
         img = cv2.cvtColor(np.ascontiguousarray(img[..., :3]), cv2.COLOR_RGB2GRAY)
     _check(img.ndim == 2, f"expected a 2-D image, got shape {img.shape}")
     _check(img.dtype.kind in "uifb", f"unsupported dtype {img.dtype}")

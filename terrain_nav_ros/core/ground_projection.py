@@ -288,15 +288,14 @@ def _to_grey(image: np.ndarray, bgr: bool) -> np.ndarray:
     img = np.asarray(image)
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[..., 0]
-    if img.ndim == 3:
+    if img.dtype not in (np.uint8, np.uint16, np.float32):
+        img = img.astype(np.float32)  # what OpenCV's colour conversion and warps accept
+    if img.ndim == 3 and img.shape[2] in (3, 4):
         code = (cv2.COLOR_BGR2GRAY, cv2.COLOR_BGRA2GRAY) if bgr else (cv2.COLOR_RGB2GRAY,
                                                                       cv2.COLOR_RGBA2GRAY)
         img = cv2.cvtColor(np.ascontiguousarray(img), code[img.shape[2] == 4])
     if img.ndim != 2:
         raise ValueError(f"expected a grey or colour image, got shape {img.shape}")
-    if img.dtype == np.float64 or img.dtype.kind in "iub" and img.dtype not in (np.uint8,
-                                                                                 np.uint16):
-        img = img.astype(np.float32)
     return img
 
 
