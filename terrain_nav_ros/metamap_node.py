@@ -14,6 +14,7 @@ The algorithms live in :mod:`terrain_nav_ros.core.metamap` and :mod:`.core.tile_
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 from nav_msgs.msg import Odometry
@@ -30,6 +31,9 @@ from .core.metamap import MetaMap
 from .core.tile_policy import TilePolicy
 from .ros_common import LATCHED_QOS, RELIABLE_QOS, declare, reject_all_changes, run
 
+# GDAL's default block cache (5% of RAM) would dominate the node's memory on tiled GeoTIFFs.
+os.environ.setdefault("GDAL_CACHEMAX", "64")
+
 
 class MetamapNode(Node):
     """Serves and publishes DEM tiles on north-up grids of the mission ENU frame."""
@@ -43,11 +47,15 @@ class MetamapNode(Node):
                       "mission ENU origin latitude [deg WGS84]; NaN = centre of the first DEM")
         lon = declare(self, "origin_longitude", math.nan, "mission ENU origin longitude [deg]")
         alt = declare(self, "origin_altitude", 0.0, "ENU origin ellipsoidal height [m]")
+        undulation = declare(self, "geoid_undulation", 0.0,
+                             "geoid height N at the origin [m]: DEM (orthometric) heights "
+                             "become ellipsoidal as H + N")
         self.gsd = declare(self, "gsd", 5.0, "default tile ground sample distance [m/px]",
                            min_value=0.01, max_value=1000.0)
         self.frame_id = declare(self, "frame_id", "map", "frame of the tiles (REP 105)")
-        interpolation = declare(self, "interpolation", "bicubic",
-                                "bilinear | bicubic | nearest | idw (dissertation 2.1.3)")
+        interpolation = declare(self, "interpolation", "spline",
+                                "spline | bicubic | bilinear | nearest | idw (dissertation "
+                                "2.1.3); spline is smooth enough for shading finer than the DEM")
         fill = declare(self, "fill_voids", True, "fill small DEM voids before sampling")
         self.policy = TilePolicy(
             min_size=declare(self, "min_tile_size", 256, "smallest published tile [px]",
@@ -67,7 +75,8 @@ class MetamapNode(Node):
         self.add_on_set_parameters_callback(reject_all_changes)
 
         dems = [open_dem(f) for f in dem_files(files)] if files else [sample_dem()]
-        origin = EnuOrigin(lat, lon, alt) if np.isfinite(lat) and np.isfinite(lon) else None
+        origin = (EnuOrigin(lat, lon, alt, undulation) if np.isfinite(lat) and np.isfinite(lon)
+                  else None)
         self.metamap = MetaMap(dems, origin, interpolation=interpolation, fill_voids=fill,
                                heights="enu")
         o = self.metamap.origin

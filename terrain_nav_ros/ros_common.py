@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
+import re
 import sys
 from collections.abc import Callable
 
@@ -50,6 +52,43 @@ def declare(node: Node, name: str, default, description: str, *, min_value=None,
             descriptor.floating_point_range = [FloatingPointRange(
                 from_value=float(lo), to_value=float(hi), step=0.0)]
     return node.declare_parameter(name, default, descriptor).value
+
+
+def field_docs(cls) -> dict[str, str]:
+    """First description line of each field in a numpydoc ``Parameters`` section."""
+    docs, names = {}, []
+    lines = (cls.__doc__ or "").splitlines()
+    for i, line in enumerate(lines):
+        match = re.match(r"^\s{4}([a-z_][a-z0-9_, ]*) : (.+)$", line)
+        if match:
+            names = [n.strip() for n in match.group(1).split(",")]
+            text = lines[i + 1].strip() if i + 1 < len(lines) else ""
+            for name in names:
+                docs[name] = f"{text} ({match.group(2).strip()})"
+    return docs
+
+
+def declare_settings(node: Node, prefix: str, settings) -> None:
+    """Declare one parameter per field of a settings dataclass, as ``prefix.field``."""
+    docs = field_docs(type(settings))
+    for f in dataclasses.fields(settings):
+        value = getattr(settings, f.name)
+        if isinstance(value, bool | int | float | str):
+            declare(node, f"{prefix}.{f.name}", value, docs.get(f.name, f.name))
+
+
+def settings_from_parameters(node: Node, prefix: str, settings, overrides=None):
+    """A settings dataclass rebuilt from the node's ``prefix.*`` parameters (+ overrides).
+
+    Raises ValueError (from the dataclass's own validation) on an invalid combination.
+    """
+    values = {f.name: node.get_parameter(f"{prefix}.{f.name}").value
+              for f in dataclasses.fields(settings)
+              if node.has_parameter(f"{prefix}.{f.name}")}
+    for param in overrides or []:
+        if param.name.startswith(prefix + "."):
+            values[param.name[len(prefix) + 1:]] = param.value
+    return dataclasses.replace(settings, **values)
 
 
 def reject_all_changes(_params) -> SetParametersResult:
