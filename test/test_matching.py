@@ -247,3 +247,18 @@ def test_index_must_match_the_matcher_settings(block):
     with pytest.raises(ValueError, match="other settings"):
         Matcher(k_ref=14).compare(idx, idx)
     assert Matcher(threshold=5.0).compare(idx, idx).decision == Decision.MATCH
+
+
+def test_fit_similarity_exact_and_degenerate():
+    from terrain_nav_ros.core.matching import fit_similarity
+
+    rng = np.random.default_rng(0)
+    za = rng.normal(size=20) + 1j * rng.normal(size=20)
+    c_true, t_true = 1.1 * np.exp(0.7j), 3 - 2j
+    c, t = fit_similarity(za, c_true * za + t_true, scale=True)
+    assert abs(c - c_true) < 1e-12 and abs(t - t_true) < 1e-12
+    c, _ = fit_similarity(za, c_true * za + t_true)
+    assert abs(c - np.exp(0.7j)) < 1e-12
+    # two A points on one B point (Hough correspondences are not one-to-one): no rotation
+    c, _ = fit_similarity(za[:2], np.array([5 + 5j, 5 + 5j]))
+    assert np.isnan(c)

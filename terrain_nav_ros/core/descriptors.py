@@ -12,7 +12,7 @@ Three families, all computed for every minutia at once with numpy broadcasting a
   zero-mean and unit-norm so that a dot product is a normalised cross-correlation.
 * :func:`neighbour_edges` and :class:`EdgeHash`: pair invariants in the style of SourceAFIS
   edges (edge length and the two angles between the edge and each end's direction), hashed
-  on a quantised grid so that candidate edge correspondences come from sorted-key look-ups
+  on a quantised grid so that candidate edge correspondences come from table look-ups
   instead of an all-pairs comparison.
 
 Geometry is done in the *math frame* ``z = col - 1j * row`` (x east, y north), where the

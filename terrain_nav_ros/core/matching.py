@@ -442,15 +442,19 @@ def fit_similarity(za, zb, w=None, scale: bool = False) -> tuple[complex, comple
     Returns
     -------
     c, t : complex
+        ``c`` is NaN when the points do not fix a rotation (e.g. all A or all B points
+        coincide).
     """
     w = np.ones(len(za)) if w is None else np.asarray(w, float)
     ma = np.sum(w * za) / w.sum()
     mb = np.sum(w * zb) / w.sum()
-    num = np.sum(w * np.conj(za - ma) * (zb - mb))
+    num = complex(np.sum(w * np.conj(za - ma) * (zb - mb)))
+    if abs(num) < 1e-9:
+        return complex(np.nan, np.nan), complex(np.nan, np.nan)
     if scale:
-        c = num / max(np.sum(w * np.abs(za - ma) ** 2), 1e-12)
+        c = num / float(np.sum(w * np.abs(za - ma) ** 2))
     else:
-        c = num / max(abs(num), 1e-12)
+        c = num / abs(num)
     return complex(c), complex(mb - c * ma)
 
 
@@ -543,7 +547,9 @@ def _register(h: _Hypothesis, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, 
     if len(ia) >= 2:
         c, t, inl = _ransac(a.z[ia], b.z[ib], b.angle[ib] - a.angle[ia], p, rng, h.c, h.t)
         if inl.sum() >= 2:
-            c, t = fit_similarity(a.z[ia[inl]], b.z[ib[inl]], scale=p.estimate_scale)
+            c1, t1 = fit_similarity(a.z[ia[inl]], b.z[ib[inl]], scale=p.estimate_scale)
+            if np.isfinite(c1):   # degenerate inliers (one point each side): keep RANSAC's
+                c, t = c1, t1
     return c, t, _pair(a, b, c, t, p)
 
 
@@ -553,7 +559,8 @@ def _refine(a: MinutiaIndex, b: MinutiaIndex, c, t, pairs, p: MatchParams, itera
         if len(pairs) < 2:
             break
         c1, t1 = fit_similarity(a.z[pairs[:, 0]], b.z[pairs[:, 1]], scale=p.estimate_scale)
-        if p.estimate_scale and abs(math.log(abs(c1))) > p.max_scale_change:
+        if not np.isfinite(c1) or (p.estimate_scale
+                                   and abs(math.log(abs(c1))) > p.max_scale_change):
             break
         new = _pair(a, b, c1, t1, p)
         if len(new) < len(pairs):
