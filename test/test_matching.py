@@ -18,6 +18,7 @@ from synthetic_minutiae import (  # noqa: E402
 from terrain_nav_ros.core.descriptors import (  # noqa: E402
     EdgeHash,
     crease_descriptor,
+    cylinder_code,
     neighbour_edges,
     shape_context,
     wrap_angle,
@@ -68,7 +69,7 @@ def test_synthetic_block_is_realistic(block):
 @pytest.mark.parametrize("degrees", [0.0, 37.0, 90.0, 180.0, -123.0])
 def test_perturbed_copy_matched_with_right_transform(block, degrees):
     b, src, m = _rotated_copy(block, degrees, seed=int(degrees) % 7)
-    r = compare(block, b)
+    r = compare(block, b, descriptor="both" if degrees == 90.0 else "shape_context")
     assert r.decision == Decision.MATCH, r.reason
     assert _corner_error(r, m, BLOCK, BLOCK) < 1.0
     assert abs(wrap_angle(r.rotation - np.radians(degrees))) < np.radians(1.0)
@@ -161,20 +162,24 @@ def test_calibrate_threshold_empirical_and_extrapolated():
         calibrate_threshold(scores, 0.0)
 
 
-def test_shape_context_rotation_invariant(block):
+@pytest.mark.parametrize("describe", [shape_context, cylinder_code])
+def test_local_descriptors_rotation_invariant(block, describe):
     b, _, _ = _rotated_copy(block, 90.0, seed=0, pos_sigma=0.0, angle_sigma=0.0,
                             missing=0.0, spurious=0.0)
     # compare descriptors of minutiae far from the border (no neighbours lost)
     inner = np.hypot(block.col - 128, block.row - 128) < 40
-    da = shape_context(block)[inner]
+    da = describe(block)[inner]
     b_sorted = b.subset(np.lexsort((b.row, b.col)))
     # find each inner minutia's image in b
     m = rigid_transform(np.radians(90.0), 7.0, -4.0, centre=(128, 128))
     col = m[0, 0] * block.col + m[0, 1] * block.row + m[0, 2]
     row = m[1, 0] * block.col + m[1, 1] * block.row + m[1, 2]
     d = np.hypot(b_sorted.col[None] - col[inner, None], b_sorted.row[None] - row[inner, None])
-    db = shape_context(b_sorted)[np.argmin(d, axis=1)]
+    db = describe(b_sorted)[np.argmin(d, axis=1)]
     assert np.median(np.sum(da * db, axis=1)) > 0.999
+    # and they tell minutiae apart: a minutia is most similar to its own image
+    sim = da @ describe(b_sorted).T
+    assert np.mean(np.argmax(sim, axis=1) == np.argmin(d, axis=1)) > 0.9
 
 
 def test_crease_descriptor_rotation_invariant(region):

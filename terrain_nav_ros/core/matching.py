@@ -44,6 +44,7 @@ from .descriptors import (
     TWO_PI,
     EdgeHash,
     crease_descriptor,
+    cylinder_code,
     from_complex,
     neighbour_edges,
     shape_context,
@@ -100,6 +101,9 @@ class MatchParams:
     roots_above : int
     use_descriptors : bool
         Weight votes by descriptor similarity (hash generator).
+    descriptor : {"shape_context", "mcc", "both"}
+        Local descriptor of each minutia: the log-polar minutiae shape context, the
+        cylinder code (:func:`~.descriptors.cylinder_code`), or both averaged.
     by_kind : bool
         Shape context split by minutia kind.
     min_minutiae : int
@@ -132,6 +136,7 @@ class MatchParams:
     k_roots: int = 6
     roots_above: int = 2000
     use_descriptors: bool = True
+    descriptor: str = "shape_context"
     by_kind: bool = True
     min_minutiae: int = 10
     threshold: float = 3.0
@@ -164,7 +169,7 @@ class MinutiaIndex:
         self.tree = cKDTree(self.xy) if self.n else None
         self.edges = neighbour_edges(ms, max(p.k_query, p.k_ref), p.edge_min, p.edge_max,
                                      tree=self.tree)
-        self.descriptor = shape_context(ms, by_kind=p.by_kind)
+        self.descriptor = _descriptor(ms, p)
         self.crease = None if crease is None else crease_descriptor(ms, crease)
         self.footprint = _footprint(ms)
         self.area = float(abs(cv2.contourArea(self.footprint.astype(np.float32))))
@@ -197,6 +202,18 @@ class MinutiaIndex:
                            _length_tol(p, length), rows, e.j[rows, cols],
                            e.direction[rows, cols])
         return self._query
+
+
+def _descriptor(ms: MinutiaSet, p: MatchParams) -> np.ndarray:
+    if p.descriptor == "shape_context":
+        return shape_context(ms, by_kind=p.by_kind)
+    if p.descriptor == "mcc":
+        return cylinder_code(ms)
+    if p.descriptor == "both":
+        # unit rows scaled by 1/sqrt(2): the dot product is the mean of both similarities
+        both = np.hstack([shape_context(ms, by_kind=p.by_kind), cylinder_code(ms)])
+        return (both / np.sqrt(2.0)).astype(np.float32)
+    raise ValueError(f"MatchParams.descriptor: unknown {p.descriptor!r}")
 
 
 def _footprint(ms: MinutiaSet) -> np.ndarray:
@@ -662,7 +679,8 @@ def calibrate_threshold(non_pva_scores, false_match_rate: float) -> float:
 
 # settings baked into a MinutiaIndex (edges, hash, descriptors)
 _INDEX_FIELDS = ("k_query", "k_ref", "edge_min", "edge_max", "edge_length_tol",
-                 "edge_angle_tol", "by_kind", "estimate_scale", "max_scale_change")
+                 "edge_angle_tol", "by_kind", "descriptor", "estimate_scale",
+                 "max_scale_change")
 
 
 def _as_index(x, p: MatchParams, crease=None) -> MinutiaIndex:
