@@ -1,21 +1,15 @@
 """Behaviour of the minutiae descriptors and matcher on synthetic drainage-like sets."""
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
-
-sys.path.insert(0, str(Path(__file__).parent))
-
-from synthetic_minutiae import (  # noqa: E402
+from synthetic_minutiae import (
     crop_set,
     rigid_transform,
     terrain_minutiae,
     transform_set,
 )
 
-from terrain_nav_ros.core.descriptors import (  # noqa: E402
+from terrain_nav_ros.core.descriptors import (
     EdgeHash,
     crease_descriptor,
     cylinder_code,
@@ -23,15 +17,15 @@ from terrain_nav_ros.core.descriptors import (  # noqa: E402
     shape_context,
     wrap_angle,
 )
-from terrain_nav_ros.core.georef import GeoReference  # noqa: E402
-from terrain_nav_ros.core.matching import (  # noqa: E402
+from terrain_nav_ros.core.georef import GeoReference
+from terrain_nav_ros.core.matching import (
     Decision,
     Matcher,
     calibrate_threshold,
     compare,
     localise,
 )
-from terrain_nav_ros.core.minutia_set import MinutiaSet  # noqa: E402
+from terrain_nav_ros.core.minutia_set import MinutiaSet
 
 BLOCK = 256
 

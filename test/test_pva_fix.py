@@ -1,21 +1,15 @@
 """PVA fixes from minutiae registrations: ground-match position and PnP pose."""
 
-import sys
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
 from scipy import ndimage
+from synthetic_minutiae import terrain_minutiae, transform_set
 
-sys.path.insert(0, str(Path(__file__).parent))
-
-from synthetic_minutiae import terrain_minutiae, transform_set  # noqa: E402
-
-from terrain_nav_ros.core.georef import GeoReference  # noqa: E402
-from terrain_nav_ros.core.matching import Decision, MatchResult, localise  # noqa: E402
-from terrain_nav_ros.core.minutia_set import MinutiaSet  # noqa: E402
-from terrain_nav_ros.core.pva_fix import (  # noqa: E402
+from terrain_nav_ros.core.georef import GeoReference
+from terrain_nav_ros.core.matching import Decision, MatchResult, localise
+from terrain_nav_ros.core.minutia_set import MinutiaSet
+from terrain_nav_ros.core.pva_fix import (
     STATUS_NO_FIX,
     STATUS_POSITION,
     STATUS_POSITION_ATTITUDE,
