@@ -1,0 +1,156 @@
+"""Optional fused (numba) kernels for the crease-enhancing diffusion of :mod:`.creases`.
+
+The numpy/OpenCV implementation in :mod:`.creases` needs ~55 whole-image passes per
+diffusion step; these kernels compute the same discretisation in three passes (normalised
+Hessian, tensor, step) plus OpenCV's Gaussians, which is several times faster. They are used
+when numba is importable and ``TERRAIN_NAV_NO_NUMBA`` is not set; results agree with the
+numpy path to float32 rounding (``test_creases.py`` checks it).
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+try:  # numba is optional: the numpy/OpenCV path is the reference
+    if os.environ.get("TERRAIN_NAV_NO_NUMBA"):
+        raise ImportError("disabled by TERRAIN_NAV_NO_NUMBA")
+    from numba import njit
+
+    HAVE_NUMBA = True
+except ImportError:  # pragma: no cover - depends on the environment
+    HAVE_NUMBA = False
+
+    def njit(*args, **kwargs):
+        def wrap(f):
+            return f
+        return wrap(args[0]) if args and callable(args[0]) else wrap
+
+
+_JIT = dict(cache=True, fastmath=True, nogil=True, error_model="numpy")
+
+
+@njit(**_JIT)
+def _hess_row(s0, sm_, sp, jm, j, jp, hxx, hxy, hyy):
+    f = np.float32
+    ix = f(0.5) * (s0[jp] - s0[jm])
+    iy = f(0.5) * (sp[j] - sm_[j])
+    inv = f(1.0) / np.sqrt(f(1.0) + ix * ix + iy * iy)
+    hxx[j] = (s0[jp] - f(2.0) * s0[j] + s0[jm]) * inv
+    hyy[j] = (sp[j] - f(2.0) * s0[j] + sm_[j]) * inv
+    hxy[j] = f(0.25) * (sp[jp] - sp[jm] - sm_[jp] + sm_[jm]) * inv
+
+
+@njit(**_JIT)
+def normalised_hessian_kernel(sm, hxx, hxy, hyy):  # pragma: no cover - compiled
+    """H / sqrt(1 + |grad|^2) of a smoothed image by central differences (eq. 3.1).
+
+    Borders reflect like OpenCV's BORDER_REFLECT (pixel -1 is pixel 0).
+    """
+    f = np.float32
+    rows, cols = sm.shape
+    for i in range(rows):
+        s0 = sm[i]
+        sm_ = sm[max(i - 1, 0)]
+        sp = sm[min(i + 1, rows - 1)]
+        rxx, rxy, ryy = hxx[i], hxy[i], hyy[i]
+        # Row views with non-negative indices: the interior loop vectorises.
+        for j in range(1, cols - 1):
+            ix = f(0.5) * (s0[j + 1] - s0[j - 1])
+            iy = f(0.5) * (sp[j] - sm_[j])
+            inv = f(1.0) / np.sqrt(f(1.0) + ix * ix + iy * iy)
+            rxx[j] = (s0[j + 1] - f(2.0) * s0[j] + s0[j - 1]) * inv
+            ryy[j] = (sp[j] - f(2.0) * s0[j] + sm_[j]) * inv
+            rxy[j] = f(0.25) * (sp[j + 1] - sp[j - 1] - sm_[j + 1] + sm_[j - 1]) * inv
+        _hess_row(s0, sm_, sp, 0, 0, min(1, cols - 1), rxx, rxy, ryy)
+        if cols > 1:
+            _hess_row(s0, sm_, sp, cols - 2, cols - 1, cols - 1, rxx, rxy, ryy)
+
+
+@njit(**_JIT)
+def tensor_kernel(hxx, hxy, hyy, eps, alpha, beta, a, b, c):  # pragma: no cover - compiled
+    """Diffusion tensor of eq. 3.3-3.5 (see :func:`.creases.diffusion_tensor`)."""
+    f = np.float32
+    xx, xy, yy = hxx.reshape(-1), hxy.reshape(-1), hyy.reshape(-1)
+    ra, rb, rc = a.reshape(-1), b.reshape(-1), c.reshape(-1)
+    for k in range(xx.size):
+        t = xx[k] + yy[k]
+        d = xx[k] - yy[k]
+        h2 = f(2.0) * xy[k]
+        s = np.sqrt(d * d + h2 * h2)
+        at = abs(t)
+        mu = min(s, at) / max(max(s, at), f(1e-30))
+        lam2 = mu * (beta if t > 0 else alpha)
+        m = f(0.5) * (lam2 + eps)
+        g = f(0.5) * (eps - lam2) * t / max(at * s, f(1e-30))
+        ra[k] = m + g * d
+        rc[k] = m - g * d
+        rb[k] = g * h2
+
+
+@njit(**_JIT)
+def _step_border_px(u, a, b, c, i, j, half_tau, out):
+    f = np.float32
+    rows, cols = u.shape
+    uc = u[i, j]
+    div = f(0.0)
+    if j + 1 < cols:
+        div += (a[i, j + 1] + a[i, j]) * (u[i, j + 1] - uc)
+    if j > 0:
+        div -= (a[i, j] + a[i, j - 1]) * (uc - u[i, j - 1])
+    if i + 1 < rows:
+        div += (c[i + 1, j] + c[i, j]) * (u[i + 1, j] - uc)
+    if i > 0:
+        div -= (c[i, j] + c[i - 1, j]) * (uc - u[i - 1, j])
+    mixed = f(0.0)
+    ip = min(i + 1, rows - 1)
+    im = max(i - 1, 0)
+    if j + 1 < cols:
+        mixed += b[i, j + 1] * (u[ip, j + 1] - u[im, j + 1])
+    if j > 0:
+        mixed -= b[i, j - 1] * (u[ip, j - 1] - u[im, j - 1])
+    jp = min(j + 1, cols - 1)
+    jm = max(j - 1, 0)
+    if i + 1 < rows:
+        mixed += b[i + 1, j] * (u[i + 1, jp] - u[i + 1, jm])
+    if i > 0:
+        mixed -= b[i - 1, j] * (u[i - 1, jp] - u[i - 1, jm])
+    out[i, j] = uc + half_tau * (div + f(0.5) * mixed)
+
+
+@njit(**_JIT)
+def step_kernel(u, a, b, c, tau, out):  # pragma: no cover - compiled
+    """One explicit step of Weickert's standard scheme (see :func:`.creases.diffusion_step`).
+
+    Zero flux through the border for the pure terms; for the mixed terms the inner
+    derivative replicates the border and the outer one sees zeros outside, as the
+    OpenCV implementation does. Border pixels take a general (branching) path, the
+    interior a branch-free loop over row views that vectorises.
+    """
+    f = np.float32
+    rows, cols = u.shape
+    half_tau = f(0.5) * tau
+    for i in range(rows):
+        if i == 0 or i == rows - 1:
+            for j in range(cols):
+                _step_border_px(u, a, b, c, i, j, half_tau, out)
+            continue
+        u0, um, up = u[i], u[i - 1], u[i + 1]
+        a0, c0, cm, cp = a[i], c[i], c[i - 1], c[i + 1]
+        b0, bm, bp = b[i], b[i - 1], b[i + 1]
+        o = out[i]
+        for j in range(1, cols - 1):
+            uc = u0[j]
+            div = ((a0[j + 1] + a0[j]) * (u0[j + 1] - uc)
+                   - (a0[j] + a0[j - 1]) * (uc - u0[j - 1])
+                   + (cp[j] + c0[j]) * (up[j] - uc)
+                   - (c0[j] + cm[j]) * (uc - um[j]))
+            mixed = (b0[j + 1] * (up[j + 1] - um[j + 1])
+                     - b0[j - 1] * (up[j - 1] - um[j - 1])
+                     + bp[j] * (up[j + 1] - up[j - 1])
+                     - bm[j] * (um[j + 1] - um[j - 1]))
+            o[j] = uc + half_tau * (div + f(0.5) * mixed)
+        _step_border_px(u, a, b, c, i, 0, half_tau, out)
+        if cols > 1:
+            _step_border_px(u, a, b, c, i, cols - 1, half_tau, out)
