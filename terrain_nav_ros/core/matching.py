@@ -129,7 +129,7 @@ class MatchParams:
     trans_bin: float = 8.0
     n_hypotheses: int = 4
     min_support_ratio: float = 0.2
-    ransac_iterations: int = 48
+    ransac_iterations: int = 24
     estimate_scale: bool = False
     max_scale_change: float = 0.1
     candidates: str = "auto"
