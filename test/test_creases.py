@@ -187,3 +187,17 @@ def test_fused_kernels_match_the_reference():
                                            w2=5)):
         ref = _diffusion_in_strips(img.copy(), p)
         assert np.allclose(_diffusion_fused(img.copy(), p), ref, rtol=0, atol=1e-3)
+
+
+def test_fused_mlsec_and_contrast_match_the_reference(monkeypatch):
+    from terrain_nav_ros.core import _crease_kernels, creases
+
+    if not _crease_kernels.HAVE_NUMBA:
+        pytest.skip("numba not installed: the reference path is the only one")
+    rng = np.random.default_rng(8)
+    img = (line_image(80, row=30.3) + rng.normal(0, 5, (80, 80))).astype(np.float32)
+    fused = mlsec_st(img, 1.0, 2.0), creases.crease_contrast(img, 2.0)
+    monkeypatch.setattr(_crease_kernels, "HAVE_NUMBA", False)
+    ref = mlsec_st(img, 1.0, 2.0), creases.crease_contrast(img, 2.0)
+    assert np.allclose(fused[0], ref[0], atol=1e-3)
+    assert np.allclose(fused[1], ref[1], rtol=1e-4, atol=1e-4 * np.abs(ref[1]).max())

@@ -543,6 +543,15 @@ def mlsec_st(img: np.ndarray, sigma_d: float = 1.0, sigma_i: float = 2.0) -> np.
     neighbours (the discrete -div w): positive on ridges (bright lines), negative on valleys.
     """
     smooth = _gauss(np.asarray(img, np.float32), sigma_d)
+    if _kernels.HAVE_NUMBA:
+        gx, gy, pxx, pxy, pyy = (np.empty_like(smooth) for _ in range(5))
+        _kernels.gradient_products_kernel(smooth, gx, gy, pxx, pxy, pyy)
+        sxx, sxy, syy = (_gauss(p, sigma_i) for p in (pxx, pxy, pyy))
+        wx, wy = pxx, pxy  # reuse the buffers
+        _kernels.mlsec_field_kernel(sxx, sxy, syy, gx, gy, wx, wy)
+        out = pyy
+        _kernels.mlsec_divergence_kernel(wx, wy, out)
+        return out
     gx = cv2.sepFilter2D(smooth, cv2.CV_32F, _D1, _ID, borderType=_BORDER)
     gy = cv2.sepFilter2D(smooth, cv2.CV_32F, _ID, _D1, borderType=_BORDER)
     sxx = _gauss(gx * gx, sigma_i)
@@ -553,7 +562,8 @@ def mlsec_st(img: np.ndarray, sigma_d: float = 1.0, sigma_i: float = 2.0) -> np.
     # Dominant eigenvector (cos phi, sin phi) via half-angle formulas, no atan2.
     cos2 = dev / np.maximum(s, np.float32(1e-30))
     wx = np.sqrt(np.maximum(0.5 * (1.0 + cos2), 0.0))
-    wy = np.sqrt(np.maximum(0.5 * (1.0 - cos2), 0.0)) * np.where(sxy < 0, -1.0, 1.0)
+    wy = np.sqrt(np.maximum(0.5 * (1.0 - cos2), 0.0))
+    wy[sxy < 0] *= -1.0
     sign = np.sign(wx * gx + wy * gy)
     # No orientation where the tensor is numerically zero (flat areas).
     sign[s <= 1e-12 * max(float(s.max()), 1e-30)] = 0.0
@@ -573,6 +583,10 @@ def crease_contrast(img: np.ndarray, sigma: float = 2.0) -> np.ndarray:
     pixel noise.
     """
     smooth = _gauss(np.asarray(img, np.float32), sigma)
+    if _kernels.HAVE_NUMBA:
+        out = np.empty_like(smooth)
+        _kernels.contrast_kernel(smooth, np.float32(sigma**2), out)
+        return out
     _, _, ixx, ixy, iyy = _derivatives(smooth)
     tr = ixx + iyy
     s = np.sqrt((ixx - iyy) ** 2 + 4.0 * ixy * ixy)
