@@ -8,15 +8,26 @@ an ndarray to a message's sequence field goes element by element (22 ms for a 51
 from __future__ import annotations
 
 import array
+from typing import NamedTuple
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import PoseWithCovariance
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseWithCovariance, TransformStamped
 from nav_msgs.msg import Odometry
-from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from sensor_msgs.msg import (
+    CameraInfo,
+    CompressedImage,
+    FluidPressure,
+    Image,
+    Imu,
+    NavSatFix,
+    NavSatStatus,
+)
 from std_msgs.msg import Header
+from tf2_msgs.msg import TFMessage
 
-from terrain_nav_msgs.msg import DemTile, GeoImage, Minutia, MinutiaArray
+from terrain_nav_msgs.msg import DemTile, GeoImage, Minutia, MinutiaArray, PvaFix
 from terrain_nav_msgs.msg import GeoReference as GeoReferenceMsg
 
 from .core.georef import GeoReference
@@ -361,3 +372,136 @@ def msg_to_minutiae(msg: MinutiaArray) -> MinutiaSet:
         return MinutiaSet(cols, rows, angles, kinds, quality, georef=georef, reason=msg.reason)
     except ValueError as err:
         raise ConversionError(str(err)) from err
+
+
+# ---------------------------------------------------------------------------------------------
+# Navigation sensors and outputs (ekf node)
+# ---------------------------------------------------------------------------------------------
+
+def imu_to_sample(msg: Imu) -> tuple[float, tuple, tuple]:
+    """sensor_msgs/Imu -> (stamp s, gyro (x, y, z) rad/s, accel (x, y, z) m/s^2) as floats.
+
+    Plain tuples: this runs at the IMU rate and the EKF core takes floats.
+    """
+    w, a = msg.angular_velocity, msg.linear_acceleration
+    return stamp_to_sec(msg.header.stamp), (w.x, w.y, w.z), (a.x, a.y, a.z)
+
+
+def sample_to_imu(header: Header, gyro, accel) -> Imu:
+    """(header, gyro, accel) -> sensor_msgs/Imu without orientation (covariance[0] = -1)."""
+    msg = Imu(header=header)
+    msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z = map(float, gyro)
+    a = msg.linear_acceleration
+    a.x, a.y, a.z = map(float, accel)
+    msg.orientation_covariance[0] = -1.0   # REP 145: orientation not provided
+    return msg
+
+
+def fluid_pressure_to_sample(msg: FluidPressure) -> tuple[float, float, float]:
+    """sensor_msgs/FluidPressure -> (stamp s, pressure Pa, variance Pa^2; 0 = unknown)."""
+    return stamp_to_sec(msg.header.stamp), float(msg.fluid_pressure), float(msg.variance)
+
+
+class PvaFixArrays(NamedTuple):
+    """A PvaFix as arrays (ENU map frame, SI units)."""
+
+    stamp: float
+    status: int
+    position: np.ndarray               # (3,)
+    quaternion: np.ndarray             # (4,) x, y, z, w
+    covariance: np.ndarray             # (6, 6) position, rotation about x, y, z
+    velocity: np.ndarray | None        # (3,) when velocity_valid
+    velocity_covariance: np.ndarray | None
+
+
+def pva_fix_to_arrays(msg: PvaFix) -> PvaFixArrays:
+    """terrain_nav_msgs/PvaFix -> :class:`PvaFixArrays` (no validation beyond sizes)."""
+    p, o = msg.pose.pose.position, msg.pose.pose.orientation
+    vel = vcov = None
+    if msg.velocity_valid:
+        vel = np.array([msg.velocity.x, msg.velocity.y, msg.velocity.z])
+        vcov = covariance_to_array(msg.velocity_covariance, 3)
+    return PvaFixArrays(stamp_to_sec(msg.header.stamp), int(msg.status),
+                        np.array([p.x, p.y, p.z]), np.array([o.x, o.y, o.z, o.w]),
+                        covariance_to_array(msg.pose.covariance, 6), vel, vcov)
+
+
+def arrays_to_pva_fix(header: Header, status: int, position, quaternion, covariance,
+                      velocity=None, velocity_covariance=None, reason: str = "") -> PvaFix:
+    """Arrays -> terrain_nav_msgs/PvaFix (position-only fixes: -1 on the rotation diagonal)."""
+    msg = PvaFix(header=header, status=int(status), reason=reason,
+                 pose=pose_with_covariance(position, quaternion, covariance))
+    if velocity is not None:
+        msg.velocity_valid = True
+        msg.velocity.x, msg.velocity.y, msg.velocity.z = map(float, velocity)
+        msg.velocity_covariance = array_to_covariance(velocity_covariance)
+    return msg
+
+
+def navsatfix_to_arrays(msg: NavSatFix) -> tuple[float, int, np.ndarray, np.ndarray, int]:
+    """NavSatFix -> (stamp s, status, (lat deg, lon deg, ellipsoidal h m), ENU covariance
+    (3, 3) m^2, covariance type)."""
+    return (stamp_to_sec(msg.header.stamp), int(msg.status.status),
+            np.array([msg.latitude, msg.longitude, msg.altitude]),
+            covariance_to_array(msg.position_covariance, 3), int(msg.position_covariance_type))
+
+
+def arrays_to_navsatfix(header: Header, lat: float, lon: float, alt: float, covariance,
+                        status: int = NavSatStatus.STATUS_FIX,
+                        covariance_type: int = NavSatFix.COVARIANCE_TYPE_KNOWN,
+                        service: int = 0) -> NavSatFix:
+    """WGS84 (deg, deg, ellipsoidal m) + ENU covariance (3, 3) -> NavSatFix."""
+    msg = NavSatFix(header=header, latitude=float(lat), longitude=float(lon),
+                    altitude=float(alt), position_covariance_type=int(covariance_type))
+    msg.status.status, msg.status.service = int(status), int(service)
+    msg.position_covariance = array_to_covariance(covariance)
+    return msg
+
+
+def odometry_msg(header: Header, child_frame_id: str, position, quaternion, pose_covariance,
+                 linear, angular, twist_covariance) -> Odometry:
+    """nav_msgs/Odometry: pose in ``header.frame_id``, twist in ``child_frame_id`` (REP 105)."""
+    msg = Odometry(header=header, child_frame_id=child_frame_id,
+                   pose=pose_with_covariance(position, quaternion, pose_covariance))
+    t = msg.twist.twist
+    t.linear.x, t.linear.y, t.linear.z = map(float, linear)
+    t.angular.x, t.angular.y, t.angular.z = map(float, angular)
+    msg.twist.covariance = array_to_covariance(twist_covariance)
+    return msg
+
+
+def odometry_to_state(msg: Odometry) -> tuple[float, np.ndarray, np.ndarray, np.ndarray,
+                                              np.ndarray, np.ndarray, np.ndarray]:
+    """Odometry -> (stamp, position, quaternion xyzw, pose cov 6x6, linear, angular,
+    twist cov 6x6)."""
+    p, o = msg.pose.pose.position, msg.pose.pose.orientation
+    lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
+    return (stamp_to_sec(msg.header.stamp), np.array([p.x, p.y, p.z]),
+            np.array([o.x, o.y, o.z, o.w]), covariance_to_array(msg.pose.covariance, 6),
+            np.array([lin.x, lin.y, lin.z]), np.array([ang.x, ang.y, ang.z]),
+            covariance_to_array(msg.twist.covariance, 6))
+
+
+def tf_message(header: Header, child_frame_id: str, translation, quaternion) -> TFMessage:
+    """One transform ``header.frame_id`` -> ``child_frame_id`` as a tf2_msgs/TFMessage."""
+    tf = TransformStamped(header=header, child_frame_id=child_frame_id)
+    tr, r = tf.transform.translation, tf.transform.rotation
+    tr.x, tr.y, tr.z = map(float, translation)
+    r.x, r.y, r.z, r.w = map(float, quaternion)
+    return TFMessage(transforms=[tf])
+
+
+def diagnostic_status(name: str, level: int, message: str, values: dict,
+                      hardware_id: str = "") -> DiagnosticStatus:
+    """diagnostic_msgs/DiagnosticStatus; ``level`` is 0 OK, 1 WARN, 2 ERROR, 3 STALE; values
+    are formatted with ``str`` (floats with 6 significant digits)."""
+    kv = [KeyValue(key=str(k), value=f"{v:.6g}" if isinstance(v, float) else str(v))
+          for k, v in values.items()]
+    return DiagnosticStatus(level=bytes([int(level)]), name=name, message=message,
+                            hardware_id=hardware_id, values=kv)
+
+
+def diagnostic_values(status: DiagnosticStatus) -> tuple[int, dict]:
+    """DiagnosticStatus -> (level as int, {key: value string})."""
+    level = status.level[0] if isinstance(status.level, bytes | bytearray) else status.level
+    return int(level), {kv.key: kv.value for kv in status.values}

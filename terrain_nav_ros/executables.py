@@ -12,6 +12,7 @@ NODES = {
     "camera_ingest": "terrain_nav_ros.camera_ingest_node:main",
     "metamap": "terrain_nav_ros.metamap_node:main",
     "landmark_renderer": "terrain_nav_ros.landmark_renderer_node:main",
+    "ekf": "terrain_nav_ros.ekf_node:main",
 }
 
 # Command-line tools that are not nodes.

@@ -126,3 +126,73 @@ def test_compressed_image_and_odometry():
     odom.pose = cv.pose_with_covariance([1, 2, 3], [0, 0, 0, 1], np.eye(6) * 2)
     stamp, p, q, cov = cv.odometry_to_arrays(odom)
     assert stamp == 5_000_000_123 and list(p) == [1, 2, 3] and q[3] == 1 and cov[5, 5] == 2
+
+
+def test_imu_and_fluid_pressure_round_trips():
+    from sensor_msgs.msg import FluidPressure
+
+    header = cv.make_header(1_700_000_000_250_000_000, "base_link")
+    msg = cv.sample_to_imu(header, [0.1, -0.2, 0.3], [1.0, 2.0, 9.8])
+    stamp, gyro, accel = cv.imu_to_sample(msg)
+    assert stamp == pytest.approx(1_700_000_000.25, abs=1e-6)
+    assert gyro == (0.1, -0.2, 0.3) and accel == (1.0, 2.0, 9.8)
+    assert msg.orientation_covariance[0] == -1.0
+    baro = FluidPressure(header=header, fluid_pressure=95_000.5, variance=4.0)
+    assert cv.fluid_pressure_to_sample(baro)[1:] == (95_000.5, 4.0)
+
+
+@pytest.mark.parametrize("with_velocity", [False, True])
+def test_pva_fix_round_trip(with_velocity):
+    from terrain_nav_msgs.msg import PvaFix
+
+    cov = np.diag([4.0, 9.0, 16.0, -1.0, -1.0, -1.0])
+    vel, vcov = ([30.0, -1.0, 0.5], np.eye(3) * 0.25) if with_velocity else (None, None)
+    msg = cv.arrays_to_pva_fix(cv.make_header(5_000_000_000, "map"), PvaFix.STATUS_POSITION,
+                               [1.0, 2.0, 3.0], [0.0, 0.0, 0.0, 1.0], cov, vel, vcov)
+    fix = cv.pva_fix_to_arrays(msg)
+    assert fix.stamp == 5.0 and fix.status == PvaFix.STATUS_POSITION
+    np.testing.assert_array_equal(fix.position, [1.0, 2.0, 3.0])
+    np.testing.assert_array_equal(fix.quaternion, [0.0, 0.0, 0.0, 1.0])
+    np.testing.assert_array_equal(fix.covariance, cov)
+    if with_velocity:
+        np.testing.assert_array_equal(fix.velocity, vel)
+        np.testing.assert_array_equal(fix.velocity_covariance, vcov)
+    else:
+        assert fix.velocity is None and fix.velocity_covariance is None
+
+
+def test_navsatfix_odometry_tf_round_trips():
+    from sensor_msgs.msg import NavSatFix, NavSatStatus
+
+    header = cv.make_header(7_500_000_000, "map")
+    cov3 = np.array([[4.0, 1.0, 0.0], [1.0, 9.0, 0.5], [0.0, 0.5, 16.0]])
+    msg = cv.arrays_to_navsatfix(header, 36.5, -84.25, 812.5, cov3)
+    stamp, status, lla, cov, kind = cv.navsatfix_to_arrays(msg)
+    assert (stamp, status, kind) == (7.5, NavSatStatus.STATUS_FIX,
+                                     NavSatFix.COVARIANCE_TYPE_KNOWN)
+    np.testing.assert_array_equal(lla, [36.5, -84.25, 812.5])
+    np.testing.assert_array_equal(cov, cov3)
+
+    pose_cov = np.diag(np.arange(1.0, 7.0))
+    twist_cov = np.diag(np.arange(7.0, 13.0))
+    q = [0.0, 0.0, 0.38268343236508984, 0.9238795325112867]
+    odom = cv.odometry_msg(header, "base_link", [1.0, 2.0, 3.0], q, pose_cov,
+                           [30.0, 0.1, -0.2], [0.01, 0.02, 0.03], twist_cov)
+    t, p, q2, pc, lin, ang, tc = cv.odometry_to_state(odom)
+    assert t == 7.5 and odom.child_frame_id == "base_link" and odom.header.frame_id == "map"
+    for got, want in ((p, [1, 2, 3]), (q2, q), (pc, pose_cov), (lin, [30.0, 0.1, -0.2]),
+                      (ang, [0.01, 0.02, 0.03]), (tc, twist_cov)):
+        np.testing.assert_array_equal(got, want)
+
+    tf = cv.tf_message(header, "base_link", [1.0, 2.0, 3.0], q).transforms[0]
+    assert (tf.header.frame_id, tf.child_frame_id) == ("map", "base_link")
+    tr, r = tf.transform.translation, tf.transform.rotation
+    assert (tr.x, tr.y, tr.z, r.x, r.y, r.z, r.w) == (1.0, 2.0, 3.0, *q)
+
+
+def test_diagnostic_status_round_trip():
+    status = cv.diagnostic_status("ekf: filter", 1, "no fix", {"nis": 3.14159265, "n": 7,
+                                                               "ok": True, "text": "a b"})
+    level, values = cv.diagnostic_values(status)
+    assert level == 1 and status.name == "ekf: filter" and status.message == "no fix"
+    assert values == {"nis": "3.14159", "n": "7", "ok": "True", "text": "a b"}

@@ -1,0 +1,302 @@
+"""ekf node in its own process, fed a simulated flight from the test process (issue 7).
+
+One 60 s flight (straight, S-turn, climb; 100 Hz IMU with the default MEMS errors) is
+published at ~5x real time with correct stamps: GNSS for the first 20 s (5 Hz, initialises
+the filter), terrain fixes every 2 s (sigma 20 m, delivered 0.3 s late, two 500 m outliers),
+barometric pressure at 10 Hz with a sea level pressure the node does not know, a NaN IMU
+sample, a fix with a non-positive-definite covariance; then the first 8 s are replayed (bag
+loop). The ENU origin is learnt from a latched /metamap/tile. Everything the node publishes
+is recorded once (module fixture) and the tests assert on it.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+from ros_helpers import SpinningNode, start_node, stop, wait_until
+
+from terrain_nav_ros import conversions as cv
+from terrain_nav_ros.core.baro import altitude_to_pressure
+from terrain_nav_ros.core.ekf_params import EkfParams
+from terrain_nav_ros.core.geodesy import EnuOrigin
+from terrain_nav_ros.core.georef import GeoReference
+from terrain_nav_ros.core.imu_sim import ImuErrorModel, simulate_imu
+from terrain_nav_ros.core.strapdown import attitude_error, quat_to_matrix
+from terrain_nav_ros.core.trajectory_sim import Segment, simulate_trajectory
+
+RATE = 100.0
+SPEEDUP = 5.0
+T0_NS = 1_700_000_000_000_000_000        # stamps are epoch-like, as from a real bag
+ORIGIN = EnuOrigin(36.5, -84.3, 300.0)
+GNSS_UNTIL = 20.0
+FIX_DELAY = 0.3
+OUTLIER_TIMES = (30.0, 44.0)
+NON_PD_TIME = 25.0
+NAN_IMU_TIME = 35.005
+LOOP_S = 8.0
+DAY_PRESSURE = 100_800.0                 # the node assumes 101325 Pa: offset to learn
+
+# Bounds, ~2-3x what this seeded flight gives (7.5 m final-10 s max horizontal, 11 m max
+# horizontal after init, 1.2 m vertical).
+FINAL_HORIZONTAL_M = 15.0
+FINAL_VERTICAL_M = 8.0
+MAX_HORIZONTAL_AFTER_INIT_M = 30.0
+
+
+def _stamp(t: float):
+    return cv.ns_to_stamp(T0_NS + round(t * 1e9))
+
+
+def _sec(stamp) -> float:
+    return (cv.stamp_to_ns(stamp) - T0_NS) * 1e-9
+
+
+def _events(truth, imu, rng):
+    """(arrival time, kind, payload) of everything the flight publishes, in arrival order."""
+    ev = [(t, 0, k) for k, t in enumerate(truth.t) if k > 0]
+    ev.append((NAN_IMU_TIME, 0, "nan"))
+    for t in np.arange(0.2, GNSS_UNTIL + 1e-9, 0.2):
+        ev.append((t, 1, int(truth.at(t))))
+    for t in np.arange(2.0, truth.t[-1] + 1e-9, 2.0):
+        ev.append((t + FIX_DELAY, 2, int(truth.at(t))))
+    ev.append((NON_PD_TIME + FIX_DELAY + 0.05, 2, "non_pd"))
+    for t in np.arange(0.1, truth.t[-1] + 1e-9, 0.1):
+        ev.append((t, 3, int(truth.at(t))))
+    ev.sort(key=lambda e: (e[0], e[1]))
+    return ev
+
+
+class Recorder:
+    """Subscribes to everything the ekf publishes."""
+
+    def __init__(self, node):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from nav_msgs.msg import Odometry
+        from sensor_msgs.msg import NavSatFix
+        from tf2_msgs.msg import TFMessage
+
+        from terrain_nav_ros.ros_common import RELIABLE_QOS
+
+        self.odom, self.tf, self.navsat, self.diag = [], [], [], []
+        node.create_subscription(Odometry, "/nav/odometry", self.odom.append, 1000)
+        node.create_subscription(TFMessage, "/tf", self.tf.append, 1000)
+        node.create_subscription(NavSatFix, "/nav/fix", self.navsat.append, RELIABLE_QOS)
+        node.create_subscription(DiagnosticArray, "/nav/ekf/diagnostics", self.diag.append,
+                                 RELIABLE_QOS)
+
+    def filter_status(self, i=-1):
+        msg = self.diag[i]
+        return {s.name: cv.diagnostic_values(s) for s in msg.status}
+
+
+@pytest.fixture(scope="module")
+def flight():
+    from diagnostic_msgs.msg import DiagnosticArray  # noqa: F401 - type support loaded early
+    from sensor_msgs.msg import FluidPressure, Imu, NavSatFix
+    from std_msgs.msg import Header
+
+    from terrain_nav_msgs.msg import DemTile, PvaFix
+    from terrain_nav_ros.ros_common import LATCHED_QOS
+
+    params = EkfParams()
+    rng = np.random.default_rng(7)
+    truth = simulate_trajectory([Segment(20.0), Segment(20.0, np.deg2rad(3.0)),
+                                 Segment(10.0, 0.0, np.deg2rad(4.0)), Segment(10.0)],
+                                rate_hz=RATE, start_position=(200.0, -100.0, 800.0),
+                                start_heading=0.5)
+    imu = simulate_imu(truth, ImuErrorModel.from_params(params), rng)
+
+    proc = start_node("ekf", {"init_mode": "gnss", "init_min_fix_interval": 3.0,
+                              "odometry_rate": 50.0, "navsatfix_rate": 5.0,
+                              "diagnostics_period": 0.5, "fix_pose_frame": "base_link"})
+    client = SpinningNode("ekf_test_client")
+    node = client.node
+    rec = Recorder(node)
+    pubs = {
+        "imu": node.create_publisher(Imu, "/imu/data", 1000),
+        "gnss": node.create_publisher(NavSatFix, "/gnss/fix", 100),
+        "fix": node.create_publisher(PvaFix, "/nav/pva_fix", 100),
+        "baro": node.create_publisher(FluidPressure, "/baro/pressure", 100),
+        "tile": node.create_publisher(DemTile, "/metamap/tile", LATCHED_QOS),
+    }
+    # A tiny latched tile carrying the mission's ENU origin (the metamap's role).
+    pubs["tile"].publish(cv.dem_tile_to_msg(
+        np.zeros((2, 2), np.float32), GeoReference(0.0, 0.0, 10.0, 2, 2),
+        Header(frame_id="map"), (ORIGIN.lat, ORIGIN.lon, ORIGIN.alt)))
+    assert wait_until(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 20), \
+        "ekf subscriptions never appeared"
+    assert wait_until(lambda: rec.diag, 10), "no diagnostics"
+
+    def publish(t, kind, k, replay=False):
+        if kind == 0:
+            if k == "nan":
+                pubs["imu"].publish(cv.sample_to_imu(cv.make_header(_stamp(t), "base_link"),
+                                                     [math.nan, 0, 0], [0, 0, 9.8]))
+            else:
+                pubs["imu"].publish(cv.sample_to_imu(cv.make_header(_stamp(truth.t[k]),
+                                                                    "base_link"),
+                                                     imu.gyro[k], imu.accel[k]))
+        elif kind == 1:
+            p = truth.position[k] + rng.normal(0, [1.5, 1.5, 3.0])
+            lat, lon, h = ORIGIN.enu_to_geodetic(*p)
+            pubs["gnss"].publish(cv.arrays_to_navsatfix(
+                cv.make_header(_stamp(truth.t[k]), "gnss"), lat, lon, h,
+                np.diag([1.5**2, 1.5**2, 3.0**2])))
+        elif kind == 2:
+            cov = np.diag([400.0, 400.0, 400.0, -1, -1, -1])
+            if k == "non_pd":
+                k = int(truth.at(NON_PD_TIME))
+                cov = np.diag([400.0, -400.0, 400.0, -1, -1, -1])
+            p = truth.position[k] + rng.normal(0, 20.0, 3)
+            if not replay and any(abs(truth.t[k] - o) < 1e-6 for o in OUTLIER_TIMES):
+                p[:2] += 500.0 * np.array([0.6, -0.8])
+            pubs["fix"].publish(cv.arrays_to_pva_fix(
+                cv.make_header(_stamp(truth.t[k]), "map"), PvaFix.STATUS_POSITION, p,
+                [0, 0, 0, 1], cov))
+        else:
+            alt = truth.position[k, 2] + 250.0 + rng.normal(0, 1.5)
+            pubs["baro"].publish(FluidPressure(
+                header=cv.make_header(_stamp(truth.t[k]), "baro"),
+                fluid_pressure=float(altitude_to_pressure(alt, DAY_PRESSURE)), variance=0.0))
+
+    def play(events, replay=False):
+        start = time.monotonic()
+        t_first = events[0][0]
+        for t, kind, k in events:
+            lag = (t - t_first) / SPEEDUP - (time.monotonic() - start)
+            if lag > 0.002:
+                time.sleep(lag)
+            publish(t, kind, k, replay)
+
+    play(_events(truth, imu, rng))
+    if not wait_until(lambda: rec.odom and _sec(rec.odom[-1].header.stamp) > truth.t[-1] - 0.05,
+                      10):
+        client.close()
+        last = rec.filter_status() if rec.diag else None
+        pytest.fail(f"odometry did not reach the end of the flight ({len(rec.odom)} msgs); "
+                    f"diagnostics {last}; log:\n{stop(proc)}")
+    n_before_loop = len(rec.odom)
+    time.sleep(1.2)                     # a diagnostics report of the finished flight
+    diag_flight = rec.filter_status()
+    # Bag loop: the first LOOP_S seconds again (GNSS re-initialises the filter), no outliers.
+    loop = [e for e in _events(truth, imu, rng) if e[0] <= LOOP_S and e[2] != "non_pd"]
+    play(loop, replay=True)
+    wait_until(lambda: rec.odom and _sec(rec.odom[-1].header.stamp) > LOOP_S - 0.5, 10)
+    time.sleep(1.2)
+    alive = proc.poll() is None
+    client.close()
+    log = stop(proc)
+    yield {"truth": truth, "imu": imu, "rec": rec, "log": log, "proc": proc, "alive": alive,
+           "n_before_loop": n_before_loop, "diag_flight": diag_flight}
+
+
+def _odometry(rec, msgs=None):
+    rows = [cv.odometry_to_state(m) for m in (msgs if msgs is not None else rec.odom)]
+    t = np.array([(cv.stamp_to_ns(m.header.stamp) - T0_NS) * 1e-9
+                  for m in (msgs if msgs is not None else rec.odom)])
+    return t, rows
+
+
+def test_converges_to_truth_and_rejects_outliers(flight):
+    truth, rec = flight["truth"], flight["rec"]
+    t, rows = _odometry(rec, rec.odom[:flight["n_before_loop"]])
+    k = truth.at(t)
+    pos = np.array([r[1] for r in rows])
+    err = pos - truth.position[k]
+    herr = np.hypot(err[:, 0], err[:, 1])
+    final = t > truth.t[-1] - 10.0
+    print(f"odometry: {len(t)} msgs, init at {t[0]:.2f} s; horizontal error max "
+          f"{herr.max():.2f} m, final-10s max {herr[final].max():.2f} m; vertical final "
+          f"max {np.abs(err[final, 2]).max():.2f} m")
+    assert t[0] < 4.0, "GNSS initialisation took too long"
+    # 50 Hz in filter time (from the first odometry to the end of the flight).
+    assert len(t) == pytest.approx((truth.t[-1] - t[0]) * 50, rel=0.05)
+    assert herr[final].max() < FINAL_HORIZONTAL_M
+    assert np.abs(err[final, 2]).max() < FINAL_VERTICAL_M
+    assert herr.max() < MAX_HORIZONTAL_AFTER_INIT_M, "an outlier pulled the estimate"
+    # Attitude within a degree or two of the truth at the end.
+    att = attitude_error(truth.quaternion[k[-1]], rows[-1][2])
+    assert np.degrees(np.linalg.norm(att)) < 2.0
+    # Reported covariance is plausible for the observed error (3 sigma, per axis).
+    P = rows[-1][3]
+    assert np.all(np.abs(err[-1]) < 3 * np.sqrt(np.diag(P)[:3]) + 1.0)
+
+    diag = flight["diag_flight"]
+    level, fix = diag["ekf: fix"]
+    assert int(fix["rejected"]) >= len(OUTLIER_TIMES), fix
+    n_fixes = int(60 / 2)
+    assert int(fix["accepted"]) + int(fix["rejected"]) >= n_fixes - 1
+    _, baro = diag["ekf: baro"]
+    assert int(baro["accepted"]) > 400, baro
+    _, filt = diag["ekf: filter"]
+    assert filt["initialized"] == "True"
+    # The offset learnt for ENU up from pressure altitude, against what was simulated:
+    # truth up = pressure altitude (day pressure) - 250 m.
+    assert math.isfinite(float(filt["baro_offset_m"]))
+    assert "rejected by the chi-square gate" in flight["log"]
+
+
+def test_twist_is_in_the_body_frame(flight):
+    truth, rec = flight["truth"], flight["rec"]
+    t, rows = _odometry(rec, rec.odom[:flight["n_before_loop"]])
+    k = truth.at(t)
+    lin = np.array([r[4] for r in rows])
+    v_body = np.einsum("nji,nj->ni", quat_to_matrix(truth.quaternion[k]), truth.velocity[k])
+    late = t > 15.0
+    np.testing.assert_allclose(lin[late], v_body[late], atol=1.0)
+    assert np.abs(lin[late, 0] - 30.0).max() < 1.0       # flying forward at 30 m/s
+    ang = np.array([r[5] for r in rows])
+    np.testing.assert_allclose(ang[late], truth.gyro[k][late], atol=0.01)
+    assert rec.odom[0].header.frame_id == "map" and rec.odom[0].child_frame_id == "base_link"
+
+
+def test_tf_and_navsatfix_match_odometry(flight):
+    rec = flight["rec"]
+    assert len(rec.tf) >= len(rec.odom) * 0.95
+    # The flight only: the bag loop repeats its stamps.
+    by_stamp = {cv.stamp_to_ns(m.header.stamp): m for m in rec.odom[:flight["n_before_loop"]]}
+    matched = 0
+    for msg in rec.tf[100:200]:
+        tf = msg.transforms[0]
+        assert (tf.header.frame_id, tf.child_frame_id) == ("map", "base_link")
+        odom = by_stamp.get(cv.stamp_to_ns(tf.header.stamp))
+        if odom is not None:
+            matched += 1
+            assert tf.transform.translation.x == odom.pose.pose.position.x
+    assert matched > 90
+    assert len(rec.navsat) > 100
+    fix = rec.navsat[len(rec.navsat) // 2]
+    odom = by_stamp[cv.stamp_to_ns(fix.header.stamp)]
+    east, north, up = ORIGIN.geodetic_to_enu(fix.latitude, fix.longitude, fix.altitude)
+    p = odom.pose.pose.position
+    assert (east, north, up) == pytest.approx((p.x, p.y, p.z), abs=1e-3)
+    cov = cv.covariance_to_array(fix.position_covariance, 3)
+    np.testing.assert_allclose(cov, cv.covariance_to_array(odom.pose.covariance, 6)[:3, :3])
+
+
+def test_bad_input_is_refused_and_the_node_survives(flight):
+    diag, log = flight["diag_flight"], flight["log"]
+    _, filt = diag["ekf: filter"]
+    assert int(filt["rejected_input/imu:non_finite_value"]) == 1
+    assert int(filt["rejected_input/fix:covariance_not_positive_definite"]) == 1
+    assert "imu refused: non_finite_value" in log
+    assert "fix refused: covariance_not_positive_definite" in log
+    assert flight["alive"], log
+    assert flight["proc"].returncode == 0, log
+    assert "Traceback" not in log
+
+
+def test_time_jump_backwards_resets_and_reinitialises(flight):
+    truth, rec = flight["truth"], flight["rec"]
+    after = rec.odom[flight["n_before_loop"]:]
+    assert after, "no odometry after the bag loop"
+    t, rows = _odometry(rec, after)
+    assert t.max() < LOOP_S + 0.1, "odometry after the loop carries the new stamps"
+    err = np.array([r[1] for r in rows]) - truth.position[truth.at(t)]
+    assert np.hypot(err[:, 0], err[:, 1]).max() < 15.0
+    _, filt = rec.filter_status()["ekf: filter"]
+    assert int(filt["resets"]) == 1
+    assert "time jumped back" in flight["log"]
