@@ -310,7 +310,7 @@ _NEXT_LUT = _next_lut()
 _RING5 = _ring_index5()
 
 
-def _walk(skel_p, code_p, junc_p, r0, c0, first, steps, skip=0):
+def _walk(skel_p, code_p, junc_p, r0, c0, first, steps, upto, skip=0):
     """Follow skeleton branches from (r0, c0) through neighbour ``first``, all at once.
 
     Works on the skeleton padded by one pixel (coordinates already shifted); ``code_p`` is
@@ -322,8 +322,11 @@ def _walk(skel_p, code_p, junc_p, r0, c0, first, steps, skip=0):
 
     Returns
     -------
-    path : (n, steps + 1, 2) int array
-        Pixels visited (row, col), the last one repeated after a stop.
+    tip : (n, 2) int array
+        Last pixel reached (row, col), padded coordinates.
+    direction : (n, 2) float array
+        Unit (d_row, d_col) of the branch: the mean offset of the walker at 1/3, 2/3 and 3/3
+        of ``upto`` steps (or of its tip, when the branch is shorter); NaN if none.
     length : (n,) int
         Steps taken.
     stop : (n,) int
@@ -332,67 +335,68 @@ def _walk(skel_p, code_p, junc_p, r0, c0, first, steps, skip=0):
     n = len(r0)
     dr, dc = _OFFS[:, 0], _OFFS[:, 1]
     sr, sc = np.asarray(r0, np.int64), np.asarray(c0, np.int64)
-    cr, cc = sr + dr[first], sc + dc[first]
-    path = np.empty((n, steps + 1, 2), np.int64)
-    path[:, 0, 0], path[:, 0, 1] = sr, sc
-    path[:, 1, 0], path[:, 1, 1] = cr, cc
+    tr, tc = sr + dr[first], sc + dc[first]          # tip (last pixel) of every walker
     length = np.ones(n, np.int64)
     stop = np.zeros(n, np.int8)
+    checkpoints = sorted({max(1, upto // 3), max(1, 2 * upto // 3), max(1, upto)})
+    acc = np.zeros((n, 2))
+    done = []
+
+    def record(t):
+        if t in checkpoints:
+            acc[:, 0] += tr - sr
+            acc[:, 1] += tc - sc
+            done.append(t)
+
+    record(1)
     # A branch leaving a junction may start on another junction pixel of the same cluster.
-    stop[junc_p[cr, cc] & ~junc_p[sr, sc]] = JUNCTION
+    stop[junc_p[tr, tc] & ~junc_p[sr, sc]] = JUNCTION
     act = np.flatnonzero(stop == 0)
-    if steps < 2 or len(act) == 0:
-        return path, length, stop
-    # Step 2 on the real neighbours, excluding the start's own neighbourhood.
-    cr, cc = cr[act], cc[act]
-    nr, nc = cr[:, None] + dr, cc[:, None] + dc                                # (m, 8)
-    cand = skel_p[nr, nc] & (np.maximum(np.abs(nr - sr[act, None]),
-                                        np.abs(nc - sc[act, None])) > 1)
-    score = np.where(cand, (nr - sr[act, None]) ** 2 + (nc - sc[act, None]) ** 2, 0)
-    k = score.argmax(1)
-    moved = score[np.arange(len(act)), k] > 0
-    stop[act[~moved]] = FREE_END
-    act, k, cr, cc = act[moved], k[moved], cr[moved], cc[moved]
-    # Ring index of the previous pixel (and the one before) seen from the current one.
-    frm = (k + 4) % 8
-    prev_rel = np.column_stack([sr[act] - cr, sc[act] - cc])           # start rel. to cur
-    cr, cc = cr + dr[k], cc + dc[k]
-    frm2 = _RING5[prev_rel[:, 0] - dr[k] + 2, prev_rel[:, 1] - dc[k] + 2] \
-        if len(act) else np.zeros(0, np.int8)
-    length[act] += 1
-    path[act, 2, 0], path[act, 2, 1] = cr, cc
-    for step in range(2, steps + 1):
-        hit = junc_p[cr, cc] & (np.maximum(np.abs(cr - sr[act]), np.abs(cc - sc[act])) > skip)
-        stop[act[hit]] = JUNCTION
-        if step == steps:
-            break
-        k = _NEXT_LUT[code_p[cr, cc], frm, frm2].astype(np.int64)
-        moved = (k >= 0) & ~hit
-        stop[act[(k < 0) & ~hit]] = FREE_END
-        act, k, cr, cc, frm = act[moved], k[moved], cr[moved], cc[moved], frm[moved]
-        if len(act) == 0:
-            break
-        # The previous pixel seen from the new one: old "from" offset minus the move.
-        frm2 = _RING5[dr[frm] - dr[k] + 2, dc[frm] - dc[k] + 2]
+    if steps >= 2 and len(act):
+        # Step 2 on the real neighbours, excluding the start's own neighbourhood.
+        cr, cc = tr[act], tc[act]
+        nr, nc = cr[:, None] + dr, cc[:, None] + dc                            # (m, 8)
+        cand = skel_p[nr, nc] & (np.maximum(np.abs(nr - sr[act, None]),
+                                            np.abs(nc - sc[act, None])) > 1)
+        score = np.where(cand, (nr - sr[act, None]) ** 2 + (nc - sc[act, None]) ** 2, 0)
+        k = score.argmax(1)
+        moved = score[np.arange(len(act)), k] > 0
+        stop[act[~moved]] = FREE_END
+        act, k, cr, cc = act[moved], k[moved], cr[moved], cc[moved]
+        # Ring index of the previous pixel (and the one before) seen from the current one.
         frm = (k + 4) % 8
+        frm2 = _RING5[sr[act] - cr - dr[k] + 2, sc[act] - cc - dc[k] + 2]
         cr, cc = cr + dr[k], cc + dc[k]
         length[act] += 1
-        path[act, step + 1, 0], path[act, step + 1, 1] = cr, cc
-    # Repeat each walker's last pixel after it stopped.
-    idx = np.minimum(np.arange(steps + 1)[None, :], length[:, None])
-    return np.take_along_axis(path, idx[..., None], axis=1), length, stop
-
-
-def _direction(path, length, upto):
-    """Unit (d_row, d_col) of a traced branch: mean offset of its outer two thirds."""
-    k = np.arange(path.shape[1])[None, :]
-    last = np.minimum(length, upto)[:, None]
-    w = ((k >= np.maximum(last // 3, 1)) & (k <= last)).astype(float)
-    off = (path - path[:, :1]).astype(float)
-    v = (off * w[..., None]).sum(1)
-    norm = np.hypot(v[:, 0], v[:, 1])
-    v[norm == 0] = np.nan
-    return v / np.where(norm == 0, 1.0, norm)[:, None]
+        tr[act], tc[act] = cr, cc
+        record(2)
+        for step in range(2, steps + 1):
+            hit = junc_p[cr, cc] & (np.maximum(np.abs(cr - sr[act]),
+                                               np.abs(cc - sc[act])) > skip)
+            stop[act[hit]] = JUNCTION
+            if step == steps:
+                break
+            k = _NEXT_LUT[code_p[cr, cc], frm, frm2].astype(np.int64)
+            moved = (k >= 0) & ~hit
+            stop[act[(k < 0) & ~hit]] = FREE_END
+            act, k, cr, cc, frm = act[moved], k[moved], cr[moved], cc[moved], frm[moved]
+            if len(act) == 0:
+                break
+            # The previous pixel seen from the new one: old "from" offset minus the move.
+            frm2 = _RING5[dr[frm] - dr[k] + 2, dc[frm] - dc[k] + 2]
+            frm = (k + 4) % 8
+            cr, cc = cr + dr[k], cc + dc[k]
+            length[act] += 1
+            tr[act], tc[act] = cr, cc
+            record(step + 1)
+    for t in checkpoints:  # walkers that stopped early count their tip
+        if t not in done:
+            acc[:, 0] += tr - sr
+            acc[:, 1] += tc - sc
+    norm = np.hypot(acc[:, 0], acc[:, 1])
+    direction = acc / np.where(norm == 0, 1.0, norm)[:, None]
+    direction[norm == 0] = np.nan
+    return np.column_stack([tr, tc]), direction, length, stop
 
 
 def _enu_angle(vec):
@@ -436,9 +440,9 @@ def _trace_minutiae(skel, cn, c: _Candidates, p: MinutiaParams):
     L = p.trace_length
     if len(end):
         steps = max(L, p.spur_length, p.min_crease_length)
-        path, length, stop = _walk(skel_p, code_p, junc_p, c.row[end] + 1, c.col[end] + 1,
-                                   starts[end, 0], steps)
-        traced[end] = _enu_angle(_direction(path, length, L))
+        _, vec, length, stop = _walk(skel_p, code_p, junc_p, c.row[end] + 1,
+                                     c.col[end] + 1, starts[end, 0], steps, L)
+        traced[end] = _enu_angle(vec)
         support[end] = np.minimum(length, L) / L
         spur = (stop == JUNCTION) & (length < p.spur_length)
         short = (stop == FREE_END) & (length < p.min_crease_length)
@@ -454,12 +458,13 @@ def _trace_minutiae(skel, cn, c: _Candidates, p: MinutiaParams):
             has = starts[bif, j] >= 0
             if not has.any():
                 continue
-            path, length, stop = _walk(skel_p, code_p, junc_p, c.row[bif[has]] + 1,
-                                       c.col[bif[has]] + 1, starts[bif[has], j], steps, 2)
-            ang[has, j] = _enu_angle(_direction(path, length, steps))
+            tip, vec, length, stop = _walk(skel_p, code_p, junc_p, c.row[bif[has]] + 1,
+                                           c.col[bif[has]] + 1, starts[bif[has], j], steps,
+                                           steps, 2)
+            ang[has, j] = _enu_angle(vec)
             lens[has, j] = length
             free_short[has, j] = (stop == FREE_END) & (length < p.spur_length)
-            tips[has, j] = path[np.arange(len(length)), length]
+            tips[has, j] = tip
         traced[bif] = _stem_direction(ang)
         support[bif] = np.minimum(lens.min(1), steps) / steps
         n_short = free_short.sum(1)
@@ -581,6 +586,9 @@ def _minutiae_of_skeleton(skel, cres: CreaseResult, phi, dist_border, cp: Crease
                           p: MinutiaParams):
     cn = crossing_number(skel)
     rows, cols = np.nonzero((cn == 1) | (cn == 3))
+    # Minutiae near the border or nodata are dropped anyway: do not trace them.
+    inside = dist_border[rows, cols] >= p.border_margin
+    rows, cols = rows[inside], cols[inside]
     kind = cn[rows, cols].copy()
     c = _Candidates(rows, cols, kind)
     n = len(rows)
@@ -596,7 +604,6 @@ def _minutiae_of_skeleton(skel, cres: CreaseResult, phi, dist_border, cp: Crease
     snr = np.abs(cres.contrast[rows, cols]) / max(cres.noise, 1e-12)
     q_snr = 1.0 - np.exp(-snr / (4.0 * max(cp.contrast_snr, 1.0)))
     c.quality = (np.hypot(phx, phy) * q_snr * support).astype(float)
-    c.keep &= dist_border[rows, cols] >= p.border_margin
     c.keep &= ~np.isnan(c.angle)
     _drop_broken_pairs(c, p)
     _drop_duplicates_and_clusters(c, p)
