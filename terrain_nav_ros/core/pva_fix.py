@@ -8,7 +8,10 @@ Two ways, matching the two kinds of camera minutiae the pipeline can produce:
   the prior put under the camera to where it really is, which moves the camera by the same
   amount; its rotation corrects the heading and, when a scale was estimated, its scale
   corrects the height above ground. Covariance: the registration's (from the pairing
-  residuals), the GSD quantisation and the landmark's own georeferencing error.
+  residuals), the GSD quantisation and the landmark's own georeferencing error. Limitation:
+  on a ground-plane projection a tilt error ``d`` at height ``H`` shifts the image by about
+  ``H * d``, which this path reports as position; add the prior attitude uncertainty times
+  ``H`` to the position covariance, or use the PnP path when the attitude prior is weak.
 * :func:`fix_from_pnp`: the camera minutiae are also known in raw image pixels; the paired
   landmark minutiae become 3-D points with DEM heights and ``cv2.solvePnP`` (RANSAC, then
   Levenberg-Marquardt from the prior) gives the full camera pose. Covariance: Gauss-Newton
