@@ -631,7 +631,9 @@ def crease_mask(creaseness, contrast, noise: float, params: CreaseParams,
     # One labelling for both tests. Hysteresis: weak creases survive where connected to
     # strong ones, which closes the gaps MLSEC leaves at confluences (ambiguous flow
     # direction); and components must have min_area pixels.
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.view(np.uint8), connectivity=8)
+    # Block-based labelling (BBDT) is the fastest OpenCV offers for 8-connectivity.
+    n, labels, stats, _ = cv2.connectedComponentsWithStatsWithAlgorithm(
+        mask.view(np.uint8), 8, cv2.CV_32S, cv2.CCL_BBDT)
     keep = stats[:, cv2.CC_STAT_AREA] >= params.min_area
     if params.threshold_low < params.threshold:
         seeded = np.zeros(n, bool)
