@@ -172,6 +172,7 @@ class CameraIngestNode(Node):
         out = cv.geo_image_to_msg(ground.image, georef, cv.make_header(header.stamp,
                                                                        self.frame_id),
                                   ground.valid, self.tile_origin)
+        cv.set_projection(out, camera.position, camera.rotation, plane)
         self.pub.publish(out)
         self.published += 1
 

@@ -336,6 +336,37 @@ def msg_to_geo_image(msg: GeoImage) -> tuple[np.ndarray, GeoReference, np.ndarra
     return image, georef, mask
 
 
+def set_projection(msg, position, r_enu_optical, plane_height: float) -> None:
+    """Record on a GeoImage/MinutiaArray the camera pose and plane a ground image came from."""
+    from scipy.spatial.transform import Rotation
+
+    q = Rotation.from_matrix(np.asarray(r_enu_optical, float)).as_quat()
+    msg.projected = True
+    pose = msg.projection_pose
+    pose.position.x, pose.position.y, pose.position.z = map(float, position)
+    pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = map(
+        float, q)
+    msg.projection_plane_height = float(plane_height)
+
+
+def get_projection(msg) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """(camera position, optical->ENU rotation, plane height) of a projected image, or None."""
+    if not msg.projected:
+        return None
+    from scipy.spatial.transform import Rotation
+
+    p, q = msg.projection_pose.position, msg.projection_pose.orientation
+    rotation = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+    return np.array([p.x, p.y, p.z]), rotation, float(msg.projection_plane_height)
+
+
+def copy_projection(source, target) -> None:
+    """Carry the projection fields from a GeoImage to the MinutiaArray made from it."""
+    target.projected = source.projected
+    target.projection_pose = source.projection_pose
+    target.projection_plane_height = source.projection_plane_height
+
+
 # ---------------------------------------------------------------------------------------------
 # Minutiae
 # ---------------------------------------------------------------------------------------------

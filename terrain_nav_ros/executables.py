@@ -10,6 +10,7 @@ NODES = {
     "bag_player": "terrain_nav_ros.bag_player_node:main",
     "bag_recorder": "terrain_nav_ros.bag_recorder_node:main",
     "camera_ingest": "terrain_nav_ros.camera_ingest_node:main",
+    "feature_extractor": "terrain_nav_ros.feature_extractor_node:main",
     "metamap": "terrain_nav_ros.metamap_node:main",
     "landmark_renderer": "terrain_nav_ros.landmark_renderer_node:main",
     "ekf": "terrain_nav_ros.ekf_node:main",

@@ -196,3 +196,20 @@ def test_diagnostic_status_round_trip():
     level, values = cv.diagnostic_values(status)
     assert level == 1 and status.name == "ekf: filter" and status.message == "no fix"
     assert values == {"nis": "3.14159", "n": "7", "ok": "True", "text": "a b"}
+
+
+def test_projection_fields_round_trip():
+    from scipy.spatial.transform import Rotation
+
+    from terrain_nav_msgs.msg import GeoImage, MinutiaArray
+
+    r = Rotation.from_euler("xyz", [170, 5, 30], degrees=True).as_matrix()
+    msg = GeoImage()
+    assert cv.get_projection(msg) is None
+    cv.set_projection(msg, [1.0, 2.0, 3000.0], r, 450.0)
+    out = MinutiaArray()
+    cv.copy_projection(msg, out)
+    position, rotation, plane = cv.get_projection(out)
+    np.testing.assert_allclose(position, [1, 2, 3000])
+    np.testing.assert_allclose(rotation, r, atol=1e-12)
+    assert plane == 450.0

@@ -1,0 +1,96 @@
+"""feature_extractor: drainage-pattern minutiae of camera and landmark images (dissertation ch. 3).
+
+Subscribes to the ground-projected camera frames (``/camera/image_ground``) and the rendered
+landmarks (``/landmark/image``, latched), both ``terrain_nav_msgs/GeoImage``; publishes their
+minutiae as ``MinutiaArray`` on ``/camera/minutiae`` and ``/landmark/minutiae`` (latched), with
+the source georeference, and the crease images on ``/camera/creases`` and
+``/landmark/creases`` for debugging. An image with no drainage (flat, lake, cloud) yields an
+empty array whose ``reason`` says so.
+
+Parameters are the fields of :class:`~.core.creases.CreaseParams` (``crease.*``, Table 3.1)
+and :class:`~.core.minutiae.MinutiaParams` (``minutia.*``); a change is validated by those
+classes and refused with their message when invalid.
+"""
+
+from __future__ import annotations
+
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.node import Node
+from sensor_msgs.msg import Image
+
+from terrain_nav_msgs.msg import GeoImage, MinutiaArray
+
+from . import conversions as cv
+from .core.creases import CreaseParams
+from .core.minutiae import FeatureExtractor, MinutiaParams
+from .ros_common import (
+    LATCHED_QOS,
+    RELIABLE_QOS,
+    declare,
+    declare_settings,
+    run,
+    settings_from_parameters,
+)
+
+
+class FeatureExtractorNode(Node):
+    """Creases and minutiae for both image streams, with one set of settings."""
+
+    def __init__(self):
+        super().__init__("feature_extractor")
+        declare_settings(self, "crease", CreaseParams())
+        declare_settings(self, "minutia", MinutiaParams())
+        self.publish_creases = declare(self, "publish_creases", True,
+                                       "publish the crease images on the debug topics")
+        self.extractor = self._build()
+        self.add_on_set_parameters_callback(self.on_set_parameters)
+        self.outputs = {}
+        for name, source, qos in (("camera", MinutiaArray.SOURCE_CAMERA, RELIABLE_QOS),
+                                  ("landmark", MinutiaArray.SOURCE_LANDMARK, LATCHED_QOS)):
+            self.outputs[name] = (
+                self.create_publisher(MinutiaArray, f"/{name}/minutiae", qos),
+                self.create_publisher(Image, f"/{name}/creases", qos), source)
+        self.create_subscription(GeoImage, "/camera/image_ground",
+                                 lambda m: self.on_image(m, "camera"), RELIABLE_QOS)
+        self.create_subscription(GeoImage, "/landmark/image",
+                                 lambda m: self.on_image(m, "landmark"), LATCHED_QOS)
+
+    def _build(self, overrides=None) -> FeatureExtractor:
+        return FeatureExtractor(
+            settings_from_parameters(self, "crease", CreaseParams(), overrides),
+            settings_from_parameters(self, "minutia", MinutiaParams(), overrides))
+
+    def on_set_parameters(self, params) -> SetParametersResult:
+        """Validate a change with the core's own checks before accepting it."""
+        try:
+            self.extractor = self._build(params)
+        except (ValueError, TypeError) as err:
+            return SetParametersResult(successful=False, reason=str(err))
+        return SetParametersResult(successful=True)
+
+    def on_image(self, msg: GeoImage, stream: str) -> None:
+        try:
+            image, georef, valid = cv.msg_to_geo_image(msg)
+        except cv.ConversionError as err:
+            self.get_logger().error(f"{stream} image ignored: {err}")
+            return
+        features = self.extractor(image, georef, valid)
+        minutiae_pub, crease_pub, source = self.outputs[stream]
+        origin = cv.enu_origin_of(msg.georef)
+        out = cv.minutiae_to_msg(features.minutiae, msg.header, source, origin,
+                                 msg.georef.source_crs)
+        cv.copy_projection(msg, out)
+        minutiae_pub.publish(out)
+        if self.publish_creases:
+            crease_pub.publish(cv.array_to_image(features.crease_image(), "mono8", msg.header))
+        if features.minutiae.reason:
+            self.get_logger().info(f"{stream}: no minutiae ({features.minutiae.reason})",
+                                   throttle_duration_sec=5.0)
+
+
+def main(args=None):
+    return run(FeatureExtractorNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
