@@ -286,3 +286,17 @@ def test_hillshade_lambert_and_relief_from_shading():
         relief = relief_from_shading(hillshade(hills, az, el, dtype=np.uint8), az, el)
         # Hills and hollows come back with the right sign (what runs towards the sun is lost).
         assert np.corrcoef(relief.ravel(), hills.ravel())[0, 1] > 0.6
+
+
+def test_fused_orientation_matches_the_reference(monkeypatch):
+    from terrain_nav_ros.core import _crease_kernels
+    from terrain_nav_ros.core.minutiae import doubled_angle_field
+
+    if not _crease_kernels.HAVE_NUMBA:
+        pytest.skip("numba not installed: the reference path is the only one")
+    img = valley_image(Y_SEGMENTS, n=96).astype(np.float32)
+    img += np.random.default_rng(9).normal(0, 3, img.shape).astype(np.float32)
+    fused = doubled_angle_field(img)
+    monkeypatch.setattr(_crease_kernels, "HAVE_NUMBA", False)
+    ref = doubled_angle_field(img)
+    assert np.allclose(fused[0], ref[0], atol=1e-4) and np.allclose(fused[1], ref[1], atol=1e-4)

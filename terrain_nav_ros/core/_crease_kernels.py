@@ -243,3 +243,34 @@ def contrast_kernel(sm, scale, out):  # pragma: no cover - compiled
             s = np.sqrt(d * d + f(4.0) * xy * xy)
             sg = f(1.0) if t > 0 else (f(-1.0) if t < 0 else f(0.0))
             o[j] = f(0.5) * scale * (t + sg * s)
+
+
+@njit(**_JIT)
+def sobel_products_kernel(img, pxy, pdd):  # pragma: no cover - compiled
+    """Sobel gradients (OpenCV's default BORDER_REFLECT_101) -> gx*gy and gx^2 - gy^2."""
+    f = np.float32
+    rows, cols = img.shape
+    for i in range(rows):
+        im = 1 if i == 0 else i - 1
+        ip = rows - 2 if i == rows - 1 else i + 1
+        r0, rm, rp = img[i], img[im], img[ip]
+        oxy, odd = pxy[i], pdd[i]
+        for j in range(cols):
+            jm = 1 if j == 0 else j - 1
+            jp = cols - 2 if j == cols - 1 else j + 1
+            gx = (rm[jp] - rm[jm]) + f(2.0) * (r0[jp] - r0[jm]) + (rp[jp] - rp[jm])
+            gy = (rp[jm] - rm[jm]) + f(2.0) * (rp[j] - rm[j]) + (rp[jp] - rm[jp])
+            oxy[j] = gx * gy
+            odd[j] = gx * gx - gy * gy
+
+
+@njit(**_JIT)
+def doubled_angle_kernel(sxy, sdd, phx, phy):  # pragma: no cover - compiled
+    """Unit doubled-angle vector of the crease (gradient + 90 deg, North-up)."""
+    f = np.float32
+    a, b = sxy.reshape(-1), sdd.reshape(-1)
+    ox, oy = phx.reshape(-1), phy.reshape(-1)
+    for k in range(a.size):
+        norm = max(np.sqrt(b[k] * b[k] + f(4.0) * a[k] * a[k]), f(1e-30))
+        ox[k] = -b[k] / norm
+        oy[k] = f(2.0) * a[k] / norm
