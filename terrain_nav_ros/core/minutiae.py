@@ -425,7 +425,7 @@ def _stem_direction(ang):
     return out
 
 
-def _trace_minutiae(skel, cn, c: _Candidates, p: MinutiaParams):
+def _trace_minutiae(skel_p, code_p, cn_p, c: _Candidates, p: MinutiaParams):
     """Trace the branches of every candidate; set directions, support and spur decisions.
 
     * Ending: one branch. Reaching a junction within ``spur_length`` makes it a spur (the
@@ -439,9 +439,7 @@ def _trace_minutiae(skel, cn, c: _Candidates, p: MinutiaParams):
     Returns the traced ENU angle and the support (traced length / trace length, <= 1).
     """
     n = len(c.row)
-    skel_p = np.pad(skel, 1)
-    junc_p = np.pad(cn >= 3, 1)
-    code_p = np.pad(_neighbour_code(skel), 1)
+    junc_p = cn_p >= 3
     starts = _START_LUT[code_p[c.row + 1, c.col + 1]]
     traced = np.full(n, np.nan)
     support = np.zeros(n)
@@ -551,10 +549,19 @@ def _drop_duplicates_and_clusters(c: _Candidates, p: MinutiaParams):
             c.keep[worse] = False
 
 
-def _border_distance(valid: np.ndarray) -> np.ndarray:
-    """Distance (px) of every pixel to the nearest invalid pixel or the image outside."""
+def _border_distance(valid: np.ndarray):
+    """Distance (px) to the nearest invalid pixel or the image outside, as a function of
+    (rows, cols): a distance transform only when there is nodata."""
+    if valid.all():
+        h, w = valid.shape
+
+        def dist(rows, cols):
+            return np.minimum(np.minimum(rows + 1, cols + 1), np.minimum(h - rows, w - cols))
+
+        return dist
     padded = np.pad(valid.astype(np.uint8), 1)
-    return cv2.distanceTransform(padded, cv2.DIST_L2, 3)[1:-1, 1:-1]
+    table = cv2.distanceTransform(padded, cv2.DIST_L2, 3)[1:-1, 1:-1]
+    return lambda rows, cols: table[rows, cols]
 
 
 # --------------------------------------------------------------------------- extraction
@@ -594,10 +601,16 @@ class Features:
 
 def _minutiae_of_skeleton(skel, cres: CreaseResult, phi, dist_border, cp: CreaseParams,
                           p: MinutiaParams):
-    cn = crossing_number(skel)
+    # Skeleton, neighbour codes and crossing numbers with a one-pixel frame, so walkers
+    # never index outside.
+    skel_p = np.pad(skel, 1)
+    code_p = _neighbour_code(skel_p)
+    cn_p = _CN_LUT[code_p]
+    cn_p[~skel_p] = 0
+    cn = cn_p[1:-1, 1:-1]
     rows, cols = np.nonzero((cn == 1) | (cn == 3))
     # Minutiae near the border or nodata are dropped anyway: do not trace them.
-    inside = dist_border[rows, cols] >= p.border_margin
+    inside = dist_border(rows, cols) >= p.border_margin
     rows, cols = rows[inside], cols[inside]
     kind = cn[rows, cols].copy()
     c = _Candidates(rows, cols, kind)
@@ -606,7 +619,7 @@ def _minutiae_of_skeleton(skel, cres: CreaseResult, phi, dist_border, cp: Crease
     if n == 0:
         c.angle = c.quality = np.zeros(0)
         return c
-    traced, support = _trace_minutiae(skel, cn, c, p)
+    traced, support = _trace_minutiae(skel_p, code_p, cn_p, c, p)
     phx, phy = phi[0][rows, cols].astype(float), phi[1][rows, cols].astype(float)
     field_a = np.mod(0.5 * np.arctan2(phy, phx), np.pi)
     c.angle = _combine_angles(field_a, traced, p)
