@@ -13,6 +13,7 @@ NODES = {
     "feature_extractor": "terrain_nav_ros.feature_extractor_node:main",
     "metamap": "terrain_nav_ros.metamap_node:main",
     "landmark_renderer": "terrain_nav_ros.landmark_renderer_node:main",
+    "matcher": "terrain_nav_ros.matcher_node:main",
     "ekf": "terrain_nav_ros.ekf_node:main",
 }
 

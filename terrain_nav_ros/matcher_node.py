@@ -1,0 +1,174 @@
+"""matcher: terrain recognition by minutiae and the PVA fix (dissertation chapter 4).
+
+Subscribes to the camera minutiae (``/camera/minutiae``, from ground-projected frames) and the
+landmark minutiae (``/landmark/minutiae``, latched, one set per rendered DEM tile). Each camera
+set is localised in the landmark set whose region holds it (:mod:`.core.matching`); a match
+above the calibrated significance threshold becomes a position fix
+(:func:`.core.pva_fix.fix_from_ground_match`), published as ``terrain_nav_msgs/PvaFix`` on
+``/nav/pva_fix`` with its covariance, similarity and pairings. Every camera set gets an answer:
+when there is no fix the message has ``status = STATUS_NO_FIX`` and the reason.
+
+The fix is the aircraft (``base_link``) pose: the camera's lever arm (centimetres) is
+neglected, its attitude is the prior's turned back through the camera mount, and only the
+position is measured (``STATUS_POSITION``, rotation covariance -1).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+from rclpy.node import Node
+from scipy.spatial.transform import Rotation
+
+from terrain_nav_msgs.msg import MinutiaArray, PvaFix
+
+from . import conversions as cv
+from .core.camera_mount import mount_rotation
+from .core.geodesy import EnuOrigin
+from .core.matching import Matcher, MatchParams
+from .core.pva_fix import PvaFixEstimate, fix_from_ground_match, velocity_from_fixes
+from .ros_common import (
+    LATCHED_QOS,
+    RELIABLE_QOS,
+    declare,
+    declare_settings,
+    reject_all_changes,
+    run,
+    settings_from_parameters,
+)
+
+
+class MatcherNode(Node):
+    """Localises camera minutiae in landmark minutiae and publishes fixes."""
+
+    def __init__(self):
+        super().__init__("matcher")
+        declare_settings(self, "match", MatchParams())
+        self.landmark_sigma = declare(self, "landmark_sigma", 5.0,
+                                      "horizontal georeferencing error of the DEM [m]",
+                                      min_value=0.0)
+        self.tilt_sigma = math.radians(declare(
+            self, "prior_tilt_sigma", 0.2,
+            "prior attitude error assumed by the ground projection [deg]; times the height "
+            "above ground it is added to the fix covariance", min_value=0.0))
+        self.velocity_gap = declare(self, "velocity_max_gap", 5.0,
+                                    "largest time between two fixes that give a velocity [s]",
+                                    min_value=0.0)
+        self.max_landmarks = declare(self, "max_landmarks", 4,
+                                     "landmark sets kept for pairing", min_value=1,
+                                     max_value=64)
+        mount = [math.radians(v) for v in declare(
+            self, "mount_rpy", [0.0, 0.0, 0.0],
+            "camera tilt from the nadir mount, roll/pitch/yaw about body FLU [deg]")]
+        self.frame_id = declare(self, "frame_id", "map", "frame of the fixes")
+        self.add_on_set_parameters_callback(reject_all_changes)
+        self.r_body_optical = mount_rotation(*mount)
+        self.matcher = Matcher(settings_from_parameters(self, "match", MatchParams()))
+        self.landmarks: deque = deque(maxlen=self.max_landmarks)
+        self.last_fix: tuple[float, np.ndarray, np.ndarray] | None = None
+        self.counts = {"fix": 0, "no_fix": 0}
+        self.pub = self.create_publisher(PvaFix, "/nav/pva_fix", RELIABLE_QOS)
+        self.create_subscription(MinutiaArray, "/landmark/minutiae", self.on_landmark,
+                                 LATCHED_QOS)
+        self.create_subscription(MinutiaArray, "/camera/minutiae", self.on_camera, RELIABLE_QOS)
+
+    def on_landmark(self, msg: MinutiaArray) -> None:
+        try:
+            minutiae = cv.msg_to_minutiae(msg)
+        except cv.ConversionError as err:
+            self.get_logger().error(f"landmark minutiae ignored: {err}")
+            return
+        index = self.matcher.index(minutiae) if len(minutiae) else None
+        self.landmarks.append((minutiae, index, cv.enu_origin_of(msg.georef)))
+        self.get_logger().info(f"landmark set with {len(minutiae)} minutiae "
+                               f"({minutiae.reason or 'ok'})")
+
+    def _landmark_for(self, east: float, north: float):
+        """Newest landmark set whose region holds the point."""
+        for minutiae, index, origin in reversed(self.landmarks):
+            if minutiae.georef.contains(east, north):
+                return minutiae, index, origin
+        return None
+
+    def on_camera(self, msg: MinutiaArray) -> None:
+        stamp = cv.stamp_to_sec(msg.header.stamp)
+        try:
+            camera = cv.msg_to_minutiae(msg)
+        except cv.ConversionError as err:
+            self.publish_no_fix(msg.header.stamp, f"bad camera minutiae: {err}")
+            return
+        projection = cv.get_projection(msg)
+        if projection is None:
+            self.publish_no_fix(msg.header.stamp, "camera minutiae carry no projection pose")
+            return
+        position, rotation, plane = projection
+        landmark = self._landmark_for(*camera.georef.centre)
+        if landmark is None:
+            self.publish_no_fix(msg.header.stamp, "no landmark covers the camera footprint")
+            return
+        if len(camera) == 0:
+            self.publish_no_fix(msg.header.stamp, f"no camera minutiae: {camera.reason}")
+            return
+        land_minutiae, land_index, origin = landmark
+        if land_index is None:
+            self.publish_no_fix(msg.header.stamp,
+                                f"no landmark minutiae: {land_minutiae.reason}")
+            return
+        result = self.matcher.localise(camera, land_index)
+        fix = fix_from_ground_match(result, camera.georef, land_minutiae.georef, position,
+                                    rotation, plane, landmark_sigma=self.landmark_sigma)
+        if not fix.valid:
+            self.publish_no_fix(msg.header.stamp, fix.reason, fix)
+            return
+        agl = position[2] - plane
+        fix.covariance[:2, :2] += np.eye(2) * (agl * self.tilt_sigma) ** 2
+        self.publish_fix(msg.header.stamp, stamp, fix, origin)
+
+    def publish_no_fix(self, stamp, reason: str, fix: PvaFixEstimate | None = None) -> None:
+        out = PvaFix(header=cv.make_header(stamp, self.frame_id),
+                     status=PvaFix.STATUS_NO_FIX, reason=reason)
+        if fix is not None:
+            out.similarity = float(fix.similarity) if math.isfinite(fix.similarity) else 0.0
+            out.num_pairings = fix.num_pairings
+            out.num_camera_minutiae = fix.num_camera_minutiae
+            out.num_landmark_minutiae = fix.num_landmark_minutiae
+        out.pose.covariance = cv.array_to_covariance(-np.eye(6))
+        self.pub.publish(out)
+        self.counts["no_fix"] += 1
+        self.get_logger().info(f"no fix: {reason}", throttle_duration_sec=2.0)
+
+    def publish_fix(self, stamp, stamp_s: float, fix: PvaFixEstimate, origin) -> None:
+        r_enu_body = fix.rotation @ self.r_body_optical.T
+        quaternion = Rotation.from_matrix(r_enu_body).as_quat()
+        out = PvaFix(header=cv.make_header(stamp, self.frame_id), status=fix.status,
+                     reason=fix.reason, similarity=float(fix.similarity),
+                     num_pairings=fix.num_pairings,
+                     num_camera_minutiae=fix.num_camera_minutiae,
+                     num_landmark_minutiae=fix.num_landmark_minutiae,
+                     pose=cv.pose_with_covariance(fix.position, quaternion, fix.covariance))
+        lat, lon, alt = EnuOrigin(*origin).enu_to_geodetic(*fix.position)
+        out.latitude, out.longitude, out.altitude = float(lat), float(lon), float(alt)
+        if self.last_fix is not None and 0 < stamp_s - self.last_fix[0] <= self.velocity_gap:
+            velocity, cov = velocity_from_fixes(self.last_fix[1], self.last_fix[2],
+                                                self.last_fix[0], fix.position,
+                                                fix.covariance, stamp_s)
+            out.velocity_valid = True
+            out.velocity.x, out.velocity.y, out.velocity.z = map(float, velocity)
+            out.velocity_covariance = cov.ravel()
+        self.last_fix = (stamp_s, fix.position.copy(), fix.covariance.copy())
+        self.pub.publish(out)
+        self.counts["fix"] += 1
+        sigma = math.sqrt(max(fix.covariance[0, 0] + fix.covariance[1, 1], 0.0))
+        self.get_logger().info(
+            f"fix ({fix.position[0]:.0f}, {fix.position[1]:.0f}) m +- {sigma:.0f} m, "
+            f"{fix.num_pairings} pairings, score {fix.similarity:.1f}")
+
+
+def main(args=None):
+    return run(MatcherNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,74 @@
+"""matcher node: a camera minutiae set projected with a wrong prior position is localised in
+the landmark set and the fix lands on the true position; unmatchable sets get a no-fix reason."""
+
+import numpy as np
+from ros_helpers import SpinningNode, start_node, stop, wait_until
+from std_msgs.msg import Header
+from synthetic_minutiae import terrain_minutiae
+
+from terrain_nav_msgs.msg import MinutiaArray, PvaFix
+from terrain_nav_ros import conversions as cv
+from terrain_nav_ros.core.camera_mount import camera_rotation
+from terrain_nav_ros.core.georef import GeoReference
+from terrain_nav_ros.core.minutia_set import MinutiaSet
+from terrain_nav_ros.ros_common import LATCHED_QOS
+
+GSD = 10.0
+TRUE_XY = np.array([300.0, -200.0])
+PRIOR_ERROR = np.array([60.0, -40.0])  # the estimate the camera frame was projected with
+
+
+def _sets():
+    ms, _ = terrain_minutiae((512, 512), seed=5)
+    landmark_georef = GeoReference.centred(0.0, 0.0, GSD, 512, 512)
+    landmark = MinutiaSet(ms.col, ms.row, ms.angle, ms.kind, np.ones(len(ms)),
+                          georef=landmark_georef)
+    # The camera ground image: a 200 x 200 px window around the prior position, in which every
+    # ground feature appears shifted by the prior's error.
+    prior = TRUE_XY + PRIOR_ERROR
+    camera_georef = GeoReference.centred(*prior, GSD, 200, 200)
+    east, north = landmark.enu()
+    col, row = camera_georef.enu_to_pixel(east + PRIOR_ERROR[0], north + PRIOR_ERROR[1])
+    inside = (col > 5) & (col < 194) & (row > 5) & (row < 194)
+    camera = MinutiaSet(col[inside], row[inside], ms.angle[inside], ms.kind[inside],
+                        np.ones(int(inside.sum())), georef=camera_georef)
+    return landmark, camera, prior
+
+
+def test_matcher_publishes_the_true_position_and_explains_no_fix():
+    node = start_node("matcher", {"prior_tilt_sigma": 0.0, "landmark_sigma": 0.0})
+    client = SpinningNode("matcher_client")
+    fixes = []
+    try:
+        n = client.node
+        n.create_subscription(PvaFix, "/nav/pva_fix", fixes.append, 10)
+        land_pub = n.create_publisher(MinutiaArray, "/landmark/minutiae", LATCHED_QOS)
+        cam_pub = n.create_publisher(MinutiaArray, "/camera/minutiae", 10)
+        landmark, camera, prior = _sets()
+        header = cv.make_header(5_000_000_000, "map")
+        land_pub.publish(cv.minutiae_to_msg(landmark, header, MinutiaArray.SOURCE_LANDMARK,
+                                            (36.5, -84.2, 0.0)))
+        cam_msg = cv.minutiae_to_msg(camera, header, MinutiaArray.SOURCE_CAMERA)
+        cv.set_projection(cam_msg, [*prior, 3000.0], camera_rotation([0, 0, 0, 1]), 500.0)
+        sparse = cv.minutiae_to_msg(camera.subset(np.arange(3)), header,
+                                    MinutiaArray.SOURCE_CAMERA)
+        cv.set_projection(sparse, [*prior, 3000.0], camera_rotation([0, 0, 0, 1]), 500.0)
+        assert wait_until(lambda: cam_pub.get_subscription_count() > 0, 20), stop(node)
+        assert wait_until(lambda: (cam_pub.publish(cam_msg), len(fixes) > 0)[1], 30, 0.5)
+        cam_pub.publish(sparse)
+        cam_pub.publish(cv.minutiae_to_msg(MinutiaSet.empty("no drainage: flat", camera.georef),
+                                           Header(frame_id="map"), MinutiaArray.SOURCE_CAMERA))
+        assert wait_until(lambda: len(fixes) >= 3, 20)
+        assert node.poll() is None
+    finally:
+        client.close()
+        log = stop(node)
+    fix = fixes[0]
+    assert fix.status == PvaFix.STATUS_POSITION, f"{fix.reason}\n{log}"
+    position = np.array([fix.pose.pose.position.x, fix.pose.pose.position.y])
+    np.testing.assert_allclose(position, TRUE_XY, atol=GSD / 2)
+    cov = cv.covariance_to_array(fix.pose.covariance, 6)
+    assert 0 < cov[0, 0] < GSD**2 and cov[3, 3] == -1
+    assert fix.num_pairings >= 10 and abs(fix.latitude - 36.5) < 0.01
+    no_fix = [f for f in fixes[1:] if f.status == PvaFix.STATUS_NO_FIX]
+    assert len(no_fix) >= 2 and all(f.reason for f in no_fix)
