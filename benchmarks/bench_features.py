@@ -39,6 +39,7 @@ from scipy.spatial import cKDTree  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from terrain_nav_ros.core import _crease_kernels as _kernels  # noqa: E402
 from terrain_nav_ros.core.creases import CreaseParams  # noqa: E402
 from terrain_nav_ros.core.georef import GeoReference  # noqa: E402
 from terrain_nav_ros.core.hillshade import hillshade, relief_from_shading  # noqa: E402
@@ -212,6 +213,19 @@ def configs():
     }
 
 
+def _without_numba(extractor):
+    """The extractor with the optional numba kernels switched off."""
+
+    def run(*args, **kwargs):
+        saved, _kernels.HAVE_NUMBA = _kernels.HAVE_NUMBA, False
+        try:
+            return extractor(*args, **kwargs)
+        finally:
+            _kernels.HAVE_NUMBA = saved
+
+    return run
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--no-timing", action="store_true")
@@ -223,10 +237,11 @@ def main(argv=None):
     print(f"# bench_features  (cv2 threads {cv2.getNumThreads()}, OMP threads "
           f"{os.environ['OMP_NUM_THREADS']})")
     if not args.no_timing:
-        extractors = {
-            "Table 3.1 (default)": FeatureExtractor(),
-            "tensor_update=5": FeatureExtractor(CreaseParams(tensor_update=5)),
-        }
+        extractors = {"Table 3.1, numba kernels" if _kernels.HAVE_NUMBA
+                      else "Table 3.1, OpenCV/numpy (numba not installed)": FeatureExtractor()}
+        if _kernels.HAVE_NUMBA:
+            extractors["Table 3.1, OpenCV/numpy reference path"] = _without_numba(
+                FeatureExtractor())
         timing(args.sizes, {512: 15, 1024: 7, 2048: 3}, extractors)
     if not args.no_repeatability:
         repeatability(configs())
