@@ -300,3 +300,14 @@ def test_fused_orientation_matches_the_reference(monkeypatch):
     monkeypatch.setattr(_crease_kernels, "HAVE_NUMBA", False)
     ref = doubled_angle_field(img)
     assert np.allclose(fused[0], ref[0], atol=1e-4) and np.allclose(fused[1], ref[1], atol=1e-4)
+
+
+def test_warm_up_compiles_every_kernel():
+    from terrain_nav_ros.core import _crease_kernels
+    from terrain_nav_ros.core.minutiae import warm_up
+
+    warm_up()
+    if _crease_kernels.HAVE_NUMBA:
+        kernels = [getattr(_crease_kernels, k) for k in dir(_crease_kernels)
+                   if k.endswith("_kernel")]
+        assert kernels and all(k.signatures for k in kernels)
