@@ -11,9 +11,12 @@
    field and give the crease direction (ending: along its crease; bifurcation: along the
    stem, the branch that is not part of the narrowest fork), their lengths reveal spurs;
 4. validation as fingerprint matchers do: margin to the image border and to nodata, spurs
-   (short branch from an ending to a junction: both dropped), short isolated creases, broken
-   creases (two facing endings close together), duplicates and dense clusters; a quality per
-   minutia and a cap on the count by quality.
+   (one short branch from a junction to a free end: the ending and the bifurcation go), blunt
+   crease ends (two short branches: one ending), short isolated creases, broken creases (two
+   facing endings close together), duplicates and dense clusters;
+5. a quality per minutia, ``coherence x (1 - exp(-SNR / (4 contrast_snr))) x support``: the
+   orientation coherence at the minutia, its crease contrast over the pixel noise and the
+   fraction of the trace length its branches actually run; and a cap on the count by quality.
 
 Angles follow :mod:`terrain_nav_ros.core.minutia_set`: radians from East towards North.
 """
