@@ -11,10 +11,19 @@ Pipeline, array in / arrays out, no ROS:
 3. :func:`mlsec_st`: MLSEC-ST creaseness of Lopez et al. (3.2.2): minus the divergence of the
    normalised dominant structure-tensor direction, with the 8-neighbour discrete divergence.
    Positive on ridges (bright lines), negative on valleys (dark lines).
-4. :func:`crease_mask` thresholds creaseness of one polarity where the crease contrast is
-   clearly above noise, cleans it, and :func:`skeletonize_creases` thins it.
+4. :func:`crease_mask` thresholds creaseness of one polarity (with hysteresis) where the
+   crease contrast (:func:`crease_contrast`, a depth-like Hessian measure) exceeds a multiple
+   of the estimated pixel noise, removes small components and fills small holes, and
+   :func:`skeletonize_creases` thins it. Too little skeleton means "no drainage": flat,
+   constant, lake, cloud or noise-only inputs give a reason instead of creases.
 
 :class:`CreaseDetector` runs the whole chain with a validated :class:`CreaseParams`.
+
+DEMs are processed directly (``source="dem"``): elevations divided by the GSD so that the
+gradient is the slope and eq. 3.1's normalisation is the surface curvature; the terrain's
+creases are the valleys of the elevation. When numba is installed the diffusion, MLSEC and
+contrast run on fused kernels (:mod:`._crease_kernels`), otherwise on OpenCV/numpy passes;
+both agree to float32 rounding.
 
 Axis convention: ``x`` is the column (East), ``y`` the row (South) index; every operator
 below is rotation invariant, so the choice only matters for the tensor components.
