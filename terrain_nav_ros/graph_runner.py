@@ -135,16 +135,20 @@ class GraphRunner:
         Seconds between SIGINT and SIGTERM, and between SIGTERM and SIGKILL, at shutdown.
     out : file
         Where the prefixed node output and the runner's reports go.
+    echo : callable(name, line) -> bool, optional
+        Which node output lines to copy to ``out`` (default all; the log files get all).
     """
 
     def __init__(self, spec: GraphSpec, extra_parameters: dict | None = None,
-                 log_dir: Path | None = None, grace: float = 5.0, out=None):
+                 log_dir: Path | None = None, grace: float = 5.0, out=None, echo=None):
         self.spec = spec
         self.extra_parameters = extra_parameters or {}
         self.log_dir = Path(log_dir) if log_dir else None
         self.grace = grace
         self.out = out or sys.stdout
+        self.echo = echo or (lambda _name, _line: True)
         self.procs: dict[str, subprocess.Popen] = {}
+        self.usage: dict[str, dict] = {}
         self.exit_codes: dict[str, int] = {}
         self.died: list[str] = []
         self._pumps: list[threading.Thread] = []
@@ -175,9 +179,10 @@ class GraphRunner:
         log = open(self.log_dir / f"{name}.log", "w") if self.log_dir else None  # noqa: SIM115
         try:
             for line in proc.stdout:
-                with self._lock:
-                    self.out.write(f"[{name}] {line}")
-                    self.out.flush()
+                if self.echo(name, line):
+                    with self._lock:
+                        self.out.write(f"[{name}] {line}")
+                        self.out.flush()
                 if log:
                     log.write(line)
         finally:
@@ -229,6 +234,25 @@ class GraphRunner:
                 self.report(f"NODE DIED: {name} ({how})")
                 self.died.append(name)
 
+    def sample_usage(self) -> None:
+        """Record CPU time and peak resident memory of every live node (psutil)."""
+        import psutil
+
+        for name, proc in self.procs.items():
+            if proc.poll() is not None:
+                continue
+            try:
+                p = psutil.Process(proc.pid)
+                cpu = p.cpu_times()
+                rss = p.memory_info().rss
+            except psutil.Error:
+                continue
+            entry = self.usage.setdefault(name, {"cpu_s": 0.0, "peak_rss_mb": 0.0,
+                                                 "started": time.monotonic()})
+            entry["cpu_s"] = cpu.user + cpu.system
+            entry["peak_rss_mb"] = max(entry["peak_rss_mb"], rss / 2**20)
+            entry["last"] = time.monotonic()
+
     def spin(self, duration: float | None = None, until_exit: str | None = None) -> int:
         """Watch the processes until a stop condition; return the graph's exit status.
 
@@ -238,7 +262,11 @@ class GraphRunner:
         """
         start = time.monotonic()
         status = 0
+        next_sample = start
         while not self._stop.is_set():
+            if time.monotonic() >= next_sample:
+                self.sample_usage()
+                next_sample += 1.0
             self._check_exits()
             required_dead = [n.name for n in self.spec.nodes if n.required and n.name in self.died]
             if required_dead:
