@@ -7,8 +7,8 @@ Reports (never asserts):
   with the share of each stage, on hillshades of the real SRTM tile N44E005;
 * repeatability on real DEMs (../shared/data/dem): the same patch shaded with the sun at
   az 315 / el 45 and at az 135 / el 30, and DEM-direct creases vs the shaded image, with
-  controls (DEM vs DEM + 1 m noise; sun elevation 45 vs 40 deg) that show the detector's own
-  stability. A
+  controls (DEM vs DEM + GSD/30 noise; sun elevation 45 vs 40 deg) that show the detector's
+  own stability. A
   minutia is repeated when the other set has one within 2 px and 20 deg (one-to-one, kinds
   ignored: a crease end seen with the opposite polarity can be a fork); the rate is
   matches / min(n_a, n_b) (Mikolajczyk's repeatability), also given as matches / mean.
@@ -153,7 +153,8 @@ PATCHES = [
 
 def repeatability(configs):
     print("\n## Repeatability across lighting (2 px, 20 deg; matches/min and matches/mean)")
-    print("Controls: DEM vs DEM + 1 m white noise; shade 315/45 vs 315/40 (5 deg elevation).")
+    print("Controls: DEM vs DEM + white noise of GSD/30 (1 m at 30 m); shade 315/45 vs "
+          "315/40 (5 deg elevation).")
     print("| settings | patch | n(315/45) | n(135/30) | 315/45 vs 135/30 | n(DEM) | "
           "DEM vs 315/45 | DEM vs 135/30 | control DEM+noise | control 315/40 |")
     print("|---|---|---|---|---|---|---|---|---|---|")
@@ -180,7 +181,8 @@ def repeatability(configs):
 
             a, b, a2 = ext(*SUN_A), ext(*SUN_B), ext(315.0, 40.0)
             d = ext_dem(dem, geo, valid, source="dem").minutiae
-            dn = ext_dem(dem + rng.normal(0.0, 1.0, dem.shape), geo, valid,
+            # Noise scaled to the grid: 1 m at 30 m GSD (SRTM's order of magnitude).
+            dn = ext_dem(dem + rng.normal(0.0, gsd / 30.0, dem.shape), geo, valid,
                          source="dem").minutiae
             r = [rates(a, b), rates(d, a), rates(d, b), rates(d, dn), rates(a, a2)]
             acc.append(r)
