@@ -8,10 +8,10 @@ Reports (never asserts):
 * repeatability on real DEMs (../shared/data/dem): the same patch shaded with the sun at
   az 315 / el 45 and at az 135 / el 30, and DEM-direct creases vs the shaded image, with
   controls (DEM vs DEM + GSD/30 noise; sun elevation 45 vs 40 deg) that show the detector's
-  own stability. A
-  minutia is repeated when the other set has one within 2 px and 20 deg (one-to-one, kinds
-  ignored: a crease end seen with the opposite polarity can be a fork); the rate is
-  matches / min(n_a, n_b) (Mikolajczyk's repeatability), also given as matches / mean.
+  own stability. A minutia is repeated when the other set has one within 2 px and 20 deg
+  (one-to-one, kinds ignored: a crease end seen with the opposite polarity can be a fork);
+  the rate is matches / min(n_a, n_b) (Mikolajczyk's repeatability), also given as
+  matches / mean.
 
 Usage::
 
