@@ -12,6 +12,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_GRAPH = REPO / "config" / "graph.yaml"
+DEFAULT_BAG = REPO / "bags" / "jacksboro_demo"
 
 
 def _cmd_graph(args) -> int:
@@ -69,6 +70,24 @@ def _cmd_bag_record(args) -> int:
     return _exec_node("bag_recorder", params)
 
 
+def _cmd_replay(args) -> int:
+    from .replay import run_replay
+
+    bag = Path(args.bag) if args.bag else DEFAULT_BAG
+    if not bag.exists():
+        print(f"terrain-nav: bag {bag} not found", file=sys.stderr)
+        return 2
+    out = Path(args.out) if args.out else REPO / "out" / f"replay-{bag.name}-{_now()}"
+    result = run_replay(bag, out, args.config, rate=args.rate, verbose=args.verbose)
+    return 0 if result["graph_status"] == 0 and not result["died"] else 1
+
+
+def _now() -> str:
+    import time
+
+    return time.strftime("%Y%m%d-%H%M%S")
+
+
 def _cmd_simulate(args) -> int:
     from dataclasses import fields
 
@@ -122,6 +141,17 @@ def build_parser() -> argparse.ArgumentParser:
     record.add_argument("--topics", nargs="+", help="only these topics (default: all)")
     record.add_argument("--exclude", nargs="+", help="never these topics")
     record.set_defaults(func=_cmd_bag_record)
+    for name, text in (("demo", "the main job: replay the default bag through the graph and "
+                                "report"), ("replay", "replay any bag through the graph and "
+                                                      "report (same as demo with --bag)")):
+        job = sub.add_parser(name, help=text)
+        job.add_argument("--bag", help=f"bag to replay (default {DEFAULT_BAG.relative_to(REPO)})")
+        job.add_argument("--out", help="output directory (default out/replay-<bag>-<time>)")
+        job.add_argument("--rate", type=float, default=1.0, help="playback speed factor")
+        job.add_argument("--config", type=Path, default=DEFAULT_GRAPH, help="graph YAML")
+        job.add_argument("--verbose", action="store_true", help="show all node output")
+        job.set_defaults(func=_cmd_replay)
+
     sim = sub.add_parser("simulate", help="simulate a flight over a DEM into an MCAP bag")
     sim.add_argument("-o", "--output", required=True, help="new bag directory")
     sim.add_argument("--dem", help="DEM file (default: the embedded Jacksboro DEM)")

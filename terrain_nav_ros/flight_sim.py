@@ -86,6 +86,7 @@ class SimConfig:
     baro_sigma: float = 10.0         # Pa (about 0.9 m)
     truth_rate: float = 50.0         # Hz
     seed: int = 1
+    landmark_gsd: float = 20.0       # m/px the replay's metamap and camera_ingest should use
     effects: CameraEffects = field(default_factory=CameraEffects)
 
 
@@ -114,7 +115,8 @@ def _open_metamap(cfg: SimConfig) -> tuple[MetaMap, str]:
 
 
 def fly(cfg: SimConfig, metamap: MetaMap):
-    """Truth trajectory over the terrain at ``agl`` above the highest point under the route."""
+    """Truth trajectory at ``agl`` above the highest point under the route, and the lowest
+    terrain height under the route (m)."""
     segs = _segments(cfg)
     truth = simulate_trajectory(segs, cfg.imu_rate, cfg.speed,
                                 (cfg.start_east, cfg.start_north, 0.0),
@@ -132,7 +134,8 @@ def fly(cfg: SimConfig, metamap: MetaMap):
         raise ValueError(f"the route leaves the DEM (ENU box {west:.0f}..{east:.0f} E, "
                          f"{south:.0f}..{north:.0f} N); move start_east/start_north")
     pos[:, 2] += float(np.nanmax(ground)) + cfg.agl
-    return type(truth)(truth.t, pos, vel, truth.quaternion, truth.gyro, truth.accel)
+    return (type(truth)(truth.t, pos, vel, truth.quaternion, truth.gyro, truth.accel),
+            float(np.nanmin(ground)))
 
 
 def pinhole(cfg: SimConfig) -> PinholeCamera:
@@ -252,7 +255,7 @@ def simulate(cfg: SimConfig, output: str | Path) -> dict:
     output = Path(output)
     rng = np.random.default_rng(cfg.seed)
     metamap, dem_name = _open_metamap(cfg)
-    truth = fly(cfg, metamap)
+    truth, ground_low = fly(cfg, metamap)
     t_ns = EPOCH_NS + np.rint(truth.t * 1e9).astype(np.int64)
     params = EkfParams()
     imu = simulate_imu(truth, ImuErrorModel.from_params(params), rng)
@@ -310,7 +313,11 @@ def simulate(cfg: SimConfig, output: str | Path) -> dict:
         "duration_s": float(truth.t[-1]), "camera_frames": len(frames) // 2,
         "gnss_denied_after_s": cfg.gnss_denied_after,
         "altitude_m": float(truth.position[0, 2]),
-        "camera_mount": "nadir", "config": _plain(asdict(cfg)),
+        "camera_mount": "nadir", "landmark_gsd": cfg.landmark_gsd,
+        # ground radius the camera sees from the cruise height (half-diagonal of the view)
+        "camera_footprint_radius": float((truth.position[:, 2].max() - ground_low)
+                                         * math.tan(math.radians(cfg.camera_hfov) / 2) * 1.3),
+        "config": _plain(asdict(cfg)),
     }
     (output / "mission.yaml").write_text(yaml.safe_dump(summary, sort_keys=False))
     return summary

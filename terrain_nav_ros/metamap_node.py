@@ -72,6 +72,9 @@ class MetamapNode(Node):
         )
         self.default_size = declare(self, "tile_size", 512, "default service tile size [px]",
                                     min_value=1, max_value=8192)
+        initial = declare(self, "initial_tile", True,
+                          "publish a tile around the ENU origin at start-up, before any "
+                          "odometry (lets the EKF learn the origin from it)")
         self.add_on_set_parameters_callback(reject_all_changes)
 
         dems = [open_dem(f) for f in dem_files(files)] if files else [sample_dem()]
@@ -88,6 +91,16 @@ class MetamapNode(Node):
         self.get_logger().info(
             f"loaded {', '.join(d.name for d in dems)}; ENU origin {o.lat:.6f}, {o.lon:.6f}; "
             f"native GSD {self.metamap.native_gsd:.1f} m")
+        if initial:
+            self._publish_initial_tile()
+
+    def _publish_initial_tile(self) -> None:
+        georef = self.policy.update((0.0, 0.0), (0.0, 0.0), np.zeros((2, 2)), self.gsd)
+        try:
+            self.tile_pub.publish(self._tile_msg(georef, self.get_clock().now().to_msg()))
+        except DemError as err:
+            self.policy.forget()
+            self.get_logger().warning(f"no initial tile at the origin: {err}")
 
     def _tile_msg(self, georef, stamp) -> DemTileMsg:
         tile = self.metamap.tile(georef)

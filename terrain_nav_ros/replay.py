@@ -1,0 +1,192 @@
+"""The main job: replay a bag through the whole node graph, record the outputs, report.
+
+Every node of ``config/graph.yaml`` runs in its own process over DDS with ``use_sim_time``;
+a ``bag_player`` publishes the bag (and ``/clock``) and a ``bag_recorder`` writes what the
+graph produces to ``<out>/outputs``. When the player has finished and the graph has drained,
+:mod:`.report` compares the outputs with the truth and writes ``report.txt``, ``report.yaml``
+and PNG plots into ``<out>``. Simulated bags carry a ``mission.yaml`` (DEM, ENU origin) that
+configures the metamap; bags recorded elsewhere use the parameter files as they are.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from . import bags, report
+from .graph_runner import GraphError, GraphRunner, NodeSpec, load_graph
+
+RECORDED_TOPICS = ["/nav/odometry", "/nav/pva_fix", "/nav/fix", "/nav/ekf/diagnostics",
+                   "/camera/image_ground", "/camera/minutiae", "/landmark/minutiae"]
+
+
+def _mission_parameters(bag: Path, mission: dict) -> dict[str, dict]:
+    """Per-node parameter overrides that make the graph match the bag."""
+    out: dict[str, dict] = {}
+    topics = {t.topic for t in bags.topics(bag)}
+    if "/camera/image_raw/compressed" in topics and "/camera/image_raw" not in topics:
+        out["camera_ingest"] = {"image_transport": "compressed"}
+    dem = str(mission.get("dem", ""))
+    metamap = {}
+    if dem and not dem.startswith("matplotlib:"):
+        metamap["dem_files"] = [dem]
+    origin = mission.get("origin")
+    if origin:
+        metamap.update(origin_latitude=float(origin[0]), origin_longitude=float(origin[1]),
+                       origin_altitude=float(origin[2]))
+    gsd = mission.get("landmark_gsd")
+    if gsd:
+        metamap["gsd"] = float(gsd)
+        out.setdefault("camera_ingest", {})["gsd"] = float(gsd)
+    if mission.get("camera_footprint_radius"):
+        metamap["camera_footprint_radius"] = float(mission["camera_footprint_radius"])
+    if metamap:
+        out["metamap"] = metamap
+    ekf = {}
+    if "/gnss/fix" in topics:
+        ekf["init_mode"] = "gnss"  # GNSS is there before the denial: start from it
+    if origin:
+        ekf.update(origin_latitude=float(origin[0]), origin_longitude=float(origin[1]),
+                   origin_altitude=float(origin[2]))
+    if ekf:
+        out["ekf"] = ekf
+    return out
+
+
+def _echo(name: str, line: str) -> bool:
+    """Show the player's progress and every warning or error; the rest goes to the logs."""
+    return name == "bag_player" or "[WARN]" in line or "[ERROR]" in line or "fatal" in line
+
+
+def run_replay(bag: str | Path, out_dir: str | Path, graph_config: str | Path,
+               rate: float = 1.0, drain: float = 5.0, startup_timeout: float = 60.0,
+               verbose: bool = False) -> dict:
+    """Replay ``bag`` through the graph; return the report's metrics (see :mod:`.report`)."""
+    bag, out_dir = Path(bag).resolve(), Path(out_dir).resolve()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    output_bag = out_dir / "outputs"
+    if output_bag.exists():
+        raise FileExistsError(f"{output_bag} exists: choose another --out directory")
+    mission = report.read_mission(bag)
+    spec = load_graph(graph_config)
+    overrides = _mission_parameters(bag, mission)
+    for node in spec.nodes:
+        node.parameters.update(overrides.get(node.name, {}))
+    input_topics = [t.topic for t in bags.topics(bag)]
+    wait_for = [t for t in ("/imu/data", "/camera/image_raw", "/camera/image_raw/compressed")
+                if t in input_topics]
+    spec.nodes.append(NodeSpec("bag_recorder", "bag_recorder", required=True, parameters={
+        "output": str(output_bag), "topics": RECORDED_TOPICS}))
+    spec.nodes.append(NodeSpec("bag_player", "bag_player", required=False, parameters={
+        "bag": str(bag), "rate": float(rate), "wait_for_topics": wait_for or [""],
+        "wait_timeout": 30.0, "start_delay": 2.0,
+        "topics": [t for t in input_topics if t != "/ground_truth/odometry"]}))
+    runner = GraphRunner(spec, {"use_sim_time": True}, log_dir=out_dir / "logs",
+                         echo=None if verbose else _echo)
+    duration = _bag_duration(bag)
+    runner.report(f"replaying {bag.name} ({duration:.0f} s at x{rate}) through "
+                  f"{len(spec.nodes) - 2} nodes; logs in {out_dir / 'logs'}")
+    started = time.monotonic()
+    status = 1
+    try:
+        runner.start()
+        runner.wait_until_up(startup_timeout)
+        status = runner.spin(duration=duration / rate + startup_timeout + 120.0,
+                             until_exit="bag_player")
+        if status == 0:
+            runner.report(f"bag finished after {time.monotonic() - started:.0f} s; "
+                          f"draining for {drain:.0f} s")
+            status = runner.spin(duration=drain)
+    except GraphError as err:
+        runner.report(str(err))
+    finally:
+        runner.sample_usage()
+        usage = {k: v for k, v in runner.usage.items()
+                 if k not in ("bag_player", "bag_recorder")}
+        codes = runner.shutdown()
+    died = [n for n, c in codes.items() if c not in (0, None) and n in runner.died]
+    if not output_bag.exists():
+        raise RuntimeError(f"the recorder wrote no bag (graph status {status}, died: {died})")
+    result = report.analyse(bag, output_bag, usage)
+    result["graph_status"], result["died"] = status, died
+    gsd = mission.get("landmark_gsd")
+    text = report.format_report(result, gsd)
+    (out_dir / "report.txt").write_text(text + "\n")
+    (out_dir / "report.yaml").write_text(yaml.safe_dump(_summary(result), sort_keys=False))
+    background = _hillshade_background(mission, result)
+    result["plots"] = [str(p) for p in report.plot(result, out_dir, background)]
+    print(text, flush=True)
+    print(f"\nplots: {', '.join(result['plots'])}\nreport: {out_dir / 'report.txt'}",
+          flush=True)
+    return result
+
+
+def _bag_duration(bag: Path) -> float:
+    first = last = None
+    for m in bags.read(bag, ["/imu/data"]):
+        first = m.timestamp_ns if first is None else first
+        last = m.timestamp_ns
+    return 0.0 if first is None else (last - first) * 1e-9
+
+
+def _summary(result: dict) -> dict:
+    """The scalar part of the metrics, for report.yaml."""
+    keep = {}
+    for key in ("fixes", "fix_error", "fused_error", "dr_error", "graph_status", "died",
+                "denied_after"):
+        if key in result:
+            keep[key] = result[key]
+    keep["latency_ms"] = {k: {"p50": float(1e3 * np.median(v)),
+                              "p95": float(1e3 * np.percentile(v, 95))}
+                          for k, v in result["latency"].items()}
+    keep["usage"] = {k: {"cpu_s": round(v["cpu_s"], 2), "peak_rss_mb": round(v["peak_rss_mb"])}
+                     for k, v in result["usage"].items()}
+    return _plain(keep)
+
+
+def _plain(value):
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, float) and math.isnan(value):
+        return None
+    return value
+
+
+def _hillshade_background(mission: dict, result: dict):
+    """Hillshade of the DEM under the flight, for the trajectory plot (None if unavailable)."""
+    if result.get("truth") is None or not mission.get("origin"):
+        return None
+    try:
+        from .core.dem_io import open_dem, sample_dem
+        from .core.geodesy import EnuOrigin
+        from .core.georef import GeoReference
+        from .core.hillshade import hillshade
+        from .core.metamap import MetaMap
+
+        dem_name = str(mission.get("dem", ""))
+        dem = sample_dem() if dem_name.startswith("matplotlib:") or not dem_name else \
+            open_dem(dem_name)
+        metamap = MetaMap(dem, EnuOrigin(*mission["origin"]), heights="enu")
+        p = result["truth"][1]
+        pad = 0.15 * max(np.ptp(p[:, 0]), np.ptp(p[:, 1]), 500.0)
+        west, east = p[:, 0].min() - pad, p[:, 0].max() + pad
+        south, north = p[:, 1].min() - pad, p[:, 1].max() + pad
+        gsd = max((east - west), (north - south)) / 800.0
+        georef = GeoReference(west, north, gsd, int((east - west) / gsd),
+                              int((north - south) / gsd))
+        tile = metamap.tile(georef)
+        shade = hillshade(np.nan_to_num(tile.elevation, nan=float(np.nanmean(tile.elevation))),
+                          315.0, 45.0, gsd=gsd)
+        return shade, (west, west + georef.width * gsd, north - georef.height * gsd, north)
+    except Exception as err:  # noqa: BLE001 - the plot is still useful without the DEM
+        print(f"[replay] no hillshade background: {err}", file=sys.stderr)
+        return None
