@@ -170,7 +170,8 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--image-format", dest="image_format", choices=["jpeg", "rgb8", "mono8"])
     sim.add_argument("--imu-rate", dest="imu_rate", type=float, help="[Hz] (default 200)")
     sim.add_argument("--sun", type=float, nargs=2, metavar=("AZ", "EL"),
-                     help="camera sun azimuth/elevation [deg]")
+                     help="camera sun azimuth/elevation [deg] (default: the solar "
+                          "position at the flight's time and place)")
     sim.add_argument("--gnss-denied-after", dest="gnss_denied_after", type=float,
                      help="GNSS lost from this time [s]")
     sim.add_argument("--gnss-denial", dest="gnss_denial", choices=["stop", "nofix"])

@@ -50,7 +50,8 @@ from .core.renderer import AlbedoRamp, LandmarkRenderer, PinholeCamera, create_h
 from .core.strapdown import quat_conjugate, quat_rotate
 from .core.trajectory_sim import Segment, simulate_trajectory, survey_flight, turning_flight
 
-EPOCH_NS = 1_782_057_600_000_000_000  # 2026-06-21T16:00:00Z: bag time of t = 0
+EPOCH_NS = 1_782_048_600_000_000_000  # 2026-06-21T13:30:00Z: bag time of t = 0 (a morning
+#                                         flight over North America: the sun low in the east)
 
 
 @dataclass
@@ -77,7 +78,8 @@ class SimConfig:
     image_format: str = "jpeg"       # jpeg (CompressedImage) | rgb8 | mono8 (Image)
     jpeg_quality: int = 90
     render_gsd: float = 0.0          # m, terrain grid for rendering; 0 = native DEM GSD / 2
-    sun: tuple = (200.0, 35.0)       # deg azimuth (from north, clockwise), elevation
+    sun: tuple = ()                  # deg (azimuth from north clockwise, elevation);
+    #                                  empty = the solar position at the flight's time and place
     gnss_rate: float = 5.0           # Hz
     gnss_sigma: float = 2.0          # m horizontal (vertical x2)
     gnss_denied_after: float = 20.0  # s; the GNSS is lost from then on
@@ -297,7 +299,8 @@ def simulate(cfg: SimConfig, output: str | Path) -> dict:
         out.append((t_ns[k], "/gnss/fix", "sensor_msgs/msg/NavSatFix",
                     msgs.navsat(t_ns[k], lat, lon, alt, status, cfg.gnss_sigma)))
 
-    frames = _render_frames(cfg, metamap, truth, t_ns, msgs, rng)
+    sun = tuple(cfg.sun) if cfg.sun else _solar(origin, t_ns[0])
+    frames = _render_frames(cfg, metamap, truth, t_ns, msgs, rng, sun)
     out.extend(frames)
     out.sort(key=lambda item: item[0])
 
@@ -314,6 +317,7 @@ def simulate(cfg: SimConfig, output: str | Path) -> dict:
         "gnss_denied_after_s": cfg.gnss_denied_after,
         "altitude_m": float(truth.position[0, 2]),
         "camera_mount": "nadir", "landmark_gsd": cfg.landmark_gsd,
+        "sun_azimuth_elevation": [float(sun[0]), float(sun[1])],
         # ground radius the camera sees from the cruise height (half-diagonal of the view)
         "camera_footprint_radius": float((truth.position[:, 2].max() - ground_low)
                                          * math.tan(math.radians(cfg.camera_hfov) / 2) * 1.3),
@@ -333,7 +337,19 @@ def _plain(value):
     return value
 
 
-def _render_frames(cfg, metamap, truth, t_ns, msgs, rng):
+def _solar(origin: EnuOrigin, t_ns: int) -> tuple[float, float]:
+    import datetime as dt
+
+    from .core.sun import solar_position
+
+    when = dt.datetime.fromtimestamp(t_ns * 1e-9, dt.UTC)
+    az, el = solar_position(when, origin.lat, origin.lon)
+    if el < 5.0:
+        raise ValueError(f"the sun is {float(el):.1f} deg high at the flight's time: night")
+    return float(az), float(el)
+
+
+def _render_frames(cfg, metamap, truth, t_ns, msgs, rng, sun):
     cam = pinhole(cfg)
     dist = cfg.effects.distortion
     maps = distortion_maps(np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1.0]]),
@@ -355,7 +371,7 @@ def _render_frames(cfg, metamap, truth, t_ns, msgs, rng):
     started = time.monotonic()
     for n, k in enumerate(idx):
         r = camera_rotation(truth.quaternion[k])
-        result = renderer.render_perspective(cam, truth.position[k], r, sun=cfg.sun)
+        result = renderer.render_perspective(cam, truth.position[k], r, sun=sun)
         distance = np.linalg.norm(result.hit_enu - truth.position[k], axis=-1)
         rgb = apply_camera_effects(result.rgb, distance, cfg.effects, rng, maps)
         msgtype, image = msgs.image(t_ns[k], rgb, cfg.image_format, cfg.jpeg_quality)

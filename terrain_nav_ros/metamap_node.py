@@ -69,6 +69,9 @@ class MetamapNode(Node):
                                 "position sigmas added to the footprint", min_value=0.0),
             lookahead=declare(self, "lookahead", 5.0,
                               "predict the position this far ahead [s]", min_value=0.0),
+            margin=declare(self, "tile_margin", 1.5,
+                           "a new tile covers this many times the needed radius "
+                           "(hysteresis)", min_value=1.0),
         )
         self.default_size = declare(self, "tile_size", 512, "default service tile size [px]",
                                     min_value=1, max_value=8192)

@@ -45,9 +45,9 @@ class CameraEffects:
         Shot-noise variance per grey level (grey levels of 255); 0 disables.
     """
 
-    haze_per_km: float = 0.08
+    haze_per_km: float = 0.04
     haze_colour: tuple = (0.75, 0.80, 0.88)
-    exposure_key: float = 0.35
+    exposure_key: float = 0.4
     exposure_jitter: float = 0.05
     gamma: float = 2.2
     blur_sigma: float = 0.8

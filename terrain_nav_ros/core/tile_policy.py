@@ -31,6 +31,9 @@ class TilePolicy:
         Horizontal position standard deviations added to the footprint.
     lookahead : float
         How far ahead the position is predicted with the current velocity (s).
+    margin : float
+        A new tile covers this many times the needed radius, so that slowly growing
+        uncertainty or a turn does not cut a new tile at every update (hysteresis).
     """
 
     min_size: int = 256
@@ -38,6 +41,7 @@ class TilePolicy:
     footprint_radius: float = 600.0
     sigma_scale: float = 3.0
     lookahead: float = 5.0
+    margin: float = 1.5
     current: GeoReference | None = field(default=None, init=False)
 
     def __post_init__(self):
@@ -47,6 +51,8 @@ class TilePolicy:
         if self.footprint_radius < 0 or self.sigma_scale < 0 or self.lookahead < 0:
             raise ValueError("TilePolicy: footprint_radius, sigma_scale and lookahead must "
                              "be >= 0")
+        if self.margin < 1.0:
+            raise ValueError(f"TilePolicy: margin must be >= 1, got {self.margin}")
 
     def needed_radius(self, cov_xy) -> float:
         """Footprint radius plus the scaled horizontal position uncertainty (m)."""
@@ -68,7 +74,7 @@ class TilePolicy:
                 self._covers(self.current, p, radius) for p in (position, ahead)):
             return None
         centre = 0.5 * (position + ahead)
-        half = radius + 0.5 * float(np.linalg.norm(ahead - position))
+        half = self.margin * radius + 0.5 * float(np.linalg.norm(ahead - position))
         size = int(np.clip(math.ceil(2 * half / gsd), self.min_size, self.max_size))
         self.current = GeoReference.centred(float(centre[0]), float(centre[1]), gsd, size, size)
         return self.current
