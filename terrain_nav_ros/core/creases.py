@@ -107,8 +107,10 @@ class CreaseParams:
     contrast_snr : float
         A crease pixel needs a depth-like contrast (``contrast_sigma**2`` times the Hessian
         eigenvalue across it) of this many pixel-noise standard deviations. At the default
-        of 2, white noise essentially never passes (its response has a std of about
-        ``0.12 noise`` at sigma 2), nor do one-grey-level quantisation steps.
+        of 1, white noise practically never passes (its response has a std of about
+        ``0.12 noise`` at sigma 2), nor do one-grey-level quantisation steps (about 0.3);
+        higher values also reject real but fine, rough texture (the noise estimate cannot
+        tell pixel-scale relief from noise).
     min_area : int
         Crease components with fewer pixels are dropped; holes with fewer pixels are filled.
     min_crease_fraction : float
@@ -133,7 +135,7 @@ class CreaseParams:
     threshold: float = 0.5
     threshold_low: float = 0.2
     contrast_sigma: float = 2.0
-    contrast_snr: float = 2.0
+    contrast_snr: float = 1.0
     min_area: int = 20
     min_crease_fraction: float = 0.05
     polarity: str = "valley"
