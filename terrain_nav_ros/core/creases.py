@@ -288,7 +288,7 @@ def prepare_input(image, valid_mask=None, source: str = "image", gsd: float = 1.
         if hi - lo <= 0:
             lo, hi = float(values.min()), float(values.max())
         if hi - lo <= 0:
-            return np.zeros(img.shape, np.float32), valid, 0.0, "image is constant"
+            return np.zeros(img.shape, np.float32), valid, 0.0, "no drainage: image is constant"
         scale = 1.0 / (hi - lo)
         work = work - np.float32(lo)
         quant = 1.0 if integer else 0.0
@@ -296,7 +296,7 @@ def prepare_input(image, valid_mask=None, source: str = "image", gsd: float = 1.
     # Voids hold copies of valid values, so the range over all pixels is the valid range.
     span = float(work.max() - work.min())
     if span == 0.0:
-        return work, valid, 0.0, "image is constant"
+        return work, valid, 0.0, "no drainage: image is constant"
     noise = estimate_noise(work, valid)
     # Quantisation noise (step/sqrt(12)) is a floor: a smooth integer image is not noiseless.
     noise = max(noise, quant * scale / np.sqrt(12.0), 1e-6 * span)
