@@ -32,7 +32,7 @@ results are reported in pixel coordinates.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from enum import StrEnum
 
 import cv2
@@ -106,6 +106,10 @@ class MatchParams:
         cylinder code (:func:`~.descriptors.cylinder_code`), or both averaged.
     by_kind : bool
         Shape context split by minutia kind.
+    max_rotation : float
+        Largest rotation (rad) between the sets that is searched: pi = any; a small value
+        uses a heading prior (ground-projected camera frames are already north-up within the
+        estimate's yaw error) and shrinks both the work and the chance of a false match.
     min_minutiae : int
         Minimum minutiae in each set below which the answer is "no decision" (dissertation
         1.4); a set is also undecidable when even a perfect match could not reach
@@ -139,6 +143,7 @@ class MatchParams:
     descriptor: str = "shape_context"
     by_kind: bool = True
     min_minutiae: int = 10
+    max_rotation: float = math.pi
     threshold: float = 3.0
     seed: int = 0
 
@@ -400,6 +405,12 @@ def _hypotheses(v: _Votes, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams):
     mid_b = 0.5 * (b.z[v.ib] + b.z[v.jb])
     hyps = []
     best = 0.0
+    if p.max_rotation < math.pi:
+        # a heading prior: only rotations within max_rotation of zero are searched
+        keep = np.abs(wrap_angle(v.theta)) <= p.max_rotation + p.rot_bin
+        v = _Votes(*(getattr(v, f.name)[keep] for f in fields(v)))
+        if len(v.ia) == 0:
+            return []
     for th0 in _rotation_peaks(v.theta, v.weight, p, n_peaks=2):
         d = wrap_angle(v.theta - th0)
         sel = np.flatnonzero(np.abs(d) <= 2.0 * p.rot_bin)
@@ -628,7 +639,10 @@ def significance(n_pairings: int, n_a: int, n_b: int, area: float, search_area: 
     cell = math.pi * p.pos_tol ** 2
     lam = n_a * n_b * cell / max(area, cell) * min(1.0, p.angle_tol / math.pi)
     lam = min(lam, float(min(n_a, n_b)))
-    n_rot = TWO_PI / min(math.pi, p.pos_tol / max(radius_a, p.pos_tol))
+    # rotations searched: the whole circle, or the prior's window (max_rotation)
+    n_rot = min(TWO_PI, 2.0 * p.max_rotation + p.rot_bin) / min(
+        math.pi, p.pos_tol / max(radius_a, p.pos_tol))
+    n_rot = max(n_rot, 1.0)
     log_trials = math.log10(max(search_area / cell, 1.0) * n_rot)
     return -poisson_log10_sf(n_pairings, lam) - log_trials, lam
 
