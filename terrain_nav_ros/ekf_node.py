@@ -77,6 +77,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from scipy.spatial.transform import Rotation
@@ -133,6 +134,17 @@ _QUIET = {Reason.OK, Reason.INITIALIZED, Reason.QUEUED, Reason.WAITING_FOR_INIT,
           Reason.IMU_GAP, Reason.POSITION_RESET, Reason.COMPARED_ONLY, Reason.NOT_INITIALIZED,
           Reason.GATED}   # gate rejections are logged from the diagnostics records (queued
                           # fixes are gated later, when the IMU reaches their stamp)
+
+
+def body_attitude(q_enu_optical, optical_to_body: Rotation) -> np.ndarray:
+    """Body -> ENU quaternion ``[x, y, z, w]`` from the camera optical frame's attitude.
+
+    ``optical_to_body`` is the inverse of the body -> optical mount rotation
+    (:func:`~terrain_nav_ros.core.camera_mount.mount_rotation`), so that
+    ``R_enu_body = R_enu_optical @ R_body_optical^T``. An attitude error expressed as a small
+    rotation about the ENU axes is the same for both frames, so the covariance carries over.
+    """
+    return (Rotation.from_quat(q_enu_optical) * optical_to_body).as_quat()
 
 
 class EkfNode(Node):
@@ -253,11 +265,18 @@ class EkfNode(Node):
 
         imu_qos = QoSProfile(depth=imu_depth, reliability=ReliabilityPolicy.BEST_EFFORT,
                              history=HistoryPolicy.KEEP_LAST)
-        self.odom_pub = self.create_publisher(Odometry, "/nav/odometry", RELIABLE_QOS)
-        self.tf_pub = self.create_publisher(TFMessage, "/tf", 100) if self.publish_tf else None
-        self.navsat_pub = self.create_publisher(NavSatFix, "/nav/fix", RELIABLE_QOS)
+        # No default QoS-event handlers on the outputs: each is one more waitable the
+        # executor polls per IMU sample (~1 % of a core at 200 Hz for the four), and an
+        # incompatible subscriber logs the mismatch on its own side.
+        quiet = PublisherEventCallbacks(use_default_callbacks=False)
+        self.odom_pub = self.create_publisher(Odometry, "/nav/odometry", RELIABLE_QOS,
+                                              event_callbacks=quiet)
+        self.tf_pub = self.create_publisher(TFMessage, "/tf", 100, event_callbacks=quiet) \
+            if self.publish_tf else None
+        self.navsat_pub = self.create_publisher(NavSatFix, "/nav/fix", RELIABLE_QOS,
+                                                event_callbacks=quiet)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/nav/ekf/diagnostics",
-                                              RELIABLE_QOS)
+                                              RELIABLE_QOS, event_callbacks=quiet)
         self.create_subscription(Imu, "/imu/data", self.on_imu, imu_qos)
         self.create_subscription(PvaFix, "/nav/pva_fix", self.on_pva_fix,
                                  QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE,
@@ -404,7 +423,7 @@ class EkfNode(Node):
         q = np.asarray(q_fix, float) / norm
         if self.fix_pose_frame == "base_link":
             return q
-        return (Rotation.from_quat(q) * self._optical_to_body).as_quat()
+        return body_attitude(q, self._optical_to_body)
 
     def _body_position(self, p_fix, q_body) -> np.ndarray:
         """base_link position from the fixed point (camera centre minus the lever arm)."""
@@ -450,6 +469,9 @@ class EkfNode(Node):
             return
         if not (np.isfinite(lla).all() and math.isfinite(stamp)):
             self._refuse("gnss", Reason.NON_FINITE.value)
+            return
+        if abs(lla[0]) > 90.0 or abs(lla[1]) > 360.0:
+            self._refuse("gnss", "latitude_longitude_out_of_range", f" {lla[:2]}")
             return
         if self.origin is None:
             self._refuse("gnss", "no_enu_origin_yet")

@@ -300,3 +300,21 @@ def test_time_jump_backwards_resets_and_reinitialises(flight):
     _, filt = rec.filter_status()["ekf: filter"]
     assert int(filt["resets"]) == 1
     assert "time jumped back" in flight["log"]
+
+
+def test_camera_attitude_is_moved_to_the_body():
+    """A PvaFix orientation of the (tilted) nadir camera's optical frame gives back the body
+    attitude the camera was rendered with (flight simulator / camera_ingest geometry)."""
+    from scipy.spatial.transform import Rotation
+
+    from terrain_nav_ros.core.camera_mount import camera_rotation, mount_rotation
+    from terrain_nav_ros.core.strapdown import quat_from_euler
+    from terrain_nav_ros.ekf_node import body_attitude
+
+    mount = mount_rotation(0.02, -0.03, 0.01)
+    optical_to_body = Rotation.from_matrix(mount).inv()
+    for rpy in ([0.0, 0.0, 0.0], [0.3, -0.1, 2.0], [-0.5, 0.2, -2.5]):
+        q_body = quat_from_euler(*rpy)
+        q_optical = Rotation.from_matrix(camera_rotation(q_body, mount)).as_quat()
+        got = body_attitude(q_optical, optical_to_body)
+        assert abs(float(got @ q_body)) == pytest.approx(1.0, abs=1e-12)
