@@ -33,8 +33,11 @@ Subscribed:
 * ``/metamap/tile`` (terrain_nav_msgs/DemTile, latched), only while the ENU origin is
   unknown: with ``origin_latitude``/``origin_longitude`` NaN the origin is taken from the
   first tile's georeference (the metamap's origin, so both agree by construction) and the
-  subscription is dropped. Until then GNSS is refused and no NavSatFix is published; fixes,
-  IMU and baro need no origin.
+  subscription is dropped. The metamap publishes tiles only around an odometry, so the node
+  also asks its ``/metamap/get_tile`` service once a second for a 1-pixel tile at the ENU
+  origin (whose georeference carries the origin): with ``init_mode: gnss`` there would be no
+  odometry without the origin otherwise. Until then GNSS is refused and no NavSatFix is
+  published; fixes, IMU and baro need no origin.
 
 Published:
 
@@ -85,6 +88,7 @@ from sensor_msgs.msg import FluidPressure, Imu, NavSatFix, NavSatStatus
 from tf2_msgs.msg import TFMessage
 
 from terrain_nav_msgs.msg import DemTile, PvaFix
+from terrain_nav_msgs.srv import GetDemTile
 
 from . import conversions as cv
 from .core.baro import SEA_LEVEL_PRESSURE, altitude_sigma, pressure_to_altitude
@@ -236,12 +240,16 @@ class EkfNode(Node):
             self.ekf.set_initial_pose(np.array(init_pos, float), np.array(init_vel, float),
                                       quat_from_euler(*init_rpy))
         self.origin = None
-        self._tile_sub = None
+        self._tile_sub = self._origin_client = self._origin_timer = None
+        self._origin_future = None
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
         if math.isfinite(lat) and math.isfinite(lon):
             self.origin = EnuOrigin(lat, lon, alt)
         else:
             self._tile_sub = self.create_subscription(DemTile, "/metamap/tile", self.on_tile,
                                                       LATCHED_QOS)
+            self._origin_client = self.create_client(GetDemTile, "/metamap/get_tile")
+            self._origin_timer = self.create_timer(1.0, self._ask_origin, clock=steady)
         self.baro_offset = self.baro_offset_param if math.isfinite(self.baro_offset_param) \
             else None
 
@@ -284,9 +292,8 @@ class EkfNode(Node):
         self.create_subscription(FluidPressure, "/baro/pressure", self.on_baro, imu_qos)
         self.create_subscription(NavSatFix, "/gnss/fix", self.on_gnss, imu_qos)
         # Steady clock: diagnostics also flow when sim time stands still (no /clock).
-        self.create_timer(diag_period, self.publish_diagnostics,
-                          clock=Clock(clock_type=ClockType.STEADY_TIME))
-        origin = "from the first /metamap/tile" if self.origin is None else \
+        self.create_timer(diag_period, self.publish_diagnostics, clock=steady)
+        origin = "from the metamap (tile or get_tile)" if self.origin is None else \
             f"{self.origin.lat:.6f}, {self.origin.lon:.6f}, {self.origin.alt:.1f} m"
         self.get_logger().info(f"init_mode={self.params.init_mode}, ENU origin {origin}, "
                                f"fuse_gnss={self.params.fuse_gnss}")
@@ -329,18 +336,46 @@ class EkfNode(Node):
 
     # ------------------------------------------------------------------ inputs
     def on_tile(self, msg: DemTile):
-        """Learn the ENU origin from the metamap's first tile, then stop listening."""
-        lat, lon, alt = cv.enu_origin_of(msg.georef)
+        """Learn the ENU origin from the metamap's first tile."""
+        self._set_origin(msg.georef, "/metamap/tile")
+
+    def _ask_origin(self):
+        """While the origin is unknown, ask the metamap for a 1-px tile (it carries it)."""
+        if self.origin is not None:
+            self._origin_timer.cancel()
+            self.destroy_timer(self._origin_timer)
+            self.destroy_client(self._origin_client)
+            if self._tile_sub is not None:
+                self.destroy_subscription(self._tile_sub)
+            self._tile_sub = self._origin_client = self._origin_timer = None
+            return
+        busy = self._origin_future is not None and not self._origin_future.done()
+        if busy or not self._origin_client.service_is_ready():
+            return
+        request = GetDemTile.Request(center_frame=GetDemTile.Request.CENTER_ENU,
+                                     center_x=0.0, center_y=0.0, width=1, height=1, gsd=1.0)
+        self._origin_future = self._origin_client.call_async(request)
+        self._origin_future.add_done_callback(self._on_origin_response)
+
+    def _on_origin_response(self, future):
+        response = future.result()
+        if response is None or not response.success:
+            why = "no response" if response is None else response.message
+            self._log_refusal("origin_service", f"/metamap/get_tile gave no origin: {why}")
+            return
+        self._set_origin(response.tile.georef, "/metamap/get_tile")
+
+    def _set_origin(self, georef, source: str):
+        """Adopt the ENU origin of a metamap georeference (first one wins)."""
+        if self.origin is not None:
+            return
+        lat, lon, alt = cv.enu_origin_of(georef)
         try:
             self.origin = EnuOrigin(lat, lon, alt)
         except ValueError as err:
-            self._log_refusal("tile_origin", f"tile without a usable ENU origin: {err}")
+            self._log_refusal("tile_origin", f"{source}: no usable ENU origin: {err}")
             return
-        self.get_logger().info(f"ENU origin from /metamap/tile: {lat:.6f}, {lon:.6f}, "
-                               f"{alt:.1f} m")
-        if self._tile_sub is not None:
-            self.destroy_subscription(self._tile_sub)
-            self._tile_sub = None
+        self.get_logger().info(f"ENU origin from {source}: {lat:.6f}, {lon:.6f}, {alt:.1f} m")
 
     def on_imu(self, msg: Imu):
         stamp, gyro, accel = cv.imu_to_sample(msg)

@@ -318,3 +318,34 @@ def test_camera_attitude_is_moved_to_the_body():
         q_optical = Rotation.from_matrix(camera_rotation(q_body, mount)).as_quat()
         got = body_attitude(q_optical, optical_to_body)
         assert abs(float(got @ q_body)) == pytest.approx(1.0, abs=1e-12)
+
+
+def test_origin_from_the_metamap_service_without_tiles():
+    """init_mode=gnss with a NaN origin: no tile comes before there is odometry, so the node
+    asks /metamap/get_tile for the metamap's ENU origin."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from terrain_nav_ros.core.dem_io import sample_dem
+    from terrain_nav_ros.core.metamap import MetaMap
+
+    metamap = start_node("metamap", {"interpolation": "bilinear"},
+                         "-r", "/metamap/tile:=/metamap/tile_unused")
+    ekf = start_node("ekf", {"init_mode": "gnss", "diagnostics_period": 0.3})
+    client = SpinningNode("ekf_origin_client")
+    diags = []
+    client.node.create_subscription(DiagnosticArray, "/nav/ekf/diagnostics", diags.append, 10)
+
+    def origin():
+        if not diags:
+            return "unknown"
+        return dict(cv.diagnostic_values(diags[-1].status[0])[1])["enu_origin"]
+
+    try:
+        assert wait_until(lambda: origin() != "unknown", 25), "origin never learnt"
+    finally:
+        client.close()
+        log = stop(ekf) + stop(metamap)
+    o = MetaMap(sample_dem(), heights="enu").origin
+    lat, lon, alt = map(float, origin().split(","))
+    assert (lat, lon, alt) == pytest.approx((o.lat, o.lon, o.alt), abs=1e-6)
+    assert "ENU origin from /metamap/get_tile" in log
