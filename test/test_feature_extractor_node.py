@@ -1,0 +1,63 @@
+"""feature_extractor node: minutiae of a drainage image in another process, an explicit empty
+result for a flat image, and parameter changes validated by the core."""
+
+import numpy as np
+from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
+from ros_helpers import SpinningNode, start_node, stop, wait_until
+from std_msgs.msg import Header
+from synthetic_minutiae import fractal_surface
+
+from terrain_nav_msgs.msg import GeoImage, MinutiaArray
+from terrain_nav_ros import conversions as cv
+from terrain_nav_ros.core.georef import GeoReference
+from terrain_nav_ros.core.hillshade import hillshade
+from terrain_nav_ros.ros_common import LATCHED_QOS
+
+
+def _drainage_image():
+    dem = fractal_surface((256, 256), beta=3.2, rng=3) * 150.0
+    return (255 * hillshade(dem, 315.0, 45.0, gsd=5.0)).astype(np.uint8)
+
+
+def _set(client, name, value):
+    cli = client.node.create_client(SetParameters, "/feature_extractor/set_parameters")
+    assert cli.wait_for_service(timeout_sec=20)
+    param = Parameter(name=name, value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE,
+                                                      double_value=value))
+    future = cli.call_async(SetParameters.Request(parameters=[param]))
+    assert wait_until(future.done, 20)
+    return future.result().results[0]
+
+
+def test_minutiae_empty_reasons_and_parameter_validation():
+    node = start_node("feature_extractor")
+    client = SpinningNode("extractor_client")
+    camera, landmark = [], []
+    try:
+        n = client.node
+        n.create_subscription(MinutiaArray, "/camera/minutiae", camera.append, 10)
+        n.create_subscription(MinutiaArray, "/landmark/minutiae", landmark.append, LATCHED_QOS)
+        cam_pub = n.create_publisher(GeoImage, "/camera/image_ground", 10)
+        land_pub = n.create_publisher(GeoImage, "/landmark/image", LATCHED_QOS)
+        assert wait_until(lambda: cam_pub.get_subscription_count() > 0, 20), stop(node)
+        georef = GeoReference.centred(0.0, 0.0, 5.0, 256, 256)
+        header = Header(frame_id="map")
+        land_pub.publish(cv.geo_image_to_msg(_drainage_image(), georef, header))
+        assert wait_until(lambda: cam_pub.get_subscription_count() > 0 and landmark, 30)
+        flat = np.full((256, 256), 120, np.uint8)
+        assert wait_until(lambda: (cam_pub.publish(cv.geo_image_to_msg(flat, georef, header)),
+                                   bool(camera))[1], 30, period=0.5)
+        bad = _set(client, "crease.epsilon", 5.0)        # must be in (0, 1)
+        good = _set(client, "crease.epsilon", 0.01)
+        assert node.poll() is None
+    finally:
+        client.close()
+        log = stop(node)
+    found = cv.msg_to_minutiae(landmark[0])
+    assert len(found) >= 10 and found.reason == "", log
+    assert landmark[0].source == MinutiaArray.SOURCE_LANDMARK
+    assert found.georef == georef
+    assert len(camera[0].minutiae) == 0 and "no drainage" in camera[0].reason
+    assert not bad.successful and "epsilon" in bad.reason
+    assert good.successful
