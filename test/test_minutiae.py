@@ -311,3 +311,27 @@ def test_warm_up_compiles_every_kernel():
         kernels = [getattr(_crease_kernels, k) for k in dir(_crease_kernels)
                    if k.endswith("_kernel")]
         assert kernels and all(k.signatures for k in kernels)
+
+
+def test_fused_walker_matches_the_reference(monkeypatch):
+    from terrain_nav_ros.core import _crease_kernels
+    from terrain_nav_ros.core import minutiae as M
+
+    if not _crease_kernels.HAVE_NUMBA:
+        pytest.skip("numba not installed: the reference path is the only one")
+    rng = np.random.default_rng(10)
+    img = valley_image(Y_SEGMENTS + [((20, 200), (230, 150)), ((60, 240), (90, 130))])
+    img = np.clip(img + rng.normal(0, 4, img.shape), 0, 255).astype(np.uint8)
+    skel = extract_features(img).creases.skeletons["valley"]
+    skel_p = np.pad(skel, 1)
+    code_p = M._neighbour_code(skel_p)
+    cn_p = np.where(skel_p, M._CN_LUT[code_p], 0)
+    rows, cols = np.nonzero((cn_p == 1) | (cn_p == 3))
+    first = M._START_LUT[code_p[rows, cols], 0]
+    args = (skel_p, code_p, cn_p >= 3, rows, cols, first, 24, 24, 2)
+    fused = M._walk(*args)
+    monkeypatch.setattr(_crease_kernels, "HAVE_NUMBA", False)
+    ref = M._walk(*args)
+    assert len(rows) >= 4
+    assert np.array_equal(fused[0], ref[0]) and np.array_equal(fused[2], ref[2])
+    assert np.array_equal(fused[3], ref[3]) and np.allclose(fused[1], ref[1], equal_nan=True)

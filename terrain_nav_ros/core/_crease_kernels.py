@@ -274,3 +274,97 @@ def doubled_angle_kernel(sxy, sdd, phx, phy):  # pragma: no cover - compiled
         norm = max(np.sqrt(b[k] * b[k] + f(4.0) * a[k] * a[k]), f(1e-30))
         ox[k] = -b[k] / norm
         oy[k] = f(2.0) * a[k] / norm
+
+
+@njit(**_JIT)
+def walk_kernel(skel_p, code_p, junc_p, sr, sc, first, steps, upto, skip, next_lut, ring5,
+                offs, tip, direction, length, stop):  # pragma: no cover - compiled
+    """Skeleton walkers of :func:`.minutiae._walk`, one after the other (same rules).
+
+    ``stop``: 0 running, 1 free end, 2 junction. ``direction`` is NaN when undefined.
+    """
+    n = sr.size
+    c1 = max(1, upto // 3)
+    c2 = max(1, 2 * upto // 3)
+    c3 = max(1, upto)
+    for w in range(n):
+        r0, q0 = sr[w], sc[w]
+        cr = r0 + offs[first[w], 0]
+        cc = q0 + offs[first[w], 1]
+        ln = 1
+        st = 0
+        acc_r = 0.0
+        acc_c = 0.0
+        if junc_p[cr, cc] and not junc_p[r0, q0]:
+            st = 2
+        frm = 0
+        frm2 = 8
+        t = 1
+        if st == 0 and steps >= 2:
+            # Step 2 on the real neighbours, away from the start's neighbourhood.
+            best = -1
+            best_score = 0
+            for k in range(8):
+                nr = cr + offs[k, 0]
+                nc = cc + offs[k, 1]
+                if skel_p[nr, nc] and max(abs(nr - r0), abs(nc - q0)) > 1:
+                    score = (nr - r0) ** 2 + (nc - q0) ** 2
+                    if score > best_score:
+                        best_score = score
+                        best = k
+            if best < 0:
+                st = 1
+            else:
+                frm = (best + 4) % 8
+                frm2 = ring5[r0 - cr - offs[best, 0] + 2, q0 - cc - offs[best, 1] + 2]
+                cr += offs[best, 0]
+                cc += offs[best, 1]
+                ln += 1
+                t = 2
+        # Checkpoints add the walker's offset at that step (the tip if it stopped before).
+        if c1 == 1 or c2 == 1 or c3 == 1:
+            p1r = r0 + offs[first[w], 0]
+            p1c = q0 + offs[first[w], 1]
+            m = (c1 == 1) + (c2 == 1) + (c3 == 1)
+            acc_r += m * (p1r - r0)
+            acc_c += m * (p1c - q0)
+        if t == 2:
+            m = (c1 == 2) + (c2 == 2) + (c3 == 2)
+            acc_r += m * (cr - r0)
+            acc_c += m * (cc - q0)
+            step = 2
+            while True:
+                if junc_p[cr, cc] and max(abs(cr - r0), abs(cc - q0)) > skip:
+                    st = 2
+                    break
+                if step == steps:
+                    break
+                k = next_lut[code_p[cr, cc], frm, frm2]
+                if k < 0:
+                    st = 1
+                    break
+                frm2 = ring5[offs[frm, 0] - offs[k, 0] + 2, offs[frm, 1] - offs[k, 1] + 2]
+                frm = (k + 4) % 8
+                cr += offs[k, 0]
+                cc += offs[k, 1]
+                ln += 1
+                step += 1
+                m = (c1 == step) + (c2 == step) + (c3 == step)
+                acc_r += m * (cr - r0)
+                acc_c += m * (cc - q0)
+            t = step
+        # Checkpoints beyond the last step reached count the tip.
+        m = (c1 > t) + (c2 > t) + (c3 > t)
+        acc_r += m * (cr - r0)
+        acc_c += m * (cc - q0)
+        tip[w, 0] = cr
+        tip[w, 1] = cc
+        length[w] = ln
+        stop[w] = st
+        norm = np.sqrt(acc_r * acc_r + acc_c * acc_c)
+        if norm == 0:
+            direction[w, 0] = np.nan
+            direction[w, 1] = np.nan
+        else:
+            direction[w, 0] = acc_r / norm
+            direction[w, 1] = acc_c / norm

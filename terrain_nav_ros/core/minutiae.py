@@ -347,8 +347,17 @@ def _walk(skel_p, code_p, junc_p, r0, c0, first, steps, upto, skip=0):
         0 still running after ``steps``, FREE_END, or JUNCTION.
     """
     n = len(r0)
-    dr, dc = _OFFS[:, 0], _OFFS[:, 1]
     sr, sc = np.asarray(r0, np.int64), np.asarray(c0, np.int64)
+    if _kernels.HAVE_NUMBA and n:
+        tip = np.empty((n, 2), np.int64)
+        direction = np.empty((n, 2))
+        length = np.empty(n, np.int64)
+        stop = np.empty(n, np.int8)
+        _kernels.walk_kernel(skel_p, code_p, junc_p, sr, sc, np.asarray(first, np.int64),
+                             steps, upto, skip, _NEXT_LUT, _RING5, _OFFS, tip, direction,
+                             length, stop)
+        return tip, direction, length, stop
+    dr, dc = _OFFS[:, 0], _OFFS[:, 1]
     tr, tc = sr + dr[first], sc + dc[first]          # tip (last pixel) of every walker
     length = np.ones(n, np.int64)
     stop = np.zeros(n, np.int8)
