@@ -5,8 +5,9 @@ published at ~5x real time with correct stamps: GNSS for the first 20 s (5 Hz, i
 the filter), terrain fixes every 2 s (sigma 20 m, delivered 0.3 s late, two 500 m outliers),
 barometric pressure at 10 Hz with a sea level pressure the node does not know, a NaN IMU
 sample, a fix with a non-positive-definite covariance; then the first 8 s are replayed (bag
-loop). The ENU origin is learnt from a latched /metamap/tile. Everything the node publishes
-is recorded once (module fixture) and the tests assert on it.
+loop). The ENU origin is learnt from a latched /metamap/tile; the node runs with
+use_sim_time and no /clock. Everything the node publishes is recorded once (module fixture)
+and the tests assert on it.
 """
 
 from __future__ import annotations
@@ -111,7 +112,9 @@ def flight():
 
     proc = start_node("ekf", {"init_mode": "gnss", "init_min_fix_interval": 3.0,
                               "odometry_rate": 50.0, "navsatfix_rate": 5.0,
-                              "diagnostics_period": 0.5, "fix_pose_frame": "base_link"})
+                              "diagnostics_period": 0.5, "fix_pose_frame": "base_link",
+                              # no /clock here: every stamp must come from the messages
+                              "use_sim_time": True})
     client = SpinningNode("ekf_test_client")
     node = client.node
     rec = Recorder(node)
