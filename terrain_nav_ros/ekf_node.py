@@ -178,7 +178,7 @@ class EkfNode(Node):
                             "IMU subscription depth (best effort) [messages]",
                             min_value=1, max_value=10000)
         lat = declare(self, "origin_latitude", math.nan,
-                      "ENU origin latitude [deg WGS84]; NaN = from the first /metamap/tile")
+                      "ENU origin latitude [deg WGS84]; NaN = the metamap's (tile/service)")
         lon = declare(self, "origin_longitude", math.nan, "ENU origin longitude [deg WGS84]")
         alt = declare(self, "origin_altitude", 0.0, "ENU origin ellipsoidal height [m]")
         self.sea_level_pressure = declare(self, "sea_level_pressure", SEA_LEVEL_PRESSURE,
@@ -286,9 +286,7 @@ class EkfNode(Node):
         self.diag_pub = self.create_publisher(DiagnosticArray, "/nav/ekf/diagnostics",
                                               RELIABLE_QOS, event_callbacks=quiet)
         self.create_subscription(Imu, "/imu/data", self.on_imu, imu_qos)
-        self.create_subscription(PvaFix, "/nav/pva_fix", self.on_pva_fix,
-                                 QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE,
-                                            history=HistoryPolicy.KEEP_LAST))
+        self.create_subscription(PvaFix, "/nav/pva_fix", self.on_pva_fix, RELIABLE_QOS)
         self.create_subscription(FluidPressure, "/baro/pressure", self.on_baro, imu_qos)
         self.create_subscription(NavSatFix, "/gnss/fix", self.on_gnss, imu_qos)
         # Steady clock: diagnostics also flow when sim time stands still (no /clock).
