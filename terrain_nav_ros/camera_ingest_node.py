@@ -32,6 +32,7 @@ from .core.ground_projection import (
     footprint_georef,
     project_to_ground,
 )
+from .core.orthorectify import heights_on, orthorectify
 from .core.pose_buffer import PoseBuffer, StampedPose
 from .ros_common import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, declare, run
 
@@ -57,6 +58,9 @@ class CameraIngestNode(Node):
                                     "largest time between a frame and the estimate [s]",
                                     min_value=0.0)
         self.frame_id = declare(self, "frame_id", "map", "frame of the ground images")
+        self.orthorectify = declare(self, "orthorectify", True,
+                                    "use the DEM tile's height for every ground pixel (true "
+                                    "ortho) instead of one mean terrain plane")
         self.r_body_optical = mount_rotation(*mount)
         self.poses = PoseBuffer(horizon=5.0, max_extrapolation=self.max_pose_gap)
         self.intrinsics: CameraIntrinsics | None = None
@@ -164,8 +168,14 @@ class CameraIngestNode(Node):
             self.drop("camera is pointing at or above the horizon")
             return
         georef = self._capped(georef)
-        ground = project_to_ground(image, self.intrinsics, camera, plane, georef,
-                                   bgr=encoding.startswith("bgr"))
+        bgr = encoding.startswith("bgr")
+        heights = heights_on(georef, *self.tile) if self.orthorectify else None
+        if heights is not None and np.isfinite(heights).mean() > 0.5:
+            ground = orthorectify(image, self.intrinsics, camera, heights, georef, bgr,
+                                  max_range)
+        else:
+            ground = project_to_ground(image, self.intrinsics, camera, plane, georef, bgr=bgr,
+                                       max_range=max_range)
         if ground.image is None:
             self.drop(ground.reason)
             return

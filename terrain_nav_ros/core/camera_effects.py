@@ -53,8 +53,8 @@ class CameraEffects:
     blur_sigma: float = 0.8
     vignetting: float = 0.25
     distortion: tuple = (-0.12, 0.03, 0.0005, -0.0003, 0.0)
-    read_noise: float = 2.0
-    photon_gain: float = 0.15
+    read_noise: float = 1.5
+    photon_gain: float = 0.08
 
 
 def distortion_maps(k: np.ndarray, distortion, width: int, height: int):

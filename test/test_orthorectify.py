@@ -1,0 +1,60 @@
+"""True-ortho projection: a point on a mountain top lands on its ground position; the
+mean-plane homography would misplace it by height x distance / flying height."""
+
+import numpy as np
+
+from terrain_nav_ros.core.georef import GeoReference
+from terrain_nav_ros.core.ground_projection import (
+    CameraIntrinsics,
+    CameraPose,
+    look_at_rotation,
+    project_to_ground,
+)
+from terrain_nav_ros.core.orthorectify import heights_on, orthorectify
+
+INTR = CameraIntrinsics(400.0, 400.0, 319.5, 239.5, 640, 480)
+POSE = CameraPose([0.0, 0.0, 3000.0], look_at_rotation([0.15, 0.0, -1.0]))  # tilted ~8.5 deg
+PEAK = np.array([800.0, 300.0, 600.0])   # a summit 600 m above the terrain at 0 m
+
+
+def _frame():
+    """A frame with one bright 3x3 blob where the summit is seen (pinhole, by hand)."""
+    p = POSE.rotation.T @ (PEAK - POSE.position)
+    u = INTR.fx * p[0] / p[2] + INTR.cx
+    v = INTR.fy * p[1] / p[2] + INTR.cy
+    image = np.full((INTR.height, INTR.width), 30, np.uint8)
+    image[int(round(v)) - 1:int(round(v)) + 2, int(round(u)) - 1:int(round(u)) + 2] = 250
+    return image
+
+
+def _heights(georef):
+    east, north = georef.pixel_to_enu(np.arange(georef.width)[None, :],
+                                      np.arange(georef.height)[:, None])
+    return PEAK[2] * np.exp(-((east - PEAK[0]) ** 2 + (north - PEAK[1]) ** 2) / 300.0**2)
+
+
+def _blob(ground):
+    img = ground.image.astype(float)
+    rows, cols = np.nonzero(img > 0.5 * img.max())
+    w = img[rows, cols]
+    return ground.georef.pixel_to_enu(np.average(cols, weights=w), np.average(rows, weights=w))
+
+
+def test_summit_lands_on_its_ground_position_only_with_the_dem():
+    georef = GeoReference.centred(500.0, 0.0, 5.0, 600, 500)
+    dem_georef = GeoReference.centred(500.0, 0.0, 10.0, 400, 400)
+    heights = heights_on(georef, _heights(dem_georef), dem_georef)
+    ortho = orthorectify(_frame(), INTR, POSE, heights, georef)
+    assert ortho.reason == "" and ortho.valid.mean() > 0.5
+    np.testing.assert_allclose(_blob(ortho), PEAK[:2], atol=5.0)   # within one ground pixel
+    plane = project_to_ground(_frame(), INTR, POSE, 0.0, georef)
+    assert np.hypot(*(np.array(_blob(plane)) - PEAK[:2])) > 100.0  # relief displacement
+
+
+def test_heights_outside_the_dem_are_invalid():
+    georef = GeoReference.centred(0.0, 0.0, 5.0, 100, 100)
+    dem_georef = GeoReference(0.0, 250.0, 5.0, 50, 100)             # covers the east half
+    heights = heights_on(georef, np.zeros((100, 50)), dem_georef)
+    assert np.isnan(heights[:, :40]).all() and np.isfinite(heights[:, 60:]).all()
+    ortho = orthorectify(np.full((480, 640), 100, np.uint8), INTR, POSE, heights, georef)
+    assert not ortho.valid[:, :40].any()
