@@ -15,10 +15,10 @@ Subscribed:
   a step back of more than ``time_jump_reset`` (bag loop) resets the filter.
 * ``/nav/pva_fix`` (terrain_nav_msgs/PvaFix, reliable): the position always, the attitude
   when ``status == STATUS_POSITION_ATTITUDE``, the velocity when ``velocity_valid``.
-  ``STATUS_NO_FIX`` messages are counted (diagnostics), not fused. The pose is the camera's
-  (``fix_pose_frame: camera_optical``: optical centre, optical-frame orientation) and is
-  moved to ``base_link`` with ``camera_mount_rpy`` and ``camera_lever_arm``; or already the
-  body's (``fix_pose_frame: base_link``). Late and out-of-order fixes are applied at their
+  ``STATUS_NO_FIX`` messages are counted (diagnostics), not fused. The pose is the body's
+  (``fix_pose_frame: base_link``, what the matcher publishes), or a camera's
+  (``camera_optical``: optical centre, optical-frame orientation) moved to ``base_link`` with
+  ``camera_mount_rpy`` and ``camera_lever_arm``, for matchers that publish camera poses. Late and out-of-order fixes are applied at their
   own stamp by the core (state history of ``history_length`` s).
 * ``/baro/pressure`` (sensor_msgs/FluidPressure): ISA pressure altitude
   (:mod:`~terrain_nav_ros.core.baro`, ``sea_level_pressure``) plus a constant offset to ENU
@@ -194,7 +194,7 @@ class EkfNode(Node):
         self.gnss_fallback_sigma = declare(
             self, "gnss_fallback_sigma", [3.0, 3.0, 6.0],
             "GNSS E/N/U sigma when the fix says COVARIANCE_TYPE_UNKNOWN [m]")
-        self.fix_pose_frame = declare(self, "fix_pose_frame", "camera_optical",
+        self.fix_pose_frame = declare(self, "fix_pose_frame", "base_link",
                                       "camera_optical | base_link: what the PvaFix pose is of")
         mount_rpy = declare(self, "camera_mount_rpy", [0.0, 0.0, 0.0],
                             "nadir camera mount tilt roll, pitch, yaw (FLU) [rad]")
