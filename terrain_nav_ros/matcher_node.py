@@ -9,8 +9,11 @@ above the calibrated significance threshold becomes a position fix
 when there is no fix the message has ``status = STATUS_NO_FIX`` and the reason.
 
 The fix is the aircraft (``base_link``) pose: the camera's lever arm (centimetres) is
-neglected, its attitude is the prior's turned back through the camera mount, and only the
-position is measured (``STATUS_POSITION``, rotation covariance -1).
+neglected and its attitude is the prior's turned back through the camera mount. The
+registration's rotation is the prior's heading error, so with ``publish_heading`` the heading
+is measured too (``STATUS_POSITION_ATTITUDE``, roll and pitch with a 10-degree sigma that
+leaves the filter's own untouched); otherwise only the position (``STATUS_POSITION``, rotation
+covariance -1).
 """
 
 from __future__ import annotations
@@ -39,6 +42,9 @@ from .ros_common import (
     settings_from_parameters,
 )
 
+# Variance (rad^2) given to roll and pitch when only the heading is measured: 10 deg.
+UNOBSERVED_TILT_VAR = math.radians(10.0) ** 2
+
 
 class MatcherNode(Node):
     """Localises camera minutiae in landmark minutiae and publishes fixes."""
@@ -56,6 +62,12 @@ class MatcherNode(Node):
         self.velocity_gap = declare(self, "velocity_max_gap", 5.0,
                                     "largest time between two fixes that give a velocity [s]",
                                     min_value=0.0)
+        self.use_heading = declare(self, "publish_heading", True,
+                                   "also measure the heading from the registration's rotation "
+                                   "(status POSITION_ATTITUDE with roll/pitch unmeasured)")
+        self.heading_floor = math.radians(declare(
+            self, "heading_sigma_floor", 0.5, "smallest heading sigma reported [deg]",
+            min_value=0.0))
         self.max_landmarks = declare(self, "max_landmarks", 4,
                                      "landmark sets kept for pairing", min_value=1,
                                      max_value=64)
@@ -141,6 +153,16 @@ class MatcherNode(Node):
 
     def publish_fix(self, stamp, stamp_s: float, fix: PvaFixEstimate, origin) -> None:
         r_enu_body = fix.rotation @ self.r_body_optical.T
+        if self.use_heading and fix.yaw_variance >= 0:
+            # The ground image was rotated by the prior's heading error: turn the prior
+            # attitude about Up by the registration's rotation. Roll and pitch are not seen
+            # by a nadir ground match: give them a variance that leaves the filter's alone.
+            r_enu_body = Rotation.from_rotvec([0.0, 0.0, fix.yaw_correction]).as_matrix() \
+                @ r_enu_body
+            fix.covariance[3:, 3:] = np.diag([UNOBSERVED_TILT_VAR, UNOBSERVED_TILT_VAR,
+                                              fix.yaw_variance + self.heading_floor ** 2])
+            fix.covariance[:3, 3:] = fix.covariance[3:, :3] = 0.0
+            fix.status = PvaFix.STATUS_POSITION_ATTITUDE
         quaternion = Rotation.from_matrix(r_enu_body).as_quat()
         out = PvaFix(header=cv.make_header(stamp, self.frame_id), status=fix.status,
                      reason=fix.reason, similarity=float(fix.similarity),
