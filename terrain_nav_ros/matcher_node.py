@@ -21,20 +21,29 @@ from __future__ import annotations
 import math
 from collections import deque
 
+import cv2
 import numpy as np
 from rclpy.node import Node
 from scipy.spatial.transform import Rotation
+from sensor_msgs.msg import CameraInfo
 
-from terrain_nav_msgs.msg import MinutiaArray, PvaFix
+from terrain_nav_msgs.msg import DemTile, MinutiaArray, PvaFix
 
 from . import conversions as cv
 from .core.camera_mount import mount_rotation
 from .core.geodesy import EnuOrigin
 from .core.matching import Matcher, MatchParams
-from .core.pva_fix import PvaFixEstimate, fix_from_ground_match, velocity_from_fixes
+from .core.pva_fix import (
+    PvaFixEstimate,
+    dem_heights,
+    fix_from_ground_match,
+    fix_from_pnp,
+    velocity_from_fixes,
+)
 from .ros_common import (
     LATCHED_QOS,
     RELIABLE_QOS,
+    SENSOR_QOS,
     declare,
     declare_settings,
     reject_all_changes,
@@ -62,6 +71,12 @@ class MatcherNode(Node):
         self.velocity_gap = declare(self, "velocity_max_gap", 5.0,
                                     "largest time between two fixes that give a velocity [s]",
                                     min_value=0.0)
+        self.method = declare(self, "method", "pnp",
+                              "pnp: camera pose by PnP over the paired minutiae's DEM points "
+                              "(needs CameraInfo and the DEM tile; falls back to ground); "
+                              "ground: shift of the ground-projected frame only")
+        if self.method not in ("pnp", "ground"):
+            raise ValueError(f"method must be 'pnp' or 'ground', not {self.method!r}")
         self.use_heading = declare(self, "publish_heading", True,
                                    "also measure the heading from the registration's rotation "
                                    "(status POSITION_ATTITUDE with roll/pitch unmeasured)")
@@ -85,6 +100,24 @@ class MatcherNode(Node):
         self.create_subscription(MinutiaArray, "/landmark/minutiae", self.on_landmark,
                                  LATCHED_QOS)
         self.create_subscription(MinutiaArray, "/camera/minutiae", self.on_camera, RELIABLE_QOS)
+        self.dem = None          # (heights, georef) of the latest DEM tile
+        self.camera_model = None  # (K, distortion)
+        self.create_subscription(DemTile, "/metamap/tile", self.on_tile, LATCHED_QOS)
+        self.create_subscription(CameraInfo, "/camera/camera_info", self.on_info, SENSOR_QOS)
+
+    def on_tile(self, msg: DemTile) -> None:
+        try:
+            self.dem = cv.msg_to_dem_tile(msg)
+        except cv.ConversionError as err:
+            self.get_logger().error(f"bad DemTile ignored: {err}")
+
+    def on_info(self, msg: CameraInfo) -> None:
+        try:
+            k, d, _model, _size = cv.camera_info_to_intrinsics(msg)
+        except cv.ConversionError:
+            self.camera_model = None
+            return
+        self.camera_model = (k, d)
 
     def on_landmark(self, msg: MinutiaArray) -> None:
         try:
@@ -129,14 +162,44 @@ class MatcherNode(Node):
                                 f"no landmark minutiae: {land_minutiae.reason}")
             return
         result = self.matcher.localise(camera, land_index)
-        fix = fix_from_ground_match(result, camera.georef, land_minutiae.georef, position,
-                                    rotation, plane, landmark_sigma=self.landmark_sigma)
+        fix = None
+        if result.matched and self.method == "pnp":
+            fix = self.pnp_fix(result, camera, land_minutiae, position, rotation)
+        if fix is None or not fix.valid:
+            fix = fix_from_ground_match(result, camera.georef, land_minutiae.georef, position,
+                                        rotation, plane, landmark_sigma=self.landmark_sigma)
+            if fix.valid:
+                agl = position[2] - plane
+                fix.covariance[:2, :2] += np.eye(2) * (agl * self.tilt_sigma) ** 2
         if not fix.valid:
             self.publish_no_fix(msg.header.stamp, fix.reason, fix)
             return
-        agl = position[2] - plane
-        fix.covariance[:2, :2] += np.eye(2) * (agl * self.tilt_sigma) ** 2
         self.publish_fix(msg.header.stamp, stamp, fix, origin)
+
+    def pnp_fix(self, result, camera, landmark, position, rotation) -> PvaFixEstimate | None:
+        """Camera pose by PnP: raw-frame pixels of the camera minutiae against the DEM points
+        of their landmark partners. The raw pixel of a ground-image minutia is recovered
+        exactly by projecting its ground point (at the DEM height the orthorectification used)
+        through the projection pose; unlike the ground shift, the result does not inherit
+        the prior's tilt error (which moves a ground image by height x tilt)."""
+        if self.dem is None or self.camera_model is None:
+            return None
+        heights, dem_georef = self.dem
+        k, dist = self.camera_model
+        east, north = camera.enu()
+        ground = np.column_stack([east, north, dem_heights(heights, dem_georef, east, north)])
+        in_camera = (ground - position) @ rotation          # ENU -> optical frame
+        pixels = np.full((len(camera), 2), np.nan)
+        ok = np.isfinite(in_camera).all(axis=1) & (in_camera[:, 2] > 0)
+        if ok.sum() < 6:
+            return None
+        projected, _ = cv2.projectPoints(in_camera[ok].reshape(-1, 1, 3), np.zeros(3),
+                                         np.zeros(3), k, dist)
+        pixels[ok] = projected.reshape(-1, 2)
+        land_east, land_north = landmark.enu()
+        land_h = dem_heights(heights, dem_georef, land_east, land_north)
+        return fix_from_pnp(result, pixels, (land_east, land_north), land_h, k, dist,
+                            position, rotation, landmark_sigma=self.landmark_sigma)
 
     def publish_no_fix(self, stamp, reason: str, fix: PvaFixEstimate | None = None) -> None:
         out = PvaFix(header=cv.make_header(stamp, self.frame_id),
@@ -153,7 +216,7 @@ class MatcherNode(Node):
 
     def publish_fix(self, stamp, stamp_s: float, fix: PvaFixEstimate, origin) -> None:
         r_enu_body = fix.rotation @ self.r_body_optical.T
-        if self.use_heading and fix.yaw_variance >= 0:
+        if fix.status == PvaFix.STATUS_POSITION and self.use_heading and fix.yaw_variance >= 0:
             # The ground image was rotated by the prior's heading error: turn the prior
             # attitude about Up by the registration's rotation. Roll and pitch are not seen
             # by a nadir ground match: give them a variance that leaves the filter's alone.

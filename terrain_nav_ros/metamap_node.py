@@ -94,10 +94,17 @@ class MetamapNode(Node):
         self.get_logger().info(
             f"loaded {', '.join(d.name for d in dems)}; ENU origin {o.lat:.6f}, {o.lon:.6f}; "
             f"native GSD {self.metamap.native_gsd:.1f} m")
-        if initial:
-            self._publish_initial_tile()
+        self._initial_timer = self.create_timer(0.2, self._publish_initial_tile) \
+            if initial else None
 
     def _publish_initial_tile(self) -> None:
+        # Wait for a valid clock: with use_sim_time the time is 0 until /clock arrives, and
+        # the tile's stamp sets the renderer's sun.
+        if self.get_clock().now().nanoseconds == 0:
+            return
+        self._initial_timer.cancel()
+        if self.policy.current is not None:
+            return  # odometry came first
         georef = self.policy.update((0.0, 0.0), (0.0, 0.0), np.zeros((2, 2)), self.gsd)
         try:
             self.tile_pub.publish(self._tile_msg(georef, self.get_clock().now().to_msg()))

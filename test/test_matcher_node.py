@@ -54,21 +54,23 @@ def test_matcher_publishes_the_true_position_and_explains_no_fix():
                                     MinutiaArray.SOURCE_CAMERA)
         cv.set_projection(sparse, [*prior, 3000.0], camera_rotation([0, 0, 0, 1]), 500.0)
         assert wait_until(lambda: cam_pub.get_subscription_count() > 0, 20), stop(node)
-        assert wait_until(lambda: (cam_pub.publish(cam_msg), len(fixes) > 0)[1], 30, 0.5)
+        assert wait_until(lambda: (cam_pub.publish(cam_msg),
+                                   any(f.status for f in fixes))[1], 30, 0.5)
+        before = len(fixes)
         cam_pub.publish(sparse)
         cam_pub.publish(cv.minutiae_to_msg(MinutiaSet.empty("no drainage: flat", camera.georef),
                                            Header(frame_id="map"), MinutiaArray.SOURCE_CAMERA))
-        assert wait_until(lambda: len(fixes) >= 3, 20)
+        assert wait_until(lambda: len(fixes) >= before + 2, 20)
         assert node.poll() is None
     finally:
         client.close()
         log = stop(node)
-    fix = fixes[0]
+    fix = next(f for f in fixes if f.status)
     assert fix.status == PvaFix.STATUS_POSITION_ATTITUDE, f"{fix.reason}\n{log}"
     position = np.array([fix.pose.pose.position.x, fix.pose.pose.position.y])
     np.testing.assert_allclose(position, TRUE_XY, atol=GSD / 2)
     cov = cv.covariance_to_array(fix.pose.covariance, 6)
     assert 0 < cov[0, 0] < GSD**2 and cov[3, 3] > cov[5, 5] > 0  # heading measured, tilt not
     assert fix.num_pairings >= 10 and abs(fix.latitude - 36.5) < 0.01
-    no_fix = [f for f in fixes[1:] if f.status == PvaFix.STATUS_NO_FIX]
+    no_fix = [f for f in fixes[before:] if f.status == PvaFix.STATUS_NO_FIX]
     assert len(no_fix) >= 2 and all(f.reason for f in no_fix)
