@@ -70,13 +70,14 @@ def test_odometry_triggers_a_latched_tile_around_the_aircraft(metamap_process):
     odom.twist.twist.linear.x = 30.0
     odom.pose.covariance = cv.array_to_covariance(np.diag([100.0, 100, 100, 1, 1, 1]))
     assert wait_until(lambda: pub.get_subscription_count() > 0, 20)
+    # Before any odometry: the latched start-up tile, centred on the ENU origin.
+    assert wait_until(lambda: bool(tiles), 10)
+    assert cv.msg_to_georef(tiles[0].georef).centre == pytest.approx((0.0, 0.0), abs=1.0)
 
     def around_aircraft():
         return [t for t in tiles if cv.msg_to_georef(t.georef).centre[0] > 100.0]
 
     assert wait_until(lambda: (pub.publish(odom), bool(around_aircraft()))[1], 20, period=0.3)
-    # The first tile (latched at start-up, before any odometry) is centred on the origin.
-    assert cv.msg_to_georef(tiles[0].georef).centre == pytest.approx((0.0, 0.0), abs=1.0)
     heights, georef = cv.msg_to_dem_tile(around_aircraft()[0])
     west, east, south, north = georef.extent
     # Footprint 1000 m + 3 sigma (30 m) around now and 5 s ahead (150 m east).
