@@ -20,7 +20,7 @@ from rosbags.interfaces import (
     QosReliability,
     QosTime,
 )
-from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 MSGS_SOURCE = Path(__file__).resolve().parents[1] / "terrain_nav_msgs"
@@ -93,13 +93,17 @@ class BagWriter:
     """Write serialized messages to a new rosbag2 MCAP bag (a directory).
 
     Use as a context manager so the MCAP summary and metadata.yaml are written on exit.
+    ``compress`` zstd-compresses the MCAP chunks (what ``ros2 bag record
+    --compression-mode storage`` would do; every MCAP reader decompresses them).
     """
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, compress: bool = False):
         self.path = Path(path)
         if self.path.exists():
             raise BagError(f"bag {self.path} already exists; choose a new output path")
         self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
+        if compress:
+            self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
         self._connections = {}
         self._open = False
 

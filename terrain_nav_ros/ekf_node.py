@@ -18,8 +18,9 @@ Subscribed:
   ``STATUS_NO_FIX`` messages are counted (diagnostics), not fused. The pose is the body's
   (``fix_pose_frame: base_link``, what the matcher publishes), or a camera's
   (``camera_optical``: optical centre, optical-frame orientation) moved to ``base_link`` with
-  ``camera_mount_rpy`` and ``camera_lever_arm``, for matchers that publish camera poses. Late and out-of-order fixes are applied at their
-  own stamp by the core (state history of ``history_length`` s).
+  ``camera_mount_rpy`` and ``camera_lever_arm``, for matchers that publish camera poses.
+  Late and out-of-order fixes are applied at their own stamp by the core (state history of
+  ``history_length`` s).
 * ``/baro/pressure`` (sensor_msgs/FluidPressure): ISA pressure altitude
   (:mod:`~terrain_nav_ros.core.baro`, ``sea_level_pressure``) plus a constant offset to ENU
   up. The core has no baro-bias state, so the offset is ``baro_offset`` or, when that is

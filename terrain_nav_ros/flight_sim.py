@@ -68,13 +68,15 @@ class SimConfig:
     heading: float = 0.0             # deg, initial heading from East, counter-clockwise
     start_east: float = 0.0          # m, start position in ENU
     start_north: float = 0.0
-    agl: float = 1000.0              # m above the highest terrain under the route
+    # A multi-kilometre footprint: a 3" (~90 m) DEM has a few valleys per kilometre, and the
+    # matcher needs tens of minutiae per frame (see README, "Flight geometry").
+    agl: float = 3000.0              # m above the highest terrain under the route
     wind: tuple = (3.0, -2.0)        # m/s, east/north
-    imu_rate: float = 200.0          # Hz
+    imu_rate: float = 100.0          # Hz
     camera_rate: float = 1.0         # Hz
     camera_width: int = 512
     camera_height: int = 384
-    camera_hfov: float = 60.0        # deg
+    camera_hfov: float = 80.0        # deg
     image_format: str = "jpeg"       # jpeg (CompressedImage) | rgb8 | mono8 (Image)
     jpeg_quality: int = 90
     render_gsd: float = 0.0          # m, terrain grid for rendering; 0 = native DEM GSD / 2
@@ -86,7 +88,7 @@ class SimConfig:
     gnss_denial: str = "stop"        # stop (no messages) | nofix (STATUS_NO_FIX messages)
     baro_rate: float = 10.0          # Hz
     baro_sigma: float = 10.0         # Pa (about 0.9 m)
-    truth_rate: float = 50.0         # Hz
+    truth_rate: float = 20.0         # Hz
     seed: int = 1
     landmark_gsd: float = 20.0       # m/px the replay's metamap and camera_ingest should use
     effects: CameraEffects = field(default_factory=CameraEffects)
@@ -304,7 +306,7 @@ def simulate(cfg: SimConfig, output: str | Path) -> dict:
     out.extend(frames)
     out.sort(key=lambda item: item[0])
 
-    with bags.BagWriter(output) as writer:
+    with bags.BagWriter(output, compress=True) as writer:
         writer.add_topic("/tf_static", "tf2_msgs/msg/TFMessage",
                          bags.qos_profile(reliable=True, transient_local=True, depth=1))
         writer.write_message("/tf_static", t_ns[0], msgs.static_tf(
