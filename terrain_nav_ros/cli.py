@@ -105,6 +105,23 @@ def _cmd_simulate(args) -> int:
     return 0
 
 
+def _cmd_evaluate(args) -> int:
+    from .evaluation import run_evaluation
+
+    out = Path(args.out) if args.out else REPO / "out" / f"evaluate-{_now()}"
+    try:
+        summary = run_evaluation(args.dem, args.gsd, args.blocks, out,
+                                 block_size=args.block_size, sun_change=args.sun_change,
+                                 false_match_rate=args.false_match_rate, seed=args.seed,
+                                 quick=args.quick, baselines=not args.no_baselines)
+    except (ValueError, OSError) as err:
+        print(f"terrain-nav evaluate: {err}", file=sys.stderr)
+        return 2
+    print(summary["report"])
+    print(f"wrote {out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="terrain-nav", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -177,6 +194,26 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--gnss-denial", dest="gnss_denial", choices=["stop", "nofix"])
     sim.add_argument("--seed", type=int)
     sim.set_defaults(func=_cmd_simulate)
+
+    ev = sub.add_parser("evaluate", help="PVA / non-PVA block study with baselines "
+                                         "(dissertation chapter 5) on a DEM")
+    ev.add_argument("--dem", help="DEM file (default: the embedded Jacksboro DEM)")
+    ev.add_argument("--gsd", default="native",
+                    help="block GSD: 'native', a refinement like 'x2', or metres")
+    ev.add_argument("--blocks", type=int, default=9, help="number of blocks (9, 36, 144)")
+    ev.add_argument("--block-size", dest="block_size", type=int, default=256,
+                    help="largest block side [px] (smaller if the DEM cannot hold them)")
+    ev.add_argument("--sun-change", dest="sun_change", type=float, default=180.0,
+                    help="azimuth change [deg] of the hard-case camera sun (0: skip it)")
+    ev.add_argument("--false-match-rate", dest="false_match_rate", type=float, default=1e-3,
+                    help="false-match rate the threshold is calibrated for")
+    ev.add_argument("--out", help="output directory (default out/evaluate-<time>)")
+    ev.add_argument("--seed", type=int, default=0)
+    ev.add_argument("--quick", action="store_true",
+                    help="smoke run: no changed-sun case, no SIFT, 12 rotation steps")
+    ev.add_argument("--no-baselines", dest="no_baselines", action="store_true",
+                    help="minutiae only")
+    ev.set_defaults(func=_cmd_evaluate)
     return parser
 
 
