@@ -147,6 +147,53 @@ class BagWriter:
         self.write(topic, timestamp_ns, typestore().serialize_cdr(msg, msgtype))
 
 
+def _mcap_file(path: Path) -> Path | None:
+    files = sorted(path.glob("*.mcap")) if path.is_dir() else [path]
+    return files[0] if files and files[0].suffix == ".mcap" else None
+
+
+def _salvage(path: Path) -> Iterator[BagMessage]:
+    """Messages of an MCAP file whose end is missing (recording cut short), in file order.
+
+    rosbags needs the summary at the end of the file; the ``mcap`` package's stream reader
+    walks the records from the start instead, so everything before the damage is kept.
+    """
+    from mcap.exceptions import McapError
+    from mcap.records import Channel, Message, Schema
+    from mcap.stream_reader import StreamReader
+
+    schemas, channels = {}, {}
+    with open(path, "rb") as stream:
+        try:
+            for record in StreamReader(stream, emit_chunks=False).records:
+                if isinstance(record, Schema):
+                    schemas[record.id] = record.name
+                elif isinstance(record, Channel):
+                    channels[record.id] = (record.topic, schemas.get(record.schema_id, ""))
+                elif isinstance(record, Message) and record.channel_id in channels:
+                    topic, msgtype = channels[record.channel_id]
+                    yield BagMessage(topic, msgtype, record.log_time, bytes(record.data))
+        except (McapError, EOFError, ValueError, OSError):
+            return  # the damaged tail
+
+
+def _salvaged_topics(path: Path) -> list[TopicInfo]:
+    counts: dict[tuple[str, str], int] = {}
+    for m in _salvage(path):
+        counts[(m.topic, m.msgtype)] = counts.get((m.topic, m.msgtype), 0) + 1
+    # QoS profiles live in the lost summary: assume reliable, latched only for /tf_static.
+    return [TopicInfo(t, mt, n, True, t == "/tf_static") for (t, mt), n in counts.items()]
+
+
+def is_damaged(path: str | Path) -> bool:
+    """True when the bag cannot be opened normally but its MCAP records can be salvaged."""
+    try:
+        _open_reader(path).close()
+        return False
+    except BagError:
+        return _mcap_file(Path(path)) is not None
+
+
 def _open_reader(path: str | Path) -> Reader:
     path = Path(path)
     if not path.exists():
@@ -160,7 +207,12 @@ def _open_reader(path: str | Path) -> Reader:
 
 
 def topics(path: str | Path) -> list[TopicInfo]:
-    """Topics of a bag with their types, counts and offered QoS."""
+    """Topics of a bag with their types, counts and offered QoS.
+
+    A bag whose MCAP file was cut short is salvaged (see :func:`read`).
+    """
+    if is_damaged(path):
+        return _salvaged_topics(_mcap_file(Path(path)))
     reader = _open_reader(path)
     try:
         out = []
@@ -176,11 +228,20 @@ def topics(path: str | Path) -> list[TopicInfo]:
         reader.close()
 
 
-def read(path: str | Path, topic_names: Iterable[str] | None = None) -> Iterator[BagMessage]:
+def read(path: str | Path, topic_names: Iterable[str] | None = None, *,
+         salvage: bool = True) -> Iterator[BagMessage]:
     """Messages of a bag in timestamp order, optionally only some topics.
 
-    A bag truncated mid-file yields the messages before the damage, then raises BagError.
+    A bag whose MCAP file lost its end (a recording cut short) yields, with ``salvage``, the
+    messages before the damage in file order; otherwise it raises BagError. Damage inside the
+    data raises BagError after the messages before it.
     """
+    if salvage and is_damaged(path):
+        wanted = set(topic_names) if topic_names else None
+        for m in _salvage(_mcap_file(Path(path))):
+            if wanted is None or m.topic in wanted:
+                yield m
+        return
     reader = _open_reader(path)
     try:
         wanted = set(topic_names) if topic_names else None
@@ -201,6 +262,12 @@ def decode(message: BagMessage):
 
 def info(path: str | Path) -> str:
     """Human-readable summary like ``ros2 bag info``."""
+    if is_damaged(path):
+        lines = [f"Bag:        {Path(path)}",
+                 "DAMAGED:    the MCAP file has no end (recording cut short); salvageable:"]
+        for t in sorted(_salvaged_topics(_mcap_file(Path(path))), key=lambda t: t.topic):
+            lines.append(f"  {t.topic:32s} {t.msgtype:40s} {t.count:8d} msgs")
+        return "\n".join(lines)
     reader = _open_reader(path)
     try:
         duration = reader.duration * 1e-9 if reader.message_count else 0.0

@@ -104,4 +104,21 @@ def test_missing_and_damaged_bags_raise_bag_error(tmp_path, recorded_bag):
         data = f.read_bytes()
         (damaged / f.name).write_bytes(data[: len(data) // 2] if f.suffix == ".mcap" else data)
     with pytest.raises(bags.BagError):
-        list(bags.read(damaged))
+        list(bags.read(damaged, salvage=False))
+
+
+
+def test_a_bag_cut_short_is_salvaged_up_to_the_damage(tmp_path):
+    from rosbags.typesys.stores.ros2_jazzy import std_msgs__msg__String as String
+
+    bag, n = tmp_path / "long", 3000
+    with bags.BagWriter(bag) as writer:  # several MCAP chunks
+        for i in range(n):
+            writer.write_message("/chatter", i * 1000, String(data=f"{i:06d}" + "x" * 1000),
+                                 "std_msgs/msg/String")
+    (mcap_file,) = bag.glob("*.mcap")
+    mcap_file.write_bytes(mcap_file.read_bytes()[: mcap_file.stat().st_size // 2])
+    salvaged = [bags.decode(m).data[:6] for m in bags.read(bag, ["/chatter"])]
+    assert n // 4 < len(salvaged) < n
+    assert salvaged == [f"{i:06d}" for i in range(len(salvaged))]
+    assert bags.is_damaged(bag) and "DAMAGED" in bags.info(bag)
