@@ -15,10 +15,17 @@ import numpy as np
 from rclpy.node import Node
 
 from terrain_nav_msgs.msg import DemTile, GeoImage
+from terrain_nav_msgs.srv import RenderView
 
 from . import conversions as cv
 from .core.georef import GeoReference
-from .core.renderer import AlbedoRamp, LandmarkRenderer, RendererError, create_headless_context
+from .core.renderer import (
+    AlbedoRamp,
+    LandmarkRenderer,
+    PinholeCamera,
+    RendererError,
+    create_headless_context,
+)
 from .core.sun import solar_position
 from .ros_common import LATCHED_QOS, declare, reject_all_changes, run
 
@@ -51,7 +58,9 @@ class LandmarkRendererNode(Node):
         self.get_logger().info(f"OpenGL: {info['GL_RENDERER']} ({info['GL_VERSION']})")
         self.pub = self.create_publisher(GeoImage, "/landmark/image", LATCHED_QOS)
         self.create_subscription(DemTile, "/metamap/tile", self.on_tile, LATCHED_QOS)
+        self.create_service(RenderView, "/landmark_renderer/render_view", self.on_render_view)
         self.rendered = 0
+        self.last_tile_msg: DemTile | None = None
 
     def sun_for(self, msg: DemTile):
         """(azimuth, elevation) for a tile under the configured policy."""
@@ -82,6 +91,7 @@ class LandmarkRendererNode(Node):
             round(georef.height * georef.gsd / self.gsd))
         try:
             self.renderer.set_terrain(filled, georef)
+            self.last_tile_msg = msg
             result = self.renderer.render_nadir(out, sun=self.sun_for(msg))
         except (RendererError, ValueError) as err:
             self.get_logger().error(f"cannot render tile: {err}")
@@ -99,6 +109,33 @@ class LandmarkRendererNode(Node):
         self.rendered += 1
         self.get_logger().info(f"landmark {out.width}x{out.height} px at {out.gsd:g} m/px "
                                f"centred ({out.centre[0]:.0f}, {out.centre[1]:.0f}) m")
+
+    def on_render_view(self, request, response):
+        """Perspective render of the current tile for a requested camera and pose."""
+        response.success = False
+        if self.last_tile_msg is None:
+            response.message = "no DEM tile received yet"
+            return response
+        try:
+            k, _d, _model, (width, height) = cv.camera_info_to_intrinsics(request.camera_info)
+            camera = PinholeCamera(k[0, 0], k[1, 1], k[0, 2], k[1, 2], width, height)
+            p, q = request.pose.position, request.pose.orientation
+            from scipy.spatial.transform import Rotation
+
+            rotation = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+            sun = (request.sun_azimuth, request.sun_elevation) if request.sun_elevation > 0 \
+                else self.sun_for(self.last_tile_msg)
+            result = self.renderer.render_perspective(camera, (p.x, p.y, p.z), rotation, sun)
+        except (cv.ConversionError, RendererError, ValueError) as err:
+            response.message = str(err)
+            return response
+        header = cv.make_header(self.get_clock().now().to_msg(), "camera_optical")
+        response.image = cv.array_to_image(self.renderer_output(result.grey), "mono8", header)
+        response.terrain_height = cv.array_to_image(
+            result.hit_enu[..., 2].astype(np.float32), "32FC1", header)
+        response.success = True
+        response.message = f"{width}x{height} px, {result.mask.mean():.0%} terrain"
+        return response
 
     @staticmethod
     def renderer_output(grey: np.ndarray) -> np.ndarray:

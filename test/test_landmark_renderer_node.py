@@ -20,6 +20,20 @@ def _peak_tile():
     return heights, georef
 
 
+def _render_view(client, pose_z):
+    from terrain_nav_msgs.srv import RenderView
+
+    cli = client.node.create_client(RenderView, "/landmark_renderer/render_view")
+    assert cli.wait_for_service(timeout_sec=20)
+    request = RenderView.Request(camera_info=cv.intrinsics_to_camera_info(
+        np.array([[100.0, 0, 31.5], [0, 100.0, 23.5], [0, 0, 1]]), [0] * 5, 64, 48))
+    request.pose = cv.pose_with_covariance([1000.0, 2000.0, pose_z],
+                                           [1.0, 0.0, 0.0, 0.0], np.eye(6)).pose  # nadir
+    future = cli.call_async(request)
+    assert wait_until(future.done, 20)
+    return future.result()
+
+
 def test_tile_becomes_a_lit_georeferenced_landmark():
     node = start_node("landmark_renderer", {"sun_azimuth": 315.0, "sun_elevation": 45.0})
     client = SpinningNode("landmark_client")
@@ -35,9 +49,15 @@ def test_tile_becomes_a_lit_georeferenced_landmark():
         pub.publish(cv.dem_tile_to_msg(heights, georef, Header(frame_id="map")))
         assert wait_until(lambda: got, 60), stop(node)
         assert node.poll() is None, "node died on a malformed tile"
+        view = _render_view(client, 3000.0)          # looking straight down at the peak
+        underground = _render_view(client, 100.0)    # below the terrain: refused
     finally:
         client.close()
         log = stop(node)
+    assert view.success, view.message
+    heights = cv.image_to_array(view.terrain_height)
+    assert heights.shape == (48, 64) and abs(float(heights[24, 32]) - 800.0) < 5.0  # summit
+    assert not underground.success and underground.message
     image, out_georef, valid = cv.msg_to_geo_image(got[-1])
     assert out_georef == georef, log
     assert not valid[:, :9].any() and valid[:, 12:].all()
