@@ -1,0 +1,117 @@
+"""Whole-graph replays: the short CI bag through every node in its own process over DDS.
+
+The nominal replay must produce terrain fixes and keep the fused error over the GPS-denied
+segment within a few GSD and well below IMU-only dead reckoning. Damaged inputs (a truncated
+bag, no camera_info, a flight over flat terrain) must degrade to "no fix" with reasons, and
+never kill a node.
+"""
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+from rasterio.transform import from_origin
+
+from terrain_nav_ros import bags
+from terrain_nav_ros.flight_sim import SimConfig, simulate
+from terrain_nav_ros.replay import run_replay
+
+REPO = Path(__file__).resolve().parents[1]
+SHORT_BAG = REPO / "bags" / "jacksboro_short"
+GRAPH = REPO / "config" / "graph.yaml"
+GSD = 20.0  # the short bag's landmark GSD (mission.yaml)
+
+pytestmark = pytest.mark.skipif(not SHORT_BAG.exists(), reason="bags/jacksboro_short missing")
+
+
+def _nodes_survived(result):
+    assert result["graph_status"] == 0 and result["died"] == [], result.get("died")
+
+
+@pytest.fixture(scope="module")
+def nominal(tmp_path_factory):
+    return run_replay(SHORT_BAG, tmp_path_factory.mktemp("nominal"), GRAPH)
+
+
+def test_replay_produces_fixes_and_bounds_the_error(nominal):
+    _nodes_survived(nominal)
+    fixes = nominal["fixes"]
+    assert fixes["frames"] >= 30 and fixes["fixes"] >= 0.5 * fixes["frames"], fixes
+    fused, dr = nominal["fused_error"], nominal["dr_error"]
+    # Bounded by a few landmark GSD, and far below dead reckoning.
+    assert fused["rms"] <= 3 * GSD, fused
+    assert fused["rms"] < 0.7 * dr["rms"] and fused["final"] < 0.6 * dr["final"], (fused, dr)
+    assert nominal["fix_error"]["within_3_sigma"] >= 0.7
+
+
+def test_recorded_outputs_are_readable_by_rosbags_and_mcap(nominal):
+    from mcap.reader import make_reader
+
+    out = Path(nominal["output_bag"])
+    topics = {t.topic: t.count for t in bags.topics(out)}
+    assert topics["/nav/odometry"] > 100 and topics["/nav/pva_fix"] >= 30
+    (mcap_file,) = out.glob("*.mcap")
+    with open(mcap_file, "rb") as stream:
+        names = {schema.name for schema, _, _ in make_reader(stream).iter_messages()}
+    assert {"terrain_nav_msgs/msg/PvaFix", "nav_msgs/msg/Odometry"} <= names
+
+
+def _copy_bag(src: Path, dst: Path, drop_topics=(), until_s=None):
+    """A copy of a bag without some topics and/or cut after ``until_s`` seconds."""
+    first = None
+    with bags.BagWriter(dst) as writer:
+        for m in bags.read(src):
+            first = m.timestamp_ns if first is None else first
+            if until_s is not None and m.timestamp_ns - first > until_s * 1e9:
+                break
+            if m.topic in drop_topics:
+                continue
+            if not writer.has_topic(m.topic):
+                info = next(t for t in bags.topics(src) if t.topic == m.topic)
+                writer.add_topic(m.topic, m.msgtype,
+                                 bags.qos_profile(info.reliable, info.transient_local))
+            writer.write(m.topic, m.timestamp_ns, m.rawdata)
+    shutil.copy(src / "mission.yaml", dst / "mission.yaml")
+    return dst
+
+
+def _no_fix_reasons(result):
+    return " | ".join(reason for reason, _ in result["fixes"]["reasons"])
+
+
+def test_missing_camera_info_gives_no_fix_and_no_crash(tmp_path):
+    bag = _copy_bag(SHORT_BAG, tmp_path / "no_info", drop_topics={"/camera/camera_info"},
+                    until_s=25)
+    result = run_replay(bag, tmp_path / "out", GRAPH)
+    _nodes_survived(result)
+    assert result["fixes"]["fixes"] == 0
+    log = (tmp_path / "out" / "logs" / "camera_ingest.log").read_text()
+    assert "no CameraInfo" in log
+
+
+def test_truncated_bag_replays_what_it_has(tmp_path):
+    bag = _copy_bag(SHORT_BAG, tmp_path / "cut", until_s=30)
+    (mcap_file,) = bag.glob("*.mcap")
+    data = mcap_file.read_bytes()
+    mcap_file.write_bytes(data[: int(len(data) * 0.6)])
+    result = run_replay(bag, tmp_path / "out", GRAPH)
+    _nodes_survived(result)
+    log = (tmp_path / "out" / "logs" / "bag_player.log").read_text()
+    assert "stopped after" in log or "damaged" in log or "finished" in log
+
+
+def test_flight_over_flat_terrain_says_why_there_is_no_fix(tmp_path):
+    dem = tmp_path / "lake.tif"
+    with rasterio.open(dem, "w", driver="GTiff", width=400, height=400, count=1,
+                       dtype="float32", crs="EPSG:32616",
+                       transform=from_origin(600000.0, 4000000.0, 30.0, 30.0)) as dst:
+        dst.write(np.full((1, 400, 400), 250.0, np.float32))
+    bag = tmp_path / "flat"
+    simulate(SimConfig(dem=str(dem), duration=32.0, gnss_denied_after=16.0, agl=1500.0,
+                       camera_rate=1.0, seed=3), bag)
+    result = run_replay(bag, tmp_path / "out", GRAPH)
+    _nodes_survived(result)
+    assert result["fixes"]["fixes"] == 0 and result["fixes"]["no_fix"] >= 5
+    assert "no drainage" in _no_fix_reasons(result) or "minutiae" in _no_fix_reasons(result)
