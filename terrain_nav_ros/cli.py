@@ -171,7 +171,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     sim = sub.add_parser("simulate", help="simulate a flight over a DEM into an MCAP bag")
     sim.add_argument("-o", "--output", required=True, help="new bag directory")
-    sim.add_argument("--dem", help="DEM file (default: the embedded Jacksboro DEM)")
+    sim.add_argument("--dem", help="DEM file or 'synthetic:seed=N,size=N,gsd=X' (default: "
+                     "the embedded Jacksboro DEM)")
+    sim.add_argument("--landmark-gsd", dest="landmark_gsd", type=float,
+                     help="GSD the replay's metamap and camera_ingest use [m/px] (default 20)")
     sim.add_argument("--duration", type=float, help="flight time [s] (default 120)")
     sim.add_argument("--pattern", choices=["survey", "turns", "straight"])
     sim.add_argument("--speed", type=float, help="airspeed [m/s] (default 30)")

@@ -40,7 +40,7 @@ from . import bags
 from .core.baro import altitude_to_pressure
 from .core.camera_effects import CameraEffects, apply_camera_effects, distortion_maps
 from .core.camera_mount import R_BODY_OPTICAL_NADIR, camera_rotation
-from .core.dem_io import open_dem, sample_dem
+from .core.dem_sources import open_dem_source
 from .core.ekf_params import EkfParams
 from .core.geodesy import EnuOrigin
 from .core.georef import GeoReference
@@ -58,7 +58,8 @@ EPOCH_NS = 1_782_048_600_000_000_000  # 2026-06-21T13:30:00Z: bag time of t = 0 
 class SimConfig:
     """Everything that defines a simulated flight (all SI units, angles in degrees)."""
 
-    dem: str = ""                    # DEM file; "" = the embedded Jacksboro DEM
+    dem: str = ""                    # DEM file or source name (see core/dem_sources.py);
+    #                                  "" = the embedded Jacksboro DEM
     origin_latitude: float = math.nan   # ENU origin; NaN = the DEM centre
     origin_longitude: float = math.nan
     duration: float = 120.0          # s
@@ -110,7 +111,7 @@ def _segments(cfg: SimConfig) -> list[Segment]:
 
 
 def _open_metamap(cfg: SimConfig) -> tuple[MetaMap, str]:
-    dem = open_dem(cfg.dem) if cfg.dem else sample_dem()
+    dem = open_dem_source(cfg.dem)
     origin = None
     if math.isfinite(cfg.origin_latitude) and math.isfinite(cfg.origin_longitude):
         origin = EnuOrigin(cfg.origin_latitude, cfg.origin_longitude, 0.0)

@@ -24,7 +24,8 @@ from terrain_nav_msgs.msg import DemTile as DemTileMsg
 from terrain_nav_msgs.srv import GetDemTile
 
 from . import conversions as cv
-from .core.dem_io import DemError, dem_files, open_dem, sample_dem
+from .core.dem_io import DemError, dem_files
+from .core.dem_sources import open_dem_source
 from .core.geodesy import EnuOrigin
 from .core.georef import GeoReference
 from .core.metamap import MetaMap
@@ -41,8 +42,9 @@ class MetamapNode(Node):
     def __init__(self):
         super().__init__("metamap")
         files = [f for f in declare(self, "dem_files", [""],
-                                    "DEM files, folders or globs (.asc .tif .hgt .npz); "
-                                    "empty = the embedded USGS Jacksboro DEM") if f]
+                                    "DEM files, folders or globs (.asc .tif .hgt .npz), or "
+                                    "'synthetic:seed=N,size=N,gsd=X'; empty = the embedded "
+                                    "USGS Jacksboro DEM") if f]
         lat = declare(self, "origin_latitude", math.nan,
                       "mission ENU origin latitude [deg WGS84]; NaN = centre of the first DEM")
         lon = declare(self, "origin_longitude", math.nan, "mission ENU origin longitude [deg]")
@@ -80,7 +82,9 @@ class MetamapNode(Node):
                           "odometry (lets the EKF learn the origin from it)")
         self.add_on_set_parameters_callback(reject_all_changes)
 
-        dems = [open_dem(f) for f in dem_files(files)] if files else [sample_dem()]
+        named = [f for f in files if f.startswith(("synthetic", "jacksboro", "matplotlib:"))]
+        paths = dem_files([f for f in files if f not in named])
+        dems = [open_dem_source(f) for f in named + paths] if files else [open_dem_source("")]
         origin = (EnuOrigin(lat, lon, alt, undulation) if np.isfinite(lat) and np.isfinite(lon)
                   else None)
         self.metamap = MetaMap(dems, origin, interpolation=interpolation, fill_voids=fill,

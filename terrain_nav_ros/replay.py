@@ -166,15 +166,14 @@ def _hillshade_background(mission: dict, result: dict):
     if result.get("truth") is None or not mission.get("origin"):
         return None
     try:
-        from .core.dem_io import open_dem, sample_dem
+        from .core.dem_sources import open_dem_source
         from .core.geodesy import EnuOrigin
         from .core.georef import GeoReference
         from .core.hillshade import hillshade
         from .core.metamap import MetaMap
 
         dem_name = str(mission.get("dem", ""))
-        dem = sample_dem() if dem_name.startswith("matplotlib:") or not dem_name else \
-            open_dem(dem_name)
+        dem = open_dem_source(dem_name)
         metamap = MetaMap(dem, EnuOrigin(*mission["origin"]), heights="enu")
         p = result["truth"][1]
         pad = 0.15 * max(np.ptp(p[:, 0]), np.ptp(p[:, 1]), 500.0)
