@@ -15,19 +15,7 @@ from skimage.morphology import skeletonize
 
 from terrain_nav_ros.core.georef import GeoReference
 from terrain_nav_ros.core.minutia_set import BIFURCATION, ENDING, MinutiaSet
-
-
-def fractal_surface(shape, beta: float = 3.2, rng=None) -> np.ndarray:
-    """Random surface with power spectrum ~ 1/f^beta, zero mean, unit std."""
-    rng = np.random.default_rng(rng)
-    fy = np.fft.fftfreq(shape[0])[:, None]
-    fx = np.fft.rfftfreq(shape[1])[None, :]
-    f = np.hypot(fx, fy)
-    f[0, 0] = 1.0
-    spec = (rng.normal(size=f.shape) + 1j * rng.normal(size=f.shape)) * f ** (-beta / 2)
-    spec[0, 0] = 0
-    z = np.fft.irfft2(spec, s=shape)
-    return (z - z.mean()) / z.std()
+from terrain_nav_ros.core.synthetic_terrain import fractal_surface
 
 
 def valley_skeleton(surface: np.ndarray, sigma: float = 3.0, fraction: float = 0.15,

@@ -40,6 +40,7 @@ __all__ = [
     "ground_homography",
     "footprint_georef",
     "project_to_ground",
+    "grey_frame",
 ]
 
 _MIN_DEPTH = 1e-6  # m; ground points closer to the camera plane are behind it
@@ -284,6 +285,15 @@ class GroundImage:
     reason: str = ""
 
 
+def grey_frame(image, intr: CameraIntrinsics, bgr: bool) -> tuple[np.ndarray, str]:
+    """The frame as one grey channel, and why it does not fit ``intr`` ("" when it does)."""
+    img = _to_grey(image, bgr)
+    if img.shape != (intr.height, intr.width):
+        return img, (f"image size {img.shape[::-1]} differs from CameraInfo "
+                     f"{intr.width}x{intr.height}")
+    return img, ""
+
+
 def _to_grey(image: np.ndarray, bgr: bool) -> np.ndarray:
     img = np.asarray(image)
     if img.ndim == 3 and img.shape[2] == 1:
@@ -324,13 +334,10 @@ def project_to_ground(image, intr: CameraIntrinsics, pose: CameraPose, plane_hei
     -------
     GroundImage
     """
-    reason = check_view(intr, pose, plane_height)
+    img, reason = grey_frame(image, intr, bgr)
+    reason = check_view(intr, pose, plane_height) or reason
     if reason:
         return GroundImage(None, None, georef, reason)
-    img = _to_grey(image, bgr)
-    if img.shape != (intr.height, intr.width):
-        return GroundImage(None, None, georef, f"image size {img.shape[::-1]} differs from "
-                           f"CameraInfo {intr.width}x{intr.height}")
     H = ground_homography(intr, pose, plane_height, georef)
     rows, cols = georef.shape
     # Depth of each output pixel's ground point along the optical axis: affine in (col, row).

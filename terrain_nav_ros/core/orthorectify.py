@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from .georef import GeoReference
-from .ground_projection import CameraIntrinsics, CameraPose, GroundImage, _to_grey
+from .ground_projection import CameraIntrinsics, CameraPose, GroundImage, grey_frame
 
 
 def heights_on(georef: GeoReference, dem: np.ndarray, dem_georef: GeoReference) -> np.ndarray:
@@ -72,13 +72,10 @@ def orthorectify(image, intr: CameraIntrinsics, pose: CameraPose, heights: np.nd
     -------
     GroundImage
     """
-    reason = intr.problem() or pose.problem()
+    img, reason = grey_frame(image, intr, bgr)
+    reason = intr.problem() or pose.problem() or reason
     if reason:
         return GroundImage(None, None, georef, reason)
-    img = _to_grey(image, bgr)
-    if img.shape != (intr.height, intr.width):
-        return GroundImage(None, None, georef, f"image size {img.shape[::-1]} differs from "
-                           f"CameraInfo {intr.width}x{intr.height}")
     img = antialias(img, intr, pose, heights, georef.gsd)
     if heights.shape != georef.shape:
         raise ValueError(f"heights {heights.shape} do not match georef {georef.shape}")
