@@ -34,7 +34,7 @@ from .core.ground_projection import (
 )
 from .core.orthorectify import heights_on, orthorectify
 from .core.pose_buffer import PoseBuffer, StampedPose
-from .ros_common import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, declare, run
+from .ros_common import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, contained, declare, run
 
 
 class CameraIngestNode(Node):
@@ -82,6 +82,7 @@ class CameraIngestNode(Node):
         self.create_subscription(DemTile, "/metamap/tile", self.on_tile, LATCHED_QOS)
 
     # -- inputs ----------------------------------------------------------------------------
+    @contained
     def on_info(self, msg: CameraInfo) -> None:
         try:
             k, d, _model, (w, h) = cv.camera_info_to_intrinsics(msg)
@@ -91,12 +92,14 @@ class CameraIngestNode(Node):
         self.intrinsics = CameraIntrinsics.from_matrix(k, w, h, tuple(d))
         self.calibration_problem = self.intrinsics.problem()
 
+    @contained
     def on_odometry(self, msg: Odometry) -> None:
         stamp, p, q, cov = cv.odometry_to_arrays(msg)
         reason = self.poses.add(StampedPose(stamp * 1e-9, p, q, cov))
         if reason:
             self.get_logger().warning(f"odometry ignored: {reason}", throttle_duration_sec=5.0)
 
+    @contained
     def on_tile(self, msg: DemTile) -> None:
         try:
             self.tile = cv.msg_to_dem_tile(msg)
@@ -104,6 +107,7 @@ class CameraIngestNode(Node):
         except cv.ConversionError as err:
             self.get_logger().error(f"bad DemTile ignored: {err}")
 
+    @contained
     def on_image(self, msg: Image) -> None:
         try:
             arr = cv.image_to_array(msg)
@@ -112,6 +116,7 @@ class CameraIngestNode(Node):
             return
         self.ingest(arr, msg.encoding, msg.header)
 
+    @contained
     def on_compressed(self, msg: CompressedImage) -> None:
         try:
             arr, encoding = cv.compressed_image_to_array(msg)

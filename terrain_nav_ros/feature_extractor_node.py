@@ -26,6 +26,7 @@ from .core.minutiae import FeatureExtractor, MinutiaParams
 from .ros_common import (
     LATCHED_QOS,
     RELIABLE_QOS,
+    contained,
     declare,
     declare_settings,
     run,
@@ -68,6 +69,7 @@ class FeatureExtractorNode(Node):
             return SetParametersResult(successful=False, reason=str(err))
         return SetParametersResult(successful=True)
 
+    @contained
     def on_image(self, msg: GeoImage, stream: str) -> None:
         try:
             image, georef, valid = cv.msg_to_geo_image(msg)

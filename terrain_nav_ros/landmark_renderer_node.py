@@ -27,7 +27,7 @@ from .core.renderer import (
     create_headless_context,
 )
 from .core.sun import solar_position
-from .ros_common import LATCHED_QOS, declare, reject_all_changes, run
+from .ros_common import LATCHED_QOS, contained, declare, reject_all_changes, run
 
 
 class LandmarkRendererNode(Node):
@@ -75,6 +75,7 @@ class LandmarkRendererNode(Node):
             return self.sun
         return float(az), float(el)
 
+    @contained
     def on_tile(self, msg: DemTile) -> None:
         try:
             heights, georef = cv.msg_to_dem_tile(msg)

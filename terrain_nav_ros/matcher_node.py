@@ -44,6 +44,7 @@ from .ros_common import (
     LATCHED_QOS,
     RELIABLE_QOS,
     SENSOR_QOS,
+    contained,
     declare,
     declare_settings,
     reject_all_changes,
@@ -105,12 +106,14 @@ class MatcherNode(Node):
         self.create_subscription(DemTile, "/metamap/tile", self.on_tile, LATCHED_QOS)
         self.create_subscription(CameraInfo, "/camera/camera_info", self.on_info, SENSOR_QOS)
 
+    @contained
     def on_tile(self, msg: DemTile) -> None:
         try:
             self.dem = cv.msg_to_dem_tile(msg)
         except cv.ConversionError as err:
             self.get_logger().error(f"bad DemTile ignored: {err}")
 
+    @contained
     def on_info(self, msg: CameraInfo) -> None:
         try:
             k, d, _model, _size = cv.camera_info_to_intrinsics(msg)
@@ -119,6 +122,7 @@ class MatcherNode(Node):
             return
         self.camera_model = (k, d)
 
+    @contained
     def on_landmark(self, msg: MinutiaArray) -> None:
         try:
             minutiae = cv.msg_to_minutiae(msg)
@@ -137,6 +141,7 @@ class MatcherNode(Node):
                 return minutiae, index, origin
         return None
 
+    @contained
     def on_camera(self, msg: MinutiaArray) -> None:
         stamp = cv.stamp_to_sec(msg.header.stamp)
         try:

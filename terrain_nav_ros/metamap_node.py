@@ -30,7 +30,7 @@ from .core.geodesy import EnuOrigin
 from .core.georef import GeoReference
 from .core.metamap import MetaMap
 from .core.tile_policy import TilePolicy
-from .ros_common import LATCHED_QOS, RELIABLE_QOS, declare, reject_all_changes, run
+from .ros_common import LATCHED_QOS, RELIABLE_QOS, contained, declare, reject_all_changes, run
 
 # GDAL's default block cache (5% of RAM) would dominate the node's memory on tiled GeoTIFFs.
 os.environ.setdefault("GDAL_CACHEMAX", "64")
@@ -147,6 +147,7 @@ class MetamapNode(Node):
             self.get_logger().warning(f"get_tile refused: {err}")
         return response
 
+    @contained
     def on_odometry(self, msg: Odometry) -> None:
         """Publish a new tile when the predicted footprint leaves the current one."""
         p, v = msg.pose.pose.position, msg.twist.twist.linear

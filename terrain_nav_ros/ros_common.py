@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import importlib
 import re
 import sys
@@ -89,6 +90,26 @@ def settings_from_parameters(node: Node, prefix: str, settings, overrides=None):
         if param.name.startswith(prefix + "."):
             values[param.name[len(prefix) + 1:]] = param.value
     return dataclasses.replace(settings, **values)
+
+
+def contained(callback):
+    """Decorator for a node's message callbacks: an unexpected exception on one message is
+    logged (with its type and text, at most every 5 s) and counted in ``self.failures``; the
+    node keeps serving the next messages instead of dying mid-flight."""
+
+    @functools.wraps(callback)
+    def wrapper(self, *args, **kwargs):
+        try:
+            return callback(self, *args, **kwargs)
+        except Exception as err:  # noqa: BLE001 - the point is to survive anything
+            failures = self.__dict__.setdefault("failures", {})
+            failures[callback.__name__] = failures.get(callback.__name__, 0) + 1
+            self.get_logger().error(
+                f"{callback.__name__} failed on a message ({failures[callback.__name__]} so "
+                f"far): {type(err).__name__}: {err}", throttle_duration_sec=5.0)
+            return None
+
+    return wrapper
 
 
 def reject_all_changes(_params) -> SetParametersResult:
