@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .sun import sun_direction_enu
+
 __all__ = ["sun_vector", "surface_normals", "hillshade", "relief_from_shading"]
 
 
@@ -27,8 +29,7 @@ def sun_vector(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
         raise ValueError("sun azimuth and elevation must be finite")
     if not 0.0 <= elevation_deg <= 90.0:
         raise ValueError(f"sun elevation must be in [0, 90] deg, got {elevation_deg}")
-    az, el = np.deg2rad(azimuth_deg), np.deg2rad(elevation_deg)
-    return np.array([np.sin(az) * np.cos(el), np.cos(az) * np.cos(el), np.sin(el)])
+    return sun_direction_enu(azimuth_deg, elevation_deg)
 
 
 def surface_normals(dem: np.ndarray, gsd: float = 1.0, z_factor: float = 1.0):
