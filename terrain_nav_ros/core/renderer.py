@@ -37,6 +37,7 @@ import numpy as np
 from scipy import ndimage
 
 from .georef import GeoReference
+from .ground_projection import CameraIntrinsics
 from .sun import sun_direction_enu
 
 __all__ = [
@@ -98,33 +99,17 @@ def create_headless_context(require: int = 330):
 
 # ----------------------------------------------------------------------------- inputs
 @dataclass(frozen=True)
-class PinholeCamera:
-    """Pinhole intrinsics in OpenCV convention (pixel centres at integer coordinates).
-
-    Parameters
-    ----------
-    fx, fy : float
-        Focal lengths (px).
-    cx, cy : float
-        Principal point (px).
-    width, height : int
-        Image size (px).
+class PinholeCamera(CameraIntrinsics):
+    """Pinhole intrinsics (:class:`~.ground_projection.CameraIntrinsics`, OpenCV convention)
+    that must be usable: checked at construction, since a render has no "no frame" answer.
+    Lens distortion, if given, is ignored: renders are ideal pinhole images.
     """
 
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-
     def __post_init__(self):
-        if not (self.fx > 0 and self.fy > 0 and np.isfinite([self.fx, self.fy, self.cx,
-                                                              self.cy]).all()):
-            raise ValueError(f"PinholeCamera: bad intrinsics {self}")
-        if self.width <= 0 or self.height <= 0:
-            raise ValueError(f"PinholeCamera: image size must be positive, got "
-                             f"{self.width}x{self.height}")
+        super().__post_init__()
+        problem = self.problem()
+        if problem:
+            raise ValueError(f"PinholeCamera: {problem} ({self})")
 
     def rays_optical(self) -> np.ndarray:
         """Unit ray directions in the optical frame, shape (height, width, 3)."""
