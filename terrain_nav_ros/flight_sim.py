@@ -49,6 +49,7 @@ from .core.metamap import MetaMap
 from .core.renderer import AlbedoRamp, LandmarkRenderer, PinholeCamera, create_headless_context
 from .core.strapdown import quat_conjugate, quat_rotate
 from .core.trajectory_sim import Segment, simulate_trajectory, survey_flight, turning_flight
+from .report import plain
 
 EPOCH_NS = 1_782_048_600_000_000_000  # 2026-06-21T13:30:00Z: bag time of t = 0 (a morning
 #                                         flight over North America: the sun low in the east)
@@ -324,20 +325,10 @@ def simulate(cfg: SimConfig, output: str | Path) -> dict:
         # ground radius the camera sees from the cruise height (half-diagonal of the view)
         "camera_footprint_radius": float((truth.position[:, 2].max() - ground_low)
                                          * math.tan(math.radians(cfg.camera_hfov) / 2) * 1.3),
-        "config": _plain(asdict(cfg)),
+        "config": plain(asdict(cfg)),
     }
     (output / "mission.yaml").write_text(yaml.safe_dump(summary, sort_keys=False))
     return summary
-
-
-def _plain(value):
-    if isinstance(value, dict):
-        return {k: _plain(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_plain(v) for v in value]
-    if isinstance(value, float) and math.isnan(value):
-        return None
-    return value
 
 
 def _solar(origin: EnuOrigin, t_ns: int) -> tuple[float, float]:

@@ -10,7 +10,6 @@ configures the metamap; bags recorded elsewhere use the parameter files as they 
 
 from __future__ import annotations
 
-import math
 import sys
 import time
 from pathlib import Path
@@ -25,10 +24,10 @@ RECORDED_TOPICS = ["/nav/odometry", "/nav/pva_fix", "/nav/fix", "/nav/ekf/diagno
                    "/camera/image_ground", "/camera/minutiae", "/landmark/minutiae"]
 
 
-def _mission_parameters(bag: Path, mission: dict) -> dict[str, dict]:
-    """Per-node parameter overrides that make the graph match the bag."""
+def _mission_parameters(topics: set[str], mission: dict) -> dict[str, dict]:
+    """Per-node parameter overrides that make the graph match the bag (its topics, its
+    mission.yaml)."""
     out: dict[str, dict] = {}
-    topics = {t.topic for t in bags.topics(bag)}
     if "/camera/image_raw/compressed" in topics and "/camera/image_raw" not in topics:
         out["camera_ingest"] = {"image_transport": "compressed"}
     dem = str(mission.get("dem", ""))
@@ -74,10 +73,10 @@ def run_replay(bag: str | Path, out_dir: str | Path, graph_config: str | Path,
         raise FileExistsError(f"{output_bag} exists: choose another --out directory")
     mission = report.read_mission(bag)
     spec = load_graph(graph_config)
-    overrides = _mission_parameters(bag, mission)
+    input_topics = [t.topic for t in bags.topics(bag)]
+    overrides = _mission_parameters(set(input_topics), mission)
     for node in spec.nodes:
         node.parameters.update(overrides.get(node.name, {}))
-    input_topics = [t.topic for t in bags.topics(bag)]
     wait_for = [t for t in ("/imu/data", "/camera/image_raw", "/camera/image_raw/compressed")
                 if t in input_topics]
     spec.nodes.append(NodeSpec("bag_recorder", "bag_recorder", required=True, parameters={
@@ -146,19 +145,7 @@ def _summary(result: dict) -> dict:
                           for k, v in result["latency"].items()}
     keep["usage"] = {k: {"cpu_s": round(v["cpu_s"], 2), "peak_rss_mb": round(v["peak_rss_mb"])}
                      for k, v in result["usage"].items()}
-    return _plain(keep)
-
-
-def _plain(value):
-    if isinstance(value, dict):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_plain(v) for v in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, float) and math.isnan(value):
-        return None
-    return value
+    return report.plain(keep)
 
 
 def _hillshade_background(mission: dict, result: dict):

@@ -38,6 +38,20 @@ def read_mission(bag: Path) -> dict:
     return yaml.safe_load(path.read_text()) if path.is_file() else {}
 
 
+def plain(value):
+    """Nested dicts/lists/tuples of numpy or Python scalars -> what yaml.safe_dump takes
+    (NaN becomes null)."""
+    if isinstance(value, dict):
+        return {str(k): plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [plain(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and math.isnan(value):
+        return None
+    return value
+
+
 def _series(bag, topic):
     """(stamps, positions, horizontal covariance traces) of an Odometry topic."""
     t, p, var = [], [], []
