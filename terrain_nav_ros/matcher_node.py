@@ -21,7 +21,6 @@ from __future__ import annotations
 import math
 from collections import deque
 
-import cv2
 import numpy as np
 from rclpy.node import Node
 from scipy.spatial.transform import Rotation
@@ -32,6 +31,7 @@ from terrain_nav_msgs.msg import DemTile, MinutiaArray, PvaFix
 from . import conversions as cv
 from .core.camera_mount import mount_rotation
 from .core.geodesy import EnuOrigin
+from .core.ground_projection import CameraIntrinsics, CameraPose, ground_to_image
 from .core.matching import Matcher, MatchParams
 from .core.pva_fix import (
     PvaFixEstimate,
@@ -102,7 +102,7 @@ class MatcherNode(Node):
                                  LATCHED_QOS)
         self.create_subscription(MinutiaArray, "/camera/minutiae", self.on_camera, RELIABLE_QOS)
         self.dem = None          # (heights, georef) of the latest DEM tile
-        self.camera_model = None  # (K, distortion)
+        self.camera_model: CameraIntrinsics | None = None
         self.create_subscription(DemTile, "/metamap/tile", self.on_tile, LATCHED_QOS)
         self.create_subscription(CameraInfo, "/camera/camera_info", self.on_info, SENSOR_QOS)
 
@@ -116,11 +116,11 @@ class MatcherNode(Node):
     @contained
     def on_info(self, msg: CameraInfo) -> None:
         try:
-            k, d, _model, _size = cv.camera_info_to_intrinsics(msg)
+            k, d, _model, (width, height) = cv.camera_info_to_intrinsics(msg)
         except cv.ConversionError:
             self.camera_model = None
             return
-        self.camera_model = (k, d)
+        self.camera_model = CameraIntrinsics.from_matrix(k, width, height, tuple(d))
 
     @contained
     def on_landmark(self, msg: MinutiaArray) -> None:
@@ -190,21 +190,18 @@ class MatcherNode(Node):
         if self.dem is None or self.camera_model is None:
             return None
         heights, dem_georef = self.dem
-        k, dist = self.camera_model
+        intr = self.camera_model
         east, north = camera.enu()
-        ground = np.column_stack([east, north, dem_heights(heights, dem_georef, east, north)])
-        in_camera = (ground - position) @ rotation          # ENU -> optical frame
-        pixels = np.full((len(camera), 2), np.nan)
-        ok = np.isfinite(in_camera).all(axis=1) & (in_camera[:, 2] > 0)
-        if ok.sum() < 6:
+        u, v = ground_to_image(east, north, dem_heights(heights, dem_georef, east, north),
+                               intr, CameraPose(position, rotation))
+        pixels = np.column_stack([u, v])            # NaN: no DEM height or behind the camera
+        if np.isfinite(pixels).all(axis=1).sum() < 6:
             return None
-        projected, _ = cv2.projectPoints(in_camera[ok].reshape(-1, 1, 3), np.zeros(3),
-                                         np.zeros(3), k, dist)
-        pixels[ok] = projected.reshape(-1, 2)
         land_east, land_north = landmark.enu()
         land_h = dem_heights(heights, dem_georef, land_east, land_north)
-        return fix_from_pnp(result, pixels, (land_east, land_north), land_h, k, dist,
-                            position, rotation, landmark_sigma=self.landmark_sigma)
+        return fix_from_pnp(result, pixels, (land_east, land_north), land_h, intr.matrix,
+                            intr.dist_coeffs, position, rotation,
+                            landmark_sigma=self.landmark_sigma)
 
     def publish_no_fix(self, stamp, reason: str, fix: PvaFixEstimate | None = None) -> None:
         out = PvaFix(header=cv.make_header(stamp, self.frame_id),

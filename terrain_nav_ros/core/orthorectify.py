@@ -5,8 +5,8 @@ times its distance from the nadir over the flying height: from 3000 m, a ridge 4
 plane and 2 km from the nadir lands 270 m off (13 px at 20 m GSD), far beyond any minutiae
 pairing tolerance. Here each output ground pixel takes its own DEM height: the ENU point
 (east, north, h) is projected into the raw frame through the pinhole and OpenCV lens model
-(``cv2.projectPoints``), and the frame is resampled there. Occlusion is ignored, which is
-right for the near-nadir views of a survey camera.
+(:func:`~.ground_projection.ground_to_image`), and the frame is resampled there. Occlusion
+is ignored, which is right for the near-nadir views of a survey camera.
 """
 
 from __future__ import annotations
@@ -15,7 +15,13 @@ import cv2
 import numpy as np
 
 from .georef import GeoReference
-from .ground_projection import CameraIntrinsics, CameraPose, GroundImage, grey_frame
+from .ground_projection import (
+    CameraIntrinsics,
+    CameraPose,
+    GroundImage,
+    grey_frame,
+    ground_to_image,
+)
 
 
 def heights_on(georef: GeoReference, dem: np.ndarray, dem_georef: GeoReference) -> np.ndarray:
@@ -81,20 +87,13 @@ def orthorectify(image, intr: CameraIntrinsics, pose: CameraPose, heights: np.nd
         raise ValueError(f"heights {heights.shape} do not match georef {georef.shape}")
     east, north = georef.pixel_to_enu(np.arange(georef.width)[None, :],
                                       np.arange(georef.height)[:, None])
-    east, north = np.broadcast_arrays(east, north)
-    points = np.stack([east, north, heights], -1).reshape(-1, 3) - pose.position
-    cam = points @ pose.rotation                       # ENU -> optical frame
-    valid = np.isfinite(cam).all(axis=1) & (cam[:, 2] > 1e-6)
+    map_x, map_y = (m.astype(np.float32) for m in ground_to_image(east, north, heights,
+                                                                   intr, pose))
+    valid = np.isfinite(map_x) & np.isfinite(map_y)    # NaN height or behind the camera
     if max_range is not None:
-        valid &= np.hypot(points[:, 0], points[:, 1]) <= max_range
-    uv = np.full((len(cam), 2), -1.0, np.float32)
-    if valid.any():
-        projected, _ = cv2.projectPoints(cam[valid].reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
-                                         intr.matrix, intr.dist_coeffs)
-        uv[valid] = projected.reshape(-1, 2)
-    map_x = uv[:, 0].reshape(georef.shape)
-    map_y = uv[:, 1].reshape(georef.shape)
-    inside = valid.reshape(georef.shape) & (map_x >= 0) & (map_x <= intr.width - 1) & \
+        valid &= np.hypot(east - pose.position[0], north - pose.position[1]) <= max_range
+    map_x[~valid] = map_y[~valid] = -1.0
+    inside = valid & (map_x >= 0) & (map_x <= intr.width - 1) & \
         (map_y >= 0) & (map_y <= intr.height - 1)
     out = cv2.remap(img, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
     out[~inside] = 0
