@@ -27,7 +27,6 @@ from . import conversions as cv
 from .core.dem_io import DemError, dem_files
 from .core.dem_sources import open_dem_source
 from .core.geodesy import EnuOrigin
-from .core.georef import GeoReference
 from .core.metamap import MetaMap
 from .core.tile_policy import TilePolicy
 from .ros_common import LATCHED_QOS, RELIABLE_QOS, contained, declare, reject_all_changes, run
@@ -111,13 +110,13 @@ class MetamapNode(Node):
             return  # odometry came first
         georef = self.policy.update((0.0, 0.0), (0.0, 0.0), np.zeros((2, 2)), self.gsd)
         try:
-            self.tile_pub.publish(self._tile_msg(georef, self.get_clock().now().to_msg()))
+            self.tile_pub.publish(self._tile_msg(self.metamap.tile(georef),
+                                                 self.get_clock().now().to_msg()))
         except DemError as err:
             self.policy.forget()
             self.get_logger().warning(f"no initial tile at the origin: {err}")
 
-    def _tile_msg(self, georef, stamp) -> DemTileMsg:
-        tile = self.metamap.tile(georef)
+    def _tile_msg(self, tile, stamp) -> DemTileMsg:
         return cv.dem_tile_to_msg(tile.elevation, tile.georef, cv.make_header(stamp, self.frame_id),
                                   self.enu_origin, "ENU up of the mission origin (WGS84)",
                                   self.source_crs)
@@ -129,16 +128,14 @@ class MetamapNode(Node):
             width = request.width or self.default_size
             height = request.height or self.default_size
             if request.center_frame == GetDemTile.Request.CENTER_GEODETIC:
-                h = self.metamap.origin.orthometric_to_ellipsoidal(
-                    self.metamap.reference_height)
-                east, north, _ = self.metamap.origin.geodetic_to_enu(
-                    request.center_x, request.center_y, h)
+                tile = self.metamap.tile_at_geodetic(request.center_x, request.center_y, gsd,
+                                                     width, height)
             elif request.center_frame == GetDemTile.Request.CENTER_ENU:
-                east, north = request.center_x, request.center_y
+                tile = self.metamap.tile_at(request.center_x, request.center_y, gsd, width,
+                                            height)
             else:
                 raise ValueError(f"unknown center_frame {request.center_frame}")
-            georef = GeoReference.centred(float(east), float(north), gsd, width, height)
-            response.tile = self._tile_msg(georef, self.get_clock().now().to_msg())
+            response.tile = self._tile_msg(tile, self.get_clock().now().to_msg())
             response.success = True
             response.message = f"{width}x{height} px at {gsd} m/px"
         except (DemError, ValueError) as err:
@@ -161,7 +158,7 @@ class MetamapNode(Node):
         if georef is None:
             return
         try:
-            self.tile_pub.publish(self._tile_msg(georef, msg.header.stamp))
+            self.tile_pub.publish(self._tile_msg(self.metamap.tile(georef), msg.header.stamp))
             self.get_logger().info(
                 f"tile {georef.width}x{georef.height} px centred at "
                 f"({georef.centre[0]:.0f}, {georef.centre[1]:.0f}) m")
