@@ -185,13 +185,24 @@ def _salvaged_topics(path: Path) -> list[TopicInfo]:
     return [TopicInfo(t, mt, n, True, t == "/tf_static") for (t, mt), n in counts.items()]
 
 
+def _open_or_salvage(path: str | Path) -> Reader | Path:
+    """An open Reader, or the path of an MCAP file that only the salvage reader can read."""
+    try:
+        return _open_reader(path)
+    except BagError:
+        mcap = _mcap_file(Path(path))
+        if mcap is None or not mcap.is_file():
+            raise
+        return mcap
+
+
 def is_damaged(path: str | Path) -> bool:
     """True when the bag cannot be opened normally but its MCAP records can be salvaged."""
-    try:
-        _open_reader(path).close()
-        return False
-    except BagError:
-        return _mcap_file(Path(path)) is not None
+    opened = _open_or_salvage(path)
+    if isinstance(opened, Path):
+        return True
+    opened.close()
+    return False
 
 
 def _open_reader(path: str | Path) -> Reader:
@@ -211,9 +222,9 @@ def topics(path: str | Path) -> list[TopicInfo]:
 
     A bag whose MCAP file was cut short is salvaged (see :func:`read`).
     """
-    if is_damaged(path):
-        return _salvaged_topics(_mcap_file(Path(path)))
-    reader = _open_reader(path)
+    reader = _open_or_salvage(path)
+    if isinstance(reader, Path):
+        return _salvaged_topics(reader)
     try:
         out = []
         for conn in reader.connections:
@@ -236,15 +247,14 @@ def read(path: str | Path, topic_names: Iterable[str] | None = None, *,
     messages before the damage in file order; otherwise it raises BagError. Damage inside the
     data raises BagError after the messages before it.
     """
-    if salvage and is_damaged(path):
-        wanted = set(topic_names) if topic_names else None
-        for m in _salvage(_mcap_file(Path(path))):
+    wanted = set(topic_names) if topic_names else None
+    reader = _open_or_salvage(path) if salvage else _open_reader(path)
+    if isinstance(reader, Path):
+        for m in _salvage(reader):
             if wanted is None or m.topic in wanted:
                 yield m
         return
-    reader = _open_reader(path)
     try:
-        wanted = set(topic_names) if topic_names else None
         conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
         try:
             for conn, timestamp, raw in reader.messages(connections=conns):
@@ -262,13 +272,13 @@ def decode(message: BagMessage):
 
 def info(path: str | Path) -> str:
     """Human-readable summary like ``ros2 bag info``."""
-    if is_damaged(path):
+    reader = _open_or_salvage(path)
+    if isinstance(reader, Path):
         lines = [f"Bag:        {Path(path)}",
                  "DAMAGED:    the MCAP file has no end (recording cut short); salvageable:"]
-        for t in sorted(_salvaged_topics(_mcap_file(Path(path))), key=lambda t: t.topic):
+        for t in sorted(_salvaged_topics(reader), key=lambda t: t.topic):
             lines.append(f"  {t.topic:32s} {t.msgtype:40s} {t.count:8d} msgs")
         return "\n".join(lines)
-    reader = _open_reader(path)
     try:
         duration = reader.duration * 1e-9 if reader.message_count else 0.0
         lines = [f"Bag:        {Path(path)}",
