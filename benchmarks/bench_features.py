@@ -11,7 +11,12 @@ Reports (never asserts):
   own stability. A minutia is repeated when the other set has one within 2 px and 20 deg
   (one-to-one, kinds ignored: a crease end seen with the opposite polarity can be a fork);
   the rate is matches / min(n_a, n_b) (Mikolajczyk's repeatability), also given as
-  matches / mean.
+  matches / mean;
+* the same rate against the size of the sun change (``--sun-sweep``: azimuth +0 ... +180 deg
+  at elevation 45, elevation 45 vs 40 ... 20) for raw shading and the compensated input;
+* DEM-direct vs shaded-image creases at the crease level (``--crease-agreement``): how much
+  of each skeleton lies within 1 / 2 px of the other, the best-fitting shift, and minutia
+  matches by position only.
 
 * equivalence of two versions of the extractor (``--save-minutiae`` with the old code,
   ``--compare-minutiae`` with the new): the minutiae of real hillshades and DEMs are matched
@@ -22,6 +27,8 @@ Usage::
 
     .venv/bin/python benchmarks/bench_features.py              # everything
     .venv/bin/python benchmarks/bench_features.py --no-timing  # repeatability only
+    .venv/bin/python benchmarks/bench_features.py --sun-sweep  # vs size of the sun change
+    .venv/bin/python benchmarks/bench_features.py --crease-agreement  # DEM vs shaded creases
     .venv/bin/python benchmarks/bench_features.py --save-minutiae /tmp/before.npz
     .venv/bin/python benchmarks/bench_features.py --compare-minutiae /tmp/before.npz
 """
@@ -48,9 +55,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from terrain_nav_ros.core import _crease_kernels as _kernels  # noqa: E402
-from terrain_nav_ros.core.creases import CreaseParams  # noqa: E402
+from terrain_nav_ros.core.creases import CreaseParams, crease_contrast  # noqa: E402
 from terrain_nav_ros.core.georef import GeoReference  # noqa: E402
-from terrain_nav_ros.core.hillshade import hillshade, shading_curvature  # noqa: E402
+from terrain_nav_ros.core.hillshade import LIGHTINGS, extractor_input, hillshade  # noqa: E402
 from terrain_nav_ros.core.minutiae import FeatureExtractor, MinutiaParams  # noqa: E402
 
 cv2.setNumThreads(1)
@@ -168,6 +175,22 @@ PATCHES = [
 ]
 
 
+def patches():
+    """The repeatability patches: (name, DEM with NaN voids, void-filled DEM, georef, valid)."""
+    for pname, fname, window in PATCHES:
+        dem, gsd = read_dem(fname)
+        dem = dem[window]
+        geo = GeoReference(0.0, 0.0, gsd, dem.shape[1], dem.shape[0])
+        yield pname, dem, fill_voids(dem), geo, np.isfinite(dem)
+
+
+def shaded_features(extractor, filled, geo, valid, sun, lighting="shading"):
+    """Features of the patch shaded with ``sun`` (azimuth, elevation), as the extractor
+    sees it under ``lighting`` ("compensated": curvature estimated with the known sun)."""
+    shaded = hillshade(filled, *sun, gsd=geo.gsd, dtype=np.uint8)
+    return extractor(extractor_input(shaded, lighting, sun, valid_mask=valid), geo, valid)
+
+
 def repeatability(configs):
     print("\n## Repeatability across lighting (2 px, 20 deg; matches/min and matches/mean)")
     print("Controls: DEM vs DEM + white noise of GSD/30 (1 m at 30 m); shade 315/45 vs "
@@ -177,28 +200,16 @@ def repeatability(configs):
     print("|---|---|---|---|---|---|---|---|---|---|")
     summary = {}
     rng = np.random.default_rng(0)
-    for label, (cp, mp, dem_cp, compensated) in configs.items():
+    for label, (cp, mp, dem_cp, lighting) in configs.items():
         ext_img = FeatureExtractor(cp, mp)
         ext_dem = FeatureExtractor(dem_cp, mp)
         acc = []
-        for pname, fname, window in PATCHES:
-            dem, gsd = read_dem(fname)
-            dem = dem[window]
-            valid = np.isfinite(dem)
-            geo = GeoReference(0.0, 0.0, gsd, dem.shape[1], dem.shape[0])
-            filled = fill_voids(dem)
-
-            def ext(az, el, filled=filled, gsd=gsd, geo=geo, valid=valid,
-                    compensated=compensated, ext_img=ext_img):
-                shaded = hillshade(filled, az, el, gsd=gsd, dtype=np.uint8)
-                if compensated:  # lighting-normalised: curvature with the known sun
-                    shaded = -shading_curvature(shaded, az, el, valid_mask=valid)
-                return ext_img(shaded, geo, valid).minutiae
-
-            a, b, a2 = ext(*SUN_A), ext(*SUN_B), ext(315.0, 40.0)
+        for pname, dem, filled, geo, valid in patches():
+            a, b, a2 = (shaded_features(ext_img, filled, geo, valid, sun, lighting).minutiae
+                        for sun in (SUN_A, SUN_B, (315.0, 40.0)))
             d = ext_dem(dem, geo, valid, source="dem").minutiae
             # Noise scaled to the grid: 1 m at 30 m GSD (SRTM's order of magnitude).
-            dn = ext_dem(dem + rng.normal(0.0, gsd / 30.0, dem.shape), geo, valid,
+            dn = ext_dem(dem + rng.normal(0.0, geo.gsd / 30.0, dem.shape), geo, valid,
                          source="dem").minutiae
             r = [rates(a, b), rates(d, a), rates(d, b), rates(d, dn), rates(a, a2)]
             acc.append(r)
@@ -210,6 +221,125 @@ def repeatability(configs):
           "DEM vs 315/45, DEM vs 135/30, control DEM+noise, control 315/40")
     for label, vals in summary.items():
         print(f"- {label}: " + ", ".join(f"{v:.0%}" for v in vals))
+
+
+# Sun changes of the sweep, from the reference sun SUN_A (az 315, el 45).
+SWEEP_AZIMUTH = (0, 2, 5, 10, 20, 30, 45, 60, 90, 135, 180)
+SWEEP_ELEVATION = (40, 35, 30, 20)
+
+
+def sun_sweep(target=0.70):
+    """Repeatability against the size of the sun change, raw shading and compensated input
+    (Table 3.1 valleys; same patches and matching rule as :func:`repeatability`)."""
+    cp = configs()
+    settings = {"raw shading": cp["Table 3.1, valleys (default)"],
+                "compensated": cp["compensated (known sun), Table 3.1 valleys"]}
+    changes = ([(f"az +{d}", (SUN_A[0] + d, SUN_A[1])) for d in SWEEP_AZIMUTH]
+               + [(f"el {e}", (SUN_A[0], float(e))) for e in SWEEP_ELEVATION])
+    # rate[setting][change, patch]: matches / min(n), reference sun vs changed sun.
+    rate = {}
+    for label, (icp, mp, _, lighting) in settings.items():
+        ext = FeatureExtractor(icp, mp)
+        cols = []
+        for _, _, filled, geo, valid in patches():
+            ref = shaded_features(ext, filled, geo, valid, SUN_A, lighting).minutiae
+            cols.append([rates(ref, shaded_features(ext, filled, geo, valid, sun,
+                                                    lighting).minutiae)[0]
+                         for _, sun in changes])
+        rate[label] = np.array(cols).T
+    names = [p[0] for p in PATCHES]
+    print(f"\n## Sun-change sweep: reference sun {SUN_A[0]:g}/{SUN_A[1]:g} vs changed sun "
+          "(2 px, 20 deg, matches/min); mean over the patches (min-max)")
+    print("| sun change | " + " | ".join(rate) + " | " + " | ".join(
+        f"{lab}: {n}" for lab in rate for n in names) + " |")
+    print("|---|" + "---:|" * (len(rate) * (1 + len(names))))
+    for k, (name, sun) in enumerate(changes):
+        means = [f"{r[k].mean():.0%} ({r[k].min():.0%}-{r[k].max():.0%})"
+                 for r in rate.values()]
+        per = [f"{v:.0%}" for r in rate.values() for v in r[k]]
+        print(f"| {name} ({sun[0] % 360:g}/{sun[1]:g}) | " + " | ".join(means + per) + " |")
+    naz = len(SWEEP_AZIMUTH)
+    for label, r in rate.items():
+        mean = r.mean(axis=1)
+        # Largest change up to which every smaller one keeps the mean at the target.
+        az_ok = np.cumprod(mean[:naz] >= target).astype(bool)
+        el_ok = np.cumprod(mean[naz:] >= target).astype(bool)
+        az = SWEEP_AZIMUTH[int(az_ok.sum()) - 1] if az_ok.any() else None
+        el = SWEEP_ELEVATION[int(el_ok.sum()) - 1] if el_ok.any() else None
+        print(f"- {label}: mean >= {target:.0%} up to an azimuth change of "
+              f"{'-' if az is None else f'{az} deg'} and down to elevation "
+              f"{'-' if el is None else f'{el} deg'} (from {SUN_A[1]:g})")
+
+
+def _skeleton(features):
+    """Union of the crease skeletons of a Features (all False when there are none)."""
+    out = np.zeros(features.creases.work.shape, bool)
+    for s in features.creases.skeletons.values():
+        out |= s
+    return out
+
+
+def _near(skel_a, skel_b, radius, where):
+    """Share of the pixels of skel_a (inside ``where``) within ``radius`` px of skel_b."""
+    dist = cv2.distanceTransform((~skel_b).view(np.uint8), cv2.DIST_L2, 5)
+    sel = skel_a & where
+    return float((dist[sel] <= radius).mean()) if sel.any() else float("nan")
+
+
+def crease_agreement(shifts=(-3.0, -2.5, -2.0, -1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5, 2.0, 2.5,
+                             3.0)):
+    """DEM-direct vs shaded-image creases at the crease level (Table 3.1 valleys).
+
+    Per patch and image (raw shading / compensated, both suns, and the DEM's own curvature
+    through the image path: ``-crease_contrast`` of elevation / GSD at sigma 1, the quantity
+    the compensated input estimates, without any shading): skeleton lengths, the share
+    of DEM skeleton pixels within 1 and 2 px of the image skeleton and vice versa, the chance
+    level (share of all interior pixels within 1 px of the image skeleton), the shift (dx, dy
+    px, image moved onto the DEM) that maximises the DEM-to-image share at 1 px, and minutia
+    matches/min with position only and with the 20 deg rule.
+    """
+    cp = configs()
+    dem_ext = FeatureExtractor(*cp["Table 3.1, valleys (default)"][:2])
+    grid = np.array([(dx, dy) for dy in shifts for dx in shifts])
+    print("\n## DEM-direct vs shaded creases at the crease level (Table 3.1 valleys; "
+          "image skeleton length as a multiple of the DEM's)")
+    print("| patch | image | skeleton px DEM / image | DEM->image <=1 px, <=2 px | "
+          "image->DEM <=1 px, <=2 px | chance <=1 px | best shift (dx, dy) px: DEM->image | "
+          "minutiae n DEM / image | matches/min position only, 20 deg |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for pname, dem, filled, geo, valid in patches():
+        inner = cv2.erode(valid.view(np.uint8), np.ones((21, 21), np.uint8)).view(bool)
+        inner[:10], inner[-10:], inner[:, :10], inner[:, -10:] = False, False, False, False
+        fd = dem_ext(dem, geo, valid, source="dem")
+        sd = _skeleton(fd)
+        dist_d = cv2.distanceTransform((~sd).view(np.uint8), cv2.DIST_L2, 5)
+        curvature = -crease_contrast((filled / geo.gsd).astype(np.float32), 1.0)
+        images = [(f"{lighting} {sun[0]:g}/{sun[1]:g}", lighting, sun)
+                  for lighting in LIGHTINGS for sun in (SUN_A, SUN_B)]
+        for name, lighting, sun in images + [("DEM curvature", None, None)]:
+            if lighting is None:
+                fi = dem_ext(curvature, geo, valid)
+            else:
+                fi = shaded_features(dem_ext, filled, geo, valid, sun, lighting)
+            si = _skeleton(fi)
+            # Shifted image skeleton points against the DEM's distance map (bilinear).
+            rows, cols = np.nonzero(si & inner)
+            q = np.column_stack([cols, rows])[None, :, :] + grid[:, None, :]
+            dq = cv2.remap(dist_d, q[..., 0].astype(np.float32),
+                           q[..., 1].astype(np.float32), cv2.INTER_LINEAR,
+                           borderValue=1e9)
+            best = grid[np.argmax((dq <= 1.0).mean(axis=1))]
+            chance = _near(inner, si, 1.0, inner)
+            pos = match_count(fd.minutiae, fi.minutiae, max_deg=180.0)
+            ang = match_count(fd.minutiae, fi.minutiae)
+            lo = max(min(len(fd.minutiae), len(fi.minutiae)), 1)
+            print(f"| {pname} | {name} | {sd.sum()} / {si.sum()} "
+                  f"({si.sum() / max(sd.sum(), 1):.1f}x) | "
+                  f"{_near(sd, si, 1, inner):.0%}, {_near(sd, si, 2, inner):.0%} | "
+                  f"{_near(si, sd, 1, inner):.0%}, {_near(si, sd, 2, inner):.0%} | "
+                  f"{chance:.0%} | {best[0]:+g}, {best[1]:+g} | "
+                  f"{len(fd.minutiae)} / {len(fi.minutiae)} | "
+                  f"{pos / lo:.0%}, {ang / lo:.0%} |", flush=True)
 
 
 # --------------------------------------------------------------------------- equivalence
@@ -290,10 +420,11 @@ def compare_minutiae(path, max_px=1.0):
 
 
 def configs():
-    """Settings compared: (image crease params, minutia params, DEM crease params, compensated).
+    """Settings compared: (image crease params, minutia params, DEM crease params, lighting).
 
-    ``compensated``: the extractor sees the terrain curvature estimated from the shaded image
-    with the known sun (:func:`shading_curvature`, the nodes' ``lighting: compensated``).
+    ``lighting`` as the nodes' parameter (:data:`LIGHTINGS`): ``"compensated"`` makes the
+    extractor see the terrain curvature estimated from the shaded image with the known sun
+    (:func:`~terrain_nav_ros.core.hillshade.shading_curvature`).
     """
     mp = MinutiaParams(max_minutiae=0)
     default = CreaseParams()
@@ -302,12 +433,12 @@ def configs():
                           mlsec_rho=4.0)
     coarse_v = replace(coarse, polarity="valley")
     return {
-        "Table 3.1, valleys (default)": (default, mp, default, False),
-        "Table 3.1, valleys+ridges": (both, mp, both, False),
-        "sigma=rho=2, MLSEC 2/4, valleys+ridges": (coarse, mp, coarse, False),
-        "compensated (known sun), Table 3.1 valleys": (default, mp, default, True),
+        "Table 3.1, valleys (default)": (default, mp, default, "shading"),
+        "Table 3.1, valleys+ridges": (both, mp, both, "shading"),
+        "sigma=rho=2, MLSEC 2/4, valleys+ridges": (coarse, mp, coarse, "shading"),
+        "compensated (known sun), Table 3.1 valleys": (default, mp, default, "compensated"),
         "compensated (known sun), sigma=rho=2, MLSEC 2/4, valleys": (coarse_v, mp, coarse_v,
-                                                                     True),
+                                                                     "compensated"),
     }
 
 
@@ -329,6 +460,10 @@ def main(argv=None):
     ap.add_argument("--no-timing", action="store_true")
     ap.add_argument("--no-repeatability", action="store_true")
     ap.add_argument("--sizes", type=int, nargs="+", default=[512, 1024, 2048])
+    ap.add_argument("--sun-sweep", action="store_true",
+                    help="only the repeatability against the size of the sun change")
+    ap.add_argument("--crease-agreement", action="store_true",
+                    help="only DEM-direct vs shaded creases at the crease level")
     ap.add_argument("--save-minutiae", metavar="NPZ",
                     help="only save the minutiae of the equivalence cases")
     ap.add_argument("--compare-minutiae", metavar="NPZ",
@@ -342,6 +477,12 @@ def main(argv=None):
         return save_minutiae(args.save_minutiae)
     if args.compare_minutiae:
         return compare_minutiae(args.compare_minutiae)
+    if args.sun_sweep or args.crease_agreement:
+        if args.sun_sweep:
+            sun_sweep()
+        if args.crease_agreement:
+            crease_agreement()
+        return None
     if not args.no_timing:
         extractors = {"Table 3.1, numba kernels" if _kernels.HAVE_NUMBA
                       else "Table 3.1, OpenCV/numpy (numba not installed)": FeatureExtractor()}
