@@ -207,20 +207,25 @@ class _Study:
         rm = int(round(0.5 * (region_factor - 1.0) * bs))
         self.regions = [(max(x - rm, 0), max(y - rm, 0), min(x + bs + rm, side),
                          min(y + bs + rm, side)) for x, y in self.origins]
-        self.blocks = [self.minutiae(area_grey[y:y + bs, x:x + bs], sun)
-                       for x, y in self.origins]
-        self.block_index = [matcher.index(b) for b in self.blocks]
-        self.region_sets, self.region_prep = [], []
+        self.blocks, self.block_creases = zip(*[
+            self.minutiae(area_grey[y:y + bs, x:x + bs], sun) for x, y in self.origins],
+            strict=True)
+        self.block_index = [matcher.index(b, k)
+                            for b, k in zip(self.blocks, self.block_creases, strict=True)]
+        self.region_sets, self.region_creases, self.region_prep = [], [], []
         for x0, y0, x1, y1 in self.regions:
             t0 = time.perf_counter()
-            ms = self.minutiae(area_grey[y0:y1, x0:x1], sun, region=True)
+            ms, creases = self.minutiae(area_grey[y0:y1, x0:x1], sun, region=True)
             self.region_prep.append(time.perf_counter() - t0)
             self.region_sets.append(ms)
+            self.region_creases.append(creases)
 
     def minutiae(self, grey: np.ndarray, sun, region: bool = False):
-        """Minutiae of a grey image lit by ``sun``, after the study's lighting treatment."""
-        return (self.fx_region if region else self.fx)(
-            extractor_input(grey, self.lighting, sun)).minutiae
+        """Minutiae and crease skeleton (None without creases) of a grey image lit by
+        ``sun``, after the study's lighting treatment."""
+        feats = (self.fx_region if region else self.fx)(
+            extractor_input(grey, self.lighting, sun))
+        return feats.minutiae, feats.creases.skeleton()
 
 
 def _camera_blocks(study: _Study, cam_rgb: np.ndarray, sun, transforms, cm: CameraModel,
@@ -229,26 +234,28 @@ def _camera_blocks(study: _Study, cam_rgb: np.ndarray, sun, transforms, cm: Came
     rng = np.random.default_rng(seed)
     bs = study.bs
     dist = np.full((bs, bs), cm.distance_m, np.float32)
-    greys, sets, times = [], [], []
+    greys, sets, creases, times = [], [], [], []
     for m in transforms:
         view = _warp_block(cam_rgb, m, bs)
         grey = _grey(apply_camera_effects(view, dist, cm.effects, rng))
         t0 = time.perf_counter()
-        sets.append(study.minutiae(grey, sun))
+        ms, skeleton = study.minutiae(grey, sun)
         times.append(time.perf_counter() - t0)
+        sets.append(ms)
+        creases.append(skeleton)
         greys.append(grey)
-    return greys, sets, np.array(times)
+    return greys, sets, creases, np.array(times)
 
 
-def _compare_all(study: _Study, cam_sets):
+def _compare_all(study: _Study, cam_sets, cam_creases):
     """Scores, pairings and PVA results of every camera block against every landmark block."""
     n = len(cam_sets)
     score = np.full((n, n), -np.inf)
     pairings = np.zeros((n, n), int)
     undecided = np.zeros((n, n), bool)
     pva, times = [], []
-    for i, cs in enumerate(cam_sets):
-        ci = study.matcher.index(cs)
+    for i, (cs, ck) in enumerate(zip(cam_sets, cam_creases, strict=True)):
+        ci = study.matcher.index(cs, ck)
         for j, bj in enumerate(study.block_index):
             t0 = time.perf_counter()
             r = study.matcher.compare(ci, bj)
@@ -282,8 +289,8 @@ def _calibrate(score: np.ndarray, rate: float, seed: int) -> dict:
     return out
 
 
-def _localise_cases(study: _Study, cam_greys, cam_sets, cam_times, truths, threshold,
-                    success_px, methods, n_rotations):
+def _localise_cases(study: _Study, cam_greys, cam_sets, cam_creases, cam_times, truths,
+                    threshold, success_px, methods, n_rotations):
     """Locate every camera block inside its landmark region with each method."""
     bs = study.bs
     c = 0.5 * (bs - 1)
@@ -299,10 +306,10 @@ def _localise_cases(study: _Study, cam_greys, cam_sets, cam_times, truths, thres
             rec = rows[method]
             if method == "minutiae":
                 t0 = time.perf_counter()
-                ri = matcher.index(study.region_sets[k])
+                ri = matcher.index(study.region_sets[k], study.region_creases[k])
                 prep = study.region_prep[k] + time.perf_counter() - t0
                 t0 = time.perf_counter()
-                r = matcher.localise(cam_sets[k], ri)
+                r = matcher.localise(cam_sets[k], ri, crease_camera=cam_creases[k])
                 dt = time.perf_counter() - t0 + cam_times[k]
                 accepted = r.decision == Decision.MATCH
                 est = r.apply(c, c) if r.n_pairings >= 2 else (math.nan, math.nan)
@@ -354,8 +361,9 @@ def _localise_cases(study: _Study, cam_greys, cam_sets, cam_times, truths, thres
 def _condition(study, name, cam_rgb, sun, transforms, cm, rate, seed, success_px, methods,
                n_rotations, gsd, log):
     t_start = time.perf_counter()
-    greys, sets, ext_times = _camera_blocks(study, cam_rgb, sun, transforms, cm, seed + 17)
-    score, pairings, undecided, pva, cmp_times = _compare_all(study, sets)
+    greys, sets, creases, ext_times = _camera_blocks(study, cam_rgb, sun, transforms, cm,
+                                                     seed + 17)
+    score, pairings, undecided, pva, cmp_times = _compare_all(study, sets, creases)
     cal = _calibrate(score, rate, seed)
     thr = cal["threshold"]
     n = len(score)
@@ -375,8 +383,8 @@ def _condition(study, name, cam_rgb, sun, transforms, cm, rate, seed, success_px
     fix_err = np.array(fix_err)
     log(f"  [{name}] {n} blocks compared ({n * n} pairs), threshold {thr:.2f}; "
         f"misses {len(missed)}; localising")
-    loc = _localise_cases(study, greys, sets, ext_times, transforms, thr, success_px,
-                          methods, n_rotations)
+    loc = _localise_cases(study, greys, sets, creases, ext_times, transforms, thr,
+                          success_px, methods, n_rotations)
     med, p95 = _percentiles(fix_err)
     return {
         "name": name,

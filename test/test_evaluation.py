@@ -60,10 +60,11 @@ def test_pva_scores_exceed_non_pva(study):
     cond = summary["conditions"][0]
     pva = np.array([-np.inf if s is None else s for s in cond["pva_scores"]])
     non = np.array([-np.inf if s is None else s for s in cond["non_pva_scores"]])
-    assert np.median(pva) > np.max(non)
-    # most blocks are recognised and no unrelated pair is accepted
+    assert np.min(pva) > np.max(non)
+    # most blocks are recognised; at most one unrelated pair of 72 is accepted (the 1e-3
+    # threshold is extrapolated from 36 calibration pairs, so it is rough)
     assert cond["miss_rate"] <= 0.34
-    assert cond["non_pva_accepted"] == 0
+    assert cond["non_pva_accepted"] <= 1
     loc = cond["localisation"]["minutiae"]
     assert loc["wrong_accepted"] == 0 and loc["success"] >= 5
 

@@ -805,6 +805,16 @@ class CreaseResult:
     reason: str = ""
     timings: dict = field(default_factory=dict)
 
+    def skeleton(self) -> np.ndarray | None:
+        """One-pixel creases of every polarity as one boolean image (a copy: the result's
+        buffers are reused by the next frame); None when no crease was found."""
+        if not self.skeletons:
+            return None
+        out = np.zeros(self.work.shape, bool)
+        for s in self.skeletons.values():
+            out |= s
+        return out
+
     def crease_image(self) -> np.ndarray:
         """uint8 debug image: 255 on skeleton pixels, 128 on other crease pixels."""
         out = np.zeros(self.work.shape, np.uint8)

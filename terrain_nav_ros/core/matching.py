@@ -41,6 +41,7 @@ from scipy.spatial import cKDTree
 from scipy.special import gammaln
 
 from . import _matching_kernels as _kernels
+from .crease_check import CreaseEvidence, CreaseField, CreaseSamples, crease_evidence
 from .descriptors import (
     TWO_PI,
     EdgeHash,
@@ -125,6 +126,20 @@ class MatchParams:
         Pairing residuals (px, rad) below which a pairing counts as exact in the score: finer
         agreement is below the extractor's resolution (and a least-squares fit pulls some
         residuals to zero), so it is no further evidence.
+    crease_check : bool
+        When both sets come with crease images, choose among the registered hypotheses, and
+        score, with the agreement of the crease skeletons added to the minutiae evidence
+        (:mod:`.crease_check`): a small block's few pairings are then not the only evidence.
+    crease_radius, crease_angle_tol : float
+        Position (px) and direction (rad) tolerance of a crease pixel hit.
+    crease_spacing : float
+        Crease pixels per effectively independent sample in the crease evidence.
+    crease_exclude_radius : float
+        Crease pixels this close (px) to a paired minutia of A are left out of the crease
+        evidence: the transform aligns those stubs by construction, and the pairing already
+        counts them.
+    crease_descriptor : bool
+        With crease images, also weight candidate votes by the crease shape descriptor.
     threshold : float
         Score at and above which two sets match; calibrate it with
         :func:`calibrate_threshold`.
@@ -158,6 +173,12 @@ class MatchParams:
     max_rotation: float = math.pi
     pos_floor: float = 0.75
     angle_floor: float = math.radians(1.5)
+    crease_check: bool = True
+    crease_radius: float = 1.5
+    crease_angle_tol: float = math.radians(20.0)
+    crease_spacing: float = 4.0
+    crease_exclude_radius: float = 6.0
+    crease_descriptor: bool = True
     threshold: float = 3.0
     seed: int = 0
 
@@ -177,7 +198,8 @@ class MinutiaIndex:
     ms : MinutiaSet
     params : MatchParams, optional
     crease : ndarray, optional
-        Binary crease image in the pixel frame of ``ms``; enables the crease descriptor.
+        Crease skeleton image in the pixel frame of ``ms`` (non-zero = crease); enables the
+        crease descriptor and the crease check (see :class:`MatchParams`).
     """
 
     def __init__(self, ms: MinutiaSet, params: MatchParams | None = None,
@@ -193,7 +215,11 @@ class MinutiaIndex:
         self.edges = neighbour_edges(ms, max(p.k_query, p.k_ref), p.edge_min, p.edge_max,
                                      tree=self.tree)
         self.descriptor = _descriptor(ms, p)
-        self.crease = None if crease is None else crease_descriptor(ms, crease)
+        self.crease_image = crease
+        self.crease = None if crease is None or not p.crease_descriptor \
+            else crease_descriptor(ms, crease)
+        self._crease_samples = None
+        self._crease_field = None
         self.footprint = _footprint(ms)
         # the footprint as complex corners and as its box (x0, x1, y0, y1), for _overlap
         self.footprint_z = self.footprint[:, 0] + 1j * self.footprint[:, 1]
@@ -211,6 +237,21 @@ class MinutiaIndex:
 
     def __len__(self) -> int:
         return self.n
+
+    @property
+    def crease_samples(self) -> CreaseSamples | None:
+        """Crease pixels for the crease check as the query side (built on first use)."""
+        if self._crease_samples is None and self.crease_image is not None:
+            self._crease_samples = CreaseSamples.from_image(self.crease_image)
+        return self._crease_samples
+
+    @property
+    def crease_field(self) -> CreaseField | None:
+        """Distance/direction field for the crease check as the reference (built on first
+        use)."""
+        if self._crease_field is None and self.crease_image is not None:
+            self._crease_field = CreaseField(self.crease_image)
+        return self._crease_field
 
     def edge_hash(self) -> EdgeHash:
         """Hash of this set's edges (built on first use)."""
@@ -303,6 +344,9 @@ class MatchResult:
         Pairings expected by chance at this transform (Poisson mean).
     pairing_ratio : float
         ``n_pairings**2 / (n_overlap_a * n_overlap_b)``, the classical normalised count.
+    creases : CreaseEvidence or None
+        Agreement of the crease skeletons at the transform (its ``score`` is included in
+        ``score``), when both sets came with crease images and the crease check is on.
     reason : str
         Why the decision is "no decision" or "no match", for logs and messages.
     """
@@ -322,6 +366,7 @@ class MatchResult:
     n_overlap: tuple[int, int] = (0, 0)
     expected_chance: float = np.nan
     pairing_ratio: float = 0.0
+    creases: CreaseEvidence | None = None
     reason: str = ""
 
     @property
@@ -881,7 +926,7 @@ def calibrate_threshold(non_pva_scores, false_match_rate: float) -> float:
 # settings baked into a MinutiaIndex (edges, hash, descriptors)
 _INDEX_FIELDS = ("k_query", "k_ref", "edge_min", "edge_max", "edge_length_tol",
                  "edge_angle_tol", "by_kind", "descriptor", "estimate_scale",
-                 "max_scale_change")
+                 "max_scale_change", "crease_descriptor")
 
 
 def _as_index(x, p: MatchParams, crease=None) -> MinutiaIndex:
@@ -973,6 +1018,36 @@ def _pixel_transform(c: complex, t: complex) -> np.ndarray:
     return np.array([[a, b, t.real], [-b, a, -t.imag]])
 
 
+@dataclass(frozen=True)
+class _Scored:
+    """A refined registration and its score."""
+
+    c: complex
+    t: complex
+    pairs: np.ndarray
+    score: float
+    lam: float
+    n_overlap: tuple[int, int]
+    creases: CreaseEvidence | None
+
+
+def _scored(a: MinutiaIndex, b: MinutiaIndex, c, t, pairs, search_area: float,
+            radius_a: float, p: MatchParams, with_creases: bool) -> _Scored:
+    """Minutiae significance of a registration, plus its crease evidence when asked."""
+    n_ao, n_bo, area = _overlap(a, b, c, t)
+    n_ao, n_bo = max(n_ao, len(pairs)), max(n_bo, len(pairs))
+    dist, dang = _residuals(a, b, c, t, pairs)
+    score, lam = significance(dist, dang, n_ao, n_bo, area, search_area, radius_a, p)
+    creases = None
+    if with_creases:
+        creases = crease_evidence(a.crease_samples, b.crease_field, c, t,
+                                  radius=p.crease_radius, angle_tol=p.crease_angle_tol,
+                                  spacing=p.crease_spacing, exclude=a.z[pairs[:, 0]],
+                                  exclude_radius=p.crease_exclude_radius)
+        score += creases.score
+    return _Scored(c, t, pairs, score, lam, (n_ao, n_bo), creases)
+
+
 class Matcher:
     """Minutiae matcher (settings in the constructor, scikit-image style).
 
@@ -1052,23 +1127,32 @@ class Matcher:
             method = "roots" if b.n > p.roots_above else "hash"
         votes = _root_votes(a, b, p) if method == "roots" else _hash_votes(a, b, p)
         rng = np.random.default_rng(p.seed)
-        best = None
         hyps = _hypotheses(votes, a, b, p)
+        registered = []
         for h in hyps:
             if h.support < p.min_support_ratio * hyps[0].support:
                 break   # a clear winner: weak cells cannot beat it
-            c, t, pairs = _register(h, a, b, p, rng)
-            if best is None or len(pairs) > len(best[2]):
-                best = (c, t, pairs)
+            registered.append(_register(h, a, b, p, rng))
+        registered = [r for r in registered if len(r[2]) >= 2]
         base.decision = Decision.NO_MATCH
-        if best is None or len(best[2]) < 2:
+        if not registered:
             base.reason = "no consistent transform"
             return base
-        c, t, pairs = _refine(a, b, *best, p)
-        n_ao, n_bo, area = _overlap(a, b, c, t)
-        n_ao, n_bo = max(n_ao, len(pairs)), max(n_bo, len(pairs))
-        dist, dang = _residuals(a, b, c, t, pairs)
-        score, lam = significance(dist, dang, n_ao, n_bo, area, search_area, radius_a, p)
+        use_creases = (p.crease_check and a.crease_samples is not None
+                       and b.crease_field is not None)
+        if use_creases:
+            # every registration refined and scored with its crease agreement; the search
+            # over them is paid for like any other (Bonferroni)
+            scored = [_scored(a, b, *_refine(a, b, *r, p), search_area, radius_a, p, True)
+                      for r in registered]
+            best = max(scored, key=lambda s: s.score)
+            best = replace(best, score=best.score - math.log10(len(scored)))
+        else:
+            # the first registration with the most pairings (hypotheses come strongest first)
+            r = max(registered, key=lambda r: len(r[2]))
+            best = _scored(a, b, *_refine(a, b, *r, p), search_area, radius_a, p, False)
+        c, t, pairs, score = best.c, best.t, best.pairs, best.score
+        n_ao, n_bo = best.n_overlap
         cov, rms = _covariance(a.z[pairs[:, 0]], b.z[pairs[:, 1]], c, t, p.estimate_scale,
                                p.pos_tol)
         ok = score >= p.threshold
@@ -1077,8 +1161,8 @@ class Matcher:
             n_pairings=len(pairs), pairings=pairs, transform=_pixel_transform(c, t),
             rotation=float(np.angle(c)), scale=float(abs(c)),
             scale_estimated=p.estimate_scale, covariance=cov, rms=rms,
-            n_a=a.n, n_b=b.n, n_overlap=(n_ao, n_bo), expected_chance=lam,
-            pairing_ratio=len(pairs) ** 2 / max(n_ao * n_bo, 1),
+            n_a=a.n, n_b=b.n, n_overlap=(n_ao, n_bo), expected_chance=best.lam,
+            pairing_ratio=len(pairs) ** 2 / max(n_ao * n_bo, 1), creases=best.creases,
             reason="" if ok else f"score {score:.2f} below threshold {p.threshold:.2f}")
 
 
