@@ -273,10 +273,8 @@ def sun_sweep(target=0.70):
 
 def _skeleton(features):
     """Union of the crease skeletons of a Features (all False when there are none)."""
-    out = np.zeros(features.creases.work.shape, bool)
-    for s in features.creases.skeletons.values():
-        out |= s
-    return out
+    sk = features.creases.skeleton()
+    return np.zeros(features.creases.work.shape, bool) if sk is None else sk
 
 
 def _near(skel_a, skel_b, radius, where):
