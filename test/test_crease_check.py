@@ -108,3 +108,18 @@ def test_crease_check_separates_small_blocks(region, other_region):
     unrelated = matcher.compare(matcher.index(u, oskel[y0:y0 + size, x0:x0 + size]),
                                 matcher.index(b, crease_b))
     assert unrelated.decision != Decision.MATCH
+
+
+def test_creases_decide_where_the_minutiae_alone_cannot(region):
+    """13 minutiae cannot reach a high threshold even if they all pair ("no decision"); the
+    crease check is not refused on that ground, and its evidence carries the match."""
+    ms, skel = region
+    x0, y0, size, dx, dy = 200, 180, 64, 7, -5
+    a = crop_set(ms, x0, y0, size, size)
+    b = crop_set(ms, x0 + dx, y0 + dy, size, size)
+    minutiae_only = Matcher(crease_check=False, crease_descriptor=False, threshold=25.0)
+    assert minutiae_only.compare(a, b).decision == Decision.NO_DECISION
+    matcher = Matcher(threshold=25.0)
+    r = matcher.compare(matcher.index(a, skel[y0:y0 + size, x0:x0 + size]),
+                        matcher.index(b, skel[y0 + dy:y0 + dy + size, x0 + dx:x0 + dx + size]))
+    assert r.decision == Decision.MATCH, r.reason

@@ -1114,11 +1114,13 @@ class Matcher:
                            "needed in each set")
             return base
         radius_a = a.radius
+        use_creases = (p.crease_check and a.crease_image is not None
+                       and b.crease_image is not None)
         # B's minutiae that can fall under A (all of them for blocks of equal size)
         n_b_under_a = b.n * min(1.0, a.area / max(b.area, 1.0))
         best_possible = _best_possible_score(int(min(a.n, n_b_under_a)), a.n, n_b_under_a,
                                              a.area, search_area, radius_a, p, p.threshold)
-        if best_possible < p.threshold:
+        if best_possible < p.threshold and not use_creases:   # creases can add the rest
             base.reason = ("too few minutiae: even a perfect match would score "
                            f"{best_possible:.2f} < threshold {p.threshold:.2f}")
             return base
@@ -1138,8 +1140,6 @@ class Matcher:
         if not registered:
             base.reason = "no consistent transform"
             return base
-        use_creases = (p.crease_check and a.crease_samples is not None
-                       and b.crease_field is not None)
         if use_creases:
             # every registration refined and scored with its crease agreement; the search
             # over them is paid for like any other (Bonferroni)
