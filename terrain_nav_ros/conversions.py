@@ -383,10 +383,22 @@ def copy_projection(source, target) -> None:
 # ---------------------------------------------------------------------------------------------
 
 def minutiae_to_msg(minutiae: MinutiaSet, header: Header, source: int,
-                    enu_origin=(0.0, 0.0, 0.0), source_crs: str = "") -> MinutiaArray:
-    """MinutiaSet (with georef) -> MinutiaArray; positions in both metres and pixels."""
+                    enu_origin=(0.0, 0.0, 0.0), source_crs: str = "",
+                    creases: np.ndarray | None = None) -> MinutiaArray:
+    """MinutiaSet (with georef) -> MinutiaArray; positions in both metres and pixels.
+
+    ``creases``: the crease skeleton (non-zero = crease) on the georeference's grid, sent as
+    its pixels' raster indices.
+    """
     if minutiae.georef is None:
         raise ConversionError("minutiae_to_msg: the MinutiaSet needs a georeference")
+    crease_pixels = np.zeros(0, np.uint32)
+    if creases is not None:
+        shape = (minutiae.georef.height, minutiae.georef.width)
+        if np.shape(creases) != shape:
+            raise ConversionError(f"minutiae_to_msg: crease image of shape "
+                                  f"{np.shape(creases)} on a {shape} georeference")
+        crease_pixels = np.flatnonzero(creases).astype(np.uint32)
     east, north = minutiae.enu()
     items = [
         Minutia(x=float(x), y=float(y), col=float(c), row=float(r), orientation=float(a),
@@ -398,7 +410,8 @@ def minutiae_to_msg(minutiae: MinutiaSet, header: Header, source: int,
     ]
     return MinutiaArray(header=header,
                         georef=georef_to_msg(minutiae.georef, enu_origin, source_crs),
-                        source=source, minutiae=items, reason=minutiae.reason)
+                        source=source, minutiae=items, reason=minutiae.reason,
+                        crease_pixels=crease_pixels)
 
 
 def msg_to_minutiae(msg: MinutiaArray) -> MinutiaSet:
@@ -414,6 +427,20 @@ def msg_to_minutiae(msg: MinutiaArray) -> MinutiaSet:
         return MinutiaSet(cols, rows, angles, kinds, quality, georef=georef, reason=msg.reason)
     except ValueError as err:
         raise ConversionError(str(err)) from err
+
+
+def msg_to_creases(msg: MinutiaArray) -> np.ndarray | None:
+    """The crease skeleton a MinutiaArray carries (bool, georef grid), or None without one."""
+    pixels = np.asarray(msg.crease_pixels, np.int64)
+    if pixels.size == 0:
+        return None
+    width, height = int(msg.georef.width), int(msg.georef.height)
+    if pixels.min() < 0 or pixels.max() >= width * height:
+        raise ConversionError(f"crease pixel index {pixels.max()} outside the "
+                              f"{width} x {height} georeference")
+    creases = np.zeros(height * width, bool)
+    creases[pixels] = True
+    return creases.reshape(height, width)
 
 
 # ---------------------------------------------------------------------------------------------

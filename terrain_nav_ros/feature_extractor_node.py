@@ -3,9 +3,9 @@
 Subscribes to the ground-projected camera frames (``/camera/image_ground``) and the rendered
 landmarks (``/landmark/image``, latched), both ``terrain_nav_msgs/GeoImage``; publishes their
 minutiae as ``MinutiaArray`` on ``/camera/minutiae`` and ``/landmark/minutiae`` (latched), with
-the source georeference, and the crease images on ``/camera/creases`` and
-``/landmark/creases`` for debugging. An image with no drainage (flat, lake, cloud) yields an
-empty array whose ``reason`` says so.
+the source georeference and (``attach_creases``) the crease skeleton for the matcher's crease
+check, and the crease images on ``/camera/creases`` and ``/landmark/creases`` for debugging.
+An image with no drainage (flat, lake, cloud) yields an empty array whose ``reason`` says so.
 
 Parameters are the fields of :class:`~.core.creases.CreaseParams` (``crease.*``, Table 3.1)
 and :class:`~.core.minutiae.MinutiaParams` (``minutia.*``); a change is validated by those
@@ -48,6 +48,9 @@ class FeatureExtractorNode(Node):
         declare_settings(self, "minutia", MinutiaParams())
         self.publish_creases = declare(self, "publish_creases", True,
                                        "publish the crease images on the debug topics")
+        self.attach_creases = declare(self, "attach_creases", True,
+                                      "send the crease skeleton with the minutiae (the "
+                                      "matcher's crease check)")
         self.lighting = declare(self, "lighting", "shading",
                                 "extractor input: 'shading' (the image) or 'compensated' "
                                 "(terrain curvature from the shading and the image's sun)")
@@ -90,8 +93,9 @@ class FeatureExtractorNode(Node):
                                   georef, valid)
         minutiae_pub, crease_pub, source = self.outputs[stream]
         origin = cv.enu_origin_of(msg.georef)
+        creases = features.creases.skeleton() if self.attach_creases else None
         out = cv.minutiae_to_msg(features.minutiae, msg.header, source, origin,
-                                 msg.georef.source_crs)
+                                 msg.georef.source_crs, creases=creases)
         cv.copy_projection(msg, out)
         minutiae_pub.publish(out)
         if self.publish_creases:

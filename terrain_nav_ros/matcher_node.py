@@ -2,7 +2,8 @@
 
 Subscribes to the camera minutiae (``/camera/minutiae``, from ground-projected frames) and the
 landmark minutiae (``/landmark/minutiae``, latched, one set per rendered DEM tile). Each camera
-set is localised in the landmark set whose region holds it (:mod:`.core.matching`); a match
+set is localised in the landmark set whose region holds it (:mod:`.core.matching`; when both
+sets carry their crease skeletons, the registration is also checked on the creases); a match
 above the calibrated significance threshold becomes a position fix
 (:func:`.core.pva_fix.fix_from_ground_match`), published as ``terrain_nav_msgs/PvaFix`` on
 ``/nav/pva_fix`` with its covariance, similarity and pairings. Every camera set gets an answer:
@@ -131,10 +132,11 @@ class MatcherNode(Node):
     def on_landmark(self, msg: MinutiaArray) -> None:
         try:
             minutiae = cv.msg_to_minutiae(msg)
+            creases = cv.msg_to_creases(msg)
         except cv.ConversionError as err:
             self.get_logger().error(f"landmark minutiae ignored: {err}")
             return
-        index = self.matcher.index(minutiae) if len(minutiae) else None
+        index = self.matcher.index(minutiae, creases) if len(minutiae) else None
         self.landmarks.append((minutiae, index, cv.enu_origin_of(msg.georef)))
         self.get_logger().info(f"landmark set with {len(minutiae)} minutiae "
                                f"({minutiae.reason or 'ok'})")
@@ -151,6 +153,7 @@ class MatcherNode(Node):
         stamp = cv.stamp_to_sec(msg.header.stamp)
         try:
             camera = cv.msg_to_minutiae(msg)
+            camera_creases = cv.msg_to_creases(msg)
         except cv.ConversionError as err:
             self.publish_no_fix(msg.header.stamp, f"bad camera minutiae: {err}")
             return
@@ -171,7 +174,7 @@ class MatcherNode(Node):
             self.publish_no_fix(msg.header.stamp,
                                 f"no landmark minutiae: {land_minutiae.reason}")
             return
-        result = self.matcher.localise(camera, land_index)
+        result = self.matcher.localise(camera, land_index, crease_camera=camera_creases)
         fix = None
         if result.matched and self.method == "pnp":
             fix = self.pnp_fix(result, camera, land_minutiae, position, rotation)

@@ -109,6 +109,23 @@ def test_minutiae_round_trip():
     assert len(empty) == 0 and empty.reason == "flat"
 
 
+def test_crease_skeleton_rides_with_the_minutiae():
+    georef = GeoReference(0.0, 0.0, 5.0, 40, 30)   # 40 columns, 30 rows
+    m = MinutiaSet([1.0], [2.0], [0.5], [ENDING], [0.9], georef=georef)
+    creases = np.zeros((30, 40), bool)
+    creases[5, 3:30] = True
+    creases[29, 39] = True
+    msg = cv.minutiae_to_msg(m, Header(), 0, creases=creases)
+    assert len(msg.crease_pixels) == creases.sum()
+    np.testing.assert_array_equal(cv.msg_to_creases(msg), creases)
+    assert cv.msg_to_creases(cv.minutiae_to_msg(m, Header(), 0)) is None   # none sent
+    with pytest.raises(cv.ConversionError, match="shape"):
+        cv.minutiae_to_msg(m, Header(), 0, creases=creases.T)
+    msg.crease_pixels = [40 * 30]   # one past the grid
+    with pytest.raises(cv.ConversionError, match="outside"):
+        cv.msg_to_creases(msg)
+
+
 def test_compressed_image_and_odometry():
     import cv2
     from nav_msgs.msg import Odometry

@@ -74,6 +74,19 @@ def test_minutiae_empty_reasons_and_parameter_validation():
     assert len(s.camera[0].minutiae) == 0 and "no drainage" in s.camera[0].reason
     assert not bad.successful and "epsilon" in bad.reason
     assert good.successful
+    # the crease skeleton rides along (attach_creases): every minutia ends or forks one
+    creases = cv.msg_to_creases(s.landmark[0])
+    assert creases is not None and creases.shape == (256, 256)
+    rows, cols = np.nonzero(creases)
+    assert _repeated(found, SimpleNamespace(col=cols, row=rows), px=1.5) == 1.0
+    assert cv.msg_to_creases(s.camera[0]) is None   # flat: no creases
+
+
+def test_creases_stay_home_when_not_asked_for():
+    with extractor_node({"attach_creases": False}) as s:
+        s.land_pub.publish(cv.geo_image_to_msg(_drainage_image(), GEOREF, HEADER))
+        assert wait_until(lambda: bool(s.landmark), 30)
+    assert len(s.landmark[0].minutiae) >= 10 and len(s.landmark[0].crease_pixels) == 0
 
 
 def _repeated(a, b, px=2.0):

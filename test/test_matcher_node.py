@@ -18,8 +18,8 @@ TRUE_XY = np.array([300.0, -200.0])
 PRIOR_ERROR = np.array([60.0, -40.0])  # the estimate the camera frame was projected with
 
 
-def _sets():
-    ms, _ = terrain_minutiae((512, 512), seed=5)
+def _sets(with_creases=False):
+    ms, skeleton = terrain_minutiae((512, 512), seed=5)
     landmark_georef = GeoReference.centred(0.0, 0.0, GSD, 512, 512)
     landmark = MinutiaSet(ms.col, ms.row, ms.angle, ms.kind, np.ones(len(ms)),
                           georef=landmark_georef)
@@ -32,7 +32,17 @@ def _sets():
     inside = (col > 5) & (col < 194) & (row > 5) & (row < 194)
     camera = MinutiaSet(col[inside], row[inside], ms.angle[inside], ms.kind[inside],
                         np.ones(int(inside.sum())), georef=camera_georef)
-    return landmark, camera, prior
+    if not with_creases:
+        return landmark, camera, prior
+    # the crease skeletons, the camera's moved exactly like its minutiae
+    rows, cols = np.nonzero(skeleton)
+    east, north = landmark_georef.pixel_to_enu(cols, rows)
+    col, row = camera_georef.enu_to_pixel(east + PRIOR_ERROR[0], north + PRIOR_ERROR[1])
+    col, row = np.rint(col).astype(int), np.rint(row).astype(int)
+    inside = (col >= 0) & (col < 200) & (row >= 0) & (row < 200)
+    camera_creases = np.zeros((200, 200), bool)
+    camera_creases[row[inside], col[inside]] = True
+    return landmark, camera, prior, skeleton, camera_creases
 
 
 def test_matcher_publishes_the_true_position_and_explains_no_fix():
@@ -74,3 +84,47 @@ def test_matcher_publishes_the_true_position_and_explains_no_fix():
     assert fix.num_pairings >= 10 and abs(fix.latitude - 36.5) < 0.01
     no_fix = [f for f in fixes[before:] if f.status == PvaFix.STATUS_NO_FIX]
     assert len(no_fix) >= 2 and all(f.reason for f in no_fix)
+
+
+def test_matcher_checks_the_creases_the_sets_carry():
+    """With crease skeletons on both sides the score includes their agreement; a camera set
+    without them is matched on minutiae only; a corrupt skeleton is a no-fix with a reason."""
+    node = start_node("matcher", {"prior_tilt_sigma": 0.0, "landmark_sigma": 0.0})
+    client = SpinningNode("matcher_client")
+    fixes = []
+    try:
+        n = client.node
+        n.create_subscription(PvaFix, "/nav/pva_fix", fixes.append, 10)
+        land_pub = n.create_publisher(MinutiaArray, "/landmark/minutiae", LATCHED_QOS)
+        cam_pub = n.create_publisher(MinutiaArray, "/camera/minutiae", 10)
+        landmark, camera, prior, land_creases, cam_creases = _sets(with_creases=True)
+        land_pub.publish(cv.minutiae_to_msg(landmark, cv.make_header(5_000_000_000, "map"),
+                                            MinutiaArray.SOURCE_LANDMARK, (36.5, -84.2, 0.0),
+                                            creases=land_creases))
+        # one stamp per variant: the fixes are told apart by it
+        variants = {6: cam_creases, 7: None, 8: cam_creases}
+        messages = {}
+        for sec, creases in variants.items():
+            msg = cv.minutiae_to_msg(camera, cv.make_header(sec * 1_000_000_000, "map"),
+                                     MinutiaArray.SOURCE_CAMERA, creases=creases)
+            cv.set_projection(msg, [*prior, 3000.0], camera_rotation([0, 0, 0, 1]), 500.0)
+            messages[sec] = msg
+        messages[8].crease_pixels = [200 * 200 + 5]   # corrupt: outside the grid
+        assert wait_until(lambda: cam_pub.get_subscription_count() > 0, 20), stop(node)
+        assert wait_until(lambda: (cam_pub.publish(messages[6]),
+                                   any(f.status for f in fixes))[1], 30, 0.5)
+        cam_pub.publish(messages[7])
+        cam_pub.publish(messages[8])
+        assert wait_until(lambda: {7, 8} <= {f.header.stamp.sec for f in fixes}, 20)
+        assert node.poll() is None
+    finally:
+        client.close()
+        log = stop(node)
+    by_stamp = {f.header.stamp.sec: f for f in fixes}
+    with_creases, minutiae_only, bad = by_stamp[6], by_stamp[7], by_stamp[8]
+    assert with_creases.status and minutiae_only.status, f"{minutiae_only.reason}\n{log}"
+    assert with_creases.similarity > minutiae_only.similarity + 10
+    for fix in (with_creases, minutiae_only):
+        position = np.array([fix.pose.pose.position.x, fix.pose.pose.position.y])
+        np.testing.assert_allclose(position, TRUE_XY, atol=GSD / 2)
+    assert bad.status == PvaFix.STATUS_NO_FIX and "crease pixel" in bad.reason
