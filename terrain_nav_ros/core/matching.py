@@ -24,6 +24,10 @@ Pipeline (same for block-vs-block :func:`compare` and camera-in-region :func:`lo
    One threshold then means one false-match rate at any minutia count and any search area,
    which ``pairings`` or ``pairings**2/(n1*n2)`` do not give (both are inflated for small
    sets). :func:`calibrate_threshold` sets the threshold from non-PVA scores.
+6. **Crease check** (when both sets come with their crease skeletons,
+   :mod:`.crease_check`): every registered hypothesis is refined and scored, the agreement of
+   the crease pixels outside the paired minutiae's surroundings is added to its score (a
+   binomial tail against the local chance of agreement), and the best total wins.
 
 All internal geometry is in the math frame ``z = col - 1j*row`` (see :mod:`.descriptors`);
 results are reported in pixel coordinates.
