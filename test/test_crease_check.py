@@ -12,6 +12,7 @@ from terrain_nav_ros.core.crease_check import (
     CreaseSamples,
     crease_directions,
     crease_evidence,
+    refine_on_creases,
 )
 from terrain_nav_ros.core.matching import Decision, Matcher
 
@@ -123,3 +124,22 @@ def test_creases_decide_where_the_minutiae_alone_cannot(region):
     r = matcher.compare(matcher.index(a, skel[y0:y0 + size, x0:x0 + size]),
                         matcher.index(b, skel[y0 + dy:y0 + dy + size, x0 + dx:x0 + dx + size]))
     assert r.decision == Decision.MATCH, r.reason
+
+
+def test_refinement_brings_the_creases_together(region):
+    skel = region[1]
+    big = skel[100:356, 100:356]
+    small = skel[150:278, 160:288]            # true transform: c = 1, t = 60 - 50j
+    samples, field = CreaseSamples.from_image(small), CreaseField(big)
+    c0 = np.exp(1j * np.radians(1.0))          # 1 degree and ~2 px off
+    t0 = 60 - 50j + (1.5 - 1.2j)
+    c, t = refine_on_creases(samples, field, c0, t0)
+    centre = 64 - 64j                          # the small block's centre, math frame
+    before = abs(c0 * centre + t0 - (centre + 60 - 50j))
+    after = abs(c * centre + t - (centre + 60 - 50j))
+    assert before > 1.5 and after < 0.3
+    assert abs(np.degrees(np.angle(c))) < 0.3
+    assert crease_evidence(samples, field, c, t).fraction > 0.9
+    # nothing to pair (empty reference): the transform is returned unchanged
+    empty = CreaseField(np.zeros_like(big))
+    assert refine_on_creases(samples, empty, c0, t0) == (c0, t0)

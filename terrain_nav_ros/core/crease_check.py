@@ -90,23 +90,41 @@ class CreaseField:
         sk = _skeleton(crease)
         self.shape = sk.shape
         self.n = int(sk.sum())
+        self.nearest = None   # (row, col) of the nearest crease pixel, everywhere
         if self.n:
             dist, (ri, ci) = ndimage.distance_transform_edt(~sk, return_indices=True)
             self.distance = dist.astype(np.float32)
             self.direction = crease_directions(sk)[ri, ci]
+            self.nearest = (ri.astype(np.int32), ci.astype(np.int32))
         else:
             self.distance = np.full(sk.shape, np.inf, np.float32)
             self.direction = np.zeros(sk.shape, np.float32)
 
-    def hits(self, z: np.ndarray, direction: np.ndarray, radius: float, angle_tol: float):
-        """Which mapped samples lie inside the field, and which of those are hits."""
+    def _lookup(self, z: np.ndarray, direction: np.ndarray):
+        """Inside mask, pixel (row, col) and axial direction difference of mapped samples."""
         h, w = self.shape
         col, row = np.rint(z.real), np.rint(-z.imag)
         inside = (col >= 0) & (col <= w - 1) & (row >= 0) & (row <= h - 1)
         ci, ri = col[inside].astype(np.intp), row[inside].astype(np.intp)
         dang = np.abs(np.mod(direction[inside] - self.direction[ri, ci] + 0.5 * np.pi, np.pi)
                       - 0.5 * np.pi)
+        return inside, ri, ci, dang
+
+    def hits(self, z: np.ndarray, direction: np.ndarray, radius: float, angle_tol: float):
+        """Which mapped samples lie inside the field, and which of those are hits."""
+        inside, ri, ci, dang = self._lookup(z, direction)
         return inside, (self.distance[ri, ci] <= radius) & (dang <= angle_tol)
+
+    def correspondences(self, z: np.ndarray, direction: np.ndarray, radius: float,
+                        angle_tol: float):
+        """Samples with a crease within ``radius`` and ``angle_tol``: their index, the
+        nearest crease point (math frame) and that crease's unit normal."""
+        inside, ri, ci, dang = self._lookup(z, direction)
+        ok = (self.distance[ri, ci] <= radius) & (dang <= angle_tol)
+        ri, ci = ri[ok], ci[ok]
+        q = to_complex(self.nearest[1][ri, ci], self.nearest[0][ri, ci])
+        normal = 1j * np.exp(1j * self.direction[ri, ci].astype(float))
+        return np.flatnonzero(inside)[ok], q, normal
 
 
 @dataclass(frozen=True)
@@ -179,3 +197,36 @@ def crease_evidence(samples: CreaseSamples, field: CreaseField, c: complex, t: c
         tail = betainc(k, n_eff - k + 1.0, chance)
         score = float(-math.log10(max(tail, 1e-300)))
     return CreaseEvidence(score, fraction, chance, n_in)
+
+
+def refine_on_creases(samples: CreaseSamples, field: CreaseField, c: complex, t: complex, *,
+                      radius: float = 3.0, angle_tol: float = math.radians(20.0),
+                      iterations: int = 4, min_matches: int = 20) -> tuple[complex, complex]:
+    """Rotation and translation that bring A's creases onto B's (point-to-line ICP).
+
+    Each iteration pairs the mapped crease pixels of A with B's nearest crease pixel (within
+    ``radius`` and ``angle_tol``) and solves the linearised least squares for a small
+    rotation about their centroid and a shift that minimise the distances *across* B's
+    creases (along a crease a pixel carries no position information). Returns the input
+    transform when fewer than ``min_matches`` pixels pair.
+    """
+    if len(samples) == 0 or field.n == 0:
+        return c, t
+    for _ in range(iterations):
+        idx, q, normal = field.correspondences(c * samples.z + t,
+                                               samples.direction + np.angle(c), radius,
+                                               angle_tol)
+        if len(idx) < min_matches:
+            break
+        p = c * samples.z[idx] + t
+        p0 = p.mean()
+        # residual across the crease and its derivatives by (rotation, shift east, north)
+        residual = (np.conj(normal) * (p - q)).real
+        jac = np.column_stack([(np.conj(normal) * 1j * (p - p0)).real, normal.real,
+                               normal.imag])
+        step, *_ = np.linalg.lstsq(jac, -residual, rcond=None)
+        turn = np.exp(1j * step[0])
+        c, t = turn * c, turn * t + p0 * (1.0 - turn) + complex(step[1], step[2])
+        if abs(step[0]) * 100.0 + abs(complex(step[1], step[2])) < 0.01:
+            break   # settled: < 0.01 px at 100 px from the centroid
+    return c, t

@@ -45,7 +45,13 @@ from scipy.spatial import cKDTree
 from scipy.special import gammaln
 
 from . import _matching_kernels as _kernels
-from .crease_check import CreaseEvidence, CreaseField, CreaseSamples, crease_evidence
+from .crease_check import (
+    CreaseEvidence,
+    CreaseField,
+    CreaseSamples,
+    crease_evidence,
+    refine_on_creases,
+)
 from .descriptors import (
     TWO_PI,
     EdgeHash,
@@ -1052,6 +1058,22 @@ def _scored(a: MinutiaIndex, b: MinutiaIndex, c, t, pairs, search_area: float,
     return _Scored(c, t, pairs, score, lam, (n_ao, n_bo), creases)
 
 
+def _refined_on_creases(a: MinutiaIndex, b: MinutiaIndex, best: _Scored, search_area: float,
+                        radius_a: float, p: MatchParams) -> _Scored:
+    """The registration moved onto B's creases (point-to-line ICP), kept if it scores better:
+    a transform fitted to a few minutiae pairings is off by a pixel or two, the creases have
+    hundreds of pixels."""
+    c, t = refine_on_creases(a.crease_samples, b.crease_field, best.c, best.t,
+                             angle_tol=p.crease_angle_tol)
+    if c == best.c and t == best.t:
+        return best
+    pairs = _pair(a, b, c, t, p)
+    if len(pairs) < 2:
+        return best
+    moved = _scored(a, b, c, t, pairs, search_area, radius_a, p, True)
+    return moved if moved.score > best.score else best
+
+
 class Matcher:
     """Minutiae matcher (settings in the constructor, scikit-image style).
 
@@ -1150,6 +1172,7 @@ class Matcher:
             scored = [_scored(a, b, *_refine(a, b, *r, p), search_area, radius_a, p, True)
                       for r in registered]
             best = max(scored, key=lambda s: s.score)
+            best = _refined_on_creases(a, b, best, search_area, radius_a, p)
             best = replace(best, score=best.score - math.log10(len(scored)))
         else:
             # the first registration with the most pairings (hypotheses come strongest first)
