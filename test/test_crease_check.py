@@ -143,3 +143,25 @@ def test_refinement_brings_the_creases_together(region):
     # nothing to pair (empty reference): the transform is returned unchanged
     empty = CreaseField(np.zeros_like(big))
     assert refine_on_creases(samples, empty, c0, t0) == (c0, t0)
+
+
+def test_with_creases_a_few_minutiae_are_enough_to_decide(region):
+    ms, skel = region
+    x0, y0, size, dx, dy = 200, 180, 64, 7, -5
+    a = crop_set(ms, x0, y0, size, size)
+    a = a.subset(np.arange(6))                # 6 minutiae: below min_minutiae (10)
+    b = crop_set(ms, x0 + dx, y0 + dy, size, size)
+    r = Matcher().compare(a, b)
+    assert r.decision == Decision.NO_DECISION and "too few minutiae" in r.reason
+    matcher = Matcher()
+    r = matcher.compare(matcher.index(a, skel[y0:y0 + size, x0:x0 + size]),
+                        matcher.index(b, skel[y0 + dy:y0 + dy + size, x0 + dx:x0 + dx + size]))
+    assert r.decision == Decision.MATCH, r.reason
+    col, row = r.apply(10.0, 20.0)
+    assert abs(col - (10 - dx)) < 1.0 and abs(row - (20 - dy)) < 1.0
+    tiny = matcher.compare(matcher.index(a.subset(np.arange(3)),
+                                         skel[y0:y0 + size, x0:x0 + size]),
+                           matcher.index(b, skel[y0 + dy:y0 + dy + size,
+                                                 x0 + dx:x0 + dx + size]))
+    assert tiny.decision == Decision.NO_DECISION   # below min_minutiae_creases too
+    assert "at least 4" in tiny.reason

@@ -132,6 +132,9 @@ class MatchParams:
         Minimum minutiae in each set below which the answer is "no decision" (dissertation
         1.4); a set is also undecidable when even a perfect match could not reach
         ``threshold``.
+    min_minutiae_creases : int
+        The same minimum when the crease check applies: a few minutiae still give the
+        candidate transforms, the creases carry the rest of the evidence.
     pos_floor, angle_floor : float
         Pairing residuals (px, rad) below which a pairing counts as exact in the score: finer
         agreement is below the extractor's resolution (and a least-squares fit pulls some
@@ -180,6 +183,7 @@ class MatchParams:
     descriptor: str = "shape_context"
     by_kind: bool = True
     min_minutiae: int = 10
+    min_minutiae_creases: int = 4
     max_rotation: float = math.pi
     pos_floor: float = 0.75
     angle_floor: float = math.radians(1.5)
@@ -1135,13 +1139,14 @@ class Matcher:
     def _match(self, a: MinutiaIndex, b: MinutiaIndex, search_area: float) -> MatchResult:
         p = self.params
         base = MatchResult(Decision.NO_DECISION, n_a=a.n, n_b=b.n)
-        if min(a.n, b.n) < max(p.min_minutiae, 2):
-            base.reason = (f"too few minutiae ({a.n}, {b.n}); at least {p.min_minutiae} "
-                           "needed in each set")
-            return base
-        radius_a = a.radius
         use_creases = (p.crease_check and a.crease_image is not None
                        and b.crease_image is not None)
+        needed = max(p.min_minutiae_creases if use_creases else p.min_minutiae, 2)
+        if min(a.n, b.n) < needed:
+            base.reason = (f"too few minutiae ({a.n}, {b.n}); at least {needed} needed in "
+                           "each set")
+            return base
+        radius_a = a.radius
         # B's minutiae that can fall under A (all of them for blocks of equal size)
         n_b_under_a = b.n * min(1.0, a.area / max(b.area, 1.0))
         best_possible = _best_possible_score(int(min(a.n, n_b_under_a)), a.n, n_b_under_a,
