@@ -120,6 +120,16 @@ def node_command(spec: NodeSpec, params_files=(), extra_parameters: dict | None 
     return cmd
 
 
+def _describe_exit(code: int) -> str:
+    """'signal SIGSEGV' for a negative return code, else 'exit code N'."""
+    if code < 0:
+        try:
+            return f"signal {signal.Signals(-code).name}"
+        except ValueError:
+            return f"signal {-code}"
+    return f"exit code {code}"
+
+
 class GraphRunner:
     """Start, watch and stop the processes of a graph.
 
@@ -229,9 +239,7 @@ class GraphRunner:
             if code == 0:
                 self.report(f"{name} finished (exit code 0)")
             else:
-                how = (f"signal {signal.Signals(-code).name}" if code < 0
-                       else f"exit code {code}")
-                self.report(f"NODE DIED: {name} ({how})")
+                self.report(f"NODE DIED: {name} ({_describe_exit(code)})")
                 self.died.append(name)
 
     def sample_usage(self) -> None:
@@ -306,7 +314,9 @@ class GraphRunner:
             pump.join(timeout=2)
         for name, proc in self.procs.items():
             self.exit_codes.setdefault(name, proc.returncode)
-        self.report("graph stopped")
+        failed = {n: c for n, c in self.exit_codes.items() if c}
+        self.report("graph stopped" + ("; non-zero exit codes: " + ", ".join(
+            f"{n} {_describe_exit(c)}" for n, c in failed.items()) if failed else ""))
         return dict(self.exit_codes)
 
 

@@ -11,6 +11,7 @@ uses one).
 from __future__ import annotations
 
 import dataclasses
+import faulthandler
 import functools
 import importlib
 import re
@@ -199,6 +200,9 @@ def run(node_factory: Callable[[], Node], args=None) -> int:
     The node is spun by the executor its ``executor`` parameter names, if it declared one
     (:func:`declare_executor`), else by rclpy's default single-threaded executor.
     """
+    # A crash in a C extension (rclpy, DDS) prints every thread's Python stack to stderr,
+    # which the graph runner shows with the node's name.
+    faulthandler.enable()
     rclpy.init(args=args)
     node = None
     code = 0

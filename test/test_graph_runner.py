@@ -67,6 +67,7 @@ def test_runner_starts_nodes_reports_a_killed_node_and_stops_cleanly(tmp_path):
     text = log.getvalue()
     assert status == 1
     assert "NODE DIED: player (signal SIGKILL)" in text
+    assert "graph stopped; non-zero exit codes: player signal SIGKILL" in text
     assert codes["recorder"] == 0, text
     for pid in pids.values():
         assert not psutil.pid_exists(pid) or psutil.Process(pid).status() == "zombie"
