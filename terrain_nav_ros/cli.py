@@ -106,15 +106,19 @@ def _cmd_simulate(args) -> int:
 
 
 def _cmd_evaluate(args) -> int:
+    from .core.matching import MatchParams
     from .evaluation import run_evaluation
 
     out = Path(args.out) if args.out else REPO / "out" / f"evaluate-{_now()}"
+    params = MatchParams()
+    if args.no_creases:
+        params = MatchParams(crease_check=False, crease_descriptor=False)
     try:
         summary = run_evaluation(args.dem, args.gsd, args.blocks, out,
                                  block_size=args.block_size, sun_change=args.sun_change,
                                  false_match_rate=args.false_match_rate, seed=args.seed,
                                  quick=args.quick, baselines=not args.no_baselines,
-                                 lighting=args.lighting)
+                                 lighting=args.lighting, match_params=params)
     except (ValueError, OSError) as err:
         print(f"terrain-nav evaluate: {err}", file=sys.stderr)
         return 2
@@ -220,6 +224,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--lighting", default="shading",
                     help="extractor input: 'shading' (the shaded image) or 'compensated' "
                          "(terrain curvature estimated from it with each image's sun)")
+    ev.add_argument("--no-creases", dest="no_creases", action="store_true",
+                    help="match on minutiae alone, as the dissertation (no crease check, no "
+                         "crease descriptor)")
     ev.set_defaults(func=_cmd_evaluate)
     return parser
 

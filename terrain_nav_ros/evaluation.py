@@ -559,6 +559,7 @@ def run_evaluation(dem=None, gsd=None, blocks: int = 9, out_dir="out/evaluation"
         "rotation_steps": n_rot, "landmark_counts": [len(b) for b in study.blocks],
         "region_counts": [len(r) for r in study.region_sets],
         "matcher_max_rotation_deg": math.degrees(params.max_rotation),
+        "matcher_crease_check": params.crease_check,
     }
     pngs = _plots(out, study, results, setup)
     report = _report(setup, study, results, pngs, time.perf_counter() - t_all)
@@ -699,6 +700,9 @@ def _report(setup, study, results, pngs, seconds) -> str:
         f"| localisation region | {setup['region_factor']:g} x block side ({np.median(rc):.0f} "
         "minutiae median) |",
         f"| matcher rotation search | {_rotation_search(setup['matcher_max_rotation_deg'])} |",
+        "| crease check | " + ("on: crease skeletons score and refine each registration"
+                               if setup["matcher_crease_check"]
+                               else "off: minutiae alone (the dissertation)") + " |",
         f"| seed | {setup['seed']} |", "",
     ]
     lines += ["## Match results (PVA = same place, non-PVA = different places)", "",

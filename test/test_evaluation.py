@@ -53,6 +53,7 @@ def test_outputs_written(study):
         assert title in report
     assert summary["setup"]["blocks"] == 9
     assert "| matcher rotation search | any rotation |" in report
+    assert "| crease check | on: " in report
 
 
 def test_pva_scores_exceed_non_pva(study):
