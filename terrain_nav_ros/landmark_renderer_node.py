@@ -4,7 +4,10 @@ Subscribes to the latched ``/metamap/tile``; for every new tile it uploads the h
 GPU renderer (moderngl, headless EGL: Mesa llvmpipe on a CPU-only computer) and publishes the
 orthographic nadir render as a north-up ``terrain_nav_msgs/GeoImage`` on ``/landmark/image``
 (latched too), on the tile's own grid or at another GSD. The sun is fixed or follows the
-tile's stamp (date, time and place: the light the camera saw). The GL context is created once.
+tile's stamp (date, time and place: the light the camera saw); with the stamp policy the
+landmark is rendered again once the sun has moved ``max_sun_change`` degrees since (shaded
+creases move with the sun: minutiae repeat >= 70 % only within ~2 degrees of sun azimuth).
+The GL context is created once.
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ from .core.renderer import (
     RendererError,
     create_headless_context,
 )
-from .core.sun import sun_at
+from .core.sun import sun_at, sun_separation
 from .ros_common import LATCHED_QOS, contained, declare, reject_all_changes, run
 
 
@@ -47,6 +50,12 @@ class LandmarkRendererNode(Node):
             snow_line=declare(self, "snow_line", 3400.0, "rock -> snow elevation [m]"))
         max_steps = declare(self, "max_steps", 256, "sphere-tracing step budget per ray",
                             min_value=8, max_value=4096)
+        self.max_sun_change = declare(self, "max_sun_change", 2.0,
+                                      "stamp policy: render the landmark again when the sun "
+                                      "has moved this far since [deg]; 0 = never",
+                                      min_value=0.0)
+        sun_check_period = declare(self, "sun_check_period", 10.0,
+                                   "how often the sun's motion is checked [s]", min_value=0.01)
         if self.sun_policy not in ("fixed", "stamp"):
             raise ValueError(f"sun_policy must be 'fixed' or 'stamp', not {self.sun_policy!r}")
         self.add_on_set_parameters_callback(reject_all_changes)
@@ -59,12 +68,18 @@ class LandmarkRendererNode(Node):
         self.create_service(RenderView, "/landmark_renderer/render_view", self.on_render_view)
         self.rendered = 0
         self.last_tile_msg: DemTile | None = None
+        self.rendered_sun = None   # the sun of the latest landmark
+        if self.sun_policy == "stamp" and self.max_sun_change > 0:
+            self.create_timer(sun_check_period, self.check_sun)
 
-    def sun_for(self, msg: DemTile):
-        """(azimuth, elevation) for a tile under the configured policy."""
+    def sun_for(self, msg: DemTile, stamp_s: float | None = None):
+        """(azimuth, elevation) for a tile under the configured policy, at the tile's stamp
+        or at ``stamp_s``."""
         if self.sun_policy == "fixed":
             return self.sun
-        az, el = sun_at(cv.stamp_to_sec(msg.header.stamp), msg.georef.enu_origin_latitude,
+        if stamp_s is None:
+            stamp_s = cv.stamp_to_sec(msg.header.stamp)
+        az, el = sun_at(stamp_s, msg.georef.enu_origin_latitude,
                         msg.georef.enu_origin_longitude)
         if el < 5.0:
             self.get_logger().warning(f"sun only {float(el):.1f} deg high at the tile's stamp; "
@@ -107,8 +122,24 @@ class LandmarkRendererNode(Node):
             image, out, msg.header, valid, cv.enu_origin_of(msg.georef), msg.georef.source_crs,
             sun))
         self.rendered += 1
+        self.rendered_sun = sun
         self.get_logger().info(f"landmark {out.width}x{out.height} px at {out.gsd:g} m/px "
-                               f"centred ({out.centre[0]:.0f}, {out.centre[1]:.0f}) m")
+                               f"centred ({out.centre[0]:.0f}, {out.centre[1]:.0f}) m, sun "
+                               f"{float(sun[0]):.1f}/{float(sun[1]):.1f} deg")
+
+    @contained
+    def check_sun(self) -> None:
+        """Render the current tile again, stamped now, once the sun has moved too far."""
+        if self.last_tile_msg is None or self.rendered_sun is None:
+            return
+        now = self.get_clock().now()
+        sun = self.sun_for(self.last_tile_msg, now.nanoseconds * 1e-9)
+        moved = sun_separation(sun, self.rendered_sun)
+        if moved > self.max_sun_change:
+            self.get_logger().info(f"sun moved {moved:.1f} deg since the landmark was "
+                                   "rendered: rendering it again")
+            self.last_tile_msg.header.stamp = now.to_msg()
+            self.on_tile(self.last_tile_msg)
 
     def on_render_view(self, request, response):
         """Perspective render of the current tile for a requested camera and pose."""

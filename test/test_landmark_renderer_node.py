@@ -65,3 +65,40 @@ def test_tile_becomes_a_lit_georeferenced_landmark():
     # Sun from the north-west: the NW flank of the peak is lit, the SE flank in shade.
     row, col = np.round(georef.enu_to_pixel(1000.0, 2000.0)).astype(int)
     assert image[row - 10, col - 10] > image[row, col] > image[row + 10, col + 10]
+
+
+def test_landmark_is_rendered_again_when_the_sun_has_moved():
+    """Stamp policy: a tile stamped 40 minutes ago is lit by the sun of then, and rendered
+    again with the sun of now (which has moved ~10 deg) at the next check."""
+    import time
+
+    from terrain_nav_ros.core.sun import sun_at, sun_separation
+
+    now = time.time()
+    # a place where it is about noon now, so that the sun is high then and now
+    lon = ((12.0 - (now % 86400.0) / 3600.0) * 15.0 + 180.0) % 360.0 - 180.0
+    lat = -20.0
+    node = start_node("landmark_renderer", {"sun_policy": "stamp", "max_sun_change": 2.0,
+                                            "sun_check_period": 0.5})
+    client = SpinningNode("landmark_client")
+    got = []
+    try:
+        client.node.create_subscription(GeoImage, "/landmark/image", got.append, LATCHED_QOS)
+        pub = client.node.create_publisher(DemTile, "/metamap/tile", LATCHED_QOS)
+        assert wait_until(lambda: pub.get_subscription_count() > 0, 20), stop(node)
+        heights, georef = _peak_tile()
+        then = now - 2400.0
+        tile = cv.dem_tile_to_msg(heights, georef, cv.make_header(int(then * 1e9), "map"),
+                                  (lat, lon, 0.0))
+        pub.publish(tile)
+        assert wait_until(lambda: len(got) >= 2, 60), stop(node)
+    finally:
+        client.close()
+        log = stop(node)
+    first, second = cv.geo_image_sun(got[0]), cv.geo_image_sun(got[1])
+    assert sun_separation(first, sun_at(then, lat, lon)) < 0.01, log
+    assert sun_separation(first, second) > 2.0
+    restamped = cv.stamp_to_sec(got[1].header.stamp)
+    assert abs(restamped - now) < 60.0
+    assert sun_separation(second, sun_at(restamped, lat, lon)) < 0.01
+    assert len(got) == 2 or sun_separation(second, cv.geo_image_sun(got[2])) > 2.0

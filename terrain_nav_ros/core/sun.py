@@ -129,6 +129,12 @@ def sun_direction_enu(azimuth_deg, elevation_deg) -> np.ndarray:
     return np.array([np.sin(az) * np.cos(el), np.cos(az) * np.cos(el), np.sin(el)])
 
 
+def sun_separation(a, b) -> float:
+    """Angle (degrees) between two sun positions given as (azimuth, elevation) in degrees."""
+    cos = float(np.dot(sun_direction_enu(*a), sun_direction_enu(*b)))
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
 def sun_at(unix_seconds: float, lat_deg: float, lon_deg: float) -> tuple[float, float]:
     """(azimuth, elevation) in degrees at a POSIX time (a ROS stamp) and place."""
     when = _dt.datetime.fromtimestamp(float(unix_seconds), _dt.UTC)
