@@ -70,7 +70,9 @@ def test_matcher_publishes_the_true_position_and_explains_no_fix():
         cam_pub.publish(sparse)
         cam_pub.publish(cv.minutiae_to_msg(MinutiaSet.empty("no drainage: flat", camera.georef),
                                            Header(frame_id="map"), MinutiaArray.SOURCE_CAMERA))
-        assert wait_until(lambda: len(fixes) >= before + 2, 20)
+        # (late fixes of the repeated camera set may arrive in between)
+        assert wait_until(lambda: sum(f.status == PvaFix.STATUS_NO_FIX
+                                      for f in fixes[before:]) >= 2, 20)
         assert node.poll() is None
     finally:
         client.close()

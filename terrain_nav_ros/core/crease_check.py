@@ -184,7 +184,9 @@ def crease_evidence(samples: CreaseSamples, field: CreaseField, c: complex, t: c
     n_in = int(inside.sum())
     if n_in < min_samples:
         return CreaseEvidence(n_inside=n_in)
-    z_in, dir_in = z[inside], direction[inside]
+    # the local chance of a hit from every 4th sample (one per crease spacing is plenty for
+    # a rate over 24 shifts, at a quarter of the cost)
+    z_in, dir_in = z[inside][::4], direction[inside][::4]
     shifted = (z_in[None, :] + _NULL_SHIFTS[:, None]).ravel()
     ins, hs = field.hits(shifted, np.tile(dir_in, len(_NULL_SHIFTS)), radius, angle_tol)
     chance = float(np.clip((hs.sum() + 1.0) / (ins.sum() + 2.0), 1e-3, 0.999))

@@ -6,7 +6,7 @@ Pipeline (same for block-vs-block :func:`compare` and camera-in-region :func:`lo
    length and two relative angles agree; see :mod:`.descriptors`). Two generators:
    ``"hash"`` looks every edge of A up in a hash of B's edges (complete, best for blocks);
    ``"roots"`` first picks, for each minutia of A, the ``k_roots`` minutiae of B with the most
-   similar shape context (+ crease) descriptor and compares only their local edges (the
+   similar shape context descriptor and compares only their local edges (the
    reference-pair selection of dissertation 4.2.2; bounded cost for a large landmark region).
    Every candidate is a minimal sample: two point correspondences fix a similarity transform.
    Its vote is weighted by the descriptor similarity of both correspondences.
@@ -152,7 +152,8 @@ class MatchParams:
         evidence: the transform aligns those stubs by construction, and the pairing already
         counts them.
     crease_descriptor : bool
-        With crease images, also weight candidate votes by the crease shape descriptor.
+        With crease images, also weight candidate votes by the crease shape descriptor (hash
+        generator only).
     threshold : float
         Score at and above which two sets match; calibrate it with
         :func:`calibrate_threshold`.
@@ -416,9 +417,9 @@ class _Votes:
     weight: np.ndarray
 
 
-def _similarity_matrix(a: MinutiaIndex, b: MinutiaIndex) -> np.ndarray:
+def _similarity_matrix(a: MinutiaIndex, b: MinutiaIndex, with_creases: bool = True):
     s = a.descriptor @ b.descriptor.T
-    if a.crease is not None and b.crease is not None:
+    if with_creases and a.crease is not None and b.crease is not None:
         s = 0.5 * (s + np.maximum(a.crease @ b.crease.T, 0.0))
     return s
 
@@ -451,7 +452,9 @@ def _hash_votes(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> _Votes:
 
 
 def _root_votes(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> _Votes:
-    s = _similarity_matrix(a, b)
+    # shape contexts only: the crease descriptor's product over a region's thousands of
+    # minutiae would triple the localisation time (the hash generator for blocks keeps it)
+    s = _similarity_matrix(a, b, with_creases=False)
     k = min(p.k_roots, b.n)
     top = np.argpartition(-s, k - 1, axis=1)[:, :k] if k < b.n else np.tile(
         np.arange(b.n), (a.n, 1))
