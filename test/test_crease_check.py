@@ -73,8 +73,10 @@ def test_excluded_surroundings_do_not_count(region):
     samples = CreaseSamples.from_image(block)
     field = CreaseField(block)
     full = crease_evidence(samples, field, 1 + 0j, 0j)
-    everything = crease_evidence(samples, field, 1 + 0j, 0j, exclude=samples.z,
-                                 exclude_radius=1.0)
+    around_first = samples.around(samples.z[:1], 1.5)[0]
+    assert 0 in around_first and np.all(np.abs(samples.z[around_first] - samples.z[0]) < 1.5)
+    everything = crease_evidence(samples, field, 1 + 0j, 0j,
+                                 skip=np.concatenate(samples.around(samples.z, 1.0)))
     assert full.n_inside == len(samples) and everything.n_inside == 0
     assert everything.score == 0.0
 

@@ -76,6 +76,17 @@ class CreaseSamples:
     def __len__(self) -> int:
         return len(self.z)
 
+    def around(self, points, radius: float) -> list[np.ndarray]:
+        """Indices of the samples closer than ``radius`` to each of ``points`` (complex,
+        math frame): one array per point."""
+        points = np.asarray(points)
+        if len(self) == 0 or points.size == 0 or radius <= 0:
+            return [np.zeros(0, np.intp) for _ in range(points.size)]
+        tree = cKDTree(np.column_stack([self.z.real, self.z.imag]))
+        near = tree.query_ball_point(np.column_stack([points.real, points.imag]),
+                                     np.nextafter(radius, 0.0))   # strictly closer
+        return [np.asarray(i, np.intp) for i in near]
+
 
 class CreaseField:
     """Reference side: distance to and direction of the nearest crease pixel, everywhere.
@@ -140,7 +151,7 @@ class CreaseEvidence:
 def crease_evidence(samples: CreaseSamples, field: CreaseField, c: complex, t: complex, *,
                     radius: float = 1.5, angle_tol: float = math.radians(20.0),
                     spacing: float = 4.0, min_samples: int = 20,
-                    exclude=None, exclude_radius: float = 0.0) -> CreaseEvidence:
+                    skip=None) -> CreaseEvidence:
     """How unlikely the crease agreement at transform ``z -> c z + t`` is by chance.
 
     Parameters
@@ -159,11 +170,10 @@ def crease_evidence(samples: CreaseSamples, field: CreaseField, c: complex, t: c
         Skeleton pixels per effectively independent sample (along-crease correlation).
     min_samples : int
         Fewer mapped samples than this inside the reference give no evidence.
-    exclude : array_like of complex, optional
-        Points of A (math frame) whose surroundings do not count: the paired minutiae, whose
-        own crease stubs agree by construction of the transform and are already scored.
-    exclude_radius : float
-        Radius (px) around each excluded point.
+    skip : array_like of int, optional
+        Samples that do not count, e.g. those around the paired minutiae
+        (:meth:`CreaseSamples.around`), whose crease stubs agree by construction of the
+        transform and are already scored.
 
     Returns
     -------
@@ -172,11 +182,9 @@ def crease_evidence(samples: CreaseSamples, field: CreaseField, c: complex, t: c
     if len(samples) == 0 or field.n == 0:
         return CreaseEvidence()
     z, direction = samples.z, samples.direction
-    if exclude is not None and len(exclude) and exclude_radius > 0:
-        pts = np.asarray(exclude)
-        near, _ = cKDTree(np.column_stack([pts.real, pts.imag])).query(
-            np.column_stack([z.real, z.imag]), distance_upper_bound=exclude_radius)
-        keep = ~np.isfinite(near)
+    if skip is not None and len(skip):
+        keep = np.ones(len(z), bool)
+        keep[np.asarray(skip, np.intp)] = False
         z, direction = z[keep], direction[keep]
     z = c * z + t
     direction = direction + np.angle(c)

@@ -235,6 +235,7 @@ class MinutiaIndex:
             else crease_descriptor(ms, crease)
         self._crease_samples = None
         self._crease_field = None
+        self._crease_around = None
         self.footprint = _footprint(ms)
         # the footprint as complex corners and as its box (x0, x1, y0, y1), for _overlap
         self.footprint_z = self.footprint[:, 0] + 1j * self.footprint[:, 1]
@@ -259,6 +260,16 @@ class MinutiaIndex:
         if self._crease_samples is None and self.crease_image is not None:
             self._crease_samples = CreaseSamples.from_image(self.crease_image)
         return self._crease_samples
+
+    def crease_samples_around(self, minutiae: np.ndarray) -> np.ndarray:
+        """Crease samples within ``crease_exclude_radius`` of the given minutiae (the
+        per-minutia lists are built on first use)."""
+        if self._crease_around is None:
+            self._crease_around = self.crease_samples.around(self.z,
+                                                             self.params.crease_exclude_radius)
+        if len(minutiae) == 0:
+            return np.zeros(0, np.intp)
+        return np.concatenate([self._crease_around[i] for i in minutiae])
 
     @property
     def crease_field(self) -> CreaseField | None:
@@ -943,7 +954,7 @@ def calibrate_threshold(non_pva_scores, false_match_rate: float) -> float:
 # settings baked into a MinutiaIndex (edges, hash, descriptors)
 _INDEX_FIELDS = ("k_query", "k_ref", "edge_min", "edge_max", "edge_length_tol",
                  "edge_angle_tol", "by_kind", "descriptor", "estimate_scale",
-                 "max_scale_change", "crease_descriptor")
+                 "max_scale_change", "crease_descriptor", "crease_exclude_radius")
 
 
 def _as_index(x, p: MatchParams, crease=None) -> MinutiaIndex:
@@ -1059,8 +1070,8 @@ def _scored(a: MinutiaIndex, b: MinutiaIndex, c, t, pairs, search_area: float,
     if with_creases:
         creases = crease_evidence(a.crease_samples, b.crease_field, c, t,
                                   radius=p.crease_radius, angle_tol=p.crease_angle_tol,
-                                  spacing=p.crease_spacing, exclude=a.z[pairs[:, 0]],
-                                  exclude_radius=p.crease_exclude_radius)
+                                  spacing=p.crease_spacing,
+                                  skip=a.crease_samples_around(pairs[:, 0]))
         score += creases.score
     return _Scored(c, t, pairs, score, lam, (n_ao, n_bo), creases)
 
