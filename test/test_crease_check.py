@@ -167,3 +167,19 @@ def test_with_creases_a_few_minutiae_are_enough_to_decide(region):
                                                  x0 + dx:x0 + dx + size]))
     assert tiny.decision == Decision.NO_DECISION   # below min_minutiae_creases too
     assert "at least 4" in tiny.reason
+
+
+def test_field_nearest_crease_pixel_agrees_with_an_exact_transform(region):
+    from scipy import ndimage
+
+    skel = region[1][:200, :300]
+    field = CreaseField(skel)
+    exact, (ri, ci) = ndimage.distance_transform_edt(~skel, return_indices=True)
+    near = exact <= 1.5
+    assert np.array_equal(field.distance <= 1.5, near)   # the hit radius sees the same pixels
+    assert np.all(np.abs(field.distance - exact) <= 0.03 * exact + 1e-6)
+    # the nearest crease pixel it names is a crease pixel at the exact nearest distance
+    rows, cols = field.nearest
+    assert skel[rows, cols].all()
+    named = np.hypot(rows - np.arange(200)[:, None], cols - np.arange(300)[None, :])
+    assert np.all(named <= exact + 0.05 * exact + 1e-6)

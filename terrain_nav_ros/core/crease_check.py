@@ -27,7 +27,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy import ndimage
 from scipy.spatial import cKDTree
 from scipy.special import betainc
 
@@ -103,10 +102,18 @@ class CreaseField:
         self.n = int(sk.sum())
         self.nearest = None   # (row, col) of the nearest crease pixel, everywhere
         if self.n:
-            dist, (ri, ci) = ndimage.distance_transform_edt(~sk, return_indices=True)
-            self.distance = dist.astype(np.float32)
-            self.direction = crease_directions(sk)[ri, ci]
-            self.nearest = (ri.astype(np.int32), ci.astype(np.int32))
+            # OpenCV's labelled distance transform (5x5 mask: exact at 0, 1, sqrt 2, 2 px,
+            # within 2 % beyond) is ~10x faster than an exact one with indices: a 2048^2
+            # landmark region costs ~0.2 s instead of ~1 s. Each label is a crease pixel, in
+            # raster order.
+            dist, label = cv2.distanceTransformWithLabels(
+                (~sk).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5,
+                labelType=cv2.DIST_LABEL_PIXEL)
+            rows, cols = np.nonzero(sk)
+            label -= 1
+            self.distance = dist
+            self.direction = crease_directions(sk)[rows, cols][label]
+            self.nearest = (rows.astype(np.int32)[label], cols.astype(np.int32)[label])
         else:
             self.distance = np.full(sk.shape, np.inf, np.float32)
             self.direction = np.zeros(sk.shape, np.float32)
