@@ -231,8 +231,7 @@ class MinutiaIndex:
                                      tree=self.tree)
         self.descriptor = _descriptor(ms, p)
         self.crease_image = crease
-        self.crease = None if crease is None or not p.crease_descriptor \
-            else crease_descriptor(ms, crease)
+        self._crease_descriptor = None
         self._crease_samples = None
         self._crease_field = None
         self._crease_around = None
@@ -253,6 +252,15 @@ class MinutiaIndex:
 
     def __len__(self) -> int:
         return self.n
+
+    @property
+    def crease(self) -> np.ndarray | None:
+        """Crease shape descriptors (None without a crease image or with the descriptor off;
+        built on first use: the region search never asks for them)."""
+        if (self._crease_descriptor is None and self.crease_image is not None
+                and self.params.crease_descriptor):
+            self._crease_descriptor = crease_descriptor(self.set, self.crease_image)
+        return self._crease_descriptor
 
     @property
     def crease_samples(self) -> CreaseSamples | None:
@@ -1161,14 +1169,16 @@ class Matcher:
                            "each set")
             return base
         radius_a = a.radius
-        # B's minutiae that can fall under A (all of them for blocks of equal size)
-        n_b_under_a = b.n * min(1.0, a.area / max(b.area, 1.0))
-        best_possible = _best_possible_score(int(min(a.n, n_b_under_a)), a.n, n_b_under_a,
-                                             a.area, search_area, radius_a, p, p.threshold)
-        if best_possible < p.threshold and not use_creases:   # creases can add the rest
-            base.reason = ("too few minutiae: even a perfect match would score "
-                           f"{best_possible:.2f} < threshold {p.threshold:.2f}")
-            return base
+        if not use_creases:   # with creases, the crease evidence can add what minutiae lack
+            # B's minutiae that can fall under A (all of them for blocks of equal size)
+            n_b_under_a = b.n * min(1.0, a.area / max(b.area, 1.0))
+            best_possible = _best_possible_score(int(min(a.n, n_b_under_a)), a.n,
+                                                 n_b_under_a, a.area, search_area, radius_a,
+                                                 p, p.threshold)
+            if best_possible < p.threshold:
+                base.reason = ("too few minutiae: even a perfect match would score "
+                               f"{best_possible:.2f} < threshold {p.threshold:.2f}")
+                return base
         method = p.candidates
         if method == "auto":
             method = "roots" if b.n > p.roots_above else "hash"
