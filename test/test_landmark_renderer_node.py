@@ -1,6 +1,9 @@
 """landmark_renderer node: a DemTile from another process becomes a georeferenced, correctly
 lit landmark image; voids are masked; a malformed tile does not kill the node."""
 
+from contextlib import contextmanager
+from types import SimpleNamespace
+
 import numpy as np
 from ros_helpers import SpinningNode, start_node, stop, wait_until
 from std_msgs.msg import Header
@@ -34,26 +37,37 @@ def _render_view(client, pose_z):
     return future.result()
 
 
-def test_tile_becomes_a_lit_georeferenced_landmark():
-    node = start_node("landmark_renderer", {"sun_azimuth": 315.0, "sun_elevation": 45.0})
+@contextmanager
+def renderer_node(params):
+    """The node in its own process and a client with the tile publisher and the landmark
+    subscription; the node's output is in ``log`` after the block."""
+    node = start_node("landmark_renderer", params)
     client = SpinningNode("landmark_client")
-    got = []
+    s = SimpleNamespace(node=node, client=client, got=[], log="")
     try:
-        client.node.create_subscription(GeoImage, "/landmark/image", got.append, LATCHED_QOS)
-        pub = client.node.create_publisher(DemTile, "/metamap/tile", LATCHED_QOS)
-        assert wait_until(lambda: pub.get_subscription_count() > 0, 20), stop(node)
-        bad = DemTile(header=Header(frame_id="map"))
-        bad.georef.width, bad.georef.height, bad.georef.gsd = 4, 4, 1.0  # no elevations
-        pub.publish(bad)
-        heights, georef = _peak_tile()
-        pub.publish(cv.dem_tile_to_msg(heights, georef, Header(frame_id="map")))
-        assert wait_until(lambda: got, 60), stop(node)
-        assert node.poll() is None, "node died on a malformed tile"
-        view = _render_view(client, 3000.0)          # looking straight down at the peak
-        underground = _render_view(client, 100.0)    # below the terrain: refused
+        client.node.create_subscription(GeoImage, "/landmark/image", s.got.append,
+                                        LATCHED_QOS)
+        s.pub = client.node.create_publisher(DemTile, "/metamap/tile", LATCHED_QOS)
+        assert wait_until(lambda: s.pub.get_subscription_count() > 0, 20), stop(node)
+        yield s
     finally:
         client.close()
-        log = stop(node)
+        s.log = stop(node)
+
+
+def test_tile_becomes_a_lit_georeferenced_landmark():
+    with renderer_node({"sun_azimuth": 315.0, "sun_elevation": 45.0}) as s:
+        got = s.got
+        bad = DemTile(header=Header(frame_id="map"))
+        bad.georef.width, bad.georef.height, bad.georef.gsd = 4, 4, 1.0  # no elevations
+        s.pub.publish(bad)
+        heights, georef = _peak_tile()
+        s.pub.publish(cv.dem_tile_to_msg(heights, georef, Header(frame_id="map")))
+        assert wait_until(lambda: got, 60), stop(s.node)
+        assert s.node.poll() is None, "node died on a malformed tile"
+        view = _render_view(s.client, 3000.0)          # looking straight down at the peak
+        underground = _render_view(s.client, 100.0)    # below the terrain: refused
+    log = s.log
     assert view.success, view.message
     heights = cv.image_to_array(view.terrain_height)
     assert heights.shape == (48, 64) and abs(float(heights[24, 32]) - 800.0) < 5.0  # summit
@@ -78,23 +92,16 @@ def test_landmark_is_rendered_again_when_the_sun_has_moved():
     # a place where it is about noon now, so that the sun is high then and now
     lon = ((12.0 - (now % 86400.0) / 3600.0) * 15.0 + 180.0) % 360.0 - 180.0
     lat = -20.0
-    node = start_node("landmark_renderer", {"sun_policy": "stamp", "max_sun_change": 2.0,
-                                            "sun_check_period": 0.5})
-    client = SpinningNode("landmark_client")
-    got = []
-    try:
-        client.node.create_subscription(GeoImage, "/landmark/image", got.append, LATCHED_QOS)
-        pub = client.node.create_publisher(DemTile, "/metamap/tile", LATCHED_QOS)
-        assert wait_until(lambda: pub.get_subscription_count() > 0, 20), stop(node)
-        heights, georef = _peak_tile()
-        then = now - 2400.0
-        tile = cv.dem_tile_to_msg(heights, georef, cv.make_header(int(then * 1e9), "map"),
-                                  (lat, lon, 0.0))
-        pub.publish(tile)
-        assert wait_until(lambda: len(got) >= 2, 60), stop(node)
-    finally:
-        client.close()
-        log = stop(node)
+    heights, georef = _peak_tile()
+    then = now - 2400.0
+    tile = cv.dem_tile_to_msg(heights, georef, cv.make_header(int(then * 1e9), "map"),
+                              (lat, lon, 0.0))
+    with renderer_node({"sun_policy": "stamp", "max_sun_change": 2.0,
+                        "sun_check_period": 0.5}) as s:
+        got = s.got
+        s.pub.publish(tile)
+        assert wait_until(lambda: len(got) >= 2, 60), stop(s.node)
+    log = s.log
     first, second = cv.geo_image_sun(got[0]), cv.geo_image_sun(got[1])
     assert sun_separation(first, sun_at(then, lat, lon)) < 0.01, log
     assert sun_separation(first, second) > 2.0

@@ -1,6 +1,9 @@
 """matcher node: a camera minutiae set projected with a wrong prior position is localised in
 the landmark set and the fix lands on the true position; unmatchable sets get a no-fix reason."""
 
+from contextlib import contextmanager
+from types import SimpleNamespace
+
 import numpy as np
 from ros_helpers import SpinningNode, start_node, stop, wait_until
 from std_msgs.msg import Header
@@ -45,40 +48,55 @@ def _sets(with_creases=False):
     return landmark, camera, prior, skeleton, camera_creases
 
 
-def test_matcher_publishes_the_true_position_and_explains_no_fix():
+@contextmanager
+def matcher_node():
+    """The node in its own process and a client with both minutiae publishers and the fix
+    subscription; the node's output is in ``log`` after the block."""
     node = start_node("matcher", {"prior_tilt_sigma": 0.0, "landmark_sigma": 0.0})
     client = SpinningNode("matcher_client")
-    fixes = []
+    n = client.node
+    s = SimpleNamespace(node=node, fixes=[], log="")
     try:
-        n = client.node
-        n.create_subscription(PvaFix, "/nav/pva_fix", fixes.append, 10)
-        land_pub = n.create_publisher(MinutiaArray, "/landmark/minutiae", LATCHED_QOS)
-        cam_pub = n.create_publisher(MinutiaArray, "/camera/minutiae", 10)
-        landmark, camera, prior = _sets()
-        header = cv.make_header(5_000_000_000, "map")
-        land_pub.publish(cv.minutiae_to_msg(landmark, header, MinutiaArray.SOURCE_LANDMARK,
-                                            (36.5, -84.2, 0.0)))
-        cam_msg = cv.minutiae_to_msg(camera, header, MinutiaArray.SOURCE_CAMERA)
-        cv.set_projection(cam_msg, [*prior, 3000.0], camera_rotation([0, 0, 0, 1]), 500.0)
-        sparse = cv.minutiae_to_msg(camera.subset(np.arange(3)), header,
-                                    MinutiaArray.SOURCE_CAMERA)
-        cv.set_projection(sparse, [*prior, 3000.0], camera_rotation([0, 0, 0, 1]), 500.0)
-        assert wait_until(lambda: cam_pub.get_subscription_count() > 0, 20), stop(node)
-        assert wait_until(lambda: (cam_pub.publish(cam_msg),
+        n.create_subscription(PvaFix, "/nav/pva_fix", s.fixes.append, 10)
+        s.land_pub = n.create_publisher(MinutiaArray, "/landmark/minutiae", LATCHED_QOS)
+        s.cam_pub = n.create_publisher(MinutiaArray, "/camera/minutiae", 10)
+        assert wait_until(lambda: s.cam_pub.get_subscription_count() > 0, 20), stop(node)
+        yield s
+    finally:
+        client.close()
+        s.log = stop(node)
+
+
+def _camera_msg(camera, prior, header, creases=None):
+    """Camera minutiae as projected from the prior position, nadir, 3000 m over a 500 m plane."""
+    msg = cv.minutiae_to_msg(camera, header, MinutiaArray.SOURCE_CAMERA, creases=creases)
+    cv.set_projection(msg, [*prior, 3000.0], camera_rotation([0, 0, 0, 1]), 500.0)
+    return msg
+
+
+def test_matcher_publishes_the_true_position_and_explains_no_fix():
+    landmark, camera, prior = _sets()
+    header = cv.make_header(5_000_000_000, "map")
+    with matcher_node() as s:
+        fixes = s.fixes
+        s.land_pub.publish(cv.minutiae_to_msg(landmark, header, MinutiaArray.SOURCE_LANDMARK,
+                                              (36.5, -84.2, 0.0)))
+        cam_msg = _camera_msg(camera, prior, header)
+        sparse = _camera_msg(camera.subset(np.arange(3)), prior, header)
+        assert wait_until(lambda: (s.cam_pub.publish(cam_msg),
                                    any(f.status for f in fixes))[1], 30, 0.5)
         before = len(fixes)
-        cam_pub.publish(sparse)
-        cam_pub.publish(cv.minutiae_to_msg(MinutiaSet.empty("no drainage: flat", camera.georef),
-                                           Header(frame_id="map"), MinutiaArray.SOURCE_CAMERA))
+        s.cam_pub.publish(sparse)
+        s.cam_pub.publish(cv.minutiae_to_msg(MinutiaSet.empty("no drainage: flat",
+                                                              camera.georef),
+                                             Header(frame_id="map"),
+                                             MinutiaArray.SOURCE_CAMERA))
         # (late fixes of the repeated camera set may arrive in between)
         assert wait_until(lambda: sum(f.status == PvaFix.STATUS_NO_FIX
                                       for f in fixes[before:]) >= 2, 20)
-        assert node.poll() is None
-    finally:
-        client.close()
-        log = stop(node)
+        assert s.node.poll() is None
     fix = next(f for f in fixes if f.status)
-    assert fix.status == PvaFix.STATUS_POSITION_ATTITUDE, f"{fix.reason}\n{log}"
+    assert fix.status == PvaFix.STATUS_POSITION_ATTITUDE, f"{fix.reason}\n{s.log}"
     position = np.array([fix.pose.pose.position.x, fix.pose.pose.position.y])
     np.testing.assert_allclose(position, TRUE_XY, atol=GSD / 2)
     cov = cv.covariance_to_array(fix.pose.covariance, 6)
@@ -91,37 +109,24 @@ def test_matcher_publishes_the_true_position_and_explains_no_fix():
 def test_matcher_checks_the_creases_the_sets_carry():
     """With crease skeletons on both sides the score includes their agreement; a camera set
     without them is matched on minutiae only; a corrupt skeleton is a no-fix with a reason."""
-    node = start_node("matcher", {"prior_tilt_sigma": 0.0, "landmark_sigma": 0.0})
-    client = SpinningNode("matcher_client")
-    fixes = []
-    try:
-        n = client.node
-        n.create_subscription(PvaFix, "/nav/pva_fix", fixes.append, 10)
-        land_pub = n.create_publisher(MinutiaArray, "/landmark/minutiae", LATCHED_QOS)
-        cam_pub = n.create_publisher(MinutiaArray, "/camera/minutiae", 10)
-        landmark, camera, prior, land_creases, cam_creases = _sets(with_creases=True)
-        land_pub.publish(cv.minutiae_to_msg(landmark, cv.make_header(5_000_000_000, "map"),
-                                            MinutiaArray.SOURCE_LANDMARK, (36.5, -84.2, 0.0),
-                                            creases=land_creases))
-        # one stamp per variant: the fixes are told apart by it
-        variants = {6: cam_creases, 7: None, 8: cam_creases}
-        messages = {}
-        for sec, creases in variants.items():
-            msg = cv.minutiae_to_msg(camera, cv.make_header(sec * 1_000_000_000, "map"),
-                                     MinutiaArray.SOURCE_CAMERA, creases=creases)
-            cv.set_projection(msg, [*prior, 3000.0], camera_rotation([0, 0, 0, 1]), 500.0)
-            messages[sec] = msg
-        messages[8].crease_pixels = [200 * 200 + 5]   # corrupt: outside the grid
-        assert wait_until(lambda: cam_pub.get_subscription_count() > 0, 20), stop(node)
-        assert wait_until(lambda: (cam_pub.publish(messages[6]),
+    landmark, camera, prior, land_creases, cam_creases = _sets(with_creases=True)
+    # one stamp per variant: the fixes are told apart by it
+    messages = {sec: _camera_msg(camera, prior, cv.make_header(sec * 1_000_000_000, "map"),
+                                 creases)
+                for sec, creases in {6: cam_creases, 7: None, 8: cam_creases}.items()}
+    messages[8].crease_pixels = [200 * 200 + 5]   # corrupt: outside the grid
+    with matcher_node() as s:
+        fixes = s.fixes
+        s.land_pub.publish(cv.minutiae_to_msg(landmark, cv.make_header(5_000_000_000, "map"),
+                                              MinutiaArray.SOURCE_LANDMARK, (36.5, -84.2, 0.0),
+                                              creases=land_creases))
+        assert wait_until(lambda: (s.cam_pub.publish(messages[6]),
                                    any(f.status for f in fixes))[1], 30, 0.5)
-        cam_pub.publish(messages[7])
-        cam_pub.publish(messages[8])
+        s.cam_pub.publish(messages[7])
+        s.cam_pub.publish(messages[8])
         assert wait_until(lambda: {7, 8} <= {f.header.stamp.sec for f in fixes}, 20)
-        assert node.poll() is None
-    finally:
-        client.close()
-        log = stop(node)
+        assert s.node.poll() is None
+    log = s.log
     by_stamp = {f.header.stamp.sec: f for f in fixes}
     with_creases, minutiae_only, bad = by_stamp[6], by_stamp[7], by_stamp[8]
     assert with_creases.status and minutiae_only.status, f"{minutiae_only.reason}\n{log}"
