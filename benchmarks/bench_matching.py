@@ -87,6 +87,12 @@ def _camera_version(ms, size, rng, noise="test"):
     return out, m
 
 
+def _warped_skeleton(skeleton, m, size):
+    """A skeleton seen through the same 2x3 transform as its minutiae (nearest pixel)."""
+    return cv2.warpAffine(skeleton.astype(np.uint8), m, (size, size),
+                          flags=cv2.INTER_NEAREST) > 0
+
+
 def bench_speed(matcher, repeat):
     terrain, skeleton = terrain_minutiae((512, 512), seed=1)
     block = crop_set(terrain, 128, 128, 256, 256)
@@ -97,8 +103,7 @@ def bench_speed(matcher, repeat):
           f"median {med:.2f} ms, min {best:.2f} ms, median CPU {_timeit.cpu_ms:.2f} ms "
           "(target <= 2 ms)")
     block_skeleton = skeleton[128:384, 128:384]
-    cam_skeleton = cv2.warpAffine(block_skeleton.astype(np.uint8), m, (256, 256),
-                                  flags=cv2.INTER_NEAREST) > 0
+    cam_skeleton = _warped_skeleton(block_skeleton, m, 256)
     ia, ib = matcher.index(block, block_skeleton), matcher.index(cam, cam_skeleton)
     r = matcher.compare(ia, ib)
     med, best = _timeit(lambda: matcher.compare(ia, ib), repeat)
@@ -144,8 +149,7 @@ def bench_speed(matcher, repeat):
 
 def _with_creases(matcher, land, land_skeleton, land_to_cam, cam, repeat):
     """The same localisation with the crease check (both sides carry their skeletons)."""
-    cam_skeleton = cv2.warpAffine(land_skeleton.astype(np.uint8), land_to_cam, (512, 512),
-                                  flags=cv2.INTER_NEAREST) > 0
+    cam_skeleton = _warped_skeleton(land_skeleton, land_to_cam, 512)
     t0 = time.perf_counter()
     land_index = matcher.index(land, land_skeleton)
     r = matcher.localise(cam, land_index, crease_camera=cam_skeleton)
