@@ -312,7 +312,7 @@ def _localise_cases(study: _Study, cam_greys, cam_sets, cam_creases, cam_times, 
                 r = matcher.localise(cam_sets[k], ri, crease_camera=cam_creases[k])
                 dt = time.perf_counter() - t0 + cam_times[k]
                 accepted = r.decision == Decision.MATCH
-                est = r.apply(c, c) if r.n_pairings >= 2 else (math.nan, math.nan)
+                est = r.apply(c, c) if np.isfinite(r.transform).all() else (math.nan, math.nan)
             else:
                 t0 = time.perf_counter()
                 if method.startswith("ncc"):
@@ -375,7 +375,7 @@ def _condition(study, name, cam_rgb, sun, transforms, cm, rate, seed, success_px
     for k, r in enumerate(pva):
         m_true = transforms[k].copy()
         m_true[:, 2] -= study.origins[k]
-        if r.score >= thr and r.n_pairings >= 2:
+        if r.score >= thr and np.isfinite(r.transform).all():
             est = np.array(r.apply(c, c))
             fix_err.append(float(np.hypot(*(est - m_true @ np.array([c, c, 1.0])))))
         else:

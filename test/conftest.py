@@ -22,6 +22,22 @@ def shared_data() -> Path:
     return path
 
 
+@pytest.fixture(scope="session")
+def region():
+    """A 512x512 synthetic drainage pattern: minutiae and skeleton."""
+    from synthetic_minutiae import terrain_minutiae
+
+    return terrain_minutiae((512, 512), seed=11)
+
+
+@pytest.fixture(scope="session")
+def other_region():
+    """Another, unrelated 512x512 drainage pattern."""
+    from synthetic_minutiae import terrain_minutiae
+
+    return terrain_minutiae((512, 512), seed=12)
+
+
 # Every test run gets its own DDS domain and localhost-only discovery, so parallel runs
 # (CI next to a developer, two checkouts) never see each other's nodes. Set before rclpy
 # initialises; node subprocesses inherit it.

@@ -5,7 +5,7 @@ import math
 import cv2
 import numpy as np
 import pytest
-from synthetic_minutiae import crop_set, terrain_minutiae
+from synthetic_minutiae import crop_set
 
 from terrain_nav_ros.core.crease_check import (
     CreaseField,
@@ -15,16 +15,6 @@ from terrain_nav_ros.core.crease_check import (
     refine_on_creases,
 )
 from terrain_nav_ros.core.matching import Decision, Matcher
-
-
-@pytest.fixture(scope="module")
-def region():
-    return terrain_minutiae((512, 512), seed=11)
-
-
-@pytest.fixture(scope="module")
-def other_region():
-    return terrain_minutiae((512, 512), seed=12)
 
 
 def test_directions_follow_a_straight_crease():
@@ -161,12 +151,20 @@ def test_with_creases_a_few_minutiae_are_enough_to_decide(region):
     assert r.decision == Decision.MATCH, r.reason
     col, row = r.apply(10.0, 20.0)
     assert abs(col - (10 - dx)) < 1.0 and abs(row - (20 - dy)) < 1.0
+    # below min_minutiae_creases: without the crease search (core.crease_search) that is
+    # "no decision"; with it the creases propose the transform too
+    no_search = Matcher(crease_search_below=0)
+    tiny = no_search.compare(no_search.index(a.subset(np.arange(3)),
+                                             skel[y0:y0 + size, x0:x0 + size]),
+                             no_search.index(b, skel[y0 + dy:y0 + dy + size,
+                                                     x0 + dx:x0 + dx + size]))
+    assert tiny.decision == Decision.NO_DECISION
+    assert "at least 4" in tiny.reason
     tiny = matcher.compare(matcher.index(a.subset(np.arange(3)),
                                          skel[y0:y0 + size, x0:x0 + size]),
                            matcher.index(b, skel[y0 + dy:y0 + dy + size,
                                                  x0 + dx:x0 + dx + size]))
-    assert tiny.decision == Decision.NO_DECISION   # below min_minutiae_creases too
-    assert "at least 4" in tiny.reason
+    assert tiny.decision == Decision.MATCH, tiny.reason
 
 
 def test_field_nearest_crease_pixel_agrees_with_an_exact_transform(region):

@@ -31,12 +31,6 @@ BLOCK = 256
 
 
 @pytest.fixture(scope="module")
-def region():
-    """A 512x512 synthetic drainage pattern: minutiae and skeleton."""
-    return terrain_minutiae((512, 512), seed=11)
-
-
-@pytest.fixture(scope="module")
 def block(region):
     return crop_set(region[0], 128, 128, BLOCK, BLOCK)
 

@@ -247,3 +247,35 @@ def refine_on_creases(samples: CreaseSamples, field: CreaseField, c: complex, t:
         if abs(step[0]) * 100.0 + abs(complex(step[1], step[2])) < 0.01:
             break   # settled: < 0.01 px at 100 px from the centroid
     return c, t
+
+
+def crease_covariance(samples: CreaseSamples, field: CreaseField, c: complex, t: complex, *,
+                      radius: float = 1.5, angle_tol: float = math.radians(20.0),
+                      spacing: float = 4.0, min_matches: int = 20) -> np.ndarray:
+    """Covariance of the pixel transform ``(a, b, tx, ty)`` from the crease agreement.
+
+    The form of :class:`~.matching.MatchResult` (``col' = a col + b row + tx``,
+    ``row' = -b col + a row + ty``), from the distances across B's creases of A's agreeing
+    crease pixels: ``sigma^2 (J^T J)^-1`` with ``J`` their derivatives, inflated by
+    ``spacing`` because neighbouring skeleton pixels of one crease are not independent.
+    All NaN when fewer than ``min_matches`` pixels agree or they do not fix the transform.
+    """
+    nan = np.full((4, 4), np.nan)
+    if len(samples) == 0 or field.n == 0:
+        return nan
+    idx, q, normal = field.correspondences(c * samples.z + t, samples.direction + np.angle(c),
+                                           radius, angle_tol)
+    if len(idx) < min_matches:
+        return nan
+    z = samples.z[idx]
+    across = np.conj(normal)
+    residual = (across * (c * z + t - q)).real
+    # z_b = c z + t with c = a + ib and t = tx - i ty
+    jac = np.column_stack([(across * z).real, (across * 1j * z).real, normal.real,
+                           -normal.imag])
+    # pixel quantisation keeps the variance from vanishing on a perfect fit
+    sigma2 = max(float(np.mean(residual ** 2)), 1.0 / 12.0)
+    normal_matrix = jac.T @ jac
+    if np.linalg.cond(normal_matrix) > 1e12:
+        return nan
+    return sigma2 * spacing * np.linalg.inv(normal_matrix)

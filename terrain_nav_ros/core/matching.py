@@ -28,6 +28,11 @@ Pipeline (same for block-vs-block :func:`compare` and camera-in-region :func:`lo
    :mod:`.crease_check`): every registered hypothesis is refined and scored, the agreement of
    the crease pixels outside the paired minutiae's surroundings is added to its score (a
    binomial tail against the local chance of agreement), and the best total wins.
+7. **Crease search** (:mod:`.crease_search`): when the smaller set has too few minutiae for
+   their pair votes to propose the transform (a ~60 px block: 3-9 minutiae, 0-2 of them
+   repeating), a brute-force FFT search over rotations and translations of the crease
+   skeletons proposes more registrations, refined and scored by the crease check like the
+   others.
 
 All internal geometry is in the math frame ``z = col - 1j*row`` (see :mod:`.descriptors`);
 results are reported in pixel coordinates.
@@ -49,9 +54,11 @@ from .crease_check import (
     CreaseEvidence,
     CreaseField,
     CreaseSamples,
+    crease_covariance,
     crease_evidence,
     refine_on_creases,
 )
+from .crease_search import CreaseSearchReference, search_rotations, search_transforms
 from .descriptors import (
     TWO_PI,
     EdgeHash,
@@ -154,6 +161,21 @@ class MatchParams:
     crease_descriptor : bool
         With crease images, also weight candidate votes by the crease shape descriptor (hash
         generator only).
+    crease_search_below : int
+        With crease images, when the smaller set has fewer minutiae than this, the crease
+        skeletons are also searched by brute force (:mod:`.crease_search`) for transforms
+        to register; 0 turns the search off.
+    crease_search_max_side : int
+        The search is skipped when either crease image is larger than this (px per side):
+        its cost grows with the area times the rotations searched, which grow with the
+        query's size (a 60 px block against a block or its localisation region takes ~25 ms;
+        a camera frame in a landmark region is never searched).
+    crease_search_proposals : int
+        Transforms the search proposes.
+    min_crease_pixels : int
+        Where the crease search runs, the minimum-minutiae rule becomes one on the drainage
+        itself: fewer crease pixels than this in either set give "no decision" (a flat
+        lake), however many minutiae.
     threshold : float
         Score at and above which two sets match; calibrate it with
         :func:`calibrate_threshold`.
@@ -194,6 +216,10 @@ class MatchParams:
     crease_spacing: float = 4.0
     crease_exclude_radius: float = 6.0
     crease_descriptor: bool = True
+    crease_search_below: int = 16
+    crease_search_max_side: int = 256
+    crease_search_proposals: int = 3
+    min_crease_pixels: int = 100
     threshold: float = 3.0
     seed: int = 0
 
@@ -234,6 +260,7 @@ class MinutiaIndex:
         self._crease_descriptor = None
         self._crease_samples = None
         self._crease_field = None
+        self._crease_search = None
         self._crease_around = None
         self.footprint = _footprint(ms)
         # the footprint as complex corners and as its box (x0, x1, y0, y1), for _overlap
@@ -286,6 +313,13 @@ class MinutiaIndex:
         if self._crease_field is None and self.crease_image is not None:
             self._crease_field = CreaseField(self.crease_image)
         return self._crease_field
+
+    @property
+    def crease_search(self) -> CreaseSearchReference | None:
+        """Direction channels for the crease search as the reference (built on first use)."""
+        if self._crease_search is None and self.crease_field is not None:
+            self._crease_search = CreaseSearchReference(self.crease_field)
+        return self._crease_search
 
     def edge_hash(self) -> EdgeHash:
         """Hash of this set's edges (built on first use)."""
@@ -1100,6 +1134,30 @@ def _refined_on_creases(a: MinutiaIndex, b: MinutiaIndex, best: _Scored, search_
     return moved if moved.score > best.score else best
 
 
+def _searches_creases(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> bool:
+    """Whether the crease search runs: too few minutiae for the pair votes, and a reference
+    small enough to search by brute force."""
+    return (min(a.n, b.n) < p.crease_search_below
+            and max(*a.crease_image.shape, *b.crease_image.shape) <= p.crease_search_max_side)
+
+
+def _crease_search_registrations(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams):
+    """Registrations (c, t, pairings) proposed by the crease search, each moved onto B's
+    creases (they may have fewer than two minutiae pairings), and log10 of the transforms
+    searched."""
+    za = a.crease_samples.z
+    reach = float(np.percentile(np.abs(za - za.mean()), 90))
+    found = search_transforms(a.crease_samples, b.crease_search,
+                              search_rotations(p.max_rotation, reach),
+                              n_best=p.crease_search_proposals, hit_radius=p.crease_radius)
+    out = []
+    for c, t, _ in found.proposals:
+        c, t = refine_on_creases(a.crease_samples, b.crease_field, c, t,
+                                 angle_tol=p.crease_angle_tol)
+        out.append((c, t, _pair(a, b, c, t, p)))
+    return out, found.log10_transforms
+
+
 class Matcher:
     """Minutiae matcher (settings in the constructor, scikit-image style).
 
@@ -1163,11 +1221,20 @@ class Matcher:
         base = MatchResult(Decision.NO_DECISION, n_a=a.n, n_b=b.n)
         use_creases = (p.crease_check and a.crease_image is not None
                        and b.crease_image is not None)
-        needed = max(p.min_minutiae_creases if use_creases else p.min_minutiae, 2)
-        if min(a.n, b.n) < needed:
-            base.reason = (f"too few minutiae ({a.n}, {b.n}); at least {needed} needed in "
-                           "each set")
-            return base
+        search = use_creases and _searches_creases(a, b, p)
+        if search:
+            # the creases propose and carry the match: the rule is on their extent
+            n_crease = (len(a.crease_samples), b.crease_field.n)
+            if min(n_crease) < p.min_crease_pixels:
+                base.reason = (f"too little drainage ({n_crease[0]}, {n_crease[1]} crease "
+                               f"px); at least {p.min_crease_pixels} needed in each set")
+                return base
+        else:
+            needed = max(p.min_minutiae_creases if use_creases else p.min_minutiae, 2)
+            if min(a.n, b.n) < needed:
+                base.reason = (f"too few minutiae ({a.n}, {b.n}); at least {needed} needed "
+                               "in each set")
+                return base
         radius_a = a.radius
         if not use_creases:   # with creases, the crease evidence can add what minutiae lack
             # B's minutiae that can fall under A (all of them for blocks of equal size)
@@ -1191,15 +1258,22 @@ class Matcher:
                 break   # a clear winner: weak cells cannot beat it
             registered.append(_register(h, a, b, p, rng))
         registered = [r for r in registered if len(r[2]) >= 2]
+        searched, search_trials = _crease_search_registrations(a, b, p) if search else ([], 0)
         base.decision = Decision.NO_MATCH
-        if not registered:
+        if not registered and not searched:
             base.reason = "no consistent transform"
             return base
         if use_creases:
-            # every registration refined and scored with its crease agreement; the search
-            # over them is paid for like any other (Bonferroni)
+            # every registration refined and scored with its crease agreement (the searched
+            # ones are already on B's creases: a refit to their few minutiae pairings would
+            # undo that); the search over them is paid for like any other (Bonferroni)
             scored = [_scored(a, b, *_refine(a, b, *r, p), search_area, radius_a, p, True)
                       for r in registered]
+            # a searched registration was picked among the search's transforms at the crease
+            # resolution, not the minutiae's: it pays for those instead
+            trials = search_trials - _chance_model(1, 1, 1.0, search_area, radius_a, p)[1]
+            scored += [replace(s, score=s.score - trials) for s in (
+                _scored(a, b, *r, search_area, radius_a, p, True) for r in searched)]
             best = max(scored, key=lambda s: s.score)
             best = _refined_on_creases(a, b, best, search_area, radius_a, p)
             best = replace(best, score=best.score - math.log10(len(scored)))
@@ -1211,6 +1285,11 @@ class Matcher:
         n_ao, n_bo = best.n_overlap
         cov, rms = _covariance(a.z[pairs[:, 0]], b.z[pairs[:, 1]], c, t, p.estimate_scale,
                                p.pos_tol)
+        if use_creases and (len(pairs) < 3 or not np.isfinite(cov).all()):
+            # too few pairings for a covariance (a registration found by the crease search)
+            cov = crease_covariance(a.crease_samples, b.crease_field, c, t,
+                                    radius=p.crease_radius, angle_tol=p.crease_angle_tol,
+                                    spacing=p.crease_spacing)
         ok = score >= p.threshold
         return MatchResult(
             decision=Decision.MATCH if ok else Decision.NO_MATCH, score=score,

@@ -1,0 +1,151 @@
+"""Registration proposals from the crease skeletons (core.crease_search) and their use by the
+matcher for sets with too few minutiae."""
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+from skimage.morphology import skeletonize
+from synthetic_minutiae import crop_set, rigid_transform, transform_set
+
+from terrain_nav_ros.core.crease_check import CreaseField, CreaseSamples, crease_covariance
+from terrain_nav_ros.core.crease_search import (
+    CreaseSearchReference,
+    search_rotations,
+    search_transforms,
+)
+from terrain_nav_ros.core.matching import Decision, Matcher
+
+SIZE = 64
+
+
+def _turned_view(ms, skel, x0, y0, rotation_deg, shift):
+    """A SIZE px view of the region at (x0, y0), turned and shifted: its minutiae, its
+    re-thinned skeleton, and the pixel transform view -> region block at (x0, y0)."""
+    c = 0.5 * (SIZE - 1)
+    # block px -> view px
+    m = rigid_transform(math.radians(rotation_deg), *shift, centre=(c, c))
+    block = skel[y0:y0 + SIZE, x0:x0 + SIZE].astype(np.float32)
+    view = cv2.warpAffine(block, m, (SIZE, SIZE), flags=cv2.INTER_LINEAR)
+    view_skel = skeletonize(view > 0.3)
+    view_ms, _ = transform_set(crop_set(ms, x0, y0, SIZE, SIZE), m, (SIZE, SIZE), rng=0,
+                               pos_sigma=1.0, missing=0.0, spurious=0.0)
+    return view_ms, view_skel, cv2.invertAffineTransform(m)
+
+
+def _centre_error(result_or_ct, truth) -> float:
+    c = 0.5 * (SIZE - 1)
+    if isinstance(result_or_ct, tuple):
+        rot, t = result_or_ct
+        z = rot * complex(c, -c) + t
+        got = np.array([z.real, -z.imag])
+    else:
+        got = np.array(result_or_ct.apply(c, c))
+    return float(np.hypot(*(got - truth @ np.array([c, c, 1.0]))))
+
+
+def test_rotations_cover_the_circle_or_the_prior():
+    full = search_rotations(math.pi, radius=30.0, tolerance=3.0)
+    steps = np.diff(full)
+    assert np.allclose(steps, steps[0]) and steps[0] * 30.0 <= 3.0 + 1e-9
+    assert full[0] == -math.pi and full[-1] + steps[0] == pytest.approx(math.pi)
+    prior = search_rotations(math.radians(15.0), radius=30.0, tolerance=3.0)
+    assert prior[0] == pytest.approx(-math.radians(15.0)) and prior[-1] == pytest.approx(
+        math.radians(15.0)) and 0.0 in prior
+
+
+@pytest.mark.parametrize("rotation_deg", [-8.0, 37.0, 150.0])
+def test_search_finds_a_turned_and_shifted_view(region, rotation_deg):
+    ms, skel = region
+    _, view_skel, truth = _turned_view(ms, skel, 200, 180, rotation_deg, (5.0, -4.0))
+    samples = CreaseSamples.from_image(view_skel)
+    reference = CreaseSearchReference(CreaseField(skel[180:180 + SIZE, 200:200 + SIZE]))
+    reach = float(np.percentile(np.abs(samples.z - samples.z.mean()), 90))
+    found = search_transforms(samples, reference, search_rotations(math.pi, reach), n_best=3)
+    c, t, _ = found.proposals[0]
+    # a proposal is on the search's coarse grid: within a couple of pixels at the centre
+    assert _centre_error((c, t), truth) < 3.0
+    assert abs(math.degrees(np.angle(c)) - (-rotation_deg)) < 6.0 or abs(
+        math.remainder(math.degrees(np.angle(c)) + rotation_deg, 360.0)) < 6.0
+    # the transforms searched: ~100 rotations times a few hundred translation cells
+    assert 4.0 < found.log10_transforms < 6.0
+
+
+def test_search_without_creases_proposes_nothing(region):
+    reference = CreaseSearchReference(CreaseField(region[1][:SIZE, :SIZE]))
+    empty = CreaseSamples.from_image(np.zeros((SIZE, SIZE), bool))
+    found = search_transforms(empty, reference, search_rotations(math.pi, 30.0))
+    assert found.proposals == []
+
+
+def test_matcher_registers_a_block_with_almost_no_minutiae(region):
+    """Two minutiae cannot propose a transform; the crease search does, and the creases carry
+    the match (the minimum-minutiae rule becomes one on the drainage)."""
+    ms, skel = region
+    view_ms, view_skel, truth = _turned_view(ms, skel, 200, 180, 23.0, (6.0, 3.0))
+    few = view_ms.subset(np.arange(min(2, len(view_ms))))
+    block_ms = crop_set(ms, 200, 180, SIZE, SIZE)
+    block_skel = skel[180:180 + SIZE, 200:200 + SIZE]
+    matcher = Matcher()
+    r = matcher.compare(matcher.index(few, view_skel), matcher.index(block_ms, block_skel))
+    assert r.decision == Decision.MATCH, r.reason
+    assert _centre_error(r, truth) < 1.5
+    assert r.creases.fraction > 0.5
+    # with too few pairings for a minutiae covariance, the creases give one
+    cov = r.covariance
+    assert np.isfinite(cov).all() and np.all(np.linalg.eigvalsh(cov) > 0)
+    assert r.point_covariance(31.5, 31.5).trace() < 1.0
+    # without the search, the old rule holds: too few minutiae to decide
+    no_search = Matcher(crease_search_below=0)
+    r = no_search.compare(no_search.index(few, view_skel),
+                          no_search.index(block_ms, block_skel))
+    assert r.decision == Decision.NO_DECISION and "too few minutiae" in r.reason
+
+
+def test_searched_registrations_pay_for_the_search(region, other_region):
+    """Unrelated small blocks stay below the default threshold although the search tries
+    every rotation and translation."""
+    ms, skel = region
+    oms, oskel = other_region
+    matcher = Matcher()
+    for x0, y0 in [(200, 180), (60, 300), (330, 90)]:
+        a = matcher.index(crop_set(oms, x0, y0, SIZE, SIZE), oskel[y0:y0 + SIZE, x0:x0 + SIZE])
+        b = matcher.index(crop_set(ms, x0, y0, SIZE, SIZE), skel[y0:y0 + SIZE, x0:x0 + SIZE])
+        assert matcher.compare(a, b).decision != Decision.MATCH
+
+
+def test_too_little_drainage_is_no_decision(region):
+    ms, skel = region
+    block_ms = crop_set(ms, 200, 180, SIZE, SIZE)
+    block_skel = skel[180:180 + SIZE, 200:200 + SIZE]
+    lake = np.zeros_like(block_skel)
+    lake[30, 20:40] = True                 # one short crease: 20 px
+    matcher = Matcher()
+    r = matcher.compare(matcher.index(block_ms.subset(np.arange(3)), lake),
+                        matcher.index(block_ms, block_skel))
+    assert r.decision == Decision.NO_DECISION and "too little drainage" in r.reason
+
+
+def test_large_regions_are_not_searched(region):
+    """The brute-force search is for blocks: a camera set with too few minutiae inside a
+    large landmark region keeps the minimum-minutiae rule."""
+    ms, skel = region
+    view_ms, view_skel, _ = _turned_view(ms, skel, 200, 180, 0.0, (0.0, 0.0))
+    matcher = Matcher()
+    r = matcher.localise(matcher.index(view_ms.subset(np.arange(2)), view_skel),
+                         matcher.index(ms, skel))
+    assert r.decision == Decision.NO_DECISION and "too few minutiae" in r.reason
+
+
+def test_crease_covariance_shrinks_with_agreement(region):
+    skel = region[1]
+    block = skel[100:228, 100:228]
+    samples = CreaseSamples.from_image(block)
+    field = CreaseField(block)
+    cov = crease_covariance(samples, field, 1 + 0j, 0j)
+    assert np.isfinite(cov).all()
+    # exact agreement: only the pixel quantisation floor, spread over hundreds of pixels
+    assert np.sqrt(cov[2, 2]) < 0.1 and np.sqrt(cov[3, 3]) < 0.1
+    empty = CreaseField(np.zeros_like(block))
+    assert np.isnan(crease_covariance(samples, empty, 1 + 0j, 0j)).all()
