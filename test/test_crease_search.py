@@ -11,6 +11,7 @@ from synthetic_minutiae import crop_set, rigid_transform, transform_set
 
 from terrain_nav_ros.core.crease_check import CreaseField, CreaseSamples, crease_covariance
 from terrain_nav_ros.core.crease_search import (
+    CreaseSearchQuery,
     CreaseSearchReference,
     search_rotations,
     search_transforms,
@@ -62,7 +63,8 @@ def test_search_finds_a_turned_and_shifted_view(region, rotation_deg):
     samples = CreaseSamples.from_image(view_skel)
     reference = CreaseSearchReference(CreaseField(skel[180:180 + SIZE, 200:200 + SIZE]))
     reach = float(np.percentile(np.abs(samples.z - samples.z.mean()), 90))
-    found = search_transforms(samples, reference, search_rotations(math.pi, reach), n_best=3)
+    query = CreaseSearchQuery(samples, search_rotations(math.pi, reach))
+    found = search_transforms(query, reference, n_best=3)
     c, t, _ = found.proposals[0]
     # a proposal is on the search's coarse grid: within a couple of pixels at the centre
     assert _centre_error((c, t), truth) < 3.0
@@ -70,12 +72,18 @@ def test_search_finds_a_turned_and_shifted_view(region, rotation_deg):
         math.remainder(math.degrees(np.angle(c)) + rotation_deg, 360.0)) < 6.0
     # the transforms searched: ~100 rotations times a few hundred translation cells
     assert 4.0 < found.log10_transforms < 6.0
+    # the query's spectra serve the next reference of the same size unchanged
+    again = search_transforms(query, reference, n_best=3)
+    assert again == found
+    with pytest.raises(ValueError, match="resolution"):
+        search_transforms(CreaseSearchQuery(samples, [0.0], resolution=1.0), reference)
 
 
 def test_search_without_creases_proposes_nothing(region):
     reference = CreaseSearchReference(CreaseField(region[1][:SIZE, :SIZE]))
     empty = CreaseSamples.from_image(np.zeros((SIZE, SIZE), bool))
-    found = search_transforms(empty, reference, search_rotations(math.pi, 30.0))
+    found = search_transforms(CreaseSearchQuery(empty, search_rotations(math.pi, 30.0)),
+                              reference)
     assert found.proposals == []
 
 
@@ -127,14 +135,20 @@ def test_too_little_drainage_is_no_decision(region):
     assert r.decision == Decision.NO_DECISION and "too little drainage" in r.reason
 
 
-def test_large_regions_are_not_searched(region):
-    """The brute-force search is for blocks: a camera set with too few minutiae inside a
-    large landmark region keeps the minimum-minutiae rule."""
+def test_localisation_by_creases_and_its_size_bounds(region):
+    """A 64 px view with two minutiae is found in a 512 px landmark region by the search; a
+    region beyond ``crease_search_max_reference`` is not searched (the cost grows with its
+    area), so the minimum-minutiae rule applies there."""
     ms, skel = region
-    view_ms, view_skel, _ = _turned_view(ms, skel, 200, 180, 0.0, (0.0, 0.0))
+    view_ms, view_skel, truth = _turned_view(ms, skel, 330, 90, 12.0, (3.0, -2.0))
+    few = view_ms.subset(np.arange(2))
+    truth_in_region = truth + np.array([[0, 0, 330], [0, 0, 90]])
     matcher = Matcher()
-    r = matcher.localise(matcher.index(view_ms.subset(np.arange(2)), view_skel),
-                         matcher.index(ms, skel))
+    r = matcher.localise(matcher.index(few, view_skel), matcher.index(ms, skel))
+    assert r.decision == Decision.MATCH, r.reason
+    assert _centre_error(r, truth_in_region) < 1.5
+    bounded = Matcher(crease_search_max_reference=256)
+    r = bounded.localise(bounded.index(few, view_skel), bounded.index(ms, skel))
     assert r.decision == Decision.NO_DECISION and "too few minutiae" in r.reason
 
 

@@ -92,6 +92,64 @@ def search_rotations(max_rotation: float, radius: float, tolerance: float = 3.0)
     return np.linspace(-max_rotation, max_rotation, 2 * n + 1)
 
 
+class CreaseSearchQuery:
+    """The query side of the search: its crease pixels rasterised at every searched rotation.
+
+    Build it once per set: in a block study each camera block is searched against every
+    landmark block, and its rotated rasters and their spectra do not change.
+
+    Parameters
+    ----------
+    samples : CreaseSamples
+        Query creases (A).
+    rotations : ndarray
+        Rotations (rad) to search (:func:`search_rotations`).
+    resolution : float
+        As the references' (:class:`CreaseSearchReference`).
+    """
+
+    def __init__(self, samples: CreaseSamples, rotations: np.ndarray, resolution: float = 0.5):
+        self.n = len(samples)
+        self.resolution = float(resolution)
+        self.rotations = np.asarray(rotations, float)
+        self.c = np.exp(1j * self.rotations)
+        q = self.c[:, None] * (samples.z[None, :] * self.resolution)   # (n_rot, n), search px
+        cols, rows = np.rint(q.real), np.rint(-q.imag)
+        self.col0 = cols.min(axis=1, initial=0.0) if self.n else np.zeros(len(self.c))
+        self.row0 = rows.min(axis=1, initial=0.0) if self.n else np.zeros(len(self.c))
+        ci = (cols - self.col0[:, None]).astype(np.intp)
+        ri = (rows - self.row0[:, None]).astype(np.intp)
+        n_rot = len(self.c)
+        self.shape = (int(ri.max(initial=0)) + 1, int(ci.max(initial=0)) + 1)
+        size = self.shape[0] * self.shape[1]
+        # (n_rot, 5, h, w): the four direction channels, and the pixel count in channel 4
+        weights = _channel_weights(np.mod(samples.direction[None, :] + self.rotations[:, None],
+                                          np.pi))             # (4, n_rot, n)
+        flat = (np.arange(n_rot)[:, None] * size + ri * self.shape[1] + ci).ravel()
+        raster = np.empty((n_rot, 5, size), np.float32)
+        for k in range(4):
+            raster[:, k] = np.bincount(flat, weights[k].ravel(), n_rot * size).reshape(n_rot,
+                                                                                        size)
+        raster[:, 4] = np.bincount(flat, None, n_rot * size).reshape(n_rot, size)
+        self.raster = raster.reshape(n_rot, 5, *self.shape)
+        self._spectra = {}
+
+    def spectra(self, reference: CreaseSearchReference):
+        """Padded FFT shape, conjugate channel spectra and, at every shift, the count of
+        pixels over ``reference``'s footprint (cached for one padded shape at a time)."""
+        hb, wb = reference.shape
+        ha, wa = self.shape
+        shape = (sfft.next_fast_len(hb + ha - 1, real=True),
+                 sfft.next_fast_len(wb + wa - 1, real=True))
+        key = (shape, reference.shape)
+        if key not in self._spectra:
+            spec = sfft.rfft2(self.raster, s=shape, workers=1)
+            inside = sfft.irfft2(np.conj(spec[:, 4]) * reference.spectra(shape)[1], s=shape,
+                                 workers=1)
+            self._spectra = {key: (shape, np.conj(spec[:, :4]), inside)}
+        return self._spectra[key]
+
+
 @dataclass(frozen=True)
 class CreaseSearchResult:
     """Proposals of :func:`search_transforms` and the size of the space they came from."""
@@ -100,25 +158,22 @@ class CreaseSearchResult:
     log10_transforms: float  # log10 of the distinguishable transforms searched
 
 
-def search_transforms(samples: CreaseSamples, reference: CreaseSearchReference,
-                      rotations: np.ndarray, n_best: int = 3, min_inside: float = 0.5,
+def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference,
+                      n_best: int = 3, min_inside: float = 0.5,
                       hit_radius: float = 1.5) -> CreaseSearchResult:
     """Transforms A -> B under which most of A's crease pixels fall on B's creases.
 
     Parameters
     ----------
-    samples : CreaseSamples
-        Query creases (A).
+    query : CreaseSearchQuery
+        Query creases (A) at the rotations to search.
     reference : CreaseSearchReference
-        Reference creases (B).
-    rotations : ndarray
-        Rotations (rad) to search (:func:`search_rotations`).
+        Reference creases (B), at the query's resolution.
     n_best : int
-        Proposals returned, strongest first, at least ``2 * rotation step`` or 4 px apart.
+        Proposals returned, strongest first, at least two rotation steps or 4 px apart.
     min_inside : float
         Translations that keep less than this fraction of A's crease pixels over B are not
-        proposed.
-
+        searched.
     hit_radius : float
         Position tolerance (px) of a crease hit: translations closer than this are not
         distinguishable, which sets the count of transforms searched.
@@ -130,56 +185,45 @@ def search_transforms(samples: CreaseSamples, reference: CreaseSearchReference,
         hits), strongest first, and ``log10`` of the rotations times the translations (in
         cells of ``pi hit_radius^2``) searched: a score of the best of them must pay for it.
     """
-    n = len(samples)
-    if n == 0 or len(rotations) == 0:
+    if query.resolution != reference.resolution:
+        raise ValueError("query and reference must be built at the same resolution")
+    n_rot = len(query.c)
+    if query.n == 0 or n_rot == 0:
         return CreaseSearchResult([], 0.0)
-    cs = np.exp(1j * np.asarray(rotations, float))
-    scale = reference.resolution
-    q = cs[:, None] * (samples.z[None, :] * scale)              # (n_rot, n), search pixels
-    cols, rows = np.rint(q.real), np.rint(-q.imag)
-    col0, row0 = cols.min(axis=1, keepdims=True), rows.min(axis=1, keepdims=True)
-    ci, ri = (cols - col0).astype(np.intp), (rows - row0).astype(np.intp)
-    ha, wa = int(ri.max()) + 1, int(ci.max()) + 1
-    hb, wb = reference.shape
-    shape = (sfft.next_fast_len(hb + ha - 1, real=True),
-             sfft.next_fast_len(wb + wa - 1, real=True))
-    n_rot = len(cs)
-    # the query rasterised per rotation and channel: (n_rot, 5, ha, wa), channel 4 = count
-    weights = _channel_weights(np.mod(samples.direction[None, :] + np.angle(cs)[:, None],
-                                      np.pi))                 # (4, n_rot, n)
-    flat = (np.arange(n_rot)[:, None] * (ha * wa) + ri * wa + ci).ravel()
-    query = np.empty((n_rot, 5, ha * wa), np.float32)
-    for k in range(4):
-        query[:, k] = np.bincount(flat, weights[k].ravel(), n_rot * ha * wa).reshape(
-            n_rot, ha * wa)
-    query[:, 4] = np.bincount(flat, None, n_rot * ha * wa).reshape(n_rot, ha * wa)
-    spec = sfft.rfft2(query.reshape(n_rot, 5, ha, wa), s=shape, workers=1)
-    ref_ch, ref_ones = reference.spectra(shape)
-    hits = sfft.irfft2(np.einsum("rkij,kij->rij", np.conj(spec[:, :4]), ref_ch), s=shape,
-                       workers=1)
-    inside = sfft.irfft2(np.conj(spec[:, 4]) * ref_ones, s=shape, workers=1)
-    # circular correlation: shift s of A over B lives at index s mod shape; the shifts with
-    # any overlap are -(ha - 1) .. hb - 1 (rows) and -(wa - 1) .. wb - 1 (cols)
-    searched = inside >= min_inside * n
-    hits = np.where(searched, hits, 0.0)
-    cells = searched.sum() / (scale * scale) / (math.pi * hit_radius * hit_radius)
+    scale = query.resolution
+    shape, query_ch, inside = query.spectra(reference)
+    ref_ch = reference.spectra(shape)[0]
+    product = query_ch[:, 0] * ref_ch[0]
+    for k in range(1, 4):
+        product += query_ch[:, k] * ref_ch[k]
+    hits = sfft.irfft2(product, s=shape, workers=1)
+    # circular correlation: the shift s of A over B is at index s mod shape (the shifts with
+    # any overlap are -(ha - 1) .. hb - 1 rows and -(wa - 1) .. wb - 1 cols)
+    searched = inside >= min_inside * query.n
+    hits[~searched] = 0.0
+    cells = np.count_nonzero(searched) / (scale * scale) / (math.pi * hit_radius * hit_radius)
     log10_transforms = math.log10(max(float(cells), 1.0))
+    # candidates from the strongest rotations only (a proposal's neighbours are skipped)
+    flat = hits.reshape(n_rot, -1)
+    rots = np.argsort(-flat.max(axis=1), kind="stable")[:4 * n_best]
+    sub = flat[rots]
+    n_top = min(50 * n_best, sub.size)
+    top = np.argpartition(-sub, n_top - 1, axis=None)[:n_top]
+    step = 2.0 * np.ptp(query.rotations) / max(n_rot - 1, 1)
+    hb, wb = reference.shape
     out = []
-    step = 2.0 * (np.ptp(rotations) / max(len(rotations) - 1, 1) if len(rotations) > 1 else 0.0)
-    flat_hits = hits.reshape(n_rot, -1)
-    n_top = min(50 * n_best, flat_hits.size)
-    top = np.argpartition(-flat_hits, n_top - 1, axis=None)[:n_top]
-    for idx in top[np.argsort(-flat_hits.ravel()[top], kind="stable")]:
-        r, k = divmod(int(idx), flat_hits.shape[1])
-        h = float(flat_hits[r, k])
+    for idx in top[np.argsort(-sub.ravel()[top], kind="stable")]:
+        i, k = divmod(int(idx), sub.shape[1])
+        h = float(sub[i, k])
         if h <= 0:
             break
+        r = int(rots[i])
         dy, dx = divmod(k, shape[1])
         dy = dy - shape[0] if dy > hb - 1 else dy
         dx = dx - shape[1] if dx > wb - 1 else dx
-        c = complex(cs[r])
+        c = complex(query.c[r])
         # A pixel (ci, ri) lands on B pixel (ci + dx, ri + dy), in search pixels
-        t = complex(dx - col0[r, 0], -(dy - row0[r, 0])) / scale
+        t = complex(dx - query.col0[r], -(dy - query.row0[r])) / scale
         if any(abs(math.remainder(np.angle(c) - np.angle(c2), 2 * math.pi)) <= step
                and abs(t - t2) <= 4.0 for c2, t2, _ in out):
             continue

@@ -58,7 +58,12 @@ from .crease_check import (
     crease_evidence,
     refine_on_creases,
 )
-from .crease_search import CreaseSearchReference, search_rotations, search_transforms
+from .crease_search import (
+    CreaseSearchQuery,
+    CreaseSearchReference,
+    search_rotations,
+    search_transforms,
+)
 from .descriptors import (
     TWO_PI,
     EdgeHash,
@@ -165,11 +170,12 @@ class MatchParams:
         With crease images, when the smaller set has fewer minutiae than this, the crease
         skeletons are also searched by brute force (:mod:`.crease_search`) for transforms
         to register; 0 turns the search off.
-    crease_search_max_side : int
-        The search is skipped when either crease image is larger than this (px per side):
-        its cost grows with the area times the rotations searched, which grow with the
-        query's size (a 60 px block against a block or its localisation region takes ~25 ms;
-        a camera frame in a landmark region is never searched).
+    crease_search_max_side, crease_search_max_reference : int
+        The search is skipped when the query's (A's) crease image is larger than the first
+        or the reference's (B's) than the second (px per side): its cost grows with the
+        rotations searched, which grow with A's size, times the area of A and B (blocks of
+        up to ~160 px and their localisation regions are searched; a camera frame in a
+        landmark region is not).
     crease_search_proposals : int
         Transforms the search proposes.
     min_crease_pixels : int
@@ -216,8 +222,9 @@ class MatchParams:
     crease_spacing: float = 4.0
     crease_exclude_radius: float = 6.0
     crease_descriptor: bool = True
-    crease_search_below: int = 16
-    crease_search_max_side: int = 256
+    crease_search_below: int = 64
+    crease_search_max_side: int = 160
+    crease_search_max_reference: int = 512
     crease_search_proposals: int = 3
     min_crease_pixels: int = 100
     threshold: float = 3.0
@@ -261,6 +268,7 @@ class MinutiaIndex:
         self._crease_samples = None
         self._crease_field = None
         self._crease_search = None
+        self._crease_query = None
         self._crease_around = None
         self.footprint = _footprint(ms)
         # the footprint as complex corners and as its box (x0, x1, y0, y1), for _overlap
@@ -320,6 +328,19 @@ class MinutiaIndex:
         if self._crease_search is None and self.crease_field is not None:
             self._crease_search = CreaseSearchReference(self.crease_field)
         return self._crease_search
+
+    def crease_search_query(self, max_rotation: float) -> CreaseSearchQuery | None:
+        """This set's creases rasterised at the rotations the crease search tries within
+        ``max_rotation`` (built on first use: a camera block meets every landmark block)."""
+        samples = self.crease_samples
+        if samples is None:
+            return None
+        if self._crease_query is None or self._crease_query[0] != max_rotation:
+            z = samples.z
+            reach = float(np.percentile(np.abs(z - z.mean()), 90)) if len(z) else 0.0
+            self._crease_query = (max_rotation, CreaseSearchQuery(
+                samples, search_rotations(max_rotation, reach)))
+        return self._crease_query[1]
 
     def edge_hash(self) -> EdgeHash:
         """Hash of this set's edges (built on first use)."""
@@ -1138,17 +1159,15 @@ def _searches_creases(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> bool:
     """Whether the crease search runs: too few minutiae for the pair votes, and a reference
     small enough to search by brute force."""
     return (min(a.n, b.n) < p.crease_search_below
-            and max(*a.crease_image.shape, *b.crease_image.shape) <= p.crease_search_max_side)
+            and max(a.crease_image.shape) <= p.crease_search_max_side
+            and max(b.crease_image.shape) <= p.crease_search_max_reference)
 
 
 def _crease_search_registrations(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams):
     """Registrations (c, t, pairings) proposed by the crease search, each moved onto B's
     creases (they may have fewer than two minutiae pairings), and log10 of the transforms
     searched."""
-    za = a.crease_samples.z
-    reach = float(np.percentile(np.abs(za - za.mean()), 90))
-    found = search_transforms(a.crease_samples, b.crease_search,
-                              search_rotations(p.max_rotation, reach),
+    found = search_transforms(a.crease_search_query(p.max_rotation), b.crease_search,
                               n_best=p.crease_search_proposals, hit_radius=p.crease_radius)
     out = []
     for c, t, _ in found.proposals:
