@@ -707,10 +707,10 @@ def _report(setup, study, results, pngs, seconds) -> str:
     ]
     lines += ["## Match results (PVA = same place, non-PVA = different places)", "",
               "| condition | threshold (fold 1 / 2) | PVA misses | miss rate | no-decision "
-              "(min. minutiae) | non-PVA accepted held-out (fold 1 / 2) | non-PVA accepted, "
-              "all pairs | max non-PVA score | PVA misses at zero non-PVA accepted "
-              "(threshold just above the max) | at default threshold 3.0: misses / non-PVA "
-              "accepted |", "|---|---|---:|---:|---:|---|---:|---:|---:|---|"]
+              "(min. minutiae or drainage) | non-PVA accepted held-out (fold 1 / 2) | "
+              "non-PVA accepted, all pairs | max non-PVA score | PVA misses at zero non-PVA "
+              "accepted (threshold just above the max) | at default threshold 3.0: misses / "
+              "non-PVA accepted |", "|---|---|---:|---:|---:|---|---:|---:|---:|---|"]
     for r in results:
         f1, f2 = r["calibration"]["folds"]
         lines.append(
