@@ -137,8 +137,8 @@ def test_too_little_drainage_is_no_decision(region):
 
 def test_localisation_by_creases_and_its_size_bounds(region):
     """A 64 px view with two minutiae is found in a 512 px landmark region by the search; a
-    region beyond ``crease_search_max_reference`` is not searched (the cost grows with its
-    area), so the minimum-minutiae rule applies there."""
+    search beyond ``crease_search_max_work`` (rotations x FFT pixels, which grow with the
+    region's area) is not run, so the minimum-minutiae rule applies there."""
     ms, skel = region
     view_ms, view_skel, truth = _turned_view(ms, skel, 330, 90, 12.0, (3.0, -2.0))
     few = view_ms.subset(np.arange(2))
@@ -147,7 +147,7 @@ def test_localisation_by_creases_and_its_size_bounds(region):
     r = matcher.localise(matcher.index(few, view_skel), matcher.index(ms, skel))
     assert r.decision == Decision.MATCH, r.reason
     assert _centre_error(r, truth_in_region) < 1.5
-    bounded = Matcher(crease_search_max_reference=256)
+    bounded = Matcher(crease_search_max_work=1_000_000)
     r = bounded.localise(bounded.index(few, view_skel), bounded.index(ms, skel))
     assert r.decision == Decision.NO_DECISION and "too few minutiae" in r.reason
 

@@ -57,7 +57,7 @@ class CreaseSearchReference:
         self.resolution = float(resolution)
         rows, cols = np.nonzero(field.distance == 0)
         w = _channel_weights(field.direction[rows, cols].astype(float))
-        h, wd = field.shape
+        h, wd = self.full_shape = field.shape
         self.shape = (max(int(round(h * resolution)), 1), max(int(round(wd * resolution)), 1))
         self.channels = np.zeros((4, *self.shape), np.float32)
         full = np.zeros(field.shape, np.float32)
@@ -134,13 +134,23 @@ class CreaseSearchQuery:
         self.raster = raster.reshape(n_rot, 5, *self.shape)
         self._spectra = {}
 
+    def padded_shape(self, reference_shape: tuple[int, int]) -> tuple[int, int]:
+        """FFT shape of a search against a reference image of ``reference_shape`` pixels
+        (full resolution): room for every shift with any overlap."""
+        hb, wb = (max(int(round(n * self.resolution)), 1) for n in reference_shape)
+        ha, wa = self.shape
+        return (sfft.next_fast_len(hb + ha - 1, real=True),
+                sfft.next_fast_len(wb + wa - 1, real=True))
+
+    def work(self, reference_shape: tuple[int, int]) -> int:
+        """Rotations times padded FFT pixels of a search against ``reference_shape``: its
+        time and the memory of its spectra (~16 bytes each) grow with it."""
+        return len(self.c) * math.prod(self.padded_shape(reference_shape))
+
     def spectra(self, reference: CreaseSearchReference):
         """Padded FFT shape, conjugate channel spectra and, at every shift, the count of
         pixels over ``reference``'s footprint (cached for one padded shape at a time)."""
-        hb, wb = reference.shape
-        ha, wa = self.shape
-        shape = (sfft.next_fast_len(hb + ha - 1, real=True),
-                 sfft.next_fast_len(wb + wa - 1, real=True))
+        shape = self.padded_shape(reference.full_shape)
         key = (shape, reference.shape)
         if key not in self._spectra:
             spec = sfft.rfft2(self.raster, s=shape, workers=1)

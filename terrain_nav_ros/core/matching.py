@@ -170,12 +170,15 @@ class MatchParams:
         With crease images, when the smaller set has fewer minutiae than this, the crease
         skeletons are also searched by brute force (:mod:`.crease_search`) for transforms
         to register; 0 turns the search off.
-    crease_search_max_side, crease_search_max_reference : int
-        The search is skipped when the query's (A's) crease image is larger than the first
-        or the reference's (B's) than the second (px per side): its cost grows with the
-        rotations searched, which grow with A's size, times the area of A and B (blocks of
-        up to ~160 px and their localisation regions are searched; a camera frame in a
-        landmark region is not).
+    crease_search_max_side : int
+        The search is skipped when the query's (A's) crease image is larger than this (px
+        per side): the rotations searched grow with its size.
+    crease_search_max_work : int
+        ... or when the rotations times the padded FFT pixels of the search exceed this: its
+        time and memory (~16 bytes each) grow with both. The default, ~0.5 s and 200 MB,
+        lets blocks of up to ~120 px be searched in their 3x localisation regions, and any
+        block of up to 160 px against a block; a camera frame in a landmark region never
+        is.
     crease_search_proposals : int
         Transforms the search proposes.
     min_crease_pixels : int
@@ -224,7 +227,7 @@ class MatchParams:
     crease_descriptor: bool = True
     crease_search_below: int = 64
     crease_search_max_side: int = 160
-    crease_search_max_reference: int = 512
+    crease_search_max_work: int = 12_000_000
     crease_search_proposals: int = 3
     min_crease_pixels: int = 100
     threshold: float = 3.0
@@ -1160,7 +1163,8 @@ def _searches_creases(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> bool:
     small enough to search by brute force."""
     return (min(a.n, b.n) < p.crease_search_below
             and max(a.crease_image.shape) <= p.crease_search_max_side
-            and max(b.crease_image.shape) <= p.crease_search_max_reference)
+            and a.crease_search_query(p.max_rotation).work(b.crease_image.shape)
+            <= p.crease_search_max_work)
 
 
 def _crease_search_registrations(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams):
