@@ -163,3 +163,28 @@ def test_crease_covariance_shrinks_with_agreement(region):
     assert np.sqrt(cov[2, 2]) < 0.1 and np.sqrt(cov[3, 3]) < 0.1
     empty = CreaseField(np.zeros_like(block))
     assert np.isnan(crease_covariance(samples, empty, 1 + 0j, 0j)).all()
+
+
+def test_moving_a_searched_registration_keeps_its_search_penalty(region):
+    """The final ICP of the best registration re-scores it; a searched one must still pay
+    for the search (a regression: the moved copy used to drop the penalty)."""
+    from dataclasses import replace
+
+    from terrain_nav_ros.core.matching import _pair, _refined_on_creases, _scored
+
+    ms, skel = region
+    view_ms, view_skel, truth = _turned_view(ms, skel, 330, 90, 10.0, (2.0, 1.0))
+    matcher = Matcher()
+    p = matcher.params
+    a = matcher.index(view_ms, view_skel)
+    b = matcher.index(crop_set(ms, 330, 90, SIZE, SIZE), skel[90:90 + SIZE, 330:330 + SIZE])
+    # the true transform, put 1.5 px off so that the ICP moves it
+    c = complex(truth[0, 0], truth[0, 1])
+    t = complex(truth[0, 2], -truth[1, 2]) + 1.5
+    search_area, radius = 4.0 * b.area, a.radius
+    start = _scored(a, b, c, t, _pair(a, b, c, t, p), search_area, radius, p, True)
+    start = replace(start, score=start.score - 3.0, search_penalty=3.0)
+    moved = _refined_on_creases(a, b, start, search_area, radius, p)
+    assert (moved.c, moved.t) != (c, t) and moved.search_penalty == 3.0
+    fresh = _scored(a, b, moved.c, moved.t, moved.pairs, search_area, radius, p, True)
+    assert moved.score == pytest.approx(fresh.score - 3.0)

@@ -1123,6 +1123,7 @@ class _Scored:
     lam: float
     n_overlap: tuple[int, int]
     creases: CreaseEvidence | None
+    search_penalty: float = 0.0   # log10 of extra transforms searched, already in score
 
 
 def _scored(a: MinutiaIndex, b: MinutiaIndex, c, t, pairs, search_area: float,
@@ -1155,6 +1156,8 @@ def _refined_on_creases(a: MinutiaIndex, b: MinutiaIndex, best: _Scored, search_
     if len(pairs) < 2:
         return best
     moved = _scored(a, b, c, t, pairs, search_area, radius_a, p, True)
+    moved = replace(moved, score=moved.score - best.search_penalty,
+                    search_penalty=best.search_penalty)
     return moved if moved.score > best.score else best
 
 
@@ -1295,7 +1298,7 @@ class Matcher:
             # a searched registration was picked among the search's transforms at the crease
             # resolution, not the minutiae's: it pays for those instead
             trials = search_trials - _chance_model(1, 1, 1.0, search_area, radius_a, p)[1]
-            scored += [replace(s, score=s.score - trials) for s in (
+            scored += [replace(s, score=s.score - trials, search_penalty=trials) for s in (
                 _scored(a, b, *r, search_area, radius_a, p, True) for r in searched)]
             best = max(scored, key=lambda s: s.score)
             best = _refined_on_creases(a, b, best, search_area, radius_a, p)
