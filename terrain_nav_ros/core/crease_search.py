@@ -2,8 +2,8 @@
 
 A block of ~60 px holds 3-9 minutiae, of which 0-2 repeat between a camera view and its
 landmark: too few for the minutiae's pair votes to propose the transform. Yet its crease
-skeleton has a few hundred pixels, and at the true transform 55-85 % of them land on the
-landmark's creases against a chance of 10-20 % (gredos 25 m, 58 px blocks). This module finds
+skeleton has a few hundred pixels, and at the true transform 53-86 % of them land on the
+landmark's creases against a chance of 7-19 % (gredos 25 m, 58 px blocks). This module finds
 such transforms by brute force, cheaply, with FFTs:
 
 * the crease pixels are split into four axial direction channels (0, 45, 90, 135 degrees,
