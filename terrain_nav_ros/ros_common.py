@@ -149,26 +149,35 @@ def node_executor(node: Node) -> str:
     return SINGLE_THREADED_EXECUTOR
 
 
-def spin(node: Node, executor: str = SINGLE_THREADED_EXECUTOR) -> None:
-    """Spin ``node`` with the named executor (:data:`EXECUTORS`) until its context shuts down.
-
-    Like ``rclpy.spin``, a shutdown from elsewhere (not Ctrl-C) ends it with
-    ``ExternalShutdownException``.
-    """
+def make_executor(node: Node, executor: str = SINGLE_THREADED_EXECUTOR):
+    """A new executor of the named kind (:data:`EXECUTORS`) in ``node``'s context."""
     if executor == EVENTS_EXECUTOR:
         from rclpy.experimental import EventsExecutor
 
-        runner, step = EventsExecutor(context=node.context), _EVENTS_SPIN_STEP_S
-    elif executor == SINGLE_THREADED_EXECUTOR:
-        runner, step = SingleThreadedExecutor(context=node.context), None
-    else:
-        raise ValueError(f"executor must be one of {', '.join(EXECUTORS)}, not {executor!r}")
+        return EventsExecutor(context=node.context)
+    if executor == SINGLE_THREADED_EXECUTOR:
+        return SingleThreadedExecutor(context=node.context)
+    raise ValueError(f"executor must be one of {', '.join(EXECUTORS)}, not {executor!r}")
+
+
+def spin(node: Node, executor=SINGLE_THREADED_EXECUTOR) -> None:
+    """Spin ``node`` until its context shuts down, with an executor or a kind of one
+    (:data:`EXECUTORS`, made by :func:`make_executor`).
+
+    Like ``rclpy.spin``, a shutdown from elsewhere (not Ctrl-C) ends it with
+    ``ExternalShutdownException``. Pass the executor in, and keep it until the node is
+    destroyed and rclpy shut down, as ``rclpy.spin``'s global executor lives: its SIGINT
+    guard condition must not be freed while rclpy's signal thread may still trigger it.
+    """
+    runner = make_executor(node, executor) if isinstance(executor, str) else executor
+    events = type(runner).__name__ == "EventsExecutor"
+    step = _EVENTS_SPIN_STEP_S if events else None
     runner.add_node(node)
     try:
         while node.context.ok():
             runner.spin_once(timeout_sec=step)
     finally:
-        if executor == EVENTS_EXECUTOR:
+        if events:
             # Before the node's entities are destroyed: the events executor unregisters the
             # middleware callbacks it set on them.
             runner.shutdown()
@@ -204,11 +213,14 @@ def run(node_factory: Callable[[], Node], args=None) -> int:
     # which the graph runner shows with the node's name.
     faulthandler.enable()
     rclpy.init(args=args)
-    node = None
+    node = executor = None
     code = 0
     try:
         node = node_factory()
-        spin(node, node_executor(node))
+        # held until rclpy is shut down (see spin): a metamap node once died with SIGSEGV
+        # in destroy_node after Ctrl-C when the executor had already been freed
+        executor = make_executor(node, node_executor(node))
+        spin(node, executor)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception as err:  # report why a node dies: the graph runner shows the exit code
@@ -221,4 +233,5 @@ def run(node_factory: Callable[[], Node], args=None) -> int:
                 close()
             node.destroy_node()
         rclpy.try_shutdown()
+        del executor
     return code
