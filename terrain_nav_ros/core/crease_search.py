@@ -115,8 +115,8 @@ class CreaseSearchQuery:
         self.c = np.exp(1j * self.rotations)
         q = self.c[:, None] * (samples.z[None, :] * self.resolution)   # (n_rot, n), search px
         cols, rows = np.rint(q.real), np.rint(-q.imag)
-        self.col0 = cols.min(axis=1, initial=0.0) if self.n else np.zeros(len(self.c))
-        self.row0 = rows.min(axis=1, initial=0.0) if self.n else np.zeros(len(self.c))
+        self.col0 = cols.min(axis=1) if self.n else np.zeros(len(self.c))
+        self.row0 = rows.min(axis=1) if self.n else np.zeros(len(self.c))
         ci = (cols - self.col0[:, None]).astype(np.intp)
         ri = (rows - self.row0[:, None]).astype(np.intp)
         n_rot = len(self.c)

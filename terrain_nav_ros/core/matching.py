@@ -951,11 +951,17 @@ def _chance_model(n_a, n_b, area, search_area, radius_a, p: MatchParams):
     cell = math.pi * p.pos_tol ** 2
     lam = n_a * n_b * cell / max(area, cell) * min(1.0, p.angle_tol / math.pi)
     lam = min(lam, float(min(n_a, n_b)))
+    return lam, _log10_transforms(search_area, radius_a, p)
+
+
+def _log10_transforms(search_area, radius_a, p: MatchParams) -> float:
+    """log10 of the transforms distinguishable at the pairing tolerance in the search."""
+    cell = math.pi * p.pos_tol ** 2
     # rotations searched: the whole circle, or the prior's window (max_rotation)
     n_rot = min(TWO_PI, 2.0 * p.max_rotation + p.rot_bin) / min(
         math.pi, p.pos_tol / max(radius_a, p.pos_tol))
     n_rot = max(n_rot, 1.0)
-    return lam, math.log10(max(search_area / cell, 1.0) * n_rot)
+    return math.log10(max(search_area / cell, 1.0) * n_rot)
 
 
 def _best_possible_score(m: int, n_a, n_b, area, search_area, radius_a, p: MatchParams,
@@ -1162,8 +1168,8 @@ def _refined_on_creases(a: MinutiaIndex, b: MinutiaIndex, best: _Scored, search_
 
 
 def _searches_creases(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> bool:
-    """Whether the crease search runs: too few minutiae for the pair votes, and a reference
-    small enough to search by brute force."""
+    """Whether the crease search runs: too few minutiae for the pair votes, a query small
+    enough for its rotations, and a search within the work bound."""
     return (min(a.n, b.n) < p.crease_search_below
             and max(a.crease_image.shape) <= p.crease_search_max_side
             and a.crease_search_query(p.max_rotation).work(b.crease_image.shape)
@@ -1297,7 +1303,7 @@ class Matcher:
                       for r in registered]
             # a searched registration was picked among the search's transforms at the crease
             # resolution, not the minutiae's: it pays for those instead
-            trials = search_trials - _chance_model(1, 1, 1.0, search_area, radius_a, p)[1]
+            trials = search_trials - _log10_transforms(search_area, radius_a, p)
             scored += [replace(s, score=s.score - trials, search_penalty=trials) for s in (
                 _scored(a, b, *r, search_area, radius_a, p, True) for r in searched)]
             best = max(scored, key=lambda s: s.score)
