@@ -181,3 +181,38 @@ def test_field_nearest_crease_pixel_agrees_with_an_exact_transform(region):
     assert skel[rows, cols].all()
     named = np.hypot(rows - np.arange(200)[:, None], cols - np.arange(300)[None, :])
     assert np.all(named <= exact + 0.05 * exact + 1e-6)
+
+
+def test_numba_kernels_agree_with_the_numpy_path(region, monkeypatch):
+    """The fused crease kernels count the same hits and move the transform as the numpy
+    path does (the ICP's sums run in another order: equal to rounding)."""
+    from terrain_nav_ros.core import _matching_kernels
+
+    if not _matching_kernels.HAVE_NUMBA:
+        pytest.skip("numba not installed: the numpy path is the only one")
+    skel = region[1]
+    samples = CreaseSamples.from_image(skel[150:278, 160:288])
+    field = CreaseField(skel[100:356, 100:356])
+    skip = np.concatenate(samples.around(samples.z[::40], 4.0))
+    starts = [(1 + 0j, 60 - 50j), (np.exp(0.02j), 61.5 - 48.8j), (np.exp(2j), 10 - 200j),
+              (-1j, 300 + 30j)]                 # true, near, unrelated, mostly outside
+
+    def run():
+        out = []
+        for c, t in starts:
+            out.append((crease_evidence(samples, field, c, t),
+                        crease_evidence(samples, field, c, t, skip=skip),
+                        refine_on_creases(samples, field, c, t),
+                        field.correspondences(c * samples.z + t, samples.direction, 1.5,
+                                              0.35)))
+        return out
+
+    fast = run()
+    monkeypatch.setattr(_matching_kernels, "HAVE_NUMBA", False)
+    slow = run()
+    for f, s in zip(fast, slow, strict=True):
+        assert f[0] == s[0] and f[1] == s[1]
+        assert abs(f[2][0] - s[2][0]) < 1e-12 and abs(f[2][1] - s[2][1]) < 1e-9
+        for got, want in zip(f[3], s[3], strict=True):
+            np.testing.assert_array_equal(got, want)
+    assert fast[0][0].score > 20 and fast[1][2] != starts[1]   # the cases do something

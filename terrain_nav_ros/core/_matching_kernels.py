@@ -11,14 +11,20 @@
 * :func:`rotation_histogram`, :func:`near_angles`: the rotation Hough histogram and the
   votes near a rotation peak in ``matching._rotation_peaks`` / ``matching._hypotheses``;
 * :func:`translation_grid`, :func:`cell_members`: the translation Hough cells of
-  ``matching._translation_peaks``.
+  ``matching._translation_peaks``;
+* :func:`crease_hit_counts`, :func:`crease_matches`: the crease-field look-ups of
+  :mod:`.crease_check` (evidence and its local null, ICP correspondences) in one pass;
+* :func:`crease_icp`: ``crease_check.refine_on_creases`` with its normal equations
+  accumulated in the loop;
+* :func:`compound_log10_sf`: the compound Poisson-Gamma tail of ``matching.significance``.
 
 They are used when numba is importable and ``TERRAIN_NAV_NO_NUMBA`` is not set, and compute
 the same floating-point operations in the same order as the numpy path (no ``fastmath``:
 no reassociation or fused multiply-adds), so results are identical, not merely close (run
-with ``TERRAIN_NAV_NO_NUMBA=1`` for the numpy path). One difference is possible in
-principle: two minutiae of B at exactly the same distance from a mapped minutia of A may
-be ranked in another order than the k-d tree ranks them.
+with ``TERRAIN_NAV_NO_NUMBA=1`` for the numpy path). Two exceptions: :func:`crease_icp` and
+:func:`compound_log10_sf` sum in another order than numpy's pairwise sums, so they agree to
+rounding (~1e-15 relative); and two minutiae of B at exactly the same distance from a
+mapped minutia of A may be ranked in another order than the k-d tree ranks them.
 """
 
 from __future__ import annotations
@@ -274,3 +280,179 @@ def vote_weights(s, n_b, ia, ja, ib, jb):
     for r in range(ia.size):
         w[r] = s[ia[r] * n_b + ib[r]] * s[ja[r] * n_b + jb[r]] + c
     return w
+
+
+@njit(**_JIT)
+def _field_test(z, direction, distance, field_dir, radius, angle_tol):
+    """One mapped crease sample against a :class:`.crease_check.CreaseField`: -1 outside the
+    field, else its flat pixel index, negated minus 2 when it is not a hit (as
+    ``CreaseField._lookup`` / ``hits``)."""
+    h, w = distance.shape
+    col = np.rint(z.real)
+    row = np.rint(-z.imag)
+    if not (col >= 0 and col <= w - 1 and row >= 0 and row <= h - 1):
+        return -1
+    ri = np.intp(row)
+    ci = np.intp(col)
+    flat = ri * w + ci
+    if distance[ri, ci] > radius:   # most samples: no need for the direction
+        return -flat - 2
+    dang = abs(np.mod(direction - field_dir[ri, ci] + 0.5 * np.pi, np.pi) - 0.5 * np.pi)
+    return flat if dang <= angle_tol else -flat - 2
+
+
+@njit(**_JIT)
+def crease_hit_counts(z, direction, keep, c, t, turn, distance, field_dir, radius, angle_tol,
+                      shifts, stride):
+    """Counts of ``crease_check.crease_evidence``: the kept samples mapped by ``c z + t``
+    (directions turned by ``turn``) inside the field and hits among them, then the same for
+    every ``stride``-th inside sample moved by each of ``shifts`` (the local null)."""
+    n_in = 0
+    n_hit = 0
+    null_in = 0
+    null_hit = 0
+    for i in range(z.size):
+        if not keep[i]:
+            continue
+        zi = c * z[i] + t
+        di = direction[i] + turn
+        f = _field_test(zi, di, distance, field_dir, radius, angle_tol)
+        if f == -1:
+            continue
+        if n_in % stride == 0:
+            for s in range(shifts.size):
+                g = _field_test(zi + shifts[s], di, distance, field_dir, radius, angle_tol)
+                null_in += g != -1
+                null_hit += g >= 0
+        n_in += 1
+        n_hit += f >= 0
+    return n_in, n_hit, null_in, null_hit
+
+
+@njit(**_JIT)
+def crease_matches(z, direction, distance, field_dir, radius, angle_tol):
+    """``crease_check.CreaseField.correspondences`` up to the nearest crease points: the
+    index of each mapped sample that is a hit, and its flat pixel index in the field."""
+    idx = np.empty(z.size, np.intp)
+    flat = np.empty(z.size, np.intp)
+    m = 0
+    for i in range(z.size):
+        f = _field_test(z[i], direction[i], distance, field_dir, radius, angle_tol)
+        if f >= 0:
+            idx[m] = i
+            flat[m] = f
+            m += 1
+    return idx[:m], flat[:m]
+
+
+@njit(**_JIT)
+def crease_icp(z, direction, distance, field_dir, near_row, near_col, c, t, radius,
+               angle_tol, iterations, min_matches):
+    """``crease_check.refine_on_creases`` in one pass per iteration: the correspondences,
+    the 3x3 normal equations (accumulated, not from the (m, 3) Jacobian) and their solve
+    (Cramer's rule). Sums in another order than numpy's: agrees to rounding."""
+    n = z.size
+    w = distance.shape[1]
+    p = np.empty(n, np.complex128)
+    q = np.empty(n, np.complex128)
+    normal = np.empty(n, np.complex128)
+    for _ in range(iterations):
+        turn_now = np.arctan2(c.imag, c.real)
+        m = 0
+        centroid = 0j
+        for i in range(n):
+            pi = c * z[i] + t
+            f = _field_test(pi, direction[i] + turn_now, distance, field_dir, radius,
+                            angle_tol)
+            if f >= 0:
+                ri = f // w
+                ci = f - ri * w
+                p[m] = pi
+                q[m] = complex(near_col[ri, ci], -near_row[ri, ci])
+                d = np.float64(field_dir[ri, ci])
+                normal[m] = complex(-np.sin(d), np.cos(d))
+                centroid += pi
+                m += 1
+        if m < min_matches:
+            break
+        p0 = centroid / m
+        a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+        b0 = b1 = b2 = 0.0
+        for k in range(m):
+            nc = normal[k].conjugate()
+            r = (nc * (p[k] - q[k])).real
+            j0 = (nc * 1j * (p[k] - p0)).real
+            j1 = normal[k].real
+            j2 = normal[k].imag
+            a00 += j0 * j0
+            a01 += j0 * j1
+            a02 += j0 * j2
+            a11 += j1 * j1
+            a12 += j1 * j2
+            a22 += j2 * j2
+            b0 -= j0 * r
+            b1 -= j1 * r
+            b2 -= j2 * r
+        # Cramer's rule on the symmetric 3x3 system
+        c00 = a11 * a22 - a12 * a12
+        c01 = a02 * a12 - a01 * a22
+        c02 = a01 * a12 - a02 * a11
+        det = a00 * c00 + a01 * c01 + a02 * c02
+        if det == 0.0:
+            break   # all correspondences on parallel creases: the shift along them is free
+        c11 = a00 * a22 - a02 * a02
+        c12 = a01 * a02 - a00 * a12
+        c22 = a00 * a11 - a01 * a01
+        s0 = (c00 * b0 + c01 * b1 + c02 * b2) / det
+        s1 = (c01 * b0 + c11 * b1 + c12 * b2) / det
+        s2 = (c02 * b0 + c12 * b1 + c22 * b2) / det
+        turn = complex(np.cos(s0), np.sin(s0))
+        shift = complex(s1, s2)
+        c, t = turn * c, turn * t + p0 * (1.0 - turn) + shift
+        if abs(s0) * 100.0 + abs(shift) < 0.01:
+            break   # settled: < 0.01 px at 100 px from the centroid
+    return c, t
+
+
+@njit(**_JIT)
+def compound_log10_sf(evidence, lam, k_max, log_fact):
+    """``matching.compound_log10_sf`` after its bounds (``evidence > 0``, ``lam > 0``, the
+    first ``k_max``): the same terms as loops. Sums in another order than numpy's: agrees to
+    rounding."""
+    log_lam = np.log(lam)
+    log_pois = np.empty(k_max)
+    for i in range(k_max):
+        k = i + 1.0
+        log_pois[i] = k * log_lam - lam - log_fact[i + 1]
+    first = log_pois[0] - evidence + np.log1p(evidence)
+    for i in range(k_max):
+        if log_pois[i] < first - 40.0 and i + 1.0 > lam:
+            k_max = i + 1
+            break
+    log_ev = np.log(evidence)
+    n_j = 2 * k_max
+    log_pmf = np.empty(n_j)
+    for j in range(n_j):
+        log_pmf[j] = j * log_ev - evidence - log_fact[j]
+    top = log_pmf.max()
+    log_terms = np.empty(k_max)
+    cum = 0.0
+    lost_pois = -np.inf   # the largest Poisson(lam) weight of a term whose Q underflowed
+    for j in range(n_j):
+        cum += np.exp(log_pmf[j] - top)
+        if j % 2 == 1:
+            log_terms[j // 2] = np.log(cum) + top + log_pois[j // 2]
+            if cum == 0.0:
+                lost_pois = max(lost_pois, log_pois[j // 2])
+    if lost_pois + top - 745.0 > log_terms.max() - 40.0:
+        # the underflowed terms might matter (huge evidence): the same sums in log space
+        acc = -np.inf
+        for j in range(n_j):
+            acc = np.logaddexp(acc, log_pmf[j])
+            if j % 2 == 1:
+                log_terms[j // 2] = acc + log_pois[j // 2]
+    peak = log_terms.max()
+    total = 0.0
+    for i in range(k_max):
+        total += np.exp(log_terms[i] - peak)
+    return (peak + np.log(total)) / np.log(10.0)

@@ -30,6 +30,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import betainc
 
+from . import _matching_kernels as _kernels
 from .descriptors import to_complex
 
 # local null: the transform shifted by these radii (px) in 12 directions
@@ -137,12 +138,17 @@ class CreaseField:
                         angle_tol: float):
         """Samples with a crease within ``radius`` and ``angle_tol``: their index, the
         nearest crease point (math frame) and that crease's unit normal."""
-        inside, ri, ci, dang = self._lookup(z, direction)
-        ok = (self.distance[ri, ci] <= radius) & (dang <= angle_tol)
-        ri, ci = ri[ok], ci[ok]
+        if _kernels.HAVE_NUMBA:
+            idx, flat = _kernels.crease_matches(z, direction, self.distance, self.direction,
+                                                radius, angle_tol)
+            ri, ci = np.divmod(flat, self.shape[1])
+        else:
+            inside, ri, ci, dang = self._lookup(z, direction)
+            ok = (self.distance[ri, ci] <= radius) & (dang <= angle_tol)
+            idx, ri, ci = np.flatnonzero(inside)[ok], ri[ok], ci[ok]
         q = to_complex(self.nearest[1][ri, ci], self.nearest[0][ri, ci])
         normal = 1j * np.exp(1j * self.direction[ri, ci].astype(float))
-        return np.flatnonzero(inside)[ok], q, normal
+        return idx, q, normal
 
 
 @dataclass(frozen=True)
@@ -188,24 +194,15 @@ def crease_evidence(samples: CreaseSamples, field: CreaseField, c: complex, t: c
     """
     if len(samples) == 0 or field.n == 0:
         return CreaseEvidence()
-    z, direction = samples.z, samples.direction
+    keep = np.ones(len(samples), bool)
     if skip is not None and len(skip):
-        keep = np.ones(len(z), bool)
         keep[np.asarray(skip, np.intp)] = False
-        z, direction = z[keep], direction[keep]
-    z = c * z + t
-    direction = direction + np.angle(c)
-    inside, hit = field.hits(z, direction, radius, angle_tol)
-    n_in = int(inside.sum())
+    n_in, n_hit, null_in, null_hit = _hit_counts(field, samples, keep, c, t, radius,
+                                                 angle_tol)
     if n_in < min_samples:
         return CreaseEvidence(n_inside=n_in)
-    # the local chance of a hit from every 4th sample (one per crease spacing is plenty for
-    # a rate over 24 shifts, at a quarter of the cost)
-    z_in, dir_in = z[inside][::4], direction[inside][::4]
-    shifted = (z_in[None, :] + _NULL_SHIFTS[:, None]).ravel()
-    ins, hs = field.hits(shifted, np.tile(dir_in, len(_NULL_SHIFTS)), radius, angle_tol)
-    chance = float(np.clip((hs.sum() + 1.0) / (ins.sum() + 2.0), 1e-3, 0.999))
-    fraction = float(hit.mean())
+    chance = float(np.clip((null_hit + 1.0) / (null_in + 2.0), 1e-3, 0.999))
+    fraction = n_hit / n_in
     n_eff = n_in / spacing
     k = fraction * n_eff
     score = 0.0
@@ -214,6 +211,25 @@ def crease_evidence(samples: CreaseSamples, field: CreaseField, c: complex, t: c
         tail = betainc(k, n_eff - k + 1.0, chance)
         score = float(-math.log10(max(tail, 1e-300)))
     return CreaseEvidence(score, fraction, chance, n_in)
+
+
+def _hit_counts(field: CreaseField, samples: CreaseSamples, keep, c, t, radius, angle_tol):
+    """Kept samples mapped inside the field and hits among them; the same for every 4th
+    inside sample at the shifted transforms (the local null: one sample per crease spacing
+    is plenty for a rate over 24 shifts, at a quarter of the cost)."""
+    if _kernels.HAVE_NUMBA:
+        counts = _kernels.crease_hit_counts(samples.z, samples.direction, keep, complex(c),
+                                            complex(t), float(np.angle(c)), field.distance,
+                                            field.direction, radius, angle_tol,
+                                            _NULL_SHIFTS, 4)
+        return tuple(int(n) for n in counts)
+    z = c * samples.z[keep] + t
+    direction = samples.direction[keep] + np.angle(c)
+    inside, hit = field.hits(z, direction, radius, angle_tol)
+    z_in, dir_in = z[inside][::4], direction[inside][::4]
+    shifted = (z_in[None, :] + _NULL_SHIFTS[:, None]).ravel()
+    ins, hs = field.hits(shifted, np.tile(dir_in, len(_NULL_SHIFTS)), radius, angle_tol)
+    return int(inside.sum()), int(hit.sum()), int(ins.sum()), int(hs.sum())
 
 
 def refine_on_creases(samples: CreaseSamples, field: CreaseField, c: complex, t: complex, *,
@@ -229,6 +245,10 @@ def refine_on_creases(samples: CreaseSamples, field: CreaseField, c: complex, t:
     """
     if len(samples) == 0 or field.n == 0:
         return c, t
+    if _kernels.HAVE_NUMBA:
+        return _kernels.crease_icp(samples.z, samples.direction, field.distance,
+                                   field.direction, *field.nearest, complex(c), complex(t),
+                                   radius, angle_tol, iterations, min_matches)
     for _ in range(iterations):
         idx, q, normal = field.correspondences(c * samples.z + t,
                                                samples.direction + np.angle(c), radius,
