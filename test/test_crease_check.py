@@ -216,3 +216,23 @@ def test_numba_kernels_agree_with_the_numpy_path(region, monkeypatch):
         for got, want in zip(f[3], s[3], strict=True):
             np.testing.assert_array_equal(got, want)
     assert fast[0][0].score > 20 and fast[1][2] != starts[1]   # the cases do something
+
+
+def test_coarse_to_fine_icp_pulls_in_what_the_fine_one_cannot(region):
+    """A registration 5 degrees and ~13 px off (a few wrong minutiae pairings) is beyond
+    the 3 px ICP; the matcher's wider try (``MatchParams.crease_rescue_radii``) brings it
+    onto the creases."""
+    from terrain_nav_ros.core.matching import MatchParams
+
+    skel = region[1]
+    samples = CreaseSamples.from_image(skel[150:278, 160:288])
+    field = CreaseField(skel[100:356, 100:356])   # truth: c = 1, t = 60 - 50j
+    centre = 64 - 64j
+    for degrees, off in [(5.0, 7 - 6j), (-5.0, -8 + 3j), (3.0, 9 + 0j)]:
+        c0, t0 = np.exp(1j * np.radians(degrees)), 60 - 50j + off
+        c, t = refine_on_creases(samples, field, c0, t0)
+        assert abs(c * centre + t - (centre + 60 - 50j)) > 5.0
+        c, t = c0, t0
+        for radius in MatchParams().crease_rescue_radii:
+            c, t = refine_on_creases(samples, field, c, t, radius=radius)
+        assert abs(c * centre + t - (centre + 60 - 50j)) < 0.1

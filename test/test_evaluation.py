@@ -137,3 +137,33 @@ def test_compensated_lighting_recognises_blocks_under_a_changed_sun(tmp_path):
 def test_rejects_unknown_lighting(tmp_path):
     with pytest.raises(ValueError, match="lighting"):
         run_evaluation(None, None, 9, tmp_path, lighting="hdr", log=lambda *a: None)
+
+
+def test_wider_try_recovers_the_blocks_a_changed_sun_hides(tmp_path, shared_data):
+    """gredos at 2x GSD, 3 x 3 blocks of 235 px under a changed sun: one block's minutiae
+    registration lands ~8 px and ~5 degrees off (beyond the 3 px crease ICP), and one
+    block's true rotation is buried in the rotation histogram of its 3x region. The
+    matcher's wider try (``MatchParams.rescue_below``) finds both; without it they are lost."""
+    pytest.importorskip("moderngl")
+    from dataclasses import replace
+
+    from terrain_nav_ros.core.matching import MatchParams
+    from terrain_nav_ros.core.renderer import EGLUnavailableError
+
+    def changed_sun(params):
+        summary = run_evaluation(shared_data / "dem" / "gredos_25m_epsg23030.tif", "x2", 9,
+                                 tmp_path / str(params.rescue_below), seed=0,
+                                 baselines=False, lighting="compensated",
+                                 match_params=params, log=lambda *a: None)
+        return summary["conditions"][1]
+
+    try:
+        wide = changed_sun(MatchParams())
+    except EGLUnavailableError as err:
+        pytest.skip(f"no headless GL: {err}")
+    narrow = changed_sun(replace(MatchParams(), rescue_below=-np.inf))
+    assert len(wide["missed_blocks"]) == 0 and wide["pva_missed_zero_fa"] == 0
+    assert wide["localisation"]["minutiae"]["success"] > narrow["localisation"]["minutiae"][
+        "success"]
+    assert len(narrow["missed_blocks"]) >= 1
+    assert wide["localisation"]["minutiae"]["wrong_accepted"] == 0

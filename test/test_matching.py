@@ -350,3 +350,71 @@ def test_numba_kernels_give_the_numpy_results(region, block, monkeypatch):
         if f.n_pairings:
             np.testing.assert_array_equal(f.apply(10.0, 20.0), s.apply(10.0, 20.0))
     assert fast[0].decision == Decision.MATCH and fast[2].decision == Decision.MATCH
+
+
+def test_rotation_sweep_finds_the_rotation_the_histogram_buries(block):
+    """Where the drainage runs one way, edges of unrelated minutiae agree on a rotation and
+    bury the true one in the rotation histogram: its peaks then miss the transform, while
+    the sweep (the wider try below ``rescue_below``) ranks rotations by their strongest
+    joint translation cell and finds it."""
+    from dataclasses import fields
+
+    from terrain_nav_ros.core import matching as mt
+
+    b, _, m = _rotated_copy(block, 30.0, seed=2, pos_sigma=1.0)
+    p = mt.MatchParams()
+    ia, ib = mt.MinutiaIndex(block, p), mt.MinutiaIndex(b, p)
+    votes = mt._hash_votes(ia, ib, p)
+    # three times as many unrelated edge pairs whose directions agree near -60 degrees
+    rng = np.random.default_rng(0)
+    n = 3 * len(votes.ia)
+    edge_a, edge_b = np.argwhere(ia.edges.valid), np.argwhere(ib.edges.valid)
+    ka, kb = edge_a[rng.integers(0, len(edge_a), n)], edge_b[rng.integers(0, len(edge_b), n)]
+    clutter = {"ia": ka[:, 0], "ja": ia.edges.j[ka[:, 0], ka[:, 1]],
+               "ib": kb[:, 0], "jb": ib.edges.j[kb[:, 0], kb[:, 1]],
+               "theta": rng.normal(np.radians(-60.0), np.radians(8.0), n),
+               "weight": rng.choice(votes.weight, n)}
+    votes = mt._Votes(*(np.concatenate([getattr(votes, f.name),
+                                        clutter[f.name].astype(getattr(votes, f.name).dtype)])
+                        for f in fields(votes)))
+    col, row = ia.centroid.real, -ia.centroid.imag
+    true_col, true_row = m @ np.array([col, row, 1.0])
+    truth, turn = complex(true_col, -true_row), complex(m[0, 0], -m[1, 0])
+
+    def found(hyps):   # a hypothesis within 5 px at A's centroid and 5 degrees
+        return any(abs(h.c * ia.centroid + h.t - truth) < 5.0
+                   and abs(np.angle(h.c / turn)) < np.radians(5.0) for h in hyps)
+
+    assert not found(mt._hypotheses(votes, ia, ib, p))
+    assert found(mt._hypotheses(votes, ia, ib, p, sweep=True))
+    # the numpy path ranks the same rotations
+    from terrain_nav_ros.core import _matching_kernels
+
+    cells = (np.arange(72) + 0.5) * (2 * np.pi / 72) - np.pi
+    fast = mt._rotation_support(votes, ia, ib, p, cells)
+    if _matching_kernels.HAVE_NUMBA:
+        _matching_kernels.HAVE_NUMBA = False
+        try:
+            slow = mt._rotation_support(votes, ia, ib, p, cells)
+        finally:
+            _matching_kernels.HAVE_NUMBA = True
+        np.testing.assert_allclose(fast, slow, rtol=1e-6)
+
+
+def test_warm_up_loads_every_kernel():
+    from terrain_nav_ros.core import _matching_kernels
+    from terrain_nav_ros.core.matching import warm_up
+
+    warm_up()
+    if _matching_kernels.HAVE_NUMBA:
+        kernels = {k: getattr(_matching_kernels, k) for k in dir(_matching_kernels)
+                   if not k.startswith("_") and hasattr(getattr(_matching_kernels, k),
+                                                        "signatures")}
+        assert kernels and not [k for k, f in kernels.items() if not f.signatures]
+
+
+def test_prepare_as_reference_builds_what_matching_builds_lazily(region, block):
+    index = Matcher().index(block, region[1][128:384, 128:384]).prepare_as_reference()
+    assert index._hash is not None and index._crease_field is not None
+    big = Matcher(candidates="roots").index(region[0]).prepare_as_reference()
+    assert big._hash is None   # the roots generator never asks for the hash

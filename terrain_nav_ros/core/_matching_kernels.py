@@ -456,3 +456,43 @@ def compound_log10_sf(evidence, lam, k_max, log_fact):
     for i in range(k_max):
         total += np.exp(log_terms[i] - peak)
     return (peak + np.log(total)) / np.log(10.0)
+
+
+@njit(**_JIT)
+def rotation_support(theta, w, mid_a, mid_b, rotations, limit, inv_bin):
+    """Weight of the strongest translation cell at each of ``rotations`` (``matching.
+    _rotation_support``): the votes within ``limit`` of the rotation, their translations at
+    its weighted mean rotation, binned, and the heaviest 3 x 3 block of cells centred on a
+    voted cell."""
+    out = np.zeros(rotations.size)
+    for k in range(rotations.size):
+        sel, d = near_angles(theta, rotations[k], limit)
+        if sel.size == 0:
+            continue
+        wsum = 0.0
+        wd = 0.0
+        for r in range(sel.size):
+            wsum += w[sel[r]]
+            wd += w[sel[r]] * d[r]
+        if wsum <= 0.0:
+            continue
+        ang = rotations[k] + wd / wsum
+        c = complex(np.cos(ang), np.sin(ang))
+        t_re = np.empty(sel.size)
+        t_im = np.empty(sel.size)
+        ws = np.empty(sel.size)
+        for r in range(sel.size):
+            t = mid_b[sel[r]] - c * mid_a[sel[r]]
+            t_re[r] = t.real
+            t_im[r] = t.imag
+            ws[r] = w[sel[r]]
+        gx, gy, nx, ny, h = translation_grid(t_re, t_im, ws, inv_bin)
+        best = 0.0
+        for r in range(sel.size):
+            s = 0.0
+            for y in range(max(gy[r] - 1, 0), min(gy[r] + 2, ny)):
+                for x in range(max(gx[r] - 1, 0), min(gx[r] + 2, nx)):
+                    s += h[y * nx + x]
+            best = max(best, s)
+        out[k] = best
+    return out

@@ -169,7 +169,7 @@ class MatchParams:
     crease_search_below : int
         With crease images, when the smaller set has fewer minutiae than this, the crease
         skeletons are also searched by brute force (:mod:`.crease_search`) for transforms
-        to register; 0 turns the search off.
+        to register, in the wider try (``rescue_below``); 0 turns the search off.
     crease_search_max_side : int
         The search is skipped when the query's (A's) crease image is larger than this (px
         per side): the rotations searched grow with its size.
@@ -185,6 +185,19 @@ class MatchParams:
         Where the crease search runs, the minimum-minutiae rule becomes one on the drainage
         itself: fewer crease pixels than this in either set give "no decision" (a flat
         lake), however many minutiae.
+    rescue_below : float
+        A comparison whose best registration scores below this gets a second, wider try:
+        hypotheses from every rotation cell, not only the rotation histogram's peaks (where
+        the drainage runs one way, edges of unrelated minutiae pile up near one rotation and
+        bury the true one in the marginal, not in the joint rotation-translation cells);
+        with creases, the crease search (where ``crease_search_*`` allow it) and the
+        coarse-to-fine crease ICP below. A clear match never pays for it; ``-inf`` turns it
+        off, the crease search with it. The score's count of transforms covers every
+        rotation already, so the wider try adds no penalty beyond its extra hypotheses.
+    crease_rescue_radii : tuple of float
+        ICP pairing radii (px), coarse to fine, of the wider try: a transform that a few
+        minutiae pairings put 5-10 px or a few degrees off is outside the 3 px ICP's reach,
+        though its creases nearly overlap.
     threshold : float
         Score at and above which two sets match; calibrate it with
         :func:`calibrate_threshold`.
@@ -230,6 +243,8 @@ class MatchParams:
     crease_search_max_work: int = 12_000_000
     crease_search_proposals: int = 3
     min_crease_pixels: int = 100
+    rescue_below: float = 10.0
+    crease_rescue_radii: tuple[float, ...] = (12.0, 8.0, 5.0, 3.0)
     threshold: float = 3.0
     seed: int = 0
 
@@ -351,6 +366,18 @@ class MinutiaIndex:
             self._crease_query = (max_rotation, CreaseSearchQuery(
                 samples, search_rotations(max_rotation, reach)))
         return self._crease_query[1]
+
+    def prepare_as_reference(self) -> MinutiaIndex:
+        """Build now what matching against this set (as B, e.g. a landmark region) builds on
+        first use: the edge hash for the hash candidate generator and the crease field. A
+        region arrives before the frames it serves, so its first frame need not wait for
+        them (~0.4 s for a 1024 px region with creases). Returns self."""
+        p = self.params
+        if p.candidates == "hash" or (p.candidates == "auto" and self.n <= p.roots_above):
+            self.edge_hash()
+        if p.crease_check and self.crease_image is not None:
+            _ = self.crease_field
+        return self
 
     def edge_hash(self) -> EdgeHash:
         """Hash of this set's edges (built on first use)."""
@@ -596,8 +623,40 @@ def _rotation_peaks(theta, w, p: MatchParams, n_peaks: int) -> np.ndarray:
     return (idx + 0.5) * (TWO_PI / nb) - np.pi
 
 
-def _hypotheses(v: _Votes, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams):
-    """Strongest (rotation, translation) Hough cells, best first."""
+def _rotation_support(v: _Votes, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams,
+                      rotations: np.ndarray) -> np.ndarray:
+    """Weight of the strongest translation cell (3 x 3 cells centred on a voted one) at each
+    rotation: the joint rotation-translation Hough, one rotation at a time, as
+    :func:`_hypotheses` builds it at a rotation peak."""
+    mid_a = 0.5 * (a.z[v.ia] + a.z[v.ja]) - a.centroid
+    mid_b = 0.5 * (b.z[v.ib] + b.z[v.jb])
+    if _kernels.HAVE_NUMBA:
+        return _kernels.rotation_support(v.theta, v.weight, mid_a, mid_b, rotations,
+                                         2.0 * p.rot_bin, 1.0 / p.trans_bin)
+    out = np.zeros(len(rotations))
+    for k, th0 in enumerate(rotations):
+        d = wrap_angle(v.theta - th0)
+        sel = np.flatnonzero(np.abs(d) <= 2.0 * p.rot_bin)
+        w = v.weight[sel].astype(float)
+        if len(sel) == 0 or w.sum() <= 0:
+            continue
+        c = np.exp(1j * (th0 + np.dot(w, d[sel]) / w.sum()))
+        t = mid_b[sel] - c * mid_a[sel]
+        gx = ((t.real - t.real.min()) / p.trans_bin).astype(np.intp)
+        gy = ((t.imag - t.imag.min()) / p.trans_bin).astype(np.intp)
+        nx, ny = int(gx.max()) + 1, int(gy.max()) + 1
+        h = np.pad(np.bincount(gy * nx + gx, w, nx * ny).reshape(ny, nx), 1)
+        box = sum(h[1 + dy:1 + dy + ny, 1 + dx:1 + dx + nx]
+                  for dy in (-1, 0, 1) for dx in (-1, 0, 1))
+        out[k] = box[gy, gx].max()
+    return out
+
+
+def _hypotheses(v: _Votes, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams,
+                sweep: bool = False):
+    """Strongest (rotation, translation) Hough cells, best first: at the rotation
+    histogram's peaks, or with ``sweep`` at the rotation cells whose strongest translation
+    cell is heaviest, among those the peaks leave out."""
     if len(v.ia) == 0:
         return []
     hyps = []
@@ -608,7 +667,18 @@ def _hypotheses(v: _Votes, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams):
         v = _Votes(*(getattr(v, f.name)[keep] for f in fields(v)))
         if len(v.ia) == 0:
             return []
-    for th0 in _rotation_peaks(v.theta, v.weight, p, n_peaks=p.n_rotation_peaks):
+    peaks = _rotation_peaks(v.theta, v.weight, p, n_peaks=p.n_rotation_peaks)
+    rotations = peaks
+    if sweep:
+        # the strongest joint cells among the rotations the peaks did not try (a peak is a
+        # cell centre of the same grid: its hypotheses would come out the same)
+        nb = max(4, int(round(TWO_PI / p.rot_bin)))
+        cells = (np.arange(nb) + 0.5) * (TWO_PI / nb) - np.pi
+        support = _rotation_support(v, a, b, p, cells)
+        support[np.rint((peaks + np.pi) * (nb / TWO_PI) - 0.5).astype(np.intp) % nb] = 0.0
+        strongest = np.argsort(-support, kind="stable")[:p.n_rotation_peaks]
+        rotations = cells[strongest[support[strongest] > 0]]
+    for th0 in rotations:
         if _kernels.HAVE_NUMBA:
             sel, d_sel = _kernels.near_angles(v.theta, float(th0), 2.0 * p.rot_bin)
         else:
@@ -1163,12 +1233,14 @@ def _scored(a: MinutiaIndex, b: MinutiaIndex, c, t, pairs, search_area: float,
 
 
 def _refined_on_creases(a: MinutiaIndex, b: MinutiaIndex, best: _Scored, search_area: float,
-                        radius_a: float, p: MatchParams) -> _Scored:
-    """The registration moved onto B's creases (point-to-line ICP), kept if it scores better:
-    a transform fitted to a few minutiae pairings is off by a pixel or two, the creases have
-    hundreds of pixels."""
-    c, t = refine_on_creases(a.crease_samples, b.crease_field, best.c, best.t,
-                             angle_tol=p.crease_angle_tol)
+                        radius_a: float, p: MatchParams, radii=(3.0,)) -> _Scored:
+    """The registration moved onto B's creases (point-to-line ICP at each pairing radius in
+    turn), kept if it scores better: a transform fitted to a few minutiae pairings is off by
+    a pixel or two, the creases have hundreds of pixels."""
+    c, t = best.c, best.t
+    for radius in radii:
+        c, t = refine_on_creases(a.crease_samples, b.crease_field, c, t, radius=radius,
+                                 angle_tol=p.crease_angle_tol)
     if c == best.c and t == best.t:
         return best
     pairs = _pair(a, b, c, t, p)
@@ -1201,6 +1273,42 @@ def _crease_search_registrations(a: MinutiaIndex, b: MinutiaIndex, p: MatchParam
                                  angle_tol=p.crease_angle_tol)
         out.append((c, t, _pair(a, b, c, t, p)))
     return out, found.log10_transforms
+
+
+def _registrations(hyps, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, rng):
+    """Registrations (c, t, pairings) of the hypotheses that come near the strongest, with
+    at least two pairings."""
+    registered = []
+    for h in hyps:
+        if h.support < p.min_support_ratio * hyps[0].support:
+            break   # a clear winner: weak cells cannot beat it
+        registered.append(_register(h, a, b, p, rng))
+    return [r for r in registered if len(r[2]) >= 2]
+
+
+def _best_registration(a: MinutiaIndex, b: MinutiaIndex, registered, searched,
+                       search_trials: float, search_area: float, p: MatchParams,
+                       use_creases: bool) -> tuple[_Scored | None, int]:
+    """The best registration, refined and scored, and how many were scored to choose it
+    (None, 0 without any)."""
+    if not registered and not searched:
+        return None, 0
+    if not use_creases:
+        # the first registration with the most pairings (hypotheses come strongest first)
+        r = max(registered, key=lambda r: len(r[2]))
+        return _scored(a, b, *_refine(a, b, *r, p), search_area, a.radius, p, False), 1
+    # every registration refined and scored with its crease agreement (the searched ones
+    # are already on B's creases: a refit to their few minutiae pairings would undo that);
+    # the search over them is paid for like any other (Bonferroni)
+    scored = [_scored(a, b, *_refine(a, b, *r, p), search_area, a.radius, p, True)
+              for r in registered]
+    # a searched registration was picked among the search's transforms at the crease
+    # resolution, not the minutiae's: it pays for those instead
+    trials = search_trials - _log10_transforms(search_area, a.radius, p)
+    scored += [replace(s, score=s.score - trials, search_penalty=trials) for s in (
+        _scored(a, b, *r, search_area, a.radius, p, True) for r in searched)]
+    best = max(scored, key=lambda s: s.score)
+    return _refined_on_creases(a, b, best, search_area, a.radius, p), len(scored)
 
 
 class Matcher:
@@ -1296,36 +1404,28 @@ class Matcher:
             method = "roots" if b.n > p.roots_above else "hash"
         votes = _root_votes(a, b, p) if method == "roots" else _hash_votes(a, b, p)
         rng = np.random.default_rng(p.seed)
-        hyps = _hypotheses(votes, a, b, p)
-        registered = []
-        for h in hyps:
-            if h.support < p.min_support_ratio * hyps[0].support:
-                break   # a clear winner: weak cells cannot beat it
-            registered.append(_register(h, a, b, p, rng))
-        registered = [r for r in registered if len(r[2]) >= 2]
-        searched, search_trials = _crease_search_registrations(a, b, p) if search else ([], 0)
+        registered = _registrations(_hypotheses(votes, a, b, p), a, b, p, rng)
+        best, n_scored = _best_registration(a, b, registered, [], 0, search_area, p,
+                                            use_creases)
+        if best is None or best.score - math.log10(max(n_scored, 1)) < p.rescue_below:
+            # the wider try: every rotation cell, the crease search where it applies, and
+            # the coarse-to-fine crease ICP
+            wider = _registrations(_hypotheses(votes, a, b, p, sweep=True), a, b, p, rng)
+            searched, trials = _crease_search_registrations(a, b, p) if search else ([], 0)
+            other, n_other = _best_registration(a, b, wider, searched, trials, search_area,
+                                                p, use_creases)
+            n_scored += n_other
+            if other is not None and (best is None or other.score > best.score):
+                best = other
+            if best is not None and use_creases:
+                best = _refined_on_creases(a, b, best, search_area, radius_a, p,
+                                           radii=p.crease_rescue_radii)
         base.decision = Decision.NO_MATCH
-        if not registered and not searched:
+        if best is None:
             base.reason = "no consistent transform"
             return base
         if use_creases:
-            # every registration refined and scored with its crease agreement (the searched
-            # ones are already on B's creases: a refit to their few minutiae pairings would
-            # undo that); the search over them is paid for like any other (Bonferroni)
-            scored = [_scored(a, b, *_refine(a, b, *r, p), search_area, radius_a, p, True)
-                      for r in registered]
-            # a searched registration was picked among the search's transforms at the crease
-            # resolution, not the minutiae's: it pays for those instead
-            trials = search_trials - _log10_transforms(search_area, radius_a, p)
-            scored += [replace(s, score=s.score - trials, search_penalty=trials) for s in (
-                _scored(a, b, *r, search_area, radius_a, p, True) for r in searched)]
-            best = max(scored, key=lambda s: s.score)
-            best = _refined_on_creases(a, b, best, search_area, radius_a, p)
-            best = replace(best, score=best.score - math.log10(len(scored)))
-        else:
-            # the first registration with the most pairings (hypotheses come strongest first)
-            r = max(registered, key=lambda r: len(r[2]))
-            best = _scored(a, b, *_refine(a, b, *r, p), search_area, radius_a, p, False)
+            best = replace(best, score=best.score - math.log10(n_scored))   # best of n
         c, t, pairs, score = best.c, best.t, best.pairs, best.score
         n_ao, n_bo = best.n_overlap
         cov, rms = _covariance(a.z[pairs[:, 0]], b.z[pairs[:, 1]], c, t, p.estimate_scale,
@@ -1355,3 +1455,31 @@ def localise(camera, landmark, params: MatchParams | None = None,
              **overrides) -> MatchResult:
     """Camera-in-landmark-region localisation (see :meth:`Matcher.localise`)."""
     return Matcher(params, **overrides).localise(camera, landmark)
+
+
+def warm_up(params: MatchParams | None = None) -> None:
+    """Run every matching path once on small synthetic sets.
+
+    With numba installed the kernels load from numba's cache (or compile) on first use,
+    ~0.4 s in all; a node calls this at start-up so that its first frame is not late.
+    """
+    rng = np.random.default_rng(0)
+
+    def random_set():
+        crease = np.zeros((96, 96), np.uint8)
+        for x0, y0, x1, y1 in rng.integers(0, 96, (14, 4)):
+            cv2.line(crease, (int(x0), int(y0)), (int(x1), int(y1)), 1, 1)
+        rows, cols = np.nonzero(crease)
+        pick = rng.choice(len(rows), 40, replace=False)
+        ms = MinutiaSet(cols[pick].astype(float), rows[pick].astype(float),
+                        rng.uniform(-np.pi, np.pi, 40), rng.choice([1, 3], 40).astype(np.uint8),
+                        np.ones(40, np.float32))
+        return ms, crease
+
+    matcher = Matcher(params)
+    (ms, crease), other = random_set(), random_set()
+    full = matcher.index(ms, crease)
+    matcher.compare(full, full)                               # the first try
+    matcher.compare(full, matcher.index(*other))              # the wider try
+    few = matcher.index(ms.subset(np.arange(2)), crease)
+    matcher.compare(few, full)          # the crease search and the crease covariance
