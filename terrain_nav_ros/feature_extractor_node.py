@@ -27,7 +27,7 @@ from terrain_nav_msgs.msg import GeoImage, MinutiaArray
 from . import conversions as cv
 from .core.creases import CreaseParams
 from .core.hillshade import LIGHTINGS, extractor_input
-from .core.minutiae import FeatureExtractor, MinutiaParams
+from .core.minutiae import FeatureExtractor, MinutiaParams, warm_up
 from .ros_common import (
     LATCHED_QOS,
     RELIABLE_QOS,
@@ -68,6 +68,8 @@ class FeatureExtractorNode(Node):
                                  lambda m: self.on_image(m, "camera"), RELIABLE_QOS)
         self.create_subscription(GeoImage, "/landmark/image",
                                  lambda m: self.on_image(m, "landmark"), LATCHED_QOS)
+        # numba's kernels load on first use (seconds): not on the first frame's clock
+        warm_up()
 
     def _build(self, overrides=None) -> FeatureExtractor:
         return FeatureExtractor(

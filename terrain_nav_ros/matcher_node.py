@@ -33,7 +33,7 @@ from . import conversions as cv
 from .core.camera_mount import mount_rotation
 from .core.geodesy import EnuOrigin
 from .core.ground_projection import CameraIntrinsics, CameraPose, ground_to_image
-from .core.matching import Matcher, MatchParams
+from .core.matching import Matcher, MatchParams, warm_up
 from .core.pva_fix import (
     PvaFixEstimate,
     dem_heights,
@@ -111,6 +111,8 @@ class MatcherNode(Node):
         self.camera_model: CameraIntrinsics | None = None
         self.create_subscription(DemTile, "/metamap/tile", self.on_tile, LATCHED_QOS)
         self.create_subscription(CameraInfo, "/camera/camera_info", self.on_info, SENSOR_QOS)
+        # numba's kernels load on first use (~0.4 s): not on the first frame's clock
+        warm_up(self.matcher.params)
 
     @contained
     def on_tile(self, msg: DemTile) -> None:
@@ -136,7 +138,9 @@ class MatcherNode(Node):
         except cv.ConversionError as err:
             self.get_logger().error(f"landmark minutiae ignored: {err}")
             return
-        index = self.matcher.index(minutiae, creases) if len(minutiae) else None
+        index = None
+        if len(minutiae):
+            index = self.matcher.index(minutiae, creases).prepare_as_reference()
         self.landmarks.append((minutiae, index, cv.enu_origin_of(msg.georef)))
         self.get_logger().info(f"landmark set with {len(minutiae)} minutiae "
                                f"({minutiae.reason or 'ok'})")
