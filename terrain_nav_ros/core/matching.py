@@ -189,11 +189,14 @@ class MatchParams:
         A comparison whose best registration scores below this gets a second, wider try:
         hypotheses from every rotation cell, not only the rotation histogram's peaks (where
         the drainage runs one way, edges of unrelated minutiae pile up near one rotation and
-        bury the true one in the marginal, not in the joint rotation-translation cells);
-        with creases, the crease search (where ``crease_search_*`` allow it) and the
-        coarse-to-fine crease ICP below. A clear match never pays for it; ``-inf`` turns it
-        off, the crease search with it. The score's count of transforms covers every
-        rotation already, so the wider try adds no penalty beyond its extra hypotheses.
+        bury the true one in the marginal, not in the joint rotation-translation cells),
+        and with creases the coarse-to-fine crease ICP below. For a set small enough for
+        the crease search (``crease_search_*``) the search is the wider try instead: it
+        covers every rotation and translation, and the sweep and the wide ICP would only add
+        chances to unrelated pairs of such small sets. A clear match never pays for it;
+        ``-inf`` turns it off, the crease search with it. The score's count of transforms
+        covers every rotation already, so the wider try adds no penalty beyond its extra
+        hypotheses.
     crease_rescue_radii : tuple of float
         ICP pairing radii (px), coarse to fine, of the wider try: a transform that a few
         minutiae pairings put 5-10 px or a few degrees off is outside the 3 px ICP's reach,
@@ -1407,13 +1410,19 @@ class Matcher:
         registered = _registrations(_hypotheses(votes, a, b, p), a, b, p, rng)
         best, n_scored = _best_registration(a, b, registered, [], 0, search_area, p,
                                             use_creases)
-        if best is None or best.score - math.log10(max(n_scored, 1)) < p.rescue_below:
-            # the wider try: every rotation cell, the crease search where it applies, and
-            # the coarse-to-fine crease ICP
+        if (best is None or best.score - math.log10(max(n_scored, 1)) < p.rescue_below) \
+                and search:
+            # the wider try of a set small enough for the crease search: it covers every
+            # rotation and translation at the crease resolution (a sweep or a wide ICP would
+            # only add chances to unrelated pairs); chosen together with the first try's
+            searched, trials = _crease_search_registrations(a, b, p)
+            best, n_scored = _best_registration(a, b, registered, searched, trials,
+                                                search_area, p, use_creases)
+        elif best is None or best.score - math.log10(max(n_scored, 1)) < p.rescue_below:
+            # the wider try: every rotation cell, and the coarse-to-fine crease ICP
             wider = _registrations(_hypotheses(votes, a, b, p, sweep=True), a, b, p, rng)
-            searched, trials = _crease_search_registrations(a, b, p) if search else ([], 0)
-            other, n_other = _best_registration(a, b, wider, searched, trials, search_area,
-                                                p, use_creases)
+            other, n_other = _best_registration(a, b, wider, [], 0, search_area, p,
+                                                use_creases)
             n_scored += n_other
             if other is not None and (best is None or other.score > best.score):
                 best = other
