@@ -376,7 +376,7 @@ class MinutiaIndex:
         region arrives before the frames it serves, so its first frame need not wait for
         them (~60 ms for a demo landmark region with creases). Returns self."""
         p = self.params
-        if p.candidates == "hash" or (p.candidates == "auto" and self.n <= p.roots_above):
+        if _generator(self, p) == "hash":
             self.edge_hash()
         if p.crease_check and self.crease_image is not None:
             _ = self.crease_field
@@ -415,6 +415,14 @@ class MinutiaIndex:
             length, beta_i, beta_j, tol = self.edge_query()[:4]
             self._prepared = hb.prepare(length, beta_i, beta_j, tol)
         return self._prepared
+
+
+def _generator(b: MinutiaIndex, p: MatchParams) -> str:
+    """The candidate generator for reference set ``b``: ``p.candidates``, or with "auto"
+    the root pairs for a large set and the edge hash otherwise."""
+    if p.candidates != "auto":
+        return p.candidates
+    return "roots" if b.n > p.roots_above else "hash"
 
 
 def _descriptor(ms: MinutiaSet, p: MatchParams) -> np.ndarray:
@@ -638,17 +646,13 @@ def _rotation_support(v: _Votes, a: MinutiaIndex, b: MinutiaIndex, p: MatchParam
                                          2.0 * p.rot_bin, 1.0 / p.trans_bin)
     out = np.zeros(len(rotations))
     for k, th0 in enumerate(rotations):
-        d = wrap_angle(v.theta - th0)
-        sel = np.flatnonzero(np.abs(d) <= 2.0 * p.rot_bin)
+        sel, d_sel = _near_rotation(v.theta, th0, p)
         w = v.weight[sel].astype(float)
         if len(sel) == 0 or w.sum() <= 0:
             continue
-        c = np.exp(1j * (th0 + np.dot(w, d[sel]) / w.sum()))
-        t = mid_b[sel] - c * mid_a[sel]
-        gx = ((t.real - t.real.min()) / p.trans_bin).astype(np.intp)
-        gy = ((t.imag - t.imag.min()) / p.trans_bin).astype(np.intp)
-        nx, ny = int(gx.max()) + 1, int(gy.max()) + 1
-        h = np.pad(np.bincount(gy * nx + gx, w, nx * ny).reshape(ny, nx), 1)
+        c = np.exp(1j * (th0 + np.dot(w, d_sel) / w.sum()))
+        gx, gy, nx, ny, h = _translation_grid(mid_b[sel] - c * mid_a[sel], w, p)
+        h = np.pad(h, 1)
         box = sum(h[1 + dy:1 + dy + ny, 1 + dx:1 + dx + nx]
                   for dy in (-1, 0, 1) for dx in (-1, 0, 1))
         out[k] = box[gy, gx].max()
@@ -682,12 +686,7 @@ def _hypotheses(v: _Votes, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams,
         strongest = np.argsort(-support, kind="stable")[:p.n_rotation_peaks]
         rotations = cells[strongest[support[strongest] > 0]]
     for th0 in rotations:
-        if _kernels.HAVE_NUMBA:
-            sel, d_sel = _kernels.near_angles(v.theta, float(th0), 2.0 * p.rot_bin)
-        else:
-            d = wrap_angle(v.theta - th0)
-            sel = np.flatnonzero(np.abs(d) <= 2.0 * p.rot_bin)
-            d_sel = d[sel]
+        sel, d_sel = _near_rotation(v.theta, th0, p)
         w = v.weight[sel]
         if len(sel) == 0 or w.sum() < p.min_support_ratio * best:
             continue   # none of its cells could pass the verification cut in _match
@@ -704,19 +703,34 @@ def _hypotheses(v: _Votes, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams,
     return hyps[:p.n_hypotheses]
 
 
+def _near_rotation(theta, th0: float, p: MatchParams):
+    """Votes within two rotation cells of ``th0``: their indices and angle differences."""
+    if _kernels.HAVE_NUMBA:
+        return _kernels.near_angles(theta, float(th0), 2.0 * p.rot_bin)
+    d = wrap_angle(theta - th0)
+    sel = np.flatnonzero(np.abs(d) <= 2.0 * p.rot_bin)
+    return sel, d[sel]
+
+
+def _translation_grid(t, w, p: MatchParams):
+    """Translation Hough cells: each vote's cell ``(gx, gy)`` from the lowest translation,
+    the grid size and the float64 weight per cell, shape ``(ny, nx)``."""
+    if _kernels.HAVE_NUMBA:
+        gx, gy, nx, ny, h = _kernels.translation_grid(t.real, t.imag, w, 1.0 / p.trans_bin)
+        return gx, gy, nx, ny, h.reshape(ny, nx)
+    x0, y0 = t.real.min(), t.imag.min()
+    gx = ((t.real - x0) * (1.0 / p.trans_bin)).astype(np.intp)
+    gy = ((t.imag - y0) * (1.0 / p.trans_bin)).astype(np.intp)
+    nx, ny = int(gx.max()) + 1, int(gy.max()) + 1
+    return gx, gy, nx, ny, np.bincount(gy * nx + gx, w, nx * ny).reshape(ny, nx)
+
+
 def _translation_peaks(t, sel, w, c, v: _Votes, a: MinutiaIndex, p: MatchParams, n_peaks,
                        min_support: float = 0.0):
     """Strongest translation cells at rotation ``c``; cells weaker than ``min_support``
     (which :func:`_match` would not verify) are not built."""
-    if _kernels.HAVE_NUMBA:
-        gx, gy, nx, ny, h = _kernels.translation_grid(t.real, t.imag, w, 1.0 / p.trans_bin)
-        h = h.reshape(ny, nx).astype(np.float32)
-    else:
-        x0, y0 = t.real.min(), t.imag.min()
-        gx = ((t.real - x0) * (1.0 / p.trans_bin)).astype(np.intp)
-        gy = ((t.imag - y0) * (1.0 / p.trans_bin)).astype(np.intp)
-        nx, ny = int(gx.max()) + 1, int(gy.max()) + 1
-        h = np.bincount(gy * nx + gx, w, nx * ny).reshape(ny, nx).astype(np.float32)
+    gx, gy, nx, ny, h = _translation_grid(t, w, p)
+    h = h.astype(np.float32)
     # 3x3 box sum so that a cluster split over cell borders still counts as one
     box = cv2.boxFilter(h, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
     out = []
@@ -1289,29 +1303,32 @@ def _registrations(hyps, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, rng):
     return [r for r in registered if len(r[2]) >= 2]
 
 
-def _best_registration(a: MinutiaIndex, b: MinutiaIndex, registered, searched,
-                       search_trials: float, search_area: float, p: MatchParams,
-                       use_creases: bool) -> tuple[_Scored | None, int]:
-    """The best registration, refined and scored, and how many were scored to choose it
-    (None, 0 without any)."""
-    if not registered and not searched:
-        return None, 0
+def _best_registration(a: MinutiaIndex, b: MinutiaIndex, registered, search_area: float,
+                       p: MatchParams, use_creases: bool, searched=(),
+                       search_trials: float = 0.0, scored=()) -> tuple[_Scored | None, list]:
+    """The best registration, refined, and the scored ones it was chosen from (``scored``,
+    already scored, among them): (None, []) without any."""
     if not use_creases:
+        if not registered:
+            return None, []
         # the first registration with the most pairings (hypotheses come strongest first)
         r = max(registered, key=lambda r: len(r[2]))
-        return _scored(a, b, *_refine(a, b, *r, p), search_area, a.radius, p, False), 1
+        best = _scored(a, b, *_refine(a, b, *r, p), search_area, a.radius, p, False)
+        return best, [best]
     # every registration refined and scored with its crease agreement (the searched ones
     # are already on B's creases: a refit to their few minutiae pairings would undo that);
     # the search over them is paid for like any other (Bonferroni)
-    scored = [_scored(a, b, *_refine(a, b, *r, p), search_area, a.radius, p, True)
-              for r in registered]
+    scored = list(scored) + [_scored(a, b, *_refine(a, b, *r, p), search_area, a.radius, p,
+                                     True) for r in registered]
     # a searched registration was picked among the search's transforms at the crease
     # resolution, not the minutiae's: it pays for those instead
     trials = search_trials - _log10_transforms(search_area, a.radius, p)
     scored += [replace(s, score=s.score - trials, search_penalty=trials) for s in (
         _scored(a, b, *r, search_area, a.radius, p, True) for r in searched)]
+    if not scored:
+        return None, []
     best = max(scored, key=lambda s: s.score)
-    return _refined_on_creases(a, b, best, search_area, a.radius, p), len(scored)
+    return _refined_on_creases(a, b, best, search_area, a.radius, p), scored
 
 
 class Matcher:
@@ -1402,28 +1419,26 @@ class Matcher:
                 base.reason = ("too few minutiae: even a perfect match would score "
                                f"{best_possible:.2f} < threshold {p.threshold:.2f}")
                 return base
-        method = p.candidates
-        if method == "auto":
-            method = "roots" if b.n > p.roots_above else "hash"
-        votes = _root_votes(a, b, p) if method == "roots" else _hash_votes(a, b, p)
+        votes = _root_votes(a, b, p) if _generator(b, p) == "roots" else _hash_votes(a, b, p)
         rng = np.random.default_rng(p.seed)
         registered = _registrations(_hypotheses(votes, a, b, p), a, b, p, rng)
-        best, n_scored = _best_registration(a, b, registered, [], 0, search_area, p,
-                                            use_creases)
-        if (best is None or best.score - math.log10(max(n_scored, 1)) < p.rescue_below) \
-                and search:
+        best, scored = _best_registration(a, b, registered, search_area, p, use_creases)
+        n_scored = len(scored)
+        low = best is None or best.score - math.log10(max(n_scored, 1)) < p.rescue_below
+        if low and search:
             # the wider try of a set small enough for the crease search: it covers every
             # rotation and translation at the crease resolution (a sweep or a wide ICP would
             # only add chances to unrelated pairs); chosen together with the first try's
             searched, trials = _crease_search_registrations(a, b, p)
-            best, n_scored = _best_registration(a, b, registered, searched, trials,
-                                                search_area, p, use_creases)
-        elif best is None or best.score - math.log10(max(n_scored, 1)) < p.rescue_below:
+            best, scored = _best_registration(a, b, [], search_area, p, use_creases,
+                                              searched, trials, scored=scored)
+            n_scored = len(scored)
+        elif low:
             # the wider try: every rotation cell, and the coarse-to-fine crease ICP
             wider = _registrations(_hypotheses(votes, a, b, p, sweep=True), a, b, p, rng)
-            other, n_other = _best_registration(a, b, wider, [], 0, search_area, p,
-                                                use_creases)
-            n_scored += n_other
+            other, other_scored = _best_registration(a, b, wider, search_area, p,
+                                                     use_creases)
+            n_scored += len(other_scored)
             if other is not None and (best is None or other.score > best.score):
                 best = other
             if best is not None and use_creases:
