@@ -6,8 +6,10 @@ Run ``terrain-nav --help`` or ``terrain-nav <command> --help``.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -113,6 +115,12 @@ def _cmd_evaluate(args) -> int:
     params = MatchParams()
     if args.no_creases:
         params = MatchParams(crease_check=False, crease_descriptor=False)
+    if args.heading_prior is not None:
+        if not 0.0 < args.heading_prior <= 180.0:
+            print("terrain-nav evaluate: --heading-prior must be in (0, 180] deg",
+                  file=sys.stderr)
+            return 2
+        params = replace(params, max_rotation=math.radians(args.heading_prior))
     try:
         summary = run_evaluation(args.dem, args.gsd, args.blocks, out,
                                  block_size=args.block_size, sun_change=args.sun_change,
@@ -227,6 +235,10 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--no-creases", dest="no_creases", action="store_true",
                     help="match on minutiae alone, as the dissertation (no crease check, no "
                          "crease descriptor)")
+    ev.add_argument("--heading-prior", dest="heading_prior", type=float, metavar="DEG",
+                    help="the matcher searches rotations within +-DEG only, as in flight "
+                         "where frames are north-up within the heading error (default: any "
+                         "rotation; the baselines are unchanged)")
     ev.set_defaults(func=_cmd_evaluate)
     return parser
 

@@ -4,6 +4,8 @@ Small and fast: the embedded DEM, 3 x 3 blocks of 128 px, the quick mode. Behavi
 (no timing assertions).
 """
 
+import json
+
 import numpy as np
 import pytest
 
@@ -167,3 +169,23 @@ def test_wider_try_recovers_the_blocks_a_changed_sun_hides(tmp_path, shared_data
         "success"]
     assert len(narrow["missed_blocks"]) >= 1
     assert wide["localisation"]["minutiae"]["wrong_accepted"] == 0
+
+
+def test_cli_heading_prior_limits_the_rotation_search(tmp_path, capsys):
+    """`terrain-nav evaluate --heading-prior 15`: the matcher searches +-15 degrees (the
+    study's camera blocks turn by up to 10), and the report says so."""
+    pytest.importorskip("moderngl")
+    from terrain_nav_ros import cli
+
+    assert cli.main(["evaluate", "--heading-prior", "0", "--out", str(tmp_path)]) == 2
+    assert "--heading-prior" in capsys.readouterr().err
+    out = tmp_path / "prior"
+    code = cli.main(["evaluate", "--gsd", "x2", "--blocks", "9", "--block-size", "128",
+                     "--quick", "--no-baselines", "--heading-prior", "15", "--out", str(out)])
+    if code != 0 and "EGL" in capsys.readouterr().err:
+        pytest.skip("no headless GL")
+    assert code == 0
+    report = (out / "report.md").read_text()
+    assert "| matcher rotation search | +-15 deg (heading prior" in report
+    same = json.loads((out / "results.json").read_text())["conditions"][0]
+    assert same["miss_rate"] <= 1 / 9 and same["non_pva_accepted"] == 0
