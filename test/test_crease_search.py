@@ -188,3 +188,25 @@ def test_moving_a_searched_registration_keeps_its_search_penalty(region):
     assert (moved.c, moved.t) != (c, t) and moved.search_penalty == 3.0
     fresh = _scored(a, b, moved.c, moved.t, moved.pairs, search_area, radius, p, True)
     assert moved.score == pytest.approx(fresh.score - 3.0)
+
+
+def test_footprint_counts_are_the_query_pixels_over_the_reference():
+    """At every shift of the correlation (negative ones wrap to the end of each axis), the
+    count the search keeps shifts by is the number of query pixels landing on B."""
+    rng = np.random.default_rng(4)
+    query_img = rng.random((23, 17)) < 0.2
+    samples = CreaseSamples.from_image(query_img)
+    reference = CreaseSearchReference(CreaseField(rng.random((40, 31)) < 0.1), resolution=1.0)
+    query = CreaseSearchQuery(samples, [0.0, 0.7], resolution=1.0)
+    shape, _, inside = query.spectra(reference)
+    hb, wb = reference.shape
+    for r in range(2):
+        counts = query.raster[r, 4]
+        rows, cols = np.nonzero(counts)
+        ha, wa = query.shape
+        for dy, dx in [(0, 0), (5, -3), (-10, 12), (hb - 1, wb - 1), (1 - ha, 1 - wa),
+                       (-ha // 2, wb - 2), (35, 2)]:
+            on_b = ((rows + dy >= 0) & (rows + dy < hb) & (cols + dx >= 0)
+                    & (cols + dx < wb))
+            expected = counts[rows[on_b], cols[on_b]].sum()
+            assert inside[r, dy % shape[0], dx % shape[1]] == expected, (r, dy, dx)
