@@ -113,6 +113,7 @@ def bench_speed(matcher, repeat):
           f"median CPU {_timeit.cpu_ms:.2f} ms")
     _unrelated_speed(matcher, block, block_skeleton, cam, cam_skeleton, repeat)
     _crease_search_speed(matcher, terrain, skeleton, repeat)
+    _searched_localisation_speed(matcher, terrain, skeleton, repeat)
     med, best = _timeit(lambda: matcher.compare(block, cam), repeat)
     print(f"compare, from raw sets incl. index build:            "
           f"median {med:.2f} ms, min {best:.2f} ms")
@@ -191,6 +192,39 @@ def _crease_search_speed(matcher, terrain, skeleton, repeat):
               f"{med:.1f} ms, min {best:.1f} ms; with the wider try forced (crease search, "
               f"{len(ia.crease_search_query(np.pi).c)} rotations): median {f_med:.1f} ms, "
               f"min {f_best:.1f} ms")
+
+
+def _searched_localisation_speed(matcher, terrain, skeleton, repeat):
+    """A small block whose minutiae fail, found by the crease search in its 3x region (a
+    study's localisation case; ``rescue_below=inf`` forces the search), beside NCC over the
+    same region (its cost depends on the sizes only)."""
+    forced = Matcher(matcher.params, rescue_below=np.inf)
+    rng = np.random.default_rng(0)
+    for size in (64, 96, 128):
+        side, x0 = 3 * size, 240 - size    # the block at (240, size): crease-rich in seed 1
+        region = matcher.index(crop_set(terrain, x0, 0, side, side),
+                               skeleton[:side, x0:x0 + side]).prepare_as_reference()
+        block = crop_set(terrain, 240, size, size, size)
+        cam, m = _camera_version(block, size, np.random.default_rng(1))
+        cam_skeleton = _warped_skeleton(skeleton[size:2 * size, 240:240 + size], m, size)
+        r = forced.localise(cam, region, crease_camera=cam_skeleton)
+        truth = np.linalg.inv(np.vstack([m, [0, 0, 1]]))[:2] @ np.array(
+            [size / 2, size / 2, 1.0]) + size
+        err = np.hypot(*(np.array(r.apply(size / 2, size / 2)) - truth))
+        med, best = _timeit(lambda cam=cam, region=region, sk=cam_skeleton: forced.localise(
+            cam, region, crease_camera=sk), max(3, repeat // 20))
+        grey = cv2.GaussianBlur(rng.random((side, side)).astype(np.float32), (0, 0), 3.0)
+        grey = cv2.normalize(grey, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+        grad = gradient_magnitude(grey)
+        template = grey[size:2 * size, size:2 * size].copy()
+        ncc, _ = _timeit(lambda t=template, g=grey, gr=grad: ncc_locate(
+            t, g, landmark_gradient=gr), 3)
+        ncc_rot, _ = _timeit(lambda t=template, g=grey, gr=grad: ncc_locate(
+            t, g, n_rotations=36, landmark_gradient=gr), 1)
+        print(f"localise a {size} px block in its {side} px region by the crease search "
+              f"({len(cam)} minutiae, {r.decision.value}, centre error {err:.2f} px): median "
+              f"{med:.1f} ms, min {best:.1f} ms, median CPU {_timeit.cpu_ms:.1f} ms; NCC "
+              f"{ncc:.1f} ms, with 36 rotations {ncc_rot:.0f} ms")
 
 
 def _with_creases(matcher, land, land_skeleton, land_to_cam, cam, repeat):

@@ -136,9 +136,10 @@ def test_too_little_drainage_is_no_decision(region):
 
 
 def test_localisation_by_creases_and_its_size_bounds(region):
-    """A 64 px view with two minutiae is found in a 512 px landmark region by the search; a
-    search beyond ``crease_search_max_work`` (rotations x FFT pixels, which grow with the
-    region's area) is not run, so the minimum-minutiae rule applies there."""
+    """A 64 px view with two minutiae is found in a 512 px landmark region by the search
+    (at the coarse level); a search beyond ``crease_search_max_work`` (rotations x FFT
+    pixels, which grow with the region's area) is not run, so the minimum-minutiae rule
+    applies there."""
     ms, skel = region
     view_ms, view_skel, truth = _turned_view(ms, skel, 330, 90, 12.0, (3.0, -2.0))
     few = view_ms.subset(np.arange(2))
@@ -147,9 +148,37 @@ def test_localisation_by_creases_and_its_size_bounds(region):
     r = matcher.localise(matcher.index(few, view_skel), matcher.index(ms, skel))
     assert r.decision == Decision.MATCH, r.reason
     assert _centre_error(r, truth_in_region) < 1.5
-    bounded = Matcher(crease_search_max_work=1_000_000)
+    bounded = Matcher(crease_search_max_work=500_000)
     r = bounded.localise(bounded.index(few, view_skel), bounded.index(ms, skel))
     assert r.decision == Decision.NO_DECISION and "too few minutiae" in r.reason
+
+
+def test_a_large_search_runs_coarse_and_registers_as_the_fine_one(region):
+    """The view's search in the 512 px region is over the fine level's budget: it runs at
+    the coarse level (an eighth of the work) and the coarse-to-fine ICP pulls its proposals
+    onto the creases, as exactly as the fine search's; both count the fine level's
+    transforms. Against its own block the search stays fine."""
+    from terrain_nav_ros.core.crease_search import COARSE, FINE
+    from terrain_nav_ros.core.matching import _crease_search_registrations, _search_level
+
+    ms, skel = region
+    view_ms, view_skel, truth = _turned_view(ms, skel, 330, 90, -17.0, (4.0, 2.0))
+    truth_in_region = truth + np.array([[0, 0, 330], [0, 0, 90]])
+    few = view_ms.subset(np.arange(2))
+    found = {}
+    for name, matcher in [("default", Matcher()),
+                          ("fine", Matcher(crease_search_fine_work=10**12))]:
+        a, b = matcher.index(few, view_skel), matcher.index(ms, skel)
+        block = matcher.index(crop_set(ms, 330, 90, SIZE, SIZE),
+                              skel[90:90 + SIZE, 330:330 + SIZE])
+        assert _search_level(a, block, matcher.params) == FINE
+        found[name] = (_search_level(a, b, matcher.params),
+                       *_crease_search_registrations(a, b, matcher.params))
+    assert found["default"][0] == COARSE and found["fine"][0] == FINE
+    for level, registrations, _ in found.values():
+        c, t, _ = registrations[0]
+        assert _centre_error((c, t), truth_in_region) < 1.0, level
+    assert found["default"][2] == pytest.approx(found["fine"][2], abs=0.2)
 
 
 def test_crease_covariance_shrinks_with_agreement(region):

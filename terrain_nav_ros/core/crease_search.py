@@ -15,6 +15,10 @@ such transforms by brute force, cheaply, with FFTs:
   pixels over the reference, are the proposals. The matcher then refines each on the creases
   and scores it like any other registration (:mod:`.crease_check`).
 
+The search runs at one of two levels (:class:`SearchLevel`): :data:`FINE` (half the pixel
+resolution, rotations 3 px apart at the query's reach) or :data:`COARSE` (a quarter, 6 px:
+an eighth of the work), whose proposals need the coarse-to-fine ICP to reach the creases.
+
 Geometry in the math frame ``z = col - 1j*row`` of :mod:`.descriptors`; ``z_b = c z_a + t``.
 """
 
@@ -30,6 +34,18 @@ from scipy import fft as sfft
 from .crease_check import CreaseField, CreaseSamples
 
 _CHANNEL_ANGLES = np.arange(4) * (np.pi / 4.0)
+
+
+@dataclass(frozen=True)
+class SearchLevel:
+    """Sampling of a crease search."""
+
+    resolution: float           # search pixels per image pixel
+    rotation_tolerance: float   # image px a rotation step moves the query's reach by
+
+
+FINE = SearchLevel(resolution=0.5, rotation_tolerance=3.0)
+COARSE = SearchLevel(resolution=0.25, rotation_tolerance=6.0)
 
 
 def _channel_weights(direction: np.ndarray) -> np.ndarray:
@@ -205,7 +221,8 @@ class CreaseSearchResult:
 
 def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference,
                       n_best: int = 3, min_inside: float = 0.5,
-                      hit_radius: float = 1.5) -> CreaseSearchResult:
+                      hit_radius: float = 1.5,
+                      distinct_rotations: int | None = None) -> CreaseSearchResult:
     """Transforms A -> B under which most of A's crease pixels fall on B's creases.
 
     Parameters
@@ -222,6 +239,9 @@ def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference
     hit_radius : float
         Position tolerance (px) of a crease hit: translations closer than this are not
         distinguishable, which sets the count of transforms searched.
+    distinct_rotations : int, optional
+        Rotations distinguishable at ``hit_radius`` when the query samples fewer (a coarse
+        search whose proposals are refined): the count of transforms is scaled up to them.
 
     Returns
     -------
@@ -247,6 +267,8 @@ def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference
     searched = inside >= min_inside * query.n
     hits[~searched] = 0.0
     cells = np.count_nonzero(searched) / (scale * scale) / (math.pi * hit_radius * hit_radius)
+    if distinct_rotations:
+        cells *= max(distinct_rotations / n_rot, 1.0)
     log10_transforms = math.log10(max(float(cells), 1.0))
     # candidates from the strongest rotations only (a proposal's neighbours are skipped)
     flat = hits.reshape(n_rot, -1)
