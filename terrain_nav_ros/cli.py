@@ -126,7 +126,8 @@ def _cmd_evaluate(args) -> int:
                                  block_size=args.block_size, sun_change=args.sun_change,
                                  false_match_rate=args.false_match_rate, seed=args.seed,
                                  quick=args.quick, baselines=not args.no_baselines,
-                                 lighting=args.lighting, match_params=params)
+                                 lighting=args.lighting, match_params=params,
+                                 jobs=args.jobs)
     except (ValueError, OSError) as err:
         print(f"terrain-nav evaluate: {err}", file=sys.stderr)
         return 2
@@ -239,6 +240,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the matcher searches rotations within +-DEG only, as in flight "
                          "where frames are north-up within the heading error (default: any "
                          "rotation; the baselines are unchanged)")
+    ev.add_argument("--jobs", type=int, default=1,
+                    help="processes for the block comparisons (same results; the reported "
+                         "compare times are per comparison either way)")
     ev.set_defaults(func=_cmd_evaluate)
     return parser
 

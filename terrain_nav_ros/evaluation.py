@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import json
 import math
+import multiprocessing
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -247,25 +248,48 @@ def _camera_blocks(study: _Study, cam_rgb: np.ndarray, sun, transforms, cm: Came
     return greys, sets, creases, np.array(times)
 
 
-def _compare_all(study: _Study, cam_sets, cam_creases):
-    """Scores, pairings and PVA results of every camera block against every landmark block."""
+def _compare_row(matcher: Matcher, block_index, cam_set, cam_crease):
+    """One camera block against every landmark block: its results and times."""
+    ci = matcher.index(cam_set, cam_crease)
+    results, times = [], []
+    for bj in block_index:
+        t0 = time.perf_counter()
+        results.append(matcher.compare(ci, bj))
+        times.append(time.perf_counter() - t0)
+    return results, times
+
+
+# What forked workers of _compare_all read (set just before the fork: nothing is pickled)
+_FORKED_STUDY = None
+
+
+def _compare_forked_row(i: int):
+    matcher, block_index, cam_sets, cam_creases = _FORKED_STUDY
+    return _compare_row(matcher, block_index, cam_sets[i], cam_creases[i])
+
+
+def _compare_all(study: _Study, cam_sets, cam_creases, jobs: int = 1):
+    """Scores, pairings and PVA results of every camera block against every landmark block,
+    the rows in ``jobs`` forked processes (each comparison is seeded: the same results)."""
+    global _FORKED_STUDY
     n = len(cam_sets)
-    score = np.full((n, n), -np.inf)
-    pairings = np.zeros((n, n), int)
-    undecided = np.zeros((n, n), bool)
-    pva, times = [], []
-    for i, (cs, ck) in enumerate(zip(cam_sets, cam_creases, strict=True)):
-        ci = study.matcher.index(cs, ck)
-        for j, bj in enumerate(study.block_index):
-            t0 = time.perf_counter()
-            r = study.matcher.compare(ci, bj)
-            times.append(time.perf_counter() - t0)
-            score[i, j] = r.score
-            pairings[i, j] = r.n_pairings
-            undecided[i, j] = r.decision == Decision.NO_DECISION
-            if i == j:
-                pva.append(r)
-    return score, pairings, undecided, pva, np.array(times)
+    if jobs > 1 and n > 1:
+        _FORKED_STUDY = (study.matcher, study.block_index, cam_sets, cam_creases)
+        try:
+            with multiprocessing.get_context("fork").Pool(min(jobs, n)) as pool:
+                rows = pool.map(_compare_forked_row, range(n), chunksize=1)
+        finally:
+            _FORKED_STUDY = None
+    else:
+        rows = [_compare_row(study.matcher, study.block_index, cs, ck)
+                for cs, ck in zip(cam_sets, cam_creases, strict=True)]
+    score = np.array([[r.score for r in row] for row, _ in rows], float).reshape(n, n)
+    pairings = np.array([[r.n_pairings for r in row] for row, _ in rows], int).reshape(n, n)
+    undecided = np.array([[r.decision == Decision.NO_DECISION for r in row] for row, _ in rows],
+                         bool).reshape(n, n)
+    pva = [row[i] for i, (row, _) in enumerate(rows)]
+    times = np.array([t for _, row_times in rows for t in row_times])
+    return score, pairings, undecided, pva, times
 
 
 def _calibrate(score: np.ndarray, rate: float, seed: int) -> dict:
@@ -359,11 +383,11 @@ def _localise_cases(study: _Study, cam_greys, cam_sets, cam_creases, cam_times, 
 
 
 def _condition(study, name, cam_rgb, sun, transforms, cm, rate, seed, success_px, methods,
-               n_rotations, gsd, log):
+               n_rotations, gsd, log, jobs=1):
     t_start = time.perf_counter()
     greys, sets, creases, ext_times = _camera_blocks(study, cam_rgb, sun, transforms, cm,
                                                      seed + 17)
-    score, pairings, undecided, pva, cmp_times = _compare_all(study, sets, creases)
+    score, pairings, undecided, pva, cmp_times = _compare_all(study, sets, creases, jobs)
     cal = _calibrate(score, rate, seed)
     thr = cal["threshold"]
     n = len(score)
@@ -413,7 +437,7 @@ def run_evaluation(dem=None, gsd=None, blocks: int = 9, out_dir="out/evaluation"
                    seed: int = 0, quick: bool = False, region_factor: float = 3.0,
                    success_px: float = 2.0, baselines: bool = True,
                    camera: CameraModel | None = None, match_params: MatchParams | None = None,
-                   lighting: str = "shading", log=print) -> dict:
+                   lighting: str = "shading", jobs: int = 1, log=print) -> dict:
     """Run the PVA / non-PVA granularity study with baselines and write its report.
 
     Parameters
@@ -455,6 +479,9 @@ def run_evaluation(dem=None, gsd=None, blocks: int = 9, out_dir="out/evaluation"
         What the extractor sees: the shaded grey image, or the terrain curvature estimated
         from it with the image's own sun (:func:`~.core.hillshade.shading_curvature`; the
         camera's sun is taken as known, as it is in flight from time and place).
+    jobs : int
+        Processes for the N x N comparisons (forked; the results do not depend on it). The
+        localisation and the baselines stay in one process, as their times are reported.
     log : callable
         Progress messages.
 
@@ -471,6 +498,8 @@ def run_evaluation(dem=None, gsd=None, blocks: int = 9, out_dir="out/evaluation"
         raise ValueError(f"blocks must be a square number >= 4, got {blocks}")
     if lighting not in LIGHTINGS:
         raise ValueError(f"lighting must be one of {LIGHTINGS}, got {lighting!r}")
+    if int(jobs) < 1:
+        raise ValueError(f"jobs must be >= 1, got {jobs}")
     cm = camera or CameraModel()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -544,7 +573,7 @@ def run_evaluation(dem=None, gsd=None, blocks: int = 9, out_dir="out/evaluation"
     cv2.setNumThreads(1)   # single-thread times, comparable across methods
     try:
         results = [_condition(study, name, rgb, cam_sun, transforms, cm, false_match_rate,
-                              seed, success_px, methods, n_rot, gsd_m, log)
+                              seed, success_px, methods, n_rot, gsd_m, log, jobs)
                    for (name, cam_sun), rgb in zip(conditions, cam_rgbs, strict=True)]
     finally:
         cv2.setNumThreads(cv_threads)
@@ -559,7 +588,7 @@ def run_evaluation(dem=None, gsd=None, blocks: int = 9, out_dir="out/evaluation"
         "rotation_steps": n_rot, "landmark_counts": [len(b) for b in study.blocks],
         "region_counts": [len(r) for r in study.region_sets],
         "matcher_max_rotation_deg": math.degrees(params.max_rotation),
-        "matcher_crease_check": params.crease_check,
+        "matcher_crease_check": params.crease_check, "jobs": int(jobs),
     }
     pngs = _plots(out, study, results, setup)
     report = _report(setup, study, results, pngs, time.perf_counter() - t_all)

@@ -189,3 +189,25 @@ def test_cli_heading_prior_limits_the_rotation_search(tmp_path, capsys):
     assert "| matcher rotation search | +-15 deg (heading prior" in report
     same = json.loads((out / "results.json").read_text())["conditions"][0]
     assert same["miss_rate"] <= 1 / 9 and same["non_pva_accepted"] == 0
+
+
+def test_comparisons_in_several_processes_give_the_same_study(tmp_path):
+    """`--jobs 2` forks the N x N comparisons: every score, pairing count and PVA fix is the
+    one-process study's."""
+    pytest.importorskip("moderngl")
+    from terrain_nav_ros.core.renderer import EGLUnavailableError
+
+    kwargs = dict(block_size=128, quick=True, seed=1, camera=_CLEAN, baselines=False,
+                  log=lambda *a: None)
+    try:
+        one = run_evaluation(None, "x2", 9, tmp_path / "one", **kwargs)
+    except EGLUnavailableError as err:
+        pytest.skip(f"no headless GL: {err}")
+    two = run_evaluation(None, "x2", 9, tmp_path / "two", jobs=2, **kwargs)
+    a, b = one["conditions"][0], two["conditions"][0]
+    assert np.array_equal(np.array(a["score_matrix"]), np.array(b["score_matrix"]))
+    assert a["pva_missed_zero_fa"] == b["pva_missed_zero_fa"]
+    assert np.array_equal(a["fix_err_px"], b["fix_err_px"], equal_nan=True)
+    assert two["setup"]["jobs"] == 2
+    with pytest.raises(ValueError, match="jobs"):
+        run_evaluation(None, "x2", 9, tmp_path / "bad", jobs=0, **kwargs)
