@@ -179,10 +179,10 @@ class MatchParams:
         per side): the rotations searched grow with its size.
     crease_search_max_work : int
         ... or when the rotations times the padded FFT pixels of the search exceed this: its
-        time and memory (~16 bytes each) grow with both. The default, ~0.5 s and 200 MB,
-        lets blocks of up to ~120 px be searched in their 3x localisation regions, and any
-        block of up to 160 px against a block; a camera frame in a landmark region never
-        is.
+        time and memory (~16 bytes each) grow with both; it bounds the level the search
+        runs at (``crease_search_fine_work``). The default, ~0.5 s and 200 MB, lets any
+        block of up to 160 px be searched, against a block or (at the coarse level) in its
+        3x localisation region; a camera frame in a landmark region never is.
     crease_search_proposals : int
         Transforms the search proposes (twice as many at the coarse level).
     crease_search_fine_work : int
