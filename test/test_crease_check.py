@@ -177,8 +177,9 @@ def test_field_nearest_crease_pixel_agrees_with_an_exact_transform(region):
     assert np.array_equal(field.distance <= 1.5, near)   # the hit radius sees the same pixels
     assert np.all(np.abs(field.distance - exact) <= 0.03 * exact + 1e-6)
     # the nearest crease pixel it names is a crease pixel at the exact nearest distance
-    rows, cols = field.nearest
-    assert skel[rows, cols].all()
+    z = field.crease_z[field.label]
+    rows, cols = -z.imag, z.real
+    assert skel[rows.astype(int), cols.astype(int)].all()
     named = np.hypot(rows - np.arange(200)[:, None], cols - np.arange(300)[None, :])
     assert np.all(named <= exact + 0.05 * exact + 1e-6)
 

@@ -346,8 +346,8 @@ def crease_matches(z, direction, distance, field_dir, radius, angle_tol):
 
 
 @njit(**_JIT)
-def crease_icp(z, direction, distance, field_dir, near_row, near_col, c, t, radius,
-               angle_tol, iterations, min_matches):
+def crease_icp(z, direction, distance, field_dir, label, crease_z, crease_normal, c, t,
+               radius, angle_tol, iterations, min_matches):
     """``crease_check.refine_on_creases`` in one pass per iteration: the correspondences,
     the 3x3 normal equations (accumulated, not from the (m, 3) Jacobian) and their solve
     (Cramer's rule). Sums in another order than numpy's: agrees to rounding."""
@@ -366,11 +366,10 @@ def crease_icp(z, direction, distance, field_dir, near_row, near_col, c, t, radi
                             angle_tol)
             if f >= 0:
                 ri = f // w
-                ci = f - ri * w
+                nearest = label[ri, f - ri * w]
                 p[m] = pi
-                q[m] = complex(near_col[ri, ci], -near_row[ri, ci])
-                d = np.float64(field_dir[ri, ci])
-                normal[m] = complex(-np.sin(d), np.cos(d))
+                q[m] = crease_z[nearest]
+                normal[m] = crease_normal[nearest]
                 centroid += pi
                 m += 1
         if m < min_matches:

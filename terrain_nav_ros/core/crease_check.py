@@ -101,7 +101,7 @@ class CreaseField:
         sk = _skeleton(crease)
         self.shape = sk.shape
         self.n = int(sk.sum())
-        self.nearest = None   # (row, col) of the nearest crease pixel, everywhere
+        self.label = None   # index of the nearest crease pixel (raster order), everywhere
         if self.n:
             # OpenCV's labelled distance transform (5x5 mask: exact at 0, 1, sqrt 2, 2 px,
             # within 2 % beyond) is ~10x faster than an exact one with indices: a 2048^2
@@ -112,12 +112,18 @@ class CreaseField:
                 labelType=cv2.DIST_LABEL_PIXEL)
             rows, cols = np.nonzero(sk)
             label -= 1
+            crease_direction = crease_directions(sk)[rows, cols]
             self.distance = dist
-            self.direction = crease_directions(sk)[rows, cols][label]
-            self.nearest = (rows.astype(np.int32)[label], cols.astype(np.int32)[label])
+            self.direction = crease_direction[label]
+            self.label = label
+            # per crease pixel, for the ICP's correspondences: its position (math frame)
+            # and unit normal (sin and cos once per pixel, not once per correspondence)
+            self.crease_z = to_complex(cols, rows)
+            self.crease_normal = 1j * np.exp(1j * crease_direction.astype(float))
         else:
             self.distance = np.full(sk.shape, np.inf, np.float32)
             self.direction = np.zeros(sk.shape, np.float32)
+            self.crease_z = self.crease_normal = np.zeros(0, complex)
 
     def _lookup(self, z: np.ndarray, direction: np.ndarray):
         """Inside mask, pixel (row, col) and axial direction difference of mapped samples."""
@@ -146,9 +152,8 @@ class CreaseField:
             inside, ri, ci, dang = self._lookup(z, direction)
             ok = (self.distance[ri, ci] <= radius) & (dang <= angle_tol)
             idx, ri, ci = np.flatnonzero(inside)[ok], ri[ok], ci[ok]
-        q = to_complex(self.nearest[1][ri, ci], self.nearest[0][ri, ci])
-        normal = 1j * np.exp(1j * self.direction[ri, ci].astype(float))
-        return idx, q, normal
+        nearest = self.label[ri, ci]
+        return idx, self.crease_z[nearest], self.crease_normal[nearest]
 
 
 @dataclass(frozen=True)
@@ -247,7 +252,8 @@ def refine_on_creases(samples: CreaseSamples, field: CreaseField, c: complex, t:
         return c, t
     if _kernels.HAVE_NUMBA:
         return _kernels.crease_icp(samples.z, samples.direction, field.distance,
-                                   field.direction, *field.nearest, complex(c), complex(t),
+                                   field.direction, field.label, field.crease_z,
+                                   field.crease_normal, complex(c), complex(t),
                                    radius, angle_tol, iterations, min_matches)
     for _ in range(iterations):
         idx, q, normal = field.correspondences(c * samples.z + t,
