@@ -115,6 +115,8 @@ def _cmd_evaluate(args) -> int:
     params = MatchParams()
     if args.no_creases:
         params = MatchParams(crease_check=False, crease_descriptor=False)
+    if args.no_ridges:
+        params = replace(params, ridge_check=False)
     if args.heading_prior is not None:
         if not 0.0 < args.heading_prior <= 180.0:
             print("terrain-nav evaluate: --heading-prior must be in (0, 180] deg",
@@ -236,6 +238,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--no-creases", dest="no_creases", action="store_true",
                     help="match on minutiae alone, as the dissertation (no crease check, no "
                          "crease descriptor)")
+    ev.add_argument("--no-ridges", dest="no_ridges", action="store_true",
+                    help="no ridge check: small blocks are scored on their valleys alone")
     ev.add_argument("--heading-prior", dest="heading_prior", type=float, metavar="DEG",
                     help="the matcher searches rotations within +-DEG only, as in flight "
                          "where frames are north-up within the heading error (default: any "

@@ -45,6 +45,7 @@ import multiprocessing
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -62,6 +63,7 @@ from .core.georef import GeoReference
 from .core.hillshade import LIGHTINGS, extractor_input
 from .core.matching import Decision, Matcher, MatchParams, calibrate_threshold
 from .core.metamap import MetaMap
+from .core.minutia_set import MinutiaSet
 from .core.minutiae import FeatureExtractor, MinutiaParams
 
 __all__ = ["CameraModel", "run_evaluation", "parse_gsd", "score_bins_table"]
@@ -193,6 +195,14 @@ def _bin_label(a, b) -> str:
 
 
 # --------------------------------------------------------------------------- the study
+class _Extracted(NamedTuple):
+    """What the matcher needs of one image: ``Matcher.index(*extracted)``."""
+
+    minutiae: MinutiaSet
+    creases: np.ndarray | None
+    ridges: np.ndarray | None
+
+
 class _Study:
     """State shared by both camera conditions (landmark side, cases, matchers)."""
 
@@ -208,49 +218,43 @@ class _Study:
         rm = int(round(0.5 * (region_factor - 1.0) * bs))
         self.regions = [(max(x - rm, 0), max(y - rm, 0), min(x + bs + rm, side),
                          min(y + bs + rm, side)) for x, y in self.origins]
-        self.blocks, self.block_creases = zip(*[
-            self.minutiae(area_grey[y:y + bs, x:x + bs], sun) for x, y in self.origins],
-            strict=True)
-        self.block_index = [matcher.index(b, k)
-                            for b, k in zip(self.blocks, self.block_creases, strict=True)]
-        self.region_sets, self.region_creases, self.region_prep = [], [], []
+        self.blocks = [self.minutiae(area_grey[y:y + bs, x:x + bs], sun)
+                       for x, y in self.origins]
+        self.block_index = [matcher.index(*b) for b in self.blocks]
+        self.region_sets, self.region_prep = [], []
         for x0, y0, x1, y1 in self.regions:
             t0 = time.perf_counter()
-            ms, creases = self.minutiae(area_grey[y0:y1, x0:x1], sun, region=True)
+            self.region_sets.append(self.minutiae(area_grey[y0:y1, x0:x1], sun, region=True))
             self.region_prep.append(time.perf_counter() - t0)
-            self.region_sets.append(ms)
-            self.region_creases.append(creases)
 
-    def minutiae(self, grey: np.ndarray, sun, region: bool = False):
-        """Minutiae and crease skeleton (None without creases) of a grey image lit by
-        ``sun``, after the study's lighting treatment."""
+    def minutiae(self, grey: np.ndarray, sun, region: bool = False) -> _Extracted:
+        """Minutiae, crease and ridge skeletons (None without creases) of a grey image lit
+        by ``sun``, after the study's lighting treatment."""
         feats = (self.fx_region if region else self.fx)(
             extractor_input(grey, self.lighting, sun))
-        return feats.minutiae, feats.creases.skeleton()
+        return _Extracted(feats.minutiae, feats.creases.skeleton(), feats.ridges)
 
 
 def _camera_blocks(study: _Study, cam_rgb: np.ndarray, sun, transforms, cm: CameraModel,
                    seed: int):
-    """Degraded camera views of every block, their minutiae and extraction times."""
+    """Degraded camera views of every block, their extractions and extraction times."""
     rng = np.random.default_rng(seed)
     bs = study.bs
     dist = np.full((bs, bs), cm.distance_m, np.float32)
-    greys, sets, creases, times = [], [], [], []
+    greys, cams, times = [], [], []
     for m in transforms:
         view = _warp_block(cam_rgb, m, bs)
         grey = _grey(apply_camera_effects(view, dist, cm.effects, rng))
         t0 = time.perf_counter()
-        ms, skeleton = study.minutiae(grey, sun)
+        cams.append(study.minutiae(grey, sun))
         times.append(time.perf_counter() - t0)
-        sets.append(ms)
-        creases.append(skeleton)
         greys.append(grey)
-    return greys, sets, creases, np.array(times)
+    return greys, cams, np.array(times)
 
 
-def _compare_row(matcher: Matcher, block_index, cam_set, cam_crease):
+def _compare_row(matcher: Matcher, block_index, cam: _Extracted):
     """One camera block against every landmark block: its results and times."""
-    ci = matcher.index(cam_set, cam_crease)
+    ci = matcher.index(*cam)
     results, times = [], []
     for bj in block_index:
         t0 = time.perf_counter()
@@ -264,25 +268,24 @@ _FORKED_STUDY = None
 
 
 def _compare_forked_row(i: int):
-    matcher, block_index, cam_sets, cam_creases = _FORKED_STUDY
-    return _compare_row(matcher, block_index, cam_sets[i], cam_creases[i])
+    matcher, block_index, cams = _FORKED_STUDY
+    return _compare_row(matcher, block_index, cams[i])
 
 
-def _compare_all(study: _Study, cam_sets, cam_creases, jobs: int = 1):
+def _compare_all(study: _Study, cams: list[_Extracted], jobs: int = 1):
     """Scores, pairings and PVA results of every camera block against every landmark block,
     the rows in ``jobs`` forked processes (each comparison is seeded: the same results)."""
     global _FORKED_STUDY
-    n = len(cam_sets)
+    n = len(cams)
     if jobs > 1 and n > 1:
-        _FORKED_STUDY = (study.matcher, study.block_index, cam_sets, cam_creases)
+        _FORKED_STUDY = (study.matcher, study.block_index, cams)
         try:
             with multiprocessing.get_context("fork").Pool(min(jobs, n)) as pool:
                 rows = pool.map(_compare_forked_row, range(n), chunksize=1)
         finally:
             _FORKED_STUDY = None
     else:
-        rows = [_compare_row(study.matcher, study.block_index, cs, ck)
-                for cs, ck in zip(cam_sets, cam_creases, strict=True)]
+        rows = [_compare_row(study.matcher, study.block_index, cam) for cam in cams]
     score = np.array([[r.score for r in row] for row, _ in rows], float).reshape(n, n)
     pairings = np.array([[r.n_pairings for r in row] for row, _ in rows], int).reshape(n, n)
     undecided = np.array([[r.decision == Decision.NO_DECISION for r in row] for row, _ in rows],
@@ -313,7 +316,7 @@ def _calibrate(score: np.ndarray, rate: float, seed: int) -> dict:
     return out
 
 
-def _localise_cases(study: _Study, cam_greys, cam_sets, cam_creases, cam_times, truths,
+def _localise_cases(study: _Study, cam_greys, cams: list[_Extracted], cam_times, truths,
                     threshold, success_px, methods, n_rotations):
     """Locate every camera block inside its landmark region with each method."""
     bs = study.bs
@@ -330,10 +333,10 @@ def _localise_cases(study: _Study, cam_greys, cam_sets, cam_creases, cam_times, 
             rec = rows[method]
             if method == "minutiae":
                 t0 = time.perf_counter()
-                ri = matcher.index(study.region_sets[k], study.region_creases[k])
+                ri = matcher.index(*study.region_sets[k])
                 prep = study.region_prep[k] + time.perf_counter() - t0
                 t0 = time.perf_counter()
-                r = matcher.localise(cam_sets[k], ri, crease_camera=cam_creases[k])
+                r = matcher.localise(matcher.index(*cams[k]), ri)
                 dt = time.perf_counter() - t0 + cam_times[k]
                 accepted = r.decision == Decision.MATCH
                 est = r.apply(c, c) if np.isfinite(r.transform).all() else (math.nan, math.nan)
@@ -385,9 +388,9 @@ def _localise_cases(study: _Study, cam_greys, cam_sets, cam_creases, cam_times, 
 def _condition(study, name, cam_rgb, sun, transforms, cm, rate, seed, success_px, methods,
                n_rotations, gsd, log, jobs=1):
     t_start = time.perf_counter()
-    greys, sets, creases, ext_times = _camera_blocks(study, cam_rgb, sun, transforms, cm,
+    greys, cams, ext_times = _camera_blocks(study, cam_rgb, sun, transforms, cm,
                                                      seed + 17)
-    score, pairings, undecided, pva, cmp_times = _compare_all(study, sets, creases, jobs)
+    score, pairings, undecided, pva, cmp_times = _compare_all(study, cams, jobs)
     cal = _calibrate(score, rate, seed)
     thr = cal["threshold"]
     n = len(score)
@@ -407,7 +410,7 @@ def _condition(study, name, cam_rgb, sun, transforms, cm, rate, seed, success_px
     fix_err = np.array(fix_err)
     log(f"  [{name}] {n} blocks compared ({n * n} pairs), threshold {thr:.2f}; "
         f"misses {len(missed)}; localising")
-    loc = _localise_cases(study, greys, sets, creases, ext_times, transforms, thr,
+    loc = _localise_cases(study, greys, cams, ext_times, transforms, thr,
                           success_px, methods, n_rotations)
     med, p95 = _percentiles(fix_err)
     return {
@@ -424,7 +427,7 @@ def _condition(study, name, cam_rgb, sun, transforms, cm, rate, seed, success_px
         "pva_missed_zero_fa": int((diag <= np.max(score[off])).sum()) if n > 1 else 0,
         "fix_err_px": fix_err, "fix_err_median_px": med, "fix_err_p95_px": p95,
         "fix_err_median_m": med * gsd, "fix_err_p95_m": p95 * gsd,
-        "camera_counts": np.array([len(s) for s in sets]),
+        "camera_counts": np.array([len(c.minutiae) for c in cams]),
         "extract_ms_median": 1e3 * float(np.median(ext_times)),
         "compare_ms_median": 1e3 * float(np.median(cmp_times)),
         "localisation": loc, "greys": greys, "seconds": time.perf_counter() - t_start,
@@ -545,8 +548,10 @@ def run_evaluation(dem=None, gsd=None, blocks: int = 9, out_dir="out/evaluation"
     renderer.release()
 
     params = replace(match_params or MatchParams(), threshold=-1e9)   # collect every score
-    fx = FeatureExtractor()
-    fx_region = FeatureExtractor(minutia_params=MinutiaParams(max_minutiae=100000))
+    # ridges for the matcher's ridge check of small blocks (cheap: the valleys' creaseness)
+    fx = FeatureExtractor(ridges=params.ridge_check)
+    fx_region = FeatureExtractor(minutia_params=MinutiaParams(max_minutiae=100000),
+                                 ridges=params.ridge_check)
     study = _Study(n, bs, margin, area_grey, fx, fx_region, Matcher(params), region_factor,
                    tuple(sun), lighting)
 
@@ -585,10 +590,12 @@ def run_evaluation(dem=None, gsd=None, blocks: int = 9, out_dir="out/evaluation"
         "conditions": {name: list(s) for name, s in conditions},
         "camera": asdict(cm), "false_match_rate": false_match_rate, "seed": seed,
         "region_factor": region_factor, "success_px": success_px, "methods": methods,
-        "rotation_steps": n_rot, "landmark_counts": [len(b) for b in study.blocks],
-        "region_counts": [len(r) for r in study.region_sets],
+        "rotation_steps": n_rot, "landmark_counts": [len(b.minutiae) for b in study.blocks],
+        "region_counts": [len(r.minutiae) for r in study.region_sets],
         "matcher_max_rotation_deg": math.degrees(params.max_rotation),
-        "matcher_crease_check": params.crease_check, "jobs": int(jobs),
+        "matcher_crease_check": params.crease_check,
+        "matcher_ridge_check": params.crease_check and params.ridge_check,
+        "matcher_ridge_check_below": params.ridge_check_below, "jobs": int(jobs),
     }
     pngs = _plots(out, study, results, setup)
     report = _report(setup, study, results, pngs, time.perf_counter() - t_all)
@@ -732,6 +739,9 @@ def _report(setup, study, results, pngs, seconds) -> str:
         "| crease check | " + ("on: crease skeletons score and refine each registration"
                                if setup["matcher_crease_check"]
                                else "off: minutiae alone (the dissertation)") + " |",
+        "| ridge check | " + (f"on below {setup['matcher_ridge_check_below']} minutiae: ridge "
+                               "skeletons score each registration too"
+                               if setup["matcher_ridge_check"] else "off") + " |",
         f"| seed | {setup['seed']} |", "",
     ]
     lines += ["## Match results (PVA = same place, non-PVA = different places)", "",
@@ -810,7 +820,7 @@ def _block_table(study: _Study, r: dict) -> str:
         row = np.delete(s[i], i)
         best = float(np.max(row)) if len(row) else math.nan
         res = "match" if s[i, i] >= r["threshold"] else "MISS"
-        lines.append(f"| {i} | {len(study.blocks[i])} | {r['camera_counts'][i]} | "
+        lines.append(f"| {i} | {len(study.blocks[i].minutiae)} | {r['camera_counts'][i]} | "
                      f"{_fmt(s[i, i])} | {r['pairings'][i, i]} | {_fmt(best)} | "
                      f"{_fmt(r['fix_err_px'][i])} | {res} |")
     return "\n".join(lines) + "\n"

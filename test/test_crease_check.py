@@ -137,6 +137,26 @@ def test_refinement_brings_the_creases_together(region):
     assert refine_on_creases(samples, empty, c0, t0) == (c0, t0)
 
 
+def test_ridges_fix_the_shift_that_parallel_valleys_leave_free():
+    """Valleys that all run East-West cannot say where along them the block lies (the ICP
+    solve is singular and leaves the transform alone); ridges running North-South beside
+    them fix it."""
+    valleys = np.zeros((128, 128), np.uint8)
+    ridges = np.zeros((128, 128), np.uint8)
+    for k in range(12, 128, 20):
+        cv2.line(valleys, (0, k), (127, k), 1, 1)
+        cv2.line(ridges, (k + 3, 0), (k + 3 + k // 10, 127), 1, 1)   # not quite parallel
+    window = (slice(30, 94), slice(30, 94))   # block px (col, row) -> (col + 30, row + 30)
+    samples, field = CreaseSamples.from_image(valleys[window]), CreaseField(valleys)
+    ridge_channel = (CreaseSamples.from_image(ridges[window]), CreaseField(ridges))
+    t_true = 30 - 30j
+    start = t_true + (2.0 - 1.5j)
+    c, t = refine_on_creases(samples, field, 1 + 0j, start)
+    assert abs(t - t_true) > 2.0
+    c, t = refine_on_creases(samples, field, 1 + 0j, start, ridges=ridge_channel)
+    assert abs(t - t_true) < 0.2 and abs(np.angle(c)) < 0.01
+
+
 def test_with_creases_a_few_minutiae_are_enough_to_decide(region):
     ms, skel = region
     x0, y0, size, dx, dy = 200, 180, 64, 7, -5
@@ -184,7 +204,7 @@ def test_field_nearest_crease_pixel_agrees_with_an_exact_transform(region):
     assert np.all(named <= exact + 0.05 * exact + 1e-6)
 
 
-def test_numba_kernels_agree_with_the_numpy_path(region, monkeypatch):
+def test_numba_kernels_agree_with_the_numpy_path(region, other_region, monkeypatch):
     """The fused crease kernels count the same hits and move the transform as the numpy
     path does (the ICP's sums run in another order: equal to rounding)."""
     from terrain_nav_ros.core import _matching_kernels
@@ -195,6 +215,8 @@ def test_numba_kernels_agree_with_the_numpy_path(region, monkeypatch):
     samples = CreaseSamples.from_image(skel[150:278, 160:288])
     field = CreaseField(skel[100:356, 100:356])
     skip = np.concatenate(samples.around(samples.z[::40], 4.0))
+    ridges = (CreaseSamples.from_image(other_region[1][150:278, 160:288]),
+              CreaseField(other_region[1][100:356, 100:356]))
     starts = [(1 + 0j, 60 - 50j), (np.exp(0.02j), 61.5 - 48.8j), (np.exp(2j), 10 - 200j),
               (-1j, 300 + 30j)]                 # true, near, unrelated, mostly outside
 
@@ -204,6 +226,7 @@ def test_numba_kernels_agree_with_the_numpy_path(region, monkeypatch):
             out.append((crease_evidence(samples, field, c, t),
                         crease_evidence(samples, field, c, t, skip=skip),
                         refine_on_creases(samples, field, c, t),
+                        refine_on_creases(samples, field, c, t, ridges=ridges),
                         field.correspondences(c * samples.z + t, samples.direction, 1.5,
                                               0.35)))
         return out
@@ -213,10 +236,12 @@ def test_numba_kernels_agree_with_the_numpy_path(region, monkeypatch):
     slow = run()
     for f, s in zip(fast, slow, strict=True):
         assert f[0] == s[0] and f[1] == s[1]
-        assert abs(f[2][0] - s[2][0]) < 1e-12 and abs(f[2][1] - s[2][1]) < 1e-9
-        for got, want in zip(f[3], s[3], strict=True):
+        for k in (2, 3):
+            assert abs(f[k][0] - s[k][0]) < 1e-12 and abs(f[k][1] - s[k][1]) < 1e-9
+        for got, want in zip(f[4], s[4], strict=True):
             np.testing.assert_array_equal(got, want)
     assert fast[0][0].score > 20 and fast[1][2] != starts[1]   # the cases do something
+    assert fast[1][3] != fast[1][2]                              # and the ridges pull too
 
 
 def test_coarse_to_fine_icp_pulls_in_what_the_fine_one_cannot(region):
@@ -237,3 +262,35 @@ def test_coarse_to_fine_icp_pulls_in_what_the_fine_one_cannot(region):
         for radius in MatchParams().crease_rescue_radii:
             c, t = refine_on_creases(samples, field, c, t, radius=radius)
         assert abs(c * centre + t - (centre + 60 - 50j)) < 0.1
+
+
+def test_ridge_check_adds_the_ridges_agreement(region, other_region):
+    """A 96 px block with ridge skeletons: the ridges' agreement at the registration adds
+    to the score where they are the same place's, and nothing where they are not."""
+    ms, skel = region
+    ridges = other_region[1]       # any other line pattern serves as the ridges here
+    x0, y0, size, dx, dy = 200, 180, 96, 7, -5
+
+    def window(image, x, y):
+        return image[y:y + size, x:x + size]
+
+    a = crop_set(ms, x0, y0, size, size)
+    b = crop_set(ms, x0 + dx, y0 + dy, size, size)
+    matcher = Matcher()
+    b_index = matcher.index(b, window(skel, x0 + dx, y0 + dy), window(ridges, x0 + dx, y0 + dy))
+    valleys = matcher.compare(matcher.index(a, window(skel, x0, y0)), b_index)
+    same = matcher.compare(matcher.index(a, window(skel, x0, y0), window(ridges, x0, y0)),
+                           b_index)
+    assert valleys.ridges is None
+    assert same.ridges is not None and same.ridges.fraction > 0.8
+    assert same.score == pytest.approx(valleys.score + same.ridges.score)
+    assert same.ridges.score > 10
+    elsewhere = matcher.compare(
+        matcher.index(a, window(skel, x0, y0), window(ridges, x0 + 150, y0 + 120)), b_index)
+    assert elsewhere.ridges.score < 2
+    assert elsewhere.score < valleys.score + 2
+    for off in (Matcher(ridge_check=False), Matcher(ridge_check_below=0)):
+        r = off.compare(off.index(a, window(skel, x0, y0), window(ridges, x0, y0)),
+                        off.index(b, window(skel, x0 + dx, y0 + dy),
+                                  window(ridges, x0 + dx, y0 + dy)))
+        assert r.ridges is None and r.score == pytest.approx(valleys.score)

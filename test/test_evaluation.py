@@ -56,6 +56,7 @@ def test_outputs_written(study):
     assert summary["setup"]["blocks"] == 9
     assert "| matcher rotation search | any rotation |" in report
     assert "| crease check | on: " in report
+    assert "| ridge check | on below 64 minutiae" in report
 
 
 def test_pva_scores_exceed_non_pva(study):
@@ -173,7 +174,8 @@ def test_wider_try_recovers_the_blocks_a_changed_sun_hides(tmp_path, shared_data
 
 def test_cli_heading_prior_limits_the_rotation_search(tmp_path, capsys):
     """`terrain-nav evaluate --heading-prior 15`: the matcher searches +-15 degrees (the
-    study's camera blocks turn by up to 10), and the report says so."""
+    study's camera blocks turn by up to 10), and the report says so (and that
+    `--no-ridges` turned the ridge check off)."""
     pytest.importorskip("moderngl")
     from terrain_nav_ros import cli
 
@@ -181,12 +183,14 @@ def test_cli_heading_prior_limits_the_rotation_search(tmp_path, capsys):
     assert "--heading-prior" in capsys.readouterr().err
     out = tmp_path / "prior"
     code = cli.main(["evaluate", "--gsd", "x2", "--blocks", "9", "--block-size", "128",
-                     "--quick", "--no-baselines", "--heading-prior", "15", "--out", str(out)])
+                     "--quick", "--no-baselines", "--heading-prior", "15", "--no-ridges",
+                     "--out", str(out)])
     if code != 0 and "EGL" in capsys.readouterr().err:
         pytest.skip("no headless GL")
     assert code == 0
     report = (out / "report.md").read_text()
     assert "| matcher rotation search | +-15 deg (heading prior" in report
+    assert "| ridge check | off |" in report
     same = json.loads((out / "results.json").read_text())["conditions"][0]
     assert same["miss_rate"] <= 1 / 9 and same["non_pva_accepted"] == 0
 

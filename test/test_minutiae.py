@@ -8,6 +8,7 @@ from terrain_nav_ros.core.georef import GeoReference
 from terrain_nav_ros.core.hillshade import hillshade
 from terrain_nav_ros.core.minutia_set import BIFURCATION, ENDING
 from terrain_nav_ros.core.minutiae import (
+    FeatureExtractor,
     MinutiaParams,
     crossing_number,
     extract_features,
@@ -253,6 +254,26 @@ def test_ridge_polarity_finds_bright_creases():
     ms = extract_minutiae(bright, crease_params=CreaseParams(polarity="ridge"))
     assert (ms.kind == BIFURCATION).sum() == 1 and (ms.kind == ENDING).sum() == 3
     assert ms.extras["ridge"].all()
+
+
+def test_ridges_on_request_come_from_the_bright_creases_and_give_no_minutiae():
+    """A Y of valleys beside a straight ridge: ``ridges=True`` returns the ridge skeleton
+    (along the ridge, and along the valleys' shoulders), apart from the valleys; the minutiae
+    are the valleys' as without it."""
+    img = valley_image(Y_SEGMENTS).astype(float)
+    rows, cols = np.mgrid[0:N, 0:N]
+    img += 120.0 * np.exp(-((cols - 40) ** 2) / (2 * 3.0 ** 2)) * ((rows > 120) & (rows < 230))
+    img = np.clip(img, 0, 255).astype(np.uint8)
+    plain = FeatureExtractor()(img)
+    feats = FeatureExtractor(ridges=True)(img)
+    assert plain.ridges is None
+    r_rows, r_cols = np.nonzero(feats.ridges)
+    on_ridge = (np.abs(r_cols - 40) <= 2) & (r_rows > 120) & (r_rows < 230)
+    assert on_ridge.sum() > 80
+    assert not (feats.ridges & feats.creases.skeleton()).any()
+    assert np.array_equal(feats.minutiae.col, plain.minutiae.col)
+    assert not feats.minutiae.extras["ridge"].any()
+    assert "ridges" in feats.timings
 
 
 # --------------------------------------------------------------------------- real DEMs

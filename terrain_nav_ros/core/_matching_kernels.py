@@ -346,32 +346,48 @@ def crease_matches(z, direction, distance, field_dir, radius, angle_tol):
 
 
 @njit(**_JIT)
-def crease_icp(z, direction, distance, field_dir, label, crease_z, crease_normal, c, t,
-               radius, angle_tol, iterations, min_matches):
-    """``crease_check.refine_on_creases`` in one pass per iteration: the correspondences,
-    the 3x3 normal equations (accumulated, not from the (m, 3) Jacobian) and their solve
-    (Cramer's rule). Sums in another order than numpy's: agrees to rounding."""
-    n = z.size
+def _icp_correspondences(z, direction, distance, field_dir, label, crease_z, crease_normal,
+                         c, t, turn_now, radius, angle_tol, p, q, normal, m):
+    """Append one channel's correspondences at ``c z + t`` to ``p``, ``q``, ``normal`` from
+    position ``m``: the new count and the sum of the mapped points appended."""
     w = distance.shape[1]
+    total = 0j
+    for i in range(z.size):
+        pi = c * z[i] + t
+        f = _field_test(pi, direction[i] + turn_now, distance, field_dir, radius, angle_tol)
+        if f >= 0:
+            ri = f // w
+            nearest = label[ri, f - ri * w]
+            p[m] = pi
+            q[m] = crease_z[nearest]
+            normal[m] = crease_normal[nearest]
+            total += pi
+            m += 1
+    return m, total
+
+
+@njit(**_JIT)
+def crease_icp(z, direction, distance, field_dir, label, crease_z, crease_normal,
+               z2, direction2, distance2, field_dir2, label2, crease_z2, crease_normal2,
+               c, t, radius, angle_tol, iterations, min_matches):
+    """``crease_check.refine_on_creases`` in one pass per iteration: the correspondences of
+    both channels (the second, e.g. the ridges, may have no samples), the 3x3 normal
+    equations (accumulated, not from the (m, 3) Jacobian) and their solve (Cramer's rule).
+    Sums in another order than numpy's: agrees to rounding."""
+    n = z.size + z2.size
     p = np.empty(n, np.complex128)
     q = np.empty(n, np.complex128)
     normal = np.empty(n, np.complex128)
     for _ in range(iterations):
         turn_now = np.arctan2(c.imag, c.real)
-        m = 0
-        centroid = 0j
-        for i in range(n):
-            pi = c * z[i] + t
-            f = _field_test(pi, direction[i] + turn_now, distance, field_dir, radius,
-                            angle_tol)
-            if f >= 0:
-                ri = f // w
-                nearest = label[ri, f - ri * w]
-                p[m] = pi
-                q[m] = crease_z[nearest]
-                normal[m] = crease_normal[nearest]
-                centroid += pi
-                m += 1
+        m, centroid = _icp_correspondences(z, direction, distance, field_dir, label,
+                                           crease_z, crease_normal, c, t, turn_now, radius,
+                                           angle_tol, p, q, normal, 0)
+        if z2.size:
+            m, more = _icp_correspondences(z2, direction2, distance2, field_dir2, label2,
+                                           crease_z2, crease_normal2, c, t, turn_now,
+                                           radius, angle_tol, p, q, normal, m)
+            centroid += more
         if m < min_matches:
             break
         p0 = centroid / m

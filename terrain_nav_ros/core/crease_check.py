@@ -239,29 +239,37 @@ def _hit_counts(field: CreaseField, samples: CreaseSamples, keep, c, t, radius, 
 
 def refine_on_creases(samples: CreaseSamples, field: CreaseField, c: complex, t: complex, *,
                       radius: float = 3.0, angle_tol: float = math.radians(20.0),
-                      iterations: int = 4, min_matches: int = 20) -> tuple[complex, complex]:
+                      iterations: int = 4, min_matches: int = 20,
+                      ridges: tuple[CreaseSamples, CreaseField] | None = None,
+                      ) -> tuple[complex, complex]:
     """Rotation and translation that bring A's creases onto B's (point-to-line ICP).
 
     Each iteration pairs the mapped crease pixels of A with B's nearest crease pixel (within
     ``radius`` and ``angle_tol``) and solves the linearised least squares for a small
     rotation about their centroid and a shift that minimise the distances *across* B's
-    creases (along a crease a pixel carries no position information). Returns the input
-    transform when fewer than ``min_matches`` pixels pair.
+    creases (along a crease a pixel carries no position information). ``ridges``, A's
+    ridge samples and B's ridge field, add their own correspondences to the same solve (a
+    ridge only pairs with a ridge). Returns the input transform when fewer than
+    ``min_matches`` pixels pair.
     """
     if len(samples) == 0 or field.n == 0:
         return c, t
+    channels = [(samples, field)]
+    if ridges is not None and len(ridges[0]) and ridges[1].n:
+        channels.append(ridges)
     if _kernels.HAVE_NUMBA:
-        return _kernels.crease_icp(samples.z, samples.direction, field.distance,
-                                   field.direction, field.label, field.crease_z,
-                                   field.crease_normal, complex(c), complex(t),
-                                   radius, angle_tol, iterations, min_matches)
+        second = channels[1] if len(channels) > 1 else (_NO_SAMPLES, field)
+        return _kernels.crease_icp(*_icp_arrays(*channels[0]), *_icp_arrays(*second),
+                                   complex(c), complex(t), radius, angle_tol, iterations,
+                                   min_matches)
     for _ in range(iterations):
-        idx, q, normal = field.correspondences(c * samples.z + t,
-                                               samples.direction + np.angle(c), radius,
-                                               angle_tol)
-        if len(idx) < min_matches:
+        matched = [f.correspondences(c * s.z + t, s.direction + np.angle(c), radius,
+                                     angle_tol) + (s,) for s, f in channels]
+        if sum(len(idx) for idx, *_ in matched) < min_matches:
             break
-        p = c * samples.z[idx] + t
+        p = np.concatenate([c * s.z[idx] + t for idx, _, _, s in matched])
+        q = np.concatenate([q for _, q, _, _ in matched])
+        normal = np.concatenate([n for _, _, n, _ in matched])
         p0 = p.mean()
         # residual across the crease and its derivatives by (rotation, shift east, north)
         residual = (np.conj(normal) * (p - q)).real
@@ -278,6 +286,15 @@ def refine_on_creases(samples: CreaseSamples, field: CreaseField, c: complex, t:
         if abs(step[0]) * 100.0 + abs(complex(step[1], step[2])) < 0.01:
             break   # settled: < 0.01 px at 100 px from the centroid
     return c, t
+
+
+_NO_SAMPLES = CreaseSamples(np.zeros(0, complex), np.zeros(0, np.float32))
+
+
+def _icp_arrays(samples: CreaseSamples, field: CreaseField) -> tuple:
+    """One channel's arrays for the ICP kernel."""
+    return (samples.z, samples.direction, field.distance, field.direction, field.label,
+            field.crease_z, field.crease_normal)
 
 
 def crease_covariance(samples: CreaseSamples, field: CreaseField, c: complex, t: complex, *,

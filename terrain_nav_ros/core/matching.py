@@ -192,6 +192,15 @@ class MatchParams:
         work) and its proposals get the coarse-to-fine ICP (``crease_rescue_radii``). The
         default keeps block-vs-block searches of blocks up to ~130 px fine; a block of more
         than ~80 px in its 3x localisation region is searched coarse, 4-6x faster.
+    ridge_check : bool
+        When both sets also come with ridge skeletons (the lines between the valleys, see
+        :class:`~.minutiae.FeatureExtractor`), add their agreement at each registration to
+        its score, like the valleys' (:func:`~.crease_check.crease_evidence`), and let the
+        crease ICP pull on them too: a second, largely independent check of a small block's
+        registration, at no extra search.
+    ridge_check_below : int
+        ... only when the smaller set has fewer minutiae than this: larger sets have
+        evidence enough, and it costs ~0.2 ms per scored registration.
     min_crease_pixels : int
         Where the crease search runs, the minimum-minutiae rule becomes one on the drainage
         itself: fewer crease pixels than this in either set give "no decision" (a flat
@@ -257,6 +266,8 @@ class MatchParams:
     crease_search_max_work: int = 12_000_000
     crease_search_proposals: int = 3
     crease_search_fine_work: int = 4_000_000
+    ridge_check: bool = True
+    ridge_check_below: int = 64
     min_crease_pixels: int = 100
     rescue_below: float = 10.0
     crease_rescue_radii: tuple[float, ...] = (12.0, 8.0, 5.0, 3.0)
@@ -281,10 +292,13 @@ class MinutiaIndex:
     crease : ndarray, optional
         Crease skeleton image in the pixel frame of ``ms`` (non-zero = crease); enables the
         crease descriptor and the crease check (see :class:`MatchParams`).
+    ridges : ndarray, optional
+        Ridge skeleton image in the same frame; enables the ridge check
+        (``MatchParams.ridge_check``).
     """
 
     def __init__(self, ms: MinutiaSet, params: MatchParams | None = None,
-                 crease: np.ndarray | None = None):
+                 crease: np.ndarray | None = None, ridges: np.ndarray | None = None):
         p = params or MatchParams()
         self.set = ms
         self.params = p
@@ -297,6 +311,9 @@ class MinutiaIndex:
                                      tree=self.tree)
         self.descriptor = _descriptor(ms, p)
         self.crease_image = crease
+        self.ridge_image = ridges
+        self._ridge_samples = None
+        self._ridge_field = None
         self._crease_descriptor = None
         self._crease_samples = None
         self._crease_field = None
@@ -361,6 +378,20 @@ class MinutiaIndex:
         if self._crease_field is None and self.crease_image is not None:
             self._crease_field = CreaseField(self.crease_image)
         return self._crease_field
+
+    @property
+    def ridge_samples(self) -> CreaseSamples | None:
+        """Ridge pixels for the ridge check as the query side (built on first use)."""
+        if self._ridge_samples is None and self.ridge_image is not None:
+            self._ridge_samples = CreaseSamples.from_image(self.ridge_image)
+        return self._ridge_samples
+
+    @property
+    def ridge_field(self) -> CreaseField | None:
+        """Ridge distance/direction field as the reference (built on first use)."""
+        if self._ridge_field is None and self.ridge_image is not None:
+            self._ridge_field = CreaseField(self.ridge_image)
+        return self._ridge_field
 
     def crease_search(self, level: SearchLevel = FINE) -> CreaseSearchReference | None:
         """Direction channels for the crease search as the reference (built on first use)."""
@@ -498,6 +529,8 @@ class MatchResult:
     creases : CreaseEvidence or None
         Agreement of the crease skeletons at the transform (its ``score`` is included in
         ``score``), when both sets came with crease images and the crease check is on.
+    ridges : CreaseEvidence or None
+        The same for the ridge skeletons, when the ridge check applied.
     reason : str
         Why the decision is "no decision" or "no match", for logs and messages.
     """
@@ -518,6 +551,7 @@ class MatchResult:
     expected_chance: float = np.nan
     pairing_ratio: float = 0.0
     creases: CreaseEvidence | None = None
+    ridges: CreaseEvidence | None = None
     reason: str = ""
 
     @property
@@ -1244,6 +1278,7 @@ class _Scored:
     n_overlap: tuple[int, int]
     creases: CreaseEvidence | None
     search_penalty: float = 0.0   # log10 of extra transforms searched, already in score
+    ridges: CreaseEvidence | None = None
 
 
 def _scored(a: MinutiaIndex, b: MinutiaIndex, c, t, pairs, search_area: float,
@@ -1253,14 +1288,30 @@ def _scored(a: MinutiaIndex, b: MinutiaIndex, c, t, pairs, search_area: float,
     n_ao, n_bo = max(n_ao, len(pairs)), max(n_bo, len(pairs))
     dist, dang = _residuals(a, b, c, t, pairs)
     score, lam = significance(dist, dang, n_ao, n_bo, area, search_area, radius_a, p)
-    creases = None
+    creases = ridges = None
     if with_creases:
         creases = crease_evidence(a.crease_samples, b.crease_field, c, t,
                                   radius=p.crease_radius, angle_tol=p.crease_angle_tol,
                                   spacing=p.crease_spacing,
                                   skip=a.crease_samples_around(pairs[:, 0]))
         score += creases.score
-    return _Scored(c, t, pairs, score, lam, (n_ao, n_bo), creases)
+        if _checks_ridges(a, b, p):
+            ridges = crease_evidence(a.ridge_samples, b.ridge_field, c, t,
+                                     radius=p.crease_radius, angle_tol=p.crease_angle_tol,
+                                     spacing=p.crease_spacing)
+            score += ridges.score
+    return _Scored(c, t, pairs, score, lam, (n_ao, n_bo), creases, ridges=ridges)
+
+
+def _checks_ridges(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> bool:
+    """Whether the ridge check applies: on, both sets with ridges, and a small set."""
+    return (p.ridge_check and a.ridge_image is not None and b.ridge_image is not None
+            and min(a.n, b.n) < p.ridge_check_below)
+
+
+def _ridge_channel(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams):
+    """A's ridge samples and B's ridge field for the crease ICP, when the check applies."""
+    return (a.ridge_samples, b.ridge_field) if _checks_ridges(a, b, p) else None
 
 
 def _refined_on_creases(a: MinutiaIndex, b: MinutiaIndex, best: _Scored, search_area: float,
@@ -1269,9 +1320,10 @@ def _refined_on_creases(a: MinutiaIndex, b: MinutiaIndex, best: _Scored, search_
     turn), kept if it scores better: a transform fitted to a few minutiae pairings is off by
     a pixel or two, the creases have hundreds of pixels."""
     c, t = best.c, best.t
+    ridges = _ridge_channel(a, b, p)
     for radius in radii:
         c, t = refine_on_creases(a.crease_samples, b.crease_field, c, t, radius=radius,
-                                 angle_tol=p.crease_angle_tol)
+                                 angle_tol=p.crease_angle_tol, ridges=ridges)
     if c == best.c and t == best.t:
         return best
     pairs = _pair(a, b, c, t, p)
@@ -1309,10 +1361,11 @@ def _crease_search_registrations(a: MinutiaIndex, b: MinutiaIndex, p: MatchParam
         n_best=p.crease_search_proposals * (2 if coarse else 1), hit_radius=p.crease_radius,
         distinct_rotations=len(a.crease_search_query(p.max_rotation, FINE).c))
     out = []
+    ridges = _ridge_channel(a, b, p)
     for c, t, _ in found.proposals:
         for radius in p.crease_rescue_radii if coarse else (3.0,):
             c, t = refine_on_creases(a.crease_samples, b.crease_field, c, t, radius=radius,
-                                     angle_tol=p.crease_angle_tol)
+                                     angle_tol=p.crease_angle_tol, ridges=ridges)
         out.append((c, t, _pair(a, b, c, t, p)))
     return out, found.log10_transforms
 
@@ -1369,9 +1422,10 @@ class Matcher:
     def __init__(self, params: MatchParams | None = None, **overrides):
         self.params = replace(params or MatchParams(), **overrides)
 
-    def index(self, ms: MinutiaSet, crease: np.ndarray | None = None) -> MinutiaIndex:
-        """Prepare a set for repeated matching."""
-        return MinutiaIndex(ms, self.params, crease)
+    def index(self, ms: MinutiaSet, crease: np.ndarray | None = None,
+              ridges: np.ndarray | None = None) -> MinutiaIndex:
+        """Prepare a set (with its crease and ridge skeletons) for repeated matching."""
+        return MinutiaIndex(ms, self.params, crease, ridges)
 
     def compare(self, a, b, crease_a=None, crease_b=None) -> MatchResult:
         """Block-vs-block similarity.
@@ -1380,7 +1434,8 @@ class Matcher:
         ----------
         a, b : MinutiaSet or MinutiaIndex
         crease_a, crease_b : ndarray, optional
-            Crease images (used only when building indexes here).
+            Crease images (used only when building indexes here; ridge skeletons come
+            with indexes, :meth:`index`).
 
         Returns
         -------
@@ -1492,6 +1547,7 @@ class Matcher:
             scale_estimated=p.estimate_scale, covariance=cov, rms=rms,
             n_a=a.n, n_b=b.n, n_overlap=(n_ao, n_bo), expected_chance=best.lam,
             pairing_ratio=len(pairs) ** 2 / max(n_ao * n_bo, 1), creases=best.creases,
+            ridges=best.ridges,
             reason="" if ok else f"score {score:.2f} below threshold {p.threshold:.2f}")
 
 

@@ -31,7 +31,14 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from . import _crease_kernels as _kernels
-from .creases import CreaseDetector, CreaseParams, CreaseResult, Scratch
+from .creases import (
+    CreaseDetector,
+    CreaseParams,
+    CreaseResult,
+    Scratch,
+    crease_mask,
+    skeletonize_creases,
+)
 from .georef import GeoReference
 from .minutia_set import BIFURCATION, ENDING, MinutiaSet
 
@@ -591,13 +598,15 @@ class Features:
     ``minutiae`` is the validated set; ``creases`` the crease-stage result (use
     ``creases.crease_image()`` for the debug topic); ``phi`` the smoothed doubled-angle
     orientation field (``orientation``/``coherence`` derive the angle and its coherence on
-    demand); ``timings`` seconds per stage.
+    demand); ``ridges`` the ridge skeleton when the extractor was asked for it (bool, no
+    minutiae: the matcher's ridge check); ``timings`` seconds per stage.
     """
 
     minutiae: MinutiaSet
     creases: CreaseResult
     phi: tuple | None = None
     timings: dict = field(default_factory=dict)
+    ridges: np.ndarray | None = None
 
     @property
     def orientation(self) -> np.ndarray | None:
@@ -675,12 +684,18 @@ class FeatureExtractor:
     ----------
     crease_params : CreaseParams, optional
     minutia_params : MinutiaParams, optional
+    ridges : bool
+        Also return the ridge skeleton (:attr:`Features.ridges`), thresholded from the same
+        creaseness as the valleys: the ridge lines between the valleys are a second,
+        independent check of a registration for a matcher (see
+        :attr:`~.matching.MatchParams.ridge_check`); they give no minutiae.
     """
 
     def __init__(self, crease_params: CreaseParams | None = None,
-                 minutia_params: MinutiaParams | None = None):
+                 minutia_params: MinutiaParams | None = None, ridges: bool = False):
         self.crease_params = crease_params or CreaseParams()
         self.minutia_params = minutia_params or MinutiaParams()
+        self.ridges = bool(ridges)
         self._creases = CreaseDetector(self.crease_params)
 
     def __call__(self, image, georef: GeoReference | None = None, valid_mask=None,
@@ -700,6 +715,11 @@ class FeatureExtractor:
         timings = dict(cres.timings)
         if cres.reason:
             return Features(MinutiaSet.empty(cres.reason, georef), cres, timings=timings)
+        ridges = None
+        if self.ridges:
+            t0 = time.perf_counter()
+            ridges = self._ridge_skeleton(cres, scratch)
+            timings["ridges"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         phi = doubled_angle_field(cres.diffused, p.block_size, p.orient_sigma, p.orient_size,
                                   scratch=scratch)
@@ -729,7 +749,15 @@ class FeatureExtractor:
             ms.extras.update(x_norm=x, y_norm=y, ridge=ridge)
             if georef is not None:
                 ms.extras["east"], ms.extras["north"] = georef.pixel_to_enu(col, row)
-        return Features(ms, cres, phi, timings)
+        return Features(ms, cres, phi, timings, ridges)
+
+    def _ridge_skeleton(self, cres: CreaseResult, scratch) -> np.ndarray:
+        """The ridge skeleton of an extraction (a copy: scratch buffers are reused)."""
+        if "ridge" in cres.skeletons:
+            return cres.skeletons["ridge"].copy()
+        mask = crease_mask(cres.creaseness, cres.contrast, cres.noise, self.crease_params,
+                           "ridge", cres.valid, scratch=scratch)
+        return skeletonize_creases(mask).copy()
 
 
 def extract_features(image, georef: GeoReference | None = None, valid_mask=None,
