@@ -384,21 +384,18 @@ def copy_projection(source, target) -> None:
 
 def minutiae_to_msg(minutiae: MinutiaSet, header: Header, source: int,
                     enu_origin=(0.0, 0.0, 0.0), source_crs: str = "",
-                    creases: np.ndarray | None = None) -> MinutiaArray:
+                    creases: np.ndarray | None = None,
+                    ridges: np.ndarray | None = None) -> MinutiaArray:
     """MinutiaSet (with georef) -> MinutiaArray; positions in both metres and pixels.
 
-    ``creases``: the crease skeleton (non-zero = crease) on the georeference's grid, sent as
-    its pixels' raster indices.
+    ``creases``, ``ridges``: the crease and ridge skeletons (non-zero = on it) on the
+    georeference's grid, sent as their pixels' raster indices.
     """
     if minutiae.georef is None:
         raise ConversionError("minutiae_to_msg: the MinutiaSet needs a georeference")
-    crease_pixels = np.zeros(0, np.uint32)
-    if creases is not None:
-        shape = (minutiae.georef.height, minutiae.georef.width)
-        if np.shape(creases) != shape:
-            raise ConversionError(f"minutiae_to_msg: crease image of shape "
-                                  f"{np.shape(creases)} on a {shape} georeference")
-        crease_pixels = np.flatnonzero(creases).astype(np.uint32)
+    shape = (minutiae.georef.height, minutiae.georef.width)
+    crease_pixels = _skeleton_pixels(creases, shape, "crease")
+    ridge_pixels = _skeleton_pixels(ridges, shape, "ridge")
     east, north = minutiae.enu()
     items = [
         Minutia(x=float(x), y=float(y), col=float(c), row=float(r), orientation=float(a),
@@ -411,7 +408,17 @@ def minutiae_to_msg(minutiae: MinutiaSet, header: Header, source: int,
     return MinutiaArray(header=header,
                         georef=georef_to_msg(minutiae.georef, enu_origin, source_crs),
                         source=source, minutiae=items, reason=minutiae.reason,
-                        crease_pixels=crease_pixels)
+                        crease_pixels=crease_pixels, ridge_pixels=ridge_pixels)
+
+
+def _skeleton_pixels(skeleton: np.ndarray | None, shape, what: str) -> np.ndarray:
+    """Raster indices of a skeleton image's pixels (none for None)."""
+    if skeleton is None:
+        return np.zeros(0, np.uint32)
+    if np.shape(skeleton) != shape:
+        raise ConversionError(f"minutiae_to_msg: {what} image of shape "
+                              f"{np.shape(skeleton)} on a {shape} georeference")
+    return np.flatnonzero(skeleton).astype(np.uint32)
 
 
 def msg_to_minutiae(msg: MinutiaArray) -> MinutiaSet:
@@ -431,16 +438,25 @@ def msg_to_minutiae(msg: MinutiaArray) -> MinutiaSet:
 
 def msg_to_creases(msg: MinutiaArray) -> np.ndarray | None:
     """The crease skeleton a MinutiaArray carries (bool, georef grid), or None without one."""
-    pixels = np.asarray(msg.crease_pixels, np.int64)
+    return _pixels_skeleton(msg.crease_pixels, msg, "crease")
+
+
+def msg_to_ridges(msg: MinutiaArray) -> np.ndarray | None:
+    """The ridge skeleton a MinutiaArray carries (bool, georef grid), or None without one."""
+    return _pixels_skeleton(msg.ridge_pixels, msg, "ridge")
+
+
+def _pixels_skeleton(pixels, msg: MinutiaArray, what: str) -> np.ndarray | None:
+    pixels = np.asarray(pixels, np.int64)
     if pixels.size == 0:
         return None
     width, height = int(msg.georef.width), int(msg.georef.height)
     if pixels.min() < 0 or pixels.max() >= width * height:
-        raise ConversionError(f"crease pixel index {pixels.max()} outside the "
+        raise ConversionError(f"{what} pixel index {pixels.max()} outside the "
                               f"{width} x {height} georeference")
-    creases = np.zeros(height * width, bool)
-    creases[pixels] = True
-    return creases.reshape(height, width)
+    skeleton = np.zeros(height * width, bool)
+    skeleton[pixels] = True
+    return skeleton.reshape(height, width)
 
 
 # ---------------------------------------------------------------------------------------------

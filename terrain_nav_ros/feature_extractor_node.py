@@ -3,8 +3,9 @@
 Subscribes to the ground-projected camera frames (``/camera/image_ground``) and the rendered
 landmarks (``/landmark/image``, latched), both ``terrain_nav_msgs/GeoImage``; publishes their
 minutiae as ``MinutiaArray`` on ``/camera/minutiae`` and ``/landmark/minutiae`` (latched), with
-the source georeference and (``attach_creases``) the crease skeleton for the matcher's crease
-check, and the crease images on ``/camera/creases`` and ``/landmark/creases`` for debugging.
+the source georeference and (``attach_creases``, ``attach_ridges``) the crease and ridge
+skeletons for the matcher's crease and ridge checks, and the crease images on
+``/camera/creases`` and ``/landmark/creases`` for debugging.
 An image with no drainage (flat, lake, cloud) yields an empty array whose ``reason`` says so.
 
 Parameters are the fields of :class:`~.core.creases.CreaseParams` (``crease.*``, Table 3.1)
@@ -51,6 +52,10 @@ class FeatureExtractorNode(Node):
         self.attach_creases = declare(self, "attach_creases", True,
                                       "send the crease skeleton with the minutiae (the "
                                       "matcher's crease check)")
+        self.attach_ridges = declare(self, "attach_ridges", False,
+                                     "send the ridge skeleton with the minutiae (the "
+                                     "matcher's ridge check of sets with few minutiae; "
+                                     "calibrate the matcher's threshold with it)")
         self.lighting = declare(self, "lighting", "shading",
                                 "extractor input: 'shading' (the image) or 'compensated' "
                                 "(terrain curvature from the shading and the image's sun)")
@@ -71,17 +76,21 @@ class FeatureExtractorNode(Node):
         # numba's kernels load on first use (seconds): not on the first frame's clock
         warm_up()
 
-    def _build(self, overrides=None) -> FeatureExtractor:
+    def _build(self, overrides=None, ridges=None) -> FeatureExtractor:
         return FeatureExtractor(
             settings_from_parameters(self, "crease", CreaseParams(), overrides),
-            settings_from_parameters(self, "minutia", MinutiaParams(), overrides))
+            settings_from_parameters(self, "minutia", MinutiaParams(), overrides),
+            ridges=self.attach_ridges if ridges is None else ridges)
 
     def on_set_parameters(self, params) -> SetParametersResult:
         """Validate a change with the core's own checks before accepting it."""
+        ridges = next((bool(p.value) for p in params if p.name == "attach_ridges"),
+                      self.attach_ridges)
         try:
-            self.extractor = self._build(params)
+            self.extractor = self._build(params, ridges)
         except (ValueError, TypeError) as err:
             return SetParametersResult(successful=False, reason=str(err))
+        self.attach_ridges = ridges
         return SetParametersResult(successful=True)
 
     @contained
@@ -97,7 +106,8 @@ class FeatureExtractorNode(Node):
         origin = cv.enu_origin_of(msg.georef)
         creases = features.creases.skeleton() if self.attach_creases else None
         out = cv.minutiae_to_msg(features.minutiae, msg.header, source, origin,
-                                 msg.georef.source_crs, creases=creases)
+                                 msg.georef.source_crs, creases=creases,
+                                 ridges=features.ridges)
         cv.copy_projection(msg, out)
         minutiae_pub.publish(out)
         if self.publish_creases:

@@ -3,7 +3,7 @@
 Subscribes to the camera minutiae (``/camera/minutiae``, from ground-projected frames) and the
 landmark minutiae (``/landmark/minutiae``, latched, one set per rendered DEM tile). Each camera
 set is localised in the landmark set whose region holds it (:mod:`.core.matching`; when both
-sets carry their crease skeletons, the registration is also checked on the creases); a match
+sets carry their crease (and ridge) skeletons, the registration is also checked on them); a match
 above the calibrated significance threshold becomes a position fix
 (:func:`.core.pva_fix.fix_from_ground_match`), published as ``terrain_nav_msgs/PvaFix`` on
 ``/nav/pva_fix`` with its covariance, similarity and pairings. Every camera set gets an answer:
@@ -134,13 +134,13 @@ class MatcherNode(Node):
     def on_landmark(self, msg: MinutiaArray) -> None:
         try:
             minutiae = cv.msg_to_minutiae(msg)
-            creases = cv.msg_to_creases(msg)
+            creases, ridges = cv.msg_to_creases(msg), cv.msg_to_ridges(msg)
         except cv.ConversionError as err:
             self.get_logger().error(f"landmark minutiae ignored: {err}")
             return
         index = None
         if len(minutiae):
-            index = self.matcher.index(minutiae, creases).prepare_as_reference()
+            index = self.matcher.index(minutiae, creases, ridges).prepare_as_reference()
         self.landmarks.append((minutiae, index, cv.enu_origin_of(msg.georef)))
         self.get_logger().info(f"landmark set with {len(minutiae)} minutiae "
                                f"({minutiae.reason or 'ok'})")
@@ -157,7 +157,7 @@ class MatcherNode(Node):
         stamp = cv.stamp_to_sec(msg.header.stamp)
         try:
             camera = cv.msg_to_minutiae(msg)
-            camera_creases = cv.msg_to_creases(msg)
+            camera_creases, camera_ridges = cv.msg_to_creases(msg), cv.msg_to_ridges(msg)
         except cv.ConversionError as err:
             self.publish_no_fix(msg.header.stamp, f"bad camera minutiae: {err}")
             return
@@ -178,7 +178,8 @@ class MatcherNode(Node):
             self.publish_no_fix(msg.header.stamp,
                                 f"no landmark minutiae: {land_minutiae.reason}")
             return
-        result = self.matcher.localise(camera, land_index, crease_camera=camera_creases)
+        result = self.matcher.localise(
+            self.matcher.index(camera, camera_creases, camera_ridges), land_index)
         fix = None
         if result.matched and self.method == "pnp":
             fix = self.pnp_fix(result, camera, land_minutiae, position, rotation)

@@ -126,6 +126,23 @@ def test_crease_skeleton_rides_with_the_minutiae():
         cv.msg_to_creases(msg)
 
 
+def test_ridge_skeleton_rides_apart_from_the_creases():
+    georef = GeoReference(0.0, 0.0, 5.0, 40, 30)
+    m = MinutiaSet([1.0], [2.0], [0.5], [ENDING], [0.9], georef=georef)
+    creases, ridges = np.zeros((30, 40), bool), np.zeros((30, 40), bool)
+    creases[5, 3:30] = True
+    ridges[3:25, 20] = True
+    msg = cv.minutiae_to_msg(m, Header(), 0, creases=creases, ridges=ridges)
+    np.testing.assert_array_equal(cv.msg_to_creases(msg), creases)
+    np.testing.assert_array_equal(cv.msg_to_ridges(msg), ridges)
+    assert cv.msg_to_ridges(cv.minutiae_to_msg(m, Header(), 0, creases=creases)) is None
+    with pytest.raises(cv.ConversionError, match="ridge image"):
+        cv.minutiae_to_msg(m, Header(), 0, ridges=ridges[:, :20])
+    msg.ridge_pixels = [40 * 30]
+    with pytest.raises(cv.ConversionError, match="ridge pixel"):
+        cv.msg_to_ridges(msg)
+
+
 def test_compressed_image_and_odometry():
     import cv2
     from nav_msgs.msg import Odometry

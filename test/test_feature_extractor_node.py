@@ -80,13 +80,16 @@ def test_minutiae_empty_reasons_and_parameter_validation():
     rows, cols = np.nonzero(creases)
     assert _repeated(found, SimpleNamespace(col=cols, row=rows), px=1.5) == 1.0
     assert cv.msg_to_creases(s.camera[0]) is None   # flat: no creases
+    assert cv.msg_to_ridges(s.landmark[0]) is None   # not asked for (attach_ridges)
 
 
-def test_creases_stay_home_when_not_asked_for():
-    with extractor_node({"attach_creases": False}) as s:
+def test_creases_stay_home_when_not_asked_for_and_ridges_come_when_asked():
+    with extractor_node({"attach_creases": False, "attach_ridges": True}) as s:
         s.land_pub.publish(cv.geo_image_to_msg(_drainage_image(), GEOREF, HEADER))
         assert wait_until(lambda: bool(s.landmark), 30)
     assert len(s.landmark[0].minutiae) >= 10 and len(s.landmark[0].crease_pixels) == 0
+    ridges = cv.msg_to_ridges(s.landmark[0])
+    assert ridges is not None and ridges.sum() > 50
 
 
 def _repeated(a, b, px=2.0):
