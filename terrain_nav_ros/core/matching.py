@@ -213,7 +213,9 @@ class MatchParams:
         and with creases the coarse-to-fine crease ICP below. For a set small enough for
         the crease search (``crease_search_*``) the search is the wider try instead: it
         covers every rotation and translation, and the sweep and the wide ICP would only add
-        chances to unrelated pairs of such small sets. A clear match never pays for it;
+        chances to unrelated pairs of such small sets. The ridges' evidence does not count
+        towards this test (it was tuned without them, and they add to chance registrations
+        too). A clear match never pays for it;
         ``-inf`` turns it off, the crease search with it. The score's count of transforms
         covers every rotation already, so the wider try adds no penalty beyond its extra
         hypotheses.
@@ -1318,21 +1320,27 @@ def _refined_on_creases(a: MinutiaIndex, b: MinutiaIndex, best: _Scored, search_
                         radius_a: float, p: MatchParams, radii=(3.0,)) -> _Scored:
     """The registration moved onto B's creases (point-to-line ICP at each pairing radius in
     turn), kept if it scores better: a transform fitted to a few minutiae pairings is off by
-    a pixel or two, the creases have hundreds of pixels."""
-    c, t = best.c, best.t
+    a pixel or two, the creases have hundreds of pixels. With the ridge check, the ICP on
+    the valleys alone and the one on valleys and ridges together both try (parallel ridges
+    can pull a joint ICP a ridge spacing off where the valleys alone would not)."""
     ridges = _ridge_channel(a, b, p)
-    for radius in radii:
-        c, t = refine_on_creases(a.crease_samples, b.crease_field, c, t, radius=radius,
-                                 angle_tol=p.crease_angle_tol, ridges=ridges)
-    if c == best.c and t == best.t:
-        return best
-    pairs = _pair(a, b, c, t, p)
-    if len(pairs) < 2:
-        return best
-    moved = _scored(a, b, c, t, pairs, search_area, radius_a, p, True)
-    moved = replace(moved, score=moved.score - best.search_penalty,
-                    search_penalty=best.search_penalty)
-    return moved if moved.score > best.score else best
+    moved = best
+    for channel in (None, ridges) if ridges is not None else (None,):
+        c, t = best.c, best.t
+        for radius in radii:
+            c, t = refine_on_creases(a.crease_samples, b.crease_field, c, t, radius=radius,
+                                     angle_tol=p.crease_angle_tol, ridges=channel)
+        if c == best.c and t == best.t:
+            continue
+        pairs = _pair(a, b, c, t, p)
+        if len(pairs) < 2:
+            continue
+        tried = _scored(a, b, c, t, pairs, search_area, radius_a, p, True)
+        tried = replace(tried, score=tried.score - best.search_penalty,
+                        search_penalty=best.search_penalty)
+        if tried.score > moved.score:
+            moved = tried
+    return moved
 
 
 def _search_level(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> SearchLevel:
@@ -1504,7 +1512,10 @@ class Matcher:
         registered = _registrations(_hypotheses(votes, a, b, p), a, b, p, rng)
         best, scored = _best_registration(a, b, registered, search_area, p, use_creases)
         n_scored = len(scored)
-        low = best is None or best.score - math.log10(max(n_scored, 1)) < p.rescue_below
+        # whether the first try is clear enough, on the evidence the wider try was tuned
+        # for: the ridges add to chance registrations too
+        low = best is None or (best.score - (best.ridges.score if best.ridges else 0.0)
+                               - math.log10(max(n_scored, 1))) < p.rescue_below
         if low and search:
             # the wider try of a set small enough for the crease search: it covers every
             # rotation and translation at the crease resolution (a sweep or a wide ICP would
