@@ -286,10 +286,10 @@ def _compare_all(study: _Study, cams: list[_Extracted], jobs: int = 1):
             _FORKED_STUDY = None
     else:
         rows = [_compare_row(study.matcher, study.block_index, cam) for cam in cams]
-    score = np.array([[r.score for r in row] for row, _ in rows], float).reshape(n, n)
-    pairings = np.array([[r.n_pairings for r in row] for row, _ in rows], int).reshape(n, n)
+    score = np.array([[r.score for r in row] for row, _ in rows], float)
+    pairings = np.array([[r.n_pairings for r in row] for row, _ in rows], int)
     undecided = np.array([[r.decision == Decision.NO_DECISION for r in row] for row, _ in rows],
-                         bool).reshape(n, n)
+                         bool)
     pva = [row[i] for i, (row, _) in enumerate(rows)]
     times = np.array([t for _, row_times in rows for t in row_times])
     return score, pairings, undecided, pva, times
@@ -388,8 +388,7 @@ def _localise_cases(study: _Study, cam_greys, cams: list[_Extracted], cam_times,
 def _condition(study, name, cam_rgb, sun, transforms, cm, rate, seed, success_px, methods,
                n_rotations, gsd, log, jobs=1):
     t_start = time.perf_counter()
-    greys, cams, ext_times = _camera_blocks(study, cam_rgb, sun, transforms, cm,
-                                                     seed + 17)
+    greys, cams, ext_times = _camera_blocks(study, cam_rgb, sun, transforms, cm, seed + 17)
     score, pairings, undecided, pva, cmp_times = _compare_all(study, cams, jobs)
     cal = _calibrate(score, rate, seed)
     thr = cal["threshold"]
@@ -549,9 +548,10 @@ def run_evaluation(dem=None, gsd=None, blocks: int = 9, out_dir="out/evaluation"
 
     params = replace(match_params or MatchParams(), threshold=-1e9)   # collect every score
     # ridges for the matcher's ridge check of small blocks (cheap: the valleys' creaseness)
-    fx = FeatureExtractor(ridges=params.ridge_check)
+    ridge_check = params.crease_check and params.ridge_check
+    fx = FeatureExtractor(ridges=ridge_check)
     fx_region = FeatureExtractor(minutia_params=MinutiaParams(max_minutiae=100000),
-                                 ridges=params.ridge_check)
+                                 ridges=ridge_check)
     study = _Study(n, bs, margin, area_grey, fx, fx_region, Matcher(params), region_factor,
                    tuple(sun), lighting)
 
@@ -594,7 +594,7 @@ def run_evaluation(dem=None, gsd=None, blocks: int = 9, out_dir="out/evaluation"
         "region_counts": [len(r.minutiae) for r in study.region_sets],
         "matcher_max_rotation_deg": math.degrees(params.max_rotation),
         "matcher_crease_check": params.crease_check,
-        "matcher_ridge_check": params.crease_check and params.ridge_check,
+        "matcher_ridge_check": ridge_check,
         "matcher_ridge_check_below": params.ridge_check_below, "jobs": int(jobs),
     }
     pngs = _plots(out, study, results, setup)

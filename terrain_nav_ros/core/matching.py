@@ -1297,23 +1297,21 @@ def _scored(a: MinutiaIndex, b: MinutiaIndex, c, t, pairs, search_area: float,
                                   spacing=p.crease_spacing,
                                   skip=a.crease_samples_around(pairs[:, 0]))
         score += creases.score
-        if _checks_ridges(a, b, p):
-            ridges = crease_evidence(a.ridge_samples, b.ridge_field, c, t,
-                                     radius=p.crease_radius, angle_tol=p.crease_angle_tol,
-                                     spacing=p.crease_spacing)
+        ridge_channel = _ridge_channel(a, b, p)
+        if ridge_channel is not None:
+            ridges = crease_evidence(*ridge_channel, c, t, radius=p.crease_radius,
+                                     angle_tol=p.crease_angle_tol, spacing=p.crease_spacing)
             score += ridges.score
     return _Scored(c, t, pairs, score, lam, (n_ao, n_bo), creases, ridges=ridges)
 
 
-def _checks_ridges(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> bool:
-    """Whether the ridge check applies: on, both sets with ridges, and a small set."""
-    return (p.ridge_check and a.ridge_image is not None and b.ridge_image is not None
-            and min(a.n, b.n) < p.ridge_check_below)
-
-
 def _ridge_channel(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams):
-    """A's ridge samples and B's ridge field for the crease ICP, when the check applies."""
-    return (a.ridge_samples, b.ridge_field) if _checks_ridges(a, b, p) else None
+    """A's ridge samples and B's ridge field when the ridge check applies (on, both sets
+    with ridges, and a small set), else None."""
+    if (p.ridge_check and a.ridge_image is not None and b.ridge_image is not None
+            and min(a.n, b.n) < p.ridge_check_below):
+        return a.ridge_samples, b.ridge_field
+    return None
 
 
 def _refined_on_creases(a: MinutiaIndex, b: MinutiaIndex, best: _Scored, search_area: float,
