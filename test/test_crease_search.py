@@ -79,6 +79,32 @@ def test_search_finds_a_turned_and_shifted_view(region, rotation_deg):
         search_transforms(CreaseSearchQuery(samples, [0.0], resolution=1.0), reference)
 
 
+def test_search_kernels_agree_with_the_numpy_path(region, monkeypatch):
+    """The fused channel product and footprint counts give the numpy path's proposals and
+    counts of transforms (the product's sums may round differently: equal to ~1e-6)."""
+    from terrain_nav_ros.core import _matching_kernels
+
+    if not _matching_kernels.HAVE_NUMBA:
+        pytest.skip("numba not installed: the numpy path is the only one")
+    ms, skel = region
+    _, view_skel, _ = _turned_view(ms, skel, 200, 180, 37.0, (5.0, -4.0))
+    samples = CreaseSamples.from_image(view_skel)
+    reference = CreaseSearchReference(CreaseField(skel[120:312, 140:332]))
+
+    def run():
+        query = CreaseSearchQuery(samples, search_rotations(math.pi, 28.0))
+        return query.spectra(reference)[2], search_transforms(query, reference, n_best=4)
+
+    fast_inside, fast = run()
+    monkeypatch.setattr(_matching_kernels, "HAVE_NUMBA", False)
+    slow_inside, slow = run()
+    np.testing.assert_array_equal(fast_inside, slow_inside)
+    assert fast.log10_transforms == slow.log10_transforms
+    assert len(fast.proposals) == len(slow.proposals) == 4
+    for (c, t, h), (c2, t2, h2) in zip(fast.proposals, slow.proposals, strict=True):
+        assert c == c2 and t == t2 and h == pytest.approx(h2, rel=1e-5)
+
+
 def test_search_without_creases_proposes_nothing(region):
     reference = CreaseSearchReference(CreaseField(region[1][:SIZE, :SIZE]))
     empty = CreaseSamples.from_image(np.zeros((SIZE, SIZE), bool))

@@ -16,7 +16,9 @@
   :mod:`.crease_check` (evidence and its local null, ICP correspondences) in one pass;
 * :func:`crease_icp`: ``crease_check.refine_on_creases`` with its normal equations
   accumulated in the loop;
-* :func:`compound_log10_sf`: the compound Poisson-Gamma tail of ``matching.significance``.
+* :func:`compound_log10_sf`: the compound Poisson-Gamma tail of ``matching.significance``;
+* :func:`channel_cross_spectrum`, :func:`box_counts`: the channel product and the footprint
+  counts of :mod:`.crease_search`, without numpy's whole-array temporaries.
 
 They are used when numba is importable and ``TERRAIN_NAV_NO_NUMBA`` is not set, and compute
 the same floating-point operations in the same order as the numpy path (no ``fastmath``:
@@ -510,4 +512,37 @@ def rotation_support(theta, w, mid_a, mid_b, rotations, limit, inv_bin):
                     s += h[y * nx + x]
             best = max(best, s)
         out[k] = best
+    return out
+
+
+@njit(**_JIT)
+def channel_cross_spectrum(query, reference):
+    """``sum_k conj(query[:, k]) * reference[k]`` of ``crease_search.search_transforms``
+    in one pass (numpy makes a temporary per channel and a conjugated copy of ``query``):
+    ``query`` (n_rot, n_ch, h, w), ``reference`` (n_ch, h, w), complex64."""
+    n_rot, n_ch, h, w = query.shape
+    out = np.empty((n_rot, h, w), np.complex64)
+    for r in range(n_rot):
+        for i in range(h):
+            for j in range(w):
+                acc = np.conj(query[r, 0, i, j]) * reference[0, i, j]
+                for k in range(1, n_ch):
+                    acc += np.conj(query[r, k, i, j]) * reference[k, i, j]
+                out[r, i, j] = acc
+    return out
+
+
+@njit(**_JIT)
+def box_counts(cum, row_lo, row_hi, col_lo, col_hi):
+    """``out[r, i, j]``: the sum of rows ``[row_lo[i], row_hi[i])`` and cols ``[col_lo[j],
+    col_hi[j])`` of raster ``r``, from its 2-D prefix sums ``cum`` (n_rot, h + 1, w + 1):
+    ``crease_search.CreaseSearchQuery._inside`` without its (n_rot, h, w_pad) temporaries."""
+    n_rot = cum.shape[0]
+    out = np.empty((n_rot, row_lo.size, col_lo.size), np.float32)
+    for r in range(n_rot):
+        for i in range(row_lo.size):
+            a, b = row_lo[i], row_hi[i]
+            for j in range(col_lo.size):
+                c, d = col_lo[j], col_hi[j]
+                out[r, i, j] = cum[r, b, d] - cum[r, a, d] - cum[r, b, c] + cum[r, a, c]
     return out

@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 from scipy import fft as sfft
 
+from . import _matching_kernels as _kernels
 from .crease_check import CreaseField, CreaseSamples
 
 _CHANNEL_ANGLES = np.arange(4) * (np.pi / 4.0)
@@ -172,8 +173,9 @@ class CreaseSearchQuery:
         return len(self.c) * math.prod(self.padded_shape(reference_shape))
 
     def spectra(self, reference: CreaseSearchReference):
-        """Padded FFT shape, conjugate channel spectra and, at every shift, the count of
-        pixels over ``reference``'s footprint (cached for one padded shape at a time)."""
+        """Padded FFT shape, channel spectra (not conjugated) and, at every shift, the
+        count of pixels over ``reference``'s footprint (cached for one padded shape at a
+        time)."""
         shape = self.padded_shape(reference.full_shape)
         key = (shape, reference.shape)
         if key not in self._spectra:
@@ -181,8 +183,7 @@ class CreaseSearchQuery:
             # rows are skipped (the raster is ~1/3 of the padded height)
             spec = sfft.fft(sfft.rfft(self.raster[:, :4], n=shape[1], axis=-1, workers=1),
                             n=shape[0], axis=-2, workers=1)
-            self._spectra = {key: (shape, np.conj(spec, out=spec),
-                                   self._inside(shape, reference.shape))}
+            self._spectra = {key: (shape, spec, self._inside(shape, reference.shape))}
         return self._spectra[key]
 
     def _inside(self, shape: tuple[int, int], reference_shape: tuple[int, int]) -> np.ndarray:
@@ -203,6 +204,10 @@ class CreaseSearchQuery:
 
         col_lo, col_hi = ranges(w_pad, wb, wa)
         row_lo, row_hi = ranges(h_pad, hb, ha)
+        if _kernels.HAVE_NUMBA:
+            cum = np.zeros((len(self.c), ha + 1, wa + 1), np.float32)
+            np.cumsum(np.cumsum(counts, axis=1), axis=2, out=cum[:, 1:, 1:])
+            return _kernels.box_counts(cum, row_lo, row_hi, col_lo, col_hi)
         cum = np.zeros((len(self.c), ha, wa + 1), np.float32)
         np.cumsum(counts, axis=2, out=cum[:, :, 1:])
         cols = cum[:, :, col_hi] - cum[:, :, col_lo]                 # (n_rot, ha, w_pad)
@@ -258,9 +263,12 @@ def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference
     scale = query.resolution
     shape, query_ch, inside = query.spectra(reference)
     ref_ch = reference.spectra(shape)
-    product = query_ch[:, 0] * ref_ch[0]
-    for k in range(1, 4):
-        product += query_ch[:, k] * ref_ch[k]
+    if _kernels.HAVE_NUMBA:
+        product = _kernels.channel_cross_spectrum(query_ch, ref_ch)
+    else:
+        product = np.conj(query_ch[:, 0]) * ref_ch[0]
+        for k in range(1, 4):
+            product += np.conj(query_ch[:, k]) * ref_ch[k]
     hits = sfft.irfft2(product, s=shape, workers=1)
     # circular correlation: the shift s of A over B is at index s mod shape (the shifts with
     # any overlap are -(ha - 1) .. hb - 1 rows and -(wa - 1) .. wb - 1 cols)
