@@ -333,7 +333,8 @@ def _localise_cases(study: _Study, cam_greys, cams: list[_Extracted], cam_times,
             rec = rows[method]
             if method == "minutiae":
                 t0 = time.perf_counter()
-                ri = matcher.index(*study.region_sets[k])
+                # the region is prepared before the frames it serves, as NCC's gradient is
+                ri = matcher.index(*study.region_sets[k]).prepare_as_reference(search=True)
                 prep = study.region_prep[k] + time.perf_counter() - t0
                 t0 = time.perf_counter()
                 r = matcher.localise(matcher.index(*cams[k]), ri)

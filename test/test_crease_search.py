@@ -105,6 +105,55 @@ def test_search_kernels_agree_with_the_numpy_path(region, monkeypatch):
         assert c == c2 and t == t2 and h == pytest.approx(h2, rel=1e-5)
 
 
+def test_quarter_turns_search_as_every_rotation(region):
+    """A whole-circle search transforms a quarter of the query's rotations, against the
+    reference turned four ways: the same proposals as rasterising every rotation (their
+    hits differ only where a rotated pixel sits on a rounding tie). A reference that is not
+    square, which a quarter turn changes, gets the whole query."""
+    ms, skel = region
+    _, view_skel, truth = _turned_view(ms, skel, 200, 180, 150.0, (5.0, -4.0))
+    samples = CreaseSamples.from_image(view_skel)
+    rotations = search_rotations(math.pi, 28.0)
+    assert len(rotations) % 4 == 0
+    quarter = CreaseSearchQuery(samples, rotations)
+    whole = CreaseSearchQuery(samples, rotations, quarter_turns=False)
+    assert quarter.quarter and not whole.quarter and quarter.whole() is not quarter
+    assert quarter.raster.shape[0] == len(rotations) // 4
+    np.testing.assert_allclose(quarter.c, whole.c, atol=1e-12)
+    for reference, region_origin in [
+            (CreaseSearchReference(CreaseField(skel[120:312, 140:332])), (140, 120)),
+            (CreaseSearchReference(CreaseField(skel[150:278, 110:350])), (110, 150))]:
+        got = search_transforms(quarter, reference, n_best=4)
+        want = search_transforms(whole, reference, n_best=4)
+        assert got.log10_transforms == pytest.approx(want.log10_transforms, abs=1e-3)
+        for (c, t, h), (c2, t2, h2) in zip(got.proposals, want.proposals, strict=True):
+            assert abs(c - c2) < 1e-9 and abs(t - t2) < 1e-9
+            assert h == pytest.approx(h2, rel=0.1)
+        c, t, _ = got.proposals[0]
+        in_block = t - complex(200 - region_origin[0], -(180 - region_origin[1]))
+        assert _centre_error((c, in_block), truth) < 3.0
+    assert not reference.square      # the second: searched with every rotation rasterised
+
+
+def test_a_turned_reference_maps_its_pixels_by_turn_offset():
+    field = np.zeros((12, 12), bool)
+    field[2, 3:9] = True               # a horizontal crease
+    field[4:10, 9] = True              # a vertical one
+    ref = CreaseSearchReference(CreaseField(field), resolution=1.0)
+    for turns in range(4):
+        turned = ref.turned(turns)
+        rows, cols = np.nonzero(ref.channels.sum(axis=0) > 0.5)
+        z = cols - 1j * rows
+        moved = (-1j) ** turns * z + ref.turn_offset(turns)
+        got = turned.channels.sum(axis=0)[np.rint(-moved.imag).astype(int),
+                                          np.rint(moved.real).astype(int)]
+        np.testing.assert_allclose(got, ref.channels.sum(axis=0)[rows, cols], rtol=1e-6)
+        # directions turn with it: the horizontal crease lands in the 90 deg channel
+        if turns % 2:
+            assert turned.channels[2].sum() == pytest.approx(ref.channels[0].sum())
+    assert ref.turned(4) is ref and ref.turned(1) is ref.turned(1)
+
+
 def test_search_without_creases_proposes_nothing(region):
     reference = CreaseSearchReference(CreaseField(region[1][:SIZE, :SIZE]))
     empty = CreaseSamples.from_image(np.zeros((SIZE, SIZE), bool))

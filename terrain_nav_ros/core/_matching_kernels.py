@@ -17,7 +17,7 @@
 * :func:`crease_icp`: ``crease_check.refine_on_creases`` with its normal equations
   accumulated in the loop;
 * :func:`compound_log10_sf`: the compound Poisson-Gamma tail of ``matching.significance``;
-* :func:`channel_cross_spectrum`, :func:`box_counts`: the channel product and the footprint
+* :func:`channel_cross_spectra`, :func:`box_counts`: the channel product and the footprint
   counts of :mod:`.crease_search`, without numpy's whole-array temporaries.
 
 They are used when numba is importable and ``TERRAIN_NAV_NO_NUMBA`` is not set, and compute
@@ -516,20 +516,30 @@ def rotation_support(theta, w, mid_a, mid_b, rotations, limit, inv_bin):
 
 
 @njit(**_JIT)
-def channel_cross_spectrum(query, reference):
-    """``sum_k conj(query[:, k]) * reference[k]`` of ``crease_search.search_transforms``
-    in one pass (numpy makes a temporary per channel and a conjugated copy of ``query``):
-    ``query`` (n_rot, n_ch, h, w), ``reference`` (n_ch, h, w), complex64."""
+def channel_cross_spectra(query, references):
+    """``sum_k conj(query[:, k]) * references[j, k]`` for every reference ``j`` of
+    ``crease_search.search_transforms``, accumulated plane by plane (contiguous, so the
+    loops vectorise) without numpy's temporary per channel: ``query`` (n_rot, n_ch, h, w),
+    ``references`` (n_ref, n_ch, h, w), complex64; out (n_ref, n_rot, h, w)."""
     n_rot, n_ch, h, w = query.shape
-    out = np.empty((n_rot, h, w), np.complex64)
-    for r in range(n_rot):
-        for i in range(h):
-            for j in range(w):
-                acc = np.conj(query[r, 0, i, j]) * reference[0, i, j]
-                for k in range(1, n_ch):
-                    acc += np.conj(query[r, k, i, j]) * reference[k, i, j]
-                out[r, i, j] = acc
-    return out
+    n_ref = references.shape[0]
+    size = h * w
+    q = query.reshape(n_rot, n_ch, size)
+    ref = references.reshape(n_ref, n_ch, size)
+    out = np.empty((n_ref, n_rot, size), np.complex64)
+    for m in range(n_ref):
+        for r in range(n_rot):
+            o = out[m, r]
+            a = q[r, 0]
+            b = ref[m, 0]
+            for p in range(size):
+                o[p] = np.conj(a[p]) * b[p]
+            for k in range(1, n_ch):
+                a = q[r, k]
+                b = ref[m, k]
+                for p in range(size):
+                    o[p] += np.conj(a[p]) * b[p]
+    return out.reshape(n_ref, n_rot, h, w)
 
 
 @njit(**_JIT)

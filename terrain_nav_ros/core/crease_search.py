@@ -11,6 +11,10 @@ such transforms by brute force, cheaply, with FFTs:
 * for every searched rotation the query's channels are rasterised and cross-correlated with
   the reference's (blurred by the hit radius), all rotations in one batched FFT: the sum over
   channels is the number of direction-consistent hits at every translation;
+* a whole-circle search tries rotations in quarter turns of each other (their count is a
+  multiple of four): a quarter turn of the query is one of a square reference the other
+  way, exactly, so only a quarter of the query's rotations are transformed, against the
+  reference turned four ways;
 * the strongest peaks, among the translations that keep at least half of the query's crease
   pixels over the reference, are the proposals. The matcher then refines each on the creases
   and scores it like any other registration (:mod:`.crease_check`).
@@ -35,6 +39,7 @@ from . import _matching_kernels as _kernels
 from .crease_check import CreaseField, CreaseSamples
 
 _CHANNEL_ANGLES = np.arange(4) * (np.pi / 4.0)
+_QUARTER_TURNS = (1, 1j, -1, -1j)   # counterclockwise, exact
 
 
 @dataclass(frozen=True)
@@ -86,6 +91,36 @@ class CreaseSearchReference:
             self.channels[k] = cv2.resize(full, self.shape[::-1], interpolation=cv2.INTER_AREA)
         self.channels *= 2.0 * math.pi * blur * blur
         self._spectra = {}
+        self._turns = {0: self}
+
+    @property
+    def square(self) -> bool:
+        return self.shape[0] == self.shape[1] and self.full_shape[0] == self.full_shape[1]
+
+    def turned(self, quarter_turns: int) -> CreaseSearchReference:
+        """This reference turned clockwise by ``quarter_turns`` x 90 degrees, its crease
+        directions with it (cached). Math-frame coordinates ``z`` of this reference's search
+        pixels become ``z' = (-1j)**quarter_turns * z + turn_offset(quarter_turns)``."""
+        j = quarter_turns % 4
+        if j not in self._turns:
+            t = object.__new__(CreaseSearchReference)
+            t.resolution = self.resolution
+            t.full_shape = self.full_shape[::-1] if j % 2 else self.full_shape
+            # a quarter turn swaps the 0 / 90 deg and the 45 / 135 deg channels
+            channels = self.channels[[2, 3, 0, 1]] if j % 2 else self.channels
+            t.channels = np.ascontiguousarray(np.rot90(channels, -j, axes=(1, 2)))
+            t.shape = t.channels.shape[1:]
+            t._spectra, t._turns = {}, {}
+            self._turns[j] = t
+        return self._turns[j]
+
+    def turn_offset(self, quarter_turns: int) -> complex:
+        """Offset (search px) of :meth:`turned`'s frame: one clockwise turn of an array of
+        ``h`` rows maps ``z`` to ``-1j * z + (h - 1)``."""
+        offset, h, w = 0j, *self.shape
+        for _ in range(quarter_turns % 4):
+            offset, h, w = -1j * offset + (h - 1), w, h
+        return offset
 
     def spectra(self, shape: tuple[int, int]) -> np.ndarray:
         """Channel spectra zero-padded to ``shape`` (cached)."""
@@ -98,11 +133,13 @@ class CreaseSearchReference:
 def search_rotations(max_rotation: float, radius: float, tolerance: float = 3.0) -> np.ndarray:
     """Rotations (rad) to search: steps that move a pixel at ``radius`` by <= ``tolerance``.
 
-    The whole circle when ``max_rotation >= pi``, else ``[-max_rotation, max_rotation]``.
+    The whole circle when ``max_rotation >= pi`` (a multiple of four rotations, in quarter
+    turns of each other), else ``[-max_rotation, max_rotation]``.
     """
     step = min(tolerance / max(radius, 1.0), math.radians(15.0))
     if max_rotation >= math.pi:
-        n = int(math.ceil(2.0 * math.pi / step))
+        # a multiple of four: quarter turns of each other (see CreaseSearchQuery)
+        n = 4 * int(math.ceil(2.0 * math.pi / step / 4.0))
         return np.arange(n) * (2.0 * math.pi / n) - math.pi
     n = int(math.ceil(max_rotation / step))
     return np.linspace(-max_rotation, max_rotation, 2 * n + 1)
@@ -122,13 +159,30 @@ class CreaseSearchQuery:
         Rotations (rad) to search (:func:`search_rotations`).
     resolution : float
         As the references' (:class:`CreaseSearchReference`).
+    quarter_turns : bool
+        When the rotations are :func:`search_rotations`' whole circle, rasterise and
+        transform only the first quarter: the others are its exact quarter turns, searched
+        as the first quarter against the reference turned the other way
+        (:meth:`CreaseSearchReference.turned`); a quarter of the query's FFT work.
     """
 
-    def __init__(self, samples: CreaseSamples, rotations: np.ndarray, resolution: float = 0.5):
+    def __init__(self, samples: CreaseSamples, rotations: np.ndarray, resolution: float = 0.5,
+                 quarter_turns: bool = True):
         self.n = len(samples)
         self.resolution = float(resolution)
         self.rotations = np.asarray(rotations, float)
-        self.c = np.exp(1j * self.rotations)
+        n_rot = len(self.rotations)
+        self.quarter = bool(quarter_turns and n_rot and n_rot % 4 == 0 and np.allclose(
+            self.rotations, np.arange(n_rot) * (2.0 * math.pi / n_rot) - math.pi))
+        if self.quarter:
+            # exact quarter turns (multiplying by 1j only swaps and negates): their rasters
+            # are exact quarter turns of the first quarter's
+            first = np.exp(1j * self.rotations[:n_rot // 4])
+            self.c = np.concatenate([first * turn for turn in _QUARTER_TURNS])
+        else:
+            self.c = np.exp(1j * self.rotations)
+        # rotations rasterised and transformed: the first quarter, or all
+        self.n_rastered = n_rot // 4 if self.quarter else n_rot
         q = self.c[:, None] * (samples.z[None, :] * self.resolution)   # (n_rot, n), search px
         cols, rows = np.rint(q.real), np.rint(-q.imag)
         self.col0 = cols.min(axis=1) if self.n else np.zeros(len(self.c))
@@ -139,18 +193,31 @@ class CreaseSearchQuery:
         self._pixels = (samples.direction, ri, ci)
         self._raster = None
         self._spectra = {}
+        self._samples, self._whole = samples, None
+        self.centre = complex(samples.z.mean()) if self.n else 0j   # math frame, image px
+
+    def whole(self) -> CreaseSearchQuery:
+        """This query with every rotation rasterised (for a reference that is not square,
+        which a quarter turn would change; cached)."""
+        if not self.quarter:
+            return self
+        if self._whole is None:
+            self._whole = CreaseSearchQuery(self._samples, self.rotations, self.resolution,
+                                            quarter_turns=False)
+        return self._whole
 
     @property
     def raster(self) -> np.ndarray:
-        """(n_rot, 5, h, w): the four direction channels and, in channel 4, the pixel count
-        (built on first use: choosing a search level needs only the shape)."""
+        """(n_rastered, 5, h, w): the four direction channels and, in channel 4, the pixel
+        count (built on first use: choosing a search level needs only the shape)."""
         if self._raster is None:
             direction, ri, ci = self._pixels
-            n_rot = len(self.c)
+            n_rot = self.n_rastered
             size = self.shape[0] * self.shape[1]
-            weights = _channel_weights(np.mod(direction[None, :] + self.rotations[:, None],
-                                              np.pi))             # (4, n_rot, n)
-            flat = (np.arange(n_rot)[:, None] * size + ri * self.shape[1] + ci).ravel()
+            weights = _channel_weights(np.mod(
+                direction[None, :] + self.rotations[:n_rot, None], np.pi))   # (4, n_rot, n)
+            flat = (np.arange(n_rot)[:, None] * size + ri[:n_rot] * self.shape[1]
+                    + ci[:n_rot]).ravel()
             raster = np.empty((n_rot, 5, size), np.float32)
             for k in range(4):
                 raster[:, k] = np.bincount(flat, weights[k].ravel(), n_rot * size).reshape(
@@ -193,6 +260,7 @@ class CreaseSearchQuery:
         ha, wa = self.shape
         h_pad, w_pad = shape
         counts = self.raster[:, 4]
+        n_rot = len(counts)
 
         def ranges(n_pad, n_ref, n_query):
             # signed shift d at FFT index i (d = i - n_pad past the reference), and the
@@ -205,15 +273,29 @@ class CreaseSearchQuery:
         col_lo, col_hi = ranges(w_pad, wb, wa)
         row_lo, row_hi = ranges(h_pad, hb, ha)
         if _kernels.HAVE_NUMBA:
-            cum = np.zeros((len(self.c), ha + 1, wa + 1), np.float32)
+            cum = np.zeros((n_rot, ha + 1, wa + 1), np.float32)
             np.cumsum(np.cumsum(counts, axis=1), axis=2, out=cum[:, 1:, 1:])
             return _kernels.box_counts(cum, row_lo, row_hi, col_lo, col_hi)
-        cum = np.zeros((len(self.c), ha, wa + 1), np.float32)
+        cum = np.zeros((n_rot, ha, wa + 1), np.float32)
         np.cumsum(counts, axis=2, out=cum[:, :, 1:])
         cols = cum[:, :, col_hi] - cum[:, :, col_lo]                 # (n_rot, ha, w_pad)
-        cum = np.zeros((len(self.c), ha + 1, w_pad), np.float32)
+        cum = np.zeros((n_rot, ha + 1, w_pad), np.float32)
         np.cumsum(cols, axis=1, out=cum[:, 1:])
         return cum[:, row_hi] - cum[:, row_lo]                         # (n_rot, h_pad, w_pad)
+
+
+def _correlations(query_ch: np.ndarray, references: list[CreaseSearchReference],
+                  shape: tuple[int, int]) -> np.ndarray:
+    """Direction-consistent hits (n_ref * n_rot, h, w) of the query's channel spectra over
+    each reference at every shift (circular, ``shape`` padded)."""
+    ref_ch = np.stack([r.spectra(shape) for r in references])
+    if _kernels.HAVE_NUMBA:
+        product = _kernels.channel_cross_spectra(np.ascontiguousarray(query_ch), ref_ch)
+    else:
+        product = np.conj(query_ch[None, :, 0]) * ref_ch[:, None, 0]
+        for k in range(1, 4):
+            product += np.conj(query_ch[None, :, k]) * ref_ch[:, None, k]
+    return sfft.irfft2(product, s=shape, workers=1).reshape(-1, *shape)
 
 
 @dataclass(frozen=True)
@@ -237,7 +319,8 @@ def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference
     reference : CreaseSearchReference
         Reference creases (B), at the query's resolution.
     n_best : int
-        Proposals returned, strongest first, at least two rotation steps or 4 px apart.
+        Proposals returned, strongest first, at least two rotation steps apart or mapping
+        the query's centre at least 4 px apart.
     min_inside : float
         Translations that keep less than this fraction of A's crease pixels over B are not
         searched.
@@ -260,21 +343,20 @@ def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference
     n_rot = len(query.c)
     if query.n == 0 or n_rot == 0:
         return CreaseSearchResult([], 0.0)
+    if query.quarter and not reference.square:
+        query = query.whole()
     scale = query.resolution
     shape, query_ch, inside = query.spectra(reference)
-    ref_ch = reference.spectra(shape)
-    if _kernels.HAVE_NUMBA:
-        product = _kernels.channel_cross_spectrum(query_ch, ref_ch)
-    else:
-        product = np.conj(query_ch[:, 0]) * ref_ch[0]
-        for k in range(1, 4):
-            product += np.conj(query_ch[:, k]) * ref_ch[k]
-    hits = sfft.irfft2(product, s=shape, workers=1)
+    # the query's quarter turns: its first quarter against the reference turned back
+    turns = range(4) if query.quarter else range(1)
+    hits = _correlations(query_ch, [reference.turned(j) for j in turns], shape)
     # circular correlation: the shift s of A over B is at index s mod shape (the shifts with
     # any overlap are -(ha - 1) .. hb - 1 rows and -(wa - 1) .. wb - 1 cols)
     searched = inside >= min_inside * query.n
-    hits[~searched] = 0.0
-    cells = np.count_nonzero(searched) / (scale * scale) / (math.pi * hit_radius * hit_radius)
+    np.multiply(hits.reshape(len(turns), *searched.shape), searched,
+                out=hits.reshape(len(turns), *searched.shape))
+    cells = (len(turns) * np.count_nonzero(searched) / (scale * scale)
+             / (math.pi * hit_radius * hit_radius))
     if distinct_rotations:
         cells *= max(distinct_rotations / n_rot, 1.0)
     log10_transforms = math.log10(max(float(cells), 1.0))
@@ -293,14 +375,19 @@ def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference
         if h <= 0:
             break
         r = int(rots[i])
+        turn, q = divmod(r, query.n_rastered)
         dy, dx = divmod(k, shape[1])
         dy = dy - shape[0] if dy > hb - 1 else dy
         dx = dx - shape[1] if dx > wb - 1 else dx
         c = complex(query.c[r])
-        # A pixel (ci, ri) lands on B pixel (ci + dx, ri + dy), in search pixels
-        t = complex(dx - query.col0[r], -(dy - query.row0[r])) / scale
+        # A pixel (ci, ri) of rotation q lands on pixel (ci + dx, ri + dy) of B turned
+        # ``turn`` times clockwise, in search pixels; turned back: a turn more of A
+        t = complex(dx - query.col0[q], -(dy - query.row0[q]))
+        t = _QUARTER_TURNS[turn] * (t - reference.turn_offset(turn)) / scale
+        # the same transform: as close in rotation, and mapping the query's centre as close
+        # (its origin, a corner, moves 4 px per rotation step at the query's reach)
         if any(abs(math.remainder(np.angle(c) - np.angle(c2), 2 * math.pi)) <= step
-               and abs(t - t2) <= 4.0 for c2, t2, _ in out):
+               and abs((c - c2) * query.centre + t - t2) <= 4.0 for c2, t2, _ in out):
             continue
         out.append((c, t, h))
         if len(out) == n_best:

@@ -417,16 +417,25 @@ class MinutiaIndex:
             self._crease_query[key] = CreaseSearchQuery(samples, rotations, level.resolution)
         return self._crease_query[key]
 
-    def prepare_as_reference(self) -> MinutiaIndex:
+    def prepare_as_reference(self, search: bool = False) -> MinutiaIndex:
         """Build now what matching against this set (as B, e.g. a landmark region) builds on
-        first use: the edge hash for the hash candidate generator and the crease field. A
-        region arrives before the frames it serves, so its first frame need not wait for
-        them (~60 ms for a demo landmark region with creases). Returns self."""
+        first use: the edge hash for the hash candidate generator (and its crease
+        descriptors), the crease and ridge fields and, with ``search``, the crease search's
+        channels at both levels, turned four ways (a small region that blocks are searched
+        in). A region arrives before the frames it serves, so its first frame need not wait
+        for them (~60 ms for a demo landmark region with creases). Returns self."""
         p = self.params
-        if _generator(self, p) == "hash":
+        hash_generator = _generator(self, p) == "hash"
+        if hash_generator:
             self.edge_hash()
         if p.crease_check and self.crease_image is not None:
             _ = self.crease_field
+            _ = self.ridge_field
+            if hash_generator:
+                _ = self.crease
+            for level in (FINE, COARSE) if search else ():
+                for turns in range(4):
+                    self.crease_search(level).turned(turns)
         return self
 
     def edge_hash(self) -> EdgeHash:
