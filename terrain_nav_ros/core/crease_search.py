@@ -194,6 +194,7 @@ class CreaseSearchQuery:
         self._raster = None
         self._spectra = {}
         self._samples, self._whole = samples, None
+        self._margins = {}
         self.centre = complex(samples.z.mean()) if self.n else 0j   # math frame, image px
 
     def whole(self) -> CreaseSearchQuery:
@@ -226,24 +227,48 @@ class CreaseSearchQuery:
             self._raster = raster.reshape(n_rot, 5, *self.shape)
         return self._raster
 
-    def padded_shape(self, reference_shape: tuple[int, int]) -> tuple[int, int]:
+    def padded_shape(self, reference_shape: tuple[int, int],
+                     min_inside: float | None = None) -> tuple[int, int]:
         """FFT shape of a search against a reference image of ``reference_shape`` pixels
-        (full resolution): room for every shift with any overlap."""
+        (full resolution): room for every shift with any overlap or, with ``min_inside``,
+        for the shifts searched (those keeping that fraction of the pixels over the
+        reference) without aliases of other shifts with any overlap (~hb + ha / 2 instead
+        of hb + ha per side)."""
         hb, wb = (max(int(round(n * self.resolution)), 1) for n in reference_shape)
         ha, wa = self.shape
-        return (sfft.next_fast_len(hb + ha - 1, real=True),
-                sfft.next_fast_len(wb + wa - 1, real=True))
+        if min_inside is None or self.n == 0:
+            need_rows, need_cols = ha - 1, wa - 1
+        else:
+            need_rows, need_cols = self._alias_margins(min_inside)
+        return (sfft.next_fast_len(max(hb + min(need_rows, ha - 1), ha), real=True),
+                sfft.next_fast_len(max(wb + min(need_cols, wa - 1), wa), real=True))
+
+    def _alias_margins(self, min_inside: float) -> tuple[int, int]:
+        """Padding (rows, cols) beyond the reference that keeps a searched shift free of
+        aliases: a shift ``s`` keeps ``m`` pixels inside along an axis only between
+        ``-x_(n-m+1)`` and ``h_b - 1 - x_(m)`` (``x_(i)``: the i-th smallest pixel
+        coordinate), and its alias ``s +- P`` overlaps no pixel when ``P >= h_b +
+        max(x_(n-m+1), x_max - x_(m))`` (per rotation; the largest over them)."""
+        if min_inside not in self._margins:
+            m = min(max(int(math.ceil(min_inside * self.n)), 1), self.n)
+            _, ri, ci = self._pixels
+            need = []
+            for x in (ri, ci):
+                x = np.sort(x, axis=1)
+                need.append(int(np.maximum(x[:, self.n - m], x[:, -1] - x[:, m - 1]).max()))
+            self._margins[min_inside] = tuple(need)
+        return self._margins[min_inside]
 
     def work(self, reference_shape: tuple[int, int]) -> int:
         """Rotations times padded FFT pixels of a search against ``reference_shape``: its
         time and the memory of its spectra (~16 bytes each) grow with it."""
         return len(self.c) * math.prod(self.padded_shape(reference_shape))
 
-    def spectra(self, reference: CreaseSearchReference):
-        """Padded FFT shape, channel spectra (not conjugated) and, at every shift, the
-        count of pixels over ``reference``'s footprint (cached for one padded shape at a
-        time)."""
-        shape = self.padded_shape(reference.full_shape)
+    def spectra(self, reference: CreaseSearchReference, min_inside: float | None = 0.5):
+        """Padded FFT shape (for the shifts that keep ``min_inside`` of the pixels over
+        ``reference``, or any with ``None``), channel spectra (not conjugated) and, at every shift, the count of
+        pixels over ``reference``'s footprint (cached for one padded shape at a time)."""
+        shape = self.padded_shape(reference.full_shape, min_inside)
         key = (shape, reference.shape)
         if key not in self._spectra:
             # rfft2 with zero padding, pruned: the row transforms of the all-zero padding
@@ -346,7 +371,7 @@ def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference
     if query.quarter and not reference.square:
         query = query.whole()
     scale = query.resolution
-    shape, query_ch, inside = query.spectra(reference)
+    shape, query_ch, inside = query.spectra(reference, min_inside)
     # the query's quarter turns: its first quarter against the reference turned back
     turns = range(4) if query.quarter else range(1)
     hits = _correlations(query_ch, [reference.turned(j) for j in turns], shape)
