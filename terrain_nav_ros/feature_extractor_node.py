@@ -83,14 +83,22 @@ class FeatureExtractorNode(Node):
             ridges=self.attach_ridges if ridges is None else ridges)
 
     def on_set_parameters(self, params) -> SetParametersResult:
-        """Validate a change with the core's own checks before accepting it."""
-        ridges = next((bool(p.value) for p in params if p.name == "attach_ridges"),
-                      self.attach_ridges)
+        """Validate a change with the core's own checks before accepting it; every setting
+        applies from the next image."""
+        new = {p.name: p.value for p in params}
+        ridges = bool(new.get("attach_ridges", self.attach_ridges))
+        lighting = new.get("lighting", self.lighting)
+        if lighting not in LIGHTINGS:
+            return SetParametersResult(
+                successful=False, reason=f"lighting must be one of {LIGHTINGS}, not {lighting!r}")
         try:
             self.extractor = self._build(params, ridges)
         except (ValueError, TypeError) as err:
             return SetParametersResult(successful=False, reason=str(err))
         self.attach_ridges = ridges
+        self.attach_creases = bool(new.get("attach_creases", self.attach_creases))
+        self.publish_creases = bool(new.get("publish_creases", self.publish_creases))
+        self.lighting = lighting
         return SetParametersResult(successful=True)
 
     @contained

@@ -50,8 +50,13 @@ def extractor_node(params=None):
 def _set(client, name, value):
     cli = client.node.create_client(SetParameters, "/feature_extractor/set_parameters")
     assert cli.wait_for_service(timeout_sec=20)
-    param = Parameter(name=name, value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE,
-                                                      double_value=value))
+    if isinstance(value, bool):
+        typed = ParameterValue(type=ParameterType.PARAMETER_BOOL, bool_value=value)
+    elif isinstance(value, str):
+        typed = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=value)
+    else:
+        typed = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value)
+    param = Parameter(name=name, value=typed)
     future = cli.call_async(SetParameters.Request(parameters=[param]))
     assert wait_until(future.done, 20)
     return future.result().results[0]
@@ -84,12 +89,22 @@ def test_minutiae_empty_reasons_and_parameter_validation():
 
 
 def test_creases_stay_home_when_not_asked_for_and_ridges_come_when_asked():
+    """... and the switches changed at runtime apply to the next image."""
+    image = cv.geo_image_to_msg(_drainage_image(), GEOREF, HEADER)
     with extractor_node({"attach_creases": False, "attach_ridges": True}) as s:
-        s.land_pub.publish(cv.geo_image_to_msg(_drainage_image(), GEOREF, HEADER))
+        s.land_pub.publish(image)
         assert wait_until(lambda: bool(s.landmark), 30)
+        switched = [_set(s.client, "attach_creases", True),
+                    _set(s.client, "attach_ridges", False)]
+        bad_lighting = _set(s.client, "lighting", "moonlight")
+        s.land_pub.publish(image)
+        assert wait_until(lambda: len(s.landmark) > 1, 30)
     assert len(s.landmark[0].minutiae) >= 10 and len(s.landmark[0].crease_pixels) == 0
     ridges = cv.msg_to_ridges(s.landmark[0])
     assert ridges is not None and ridges.sum() > 50
+    assert all(r.successful for r in switched)
+    assert not bad_lighting.successful and "lighting" in bad_lighting.reason
+    assert len(s.landmark[1].crease_pixels) > 0 and cv.msg_to_ridges(s.landmark[1]) is None
 
 
 def _repeated(a, b, px=2.0):
