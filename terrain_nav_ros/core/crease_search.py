@@ -266,8 +266,9 @@ class CreaseSearchQuery:
 
     def spectra(self, reference: CreaseSearchReference, min_inside: float | None = 0.5):
         """Padded FFT shape (for the shifts that keep ``min_inside`` of the pixels over
-        ``reference``, or any with ``None``), channel spectra (not conjugated) and, at every shift, the count of
-        pixels over ``reference``'s footprint (cached for one padded shape at a time)."""
+        ``reference``, or any with ``None``), channel spectra (not conjugated) and, at
+        every shift, the count of pixels over ``reference``'s footprint (cached for one
+        padded shape at a time)."""
         shape = self.padded_shape(reference.full_shape, min_inside)
         key = (shape, reference.shape)
         if key not in self._spectra:
