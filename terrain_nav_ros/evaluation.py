@@ -60,7 +60,7 @@ from .core.baselines import (
 from .core.camera_effects import CameraEffects, apply_camera_effects
 from .core.dem_io import Dem, open_dem, sample_dem
 from .core.georef import GeoReference
-from .core.hillshade import LIGHTINGS, extractor_input
+from .core.hillshade import check_lighting, extractor_input
 from .core.matching import Decision, Matcher, MatchParams, calibrate_threshold
 from .core.metamap import MetaMap
 from .core.minutia_set import MinutiaSet
@@ -499,8 +499,7 @@ def run_evaluation(dem=None, gsd=None, blocks: int = 9, out_dir="out/evaluation"
     n = math.isqrt(int(blocks))
     if n * n != int(blocks) or n < 2:
         raise ValueError(f"blocks must be a square number >= 4, got {blocks}")
-    if lighting not in LIGHTINGS:
-        raise ValueError(f"lighting must be one of {LIGHTINGS}, got {lighting!r}")
+    check_lighting(lighting)
     if int(jobs) < 1:
         raise ValueError(f"jobs must be >= 1, got {jobs}")
     cm = camera or CameraModel()

@@ -27,7 +27,7 @@ from terrain_nav_msgs.msg import GeoImage, MinutiaArray
 
 from . import conversions as cv
 from .core.creases import CreaseParams
-from .core.hillshade import LIGHTINGS, extractor_input
+from .core.hillshade import check_lighting, extractor_input
 from .core.minutiae import FeatureExtractor, MinutiaParams, warm_up
 from .ros_common import (
     LATCHED_QOS,
@@ -59,8 +59,7 @@ class FeatureExtractorNode(Node):
         self.lighting = declare(self, "lighting", "shading",
                                 "extractor input: 'shading' (the image) or 'compensated' "
                                 "(terrain curvature from the shading and the image's sun)")
-        if self.lighting not in LIGHTINGS:
-            raise ValueError(f"lighting must be one of {LIGHTINGS}, not {self.lighting!r}")
+        check_lighting(self.lighting)
         self.extractor = self._build()
         self.add_on_set_parameters_callback(self.on_set_parameters)
         self.outputs = {}
@@ -88,10 +87,8 @@ class FeatureExtractorNode(Node):
         new = {p.name: p.value for p in params}
         ridges = bool(new.get("attach_ridges", self.attach_ridges))
         lighting = new.get("lighting", self.lighting)
-        if lighting not in LIGHTINGS:
-            return SetParametersResult(
-                successful=False, reason=f"lighting must be one of {LIGHTINGS}, not {lighting!r}")
         try:
+            check_lighting(lighting)
             self.extractor = self._build(params, ridges)
         except (ValueError, TypeError) as err:
             return SetParametersResult(successful=False, reason=str(err))

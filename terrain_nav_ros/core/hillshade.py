@@ -15,6 +15,7 @@ from .creases import _fill_nodata
 from .sun import sun_direction_enu
 
 __all__ = ["sun_vector", "surface_normals", "hillshade", "shading_curvature", "LIGHTINGS",
+           "check_lighting",
            "extractor_input"]
 
 # What the crease extractor sees: the shading itself, or the curvature estimated from it.
@@ -164,6 +165,12 @@ def shading_curvature(image, azimuth_deg: float, elevation_deg: float, sigma: fl
 
 
 
+def check_lighting(lighting: str) -> None:
+    """Raise ValueError unless ``lighting`` is one of :data:`LIGHTINGS`."""
+    if lighting not in LIGHTINGS:
+        raise ValueError(f"lighting must be one of {LIGHTINGS}, got {lighting!r}")
+
+
 def extractor_input(image, lighting: str, sun=None, valid_mask=None) -> np.ndarray:
     """The image the crease extractor sees under a ``lighting`` treatment.
 
@@ -171,8 +178,7 @@ def extractor_input(image, lighting: str, sun=None, valid_mask=None) -> np.ndarr
     *sun)``, whose valleys are dark lines like a shaded image's, and needs the
     ``(azimuth, elevation)`` of the sun that lit it.
     """
-    if lighting not in LIGHTINGS:
-        raise ValueError(f"lighting must be one of {LIGHTINGS}, got {lighting!r}")
+    check_lighting(lighting)
     if lighting == "shading":
         return image
     if sun is None:
