@@ -376,8 +376,8 @@ def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference
     # the query's quarter turns: its first quarter against the reference turned back
     turns = range(4) if query.quarter else range(1)
     hits = _correlations(query_ch, [reference.turned(j) for j in turns], shape)
-    # circular correlation: the shift s of A over B is at index s mod shape (the shifts with
-    # any overlap are -(ha - 1) .. hb - 1 rows and -(wa - 1) .. wb - 1 cols)
+    # circular correlation: the shift s of A over B is at index s mod shape (the padding
+    # leaves every searched shift free of aliases, see CreaseSearchQuery.padded_shape)
     searched = inside >= min_inside * query.n
     np.multiply(hits.reshape(len(turns), *searched.shape), searched,
                 out=hits.reshape(len(turns), *searched.shape))
