@@ -105,6 +105,22 @@ def test_search_kernels_agree_with_the_numpy_path(region, monkeypatch):
         assert c == c2 and t == t2 and h == pytest.approx(h2, rel=1e-5)
 
 
+@pytest.mark.parametrize("rotation_deg", [-8.0, 37.0, 150.0])
+def test_shortlist_keeps_the_proposals_of_the_full_search(region, rotation_deg):
+    """Correlating in full only the rotations with the most hits at half the resolution
+    gives the proposals of correlating every rotation in full: a view of the same place
+    leads at both resolutions."""
+    ms, skel = region
+    _, view_skel, _ = _turned_view(ms, skel, 200, 180, rotation_deg, (5.0, -4.0))
+    samples = CreaseSamples.from_image(view_skel)
+    reference = CreaseSearchReference(CreaseField(skel[120:312, 140:332]))
+    query = CreaseSearchQuery(samples, search_rotations(math.pi, 28.0))
+    assert len(query.c) > 8 * 3          # the shortlist is in use
+    found = search_transforms(query, reference, n_best=3)
+    assert found == search_transforms(query, reference, n_best=3, shortlist=0)
+    assert len(found.proposals) == 3
+
+
 def test_quarter_turns_search_as_every_rotation(region):
     """A whole-circle search transforms a quarter of the query's rotations, against the
     reference turned four ways: the same proposals as rasterising every rotation (their

@@ -516,30 +516,31 @@ def rotation_support(theta, w, mid_a, mid_b, rotations, limit, inv_bin):
 
 
 @njit(**_JIT)
-def channel_cross_spectra(query, references):
-    """``sum_k conj(query[:, k]) * references[j, k]`` for every reference ``j`` of
-    ``crease_search.search_transforms``, accumulated plane by plane (contiguous, so the
-    loops vectorise) without numpy's temporary per channel: ``query`` (n_rot, n_ch, h, w),
-    ``references`` (n_ref, n_ch, h, w), complex64; out (n_ref, n_rot, h, w)."""
+def channel_cross_spectra(query, references, planes):
+    """``sum_k conj(query[r, k]) * references[j, k]`` for each plane ``p = j * n_rot + r``
+    of ``planes`` (``crease_search._correlations``), accumulated plane by plane
+    (contiguous, so the loops vectorise) without numpy's temporary per channel: ``query``
+    (n_rot, n_ch, h, w), ``references`` (n_ref, n_ch, h, w), complex64; out
+    (len(planes), h, w)."""
     n_rot, n_ch, h, w = query.shape
     n_ref = references.shape[0]
     size = h * w
     q = query.reshape(n_rot, n_ch, size)
     ref = references.reshape(n_ref, n_ch, size)
-    out = np.empty((n_ref, n_rot, size), np.complex64)
-    for m in range(n_ref):
-        for r in range(n_rot):
-            o = out[m, r]
-            a = q[r, 0]
-            b = ref[m, 0]
+    out = np.empty((planes.size, size), np.complex64)
+    for i in range(planes.size):
+        m, r = divmod(planes[i], n_rot)
+        o = out[i]
+        a = q[r, 0]
+        b = ref[m, 0]
+        for p in range(size):
+            o[p] = np.conj(a[p]) * b[p]
+        for k in range(1, n_ch):
+            a = q[r, k]
+            b = ref[m, k]
             for p in range(size):
-                o[p] = np.conj(a[p]) * b[p]
-            for k in range(1, n_ch):
-                a = q[r, k]
-                b = ref[m, k]
-                for p in range(size):
-                    o[p] += np.conj(a[p]) * b[p]
-    return out.reshape(n_ref, n_rot, h, w)
+                o[p] += np.conj(a[p]) * b[p]
+    return out.reshape(planes.size, h, w)
 
 
 @njit(**_JIT)
