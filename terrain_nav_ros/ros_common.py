@@ -175,7 +175,15 @@ def spin(node: Node, executor=SINGLE_THREADED_EXECUTOR) -> None:
     runner.add_node(node)
     try:
         while node.context.ok():
-            runner.spin_once(timeout_sec=step)
+            try:
+                runner.spin_once(timeout_sec=step)
+            except RuntimeError:   # rclpy's RCLError
+                if node.context.ok():
+                    raise
+                # Ctrl-C: rclpy's signal handler shuts the context down from its own
+                # thread, and the executor building its wait set just then fails with
+                # "the given context is not valid" (ros2/rclpy#402, ros2/ros2cli#854)
+                raise ExternalShutdownException() from None
     finally:
         if events:
             # Before the node's entities are destroyed: the events executor unregisters the

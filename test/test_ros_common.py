@@ -5,7 +5,8 @@ import threading
 
 import pytest
 import rclpy
-from rclpy.executors import ExternalShutdownException
+from rclpy._rclpy_pybind11 import RCLError
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from ros_helpers import wait_until
@@ -90,6 +91,36 @@ def test_a_node_is_spun_by_the_executor_it_asks_for_until_shutdown(asked, runner
     assert kind == (asked or "single_threaded")
     assert set(node.ran_by) == {runner}
     node.destroy_node()
+
+
+class _RacingExecutor(SingleThreadedExecutor):
+    """Fails to build its wait set as rclpy does when Ctrl-C's handler shuts the context
+    down from its own thread at that moment (``shut_down``), or with the context still
+    valid (a real error)."""
+
+    def __init__(self, context, shut_down: bool):
+        super().__init__(context=context)
+        self.shut_down = shut_down
+
+    def spin_once(self, timeout_sec=None):
+        if self.shut_down:
+            self._context.try_shutdown()
+        raise RCLError("failed to initialize wait set: the given context is not valid")
+
+
+def test_a_wait_set_error_at_ctrl_c_ends_spin_as_a_shutdown():
+    """The node then exits 0 like any Ctrl-C (an ekf once exited 1 with "fatal: RCLError"
+    under load); the same error while the context is valid is not swallowed."""
+    for shut_down, expected in [(True, ExternalShutdownException), (False, RCLError)]:
+        context = rclpy.Context()
+        rclpy.init(context=context)
+        node = Node("racing", context=context)
+        try:
+            with pytest.raises(expected):
+                spin(node, _RacingExecutor(context, shut_down))
+        finally:
+            node.destroy_node()
+            context.try_shutdown()
 
 
 def test_an_unknown_executor_is_refused():
