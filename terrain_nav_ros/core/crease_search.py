@@ -147,10 +147,14 @@ def search_rotations(max_rotation: float, radius: float, tolerance: float = 3.0)
     step = min(tolerance / max(radius, 1.0), math.radians(15.0))
     if max_rotation >= math.pi:
         # a multiple of four: quarter turns of each other (see CreaseSearchQuery)
-        n = 4 * int(math.ceil(2.0 * math.pi / step / 4.0))
-        return np.arange(n) * (2.0 * math.pi / n) - math.pi
+        return _whole_circle(4 * int(math.ceil(2.0 * math.pi / step / 4.0)))
     n = int(math.ceil(max_rotation / step))
     return np.linspace(-max_rotation, max_rotation, 2 * n + 1)
+
+
+def _whole_circle(n: int) -> np.ndarray:
+    """``n`` rotations evenly over the circle, from -pi."""
+    return np.arange(n) * (2.0 * math.pi / n) - math.pi
 
 
 class CreaseSearchQuery:
@@ -180,8 +184,8 @@ class CreaseSearchQuery:
         self.resolution = float(resolution)
         self.rotations = np.asarray(rotations, float)
         n_rot = len(self.rotations)
-        self.quarter = bool(quarter_turns and n_rot and n_rot % 4 == 0 and np.allclose(
-            self.rotations, np.arange(n_rot) * (2.0 * math.pi / n_rot) - math.pi))
+        self.quarter = bool(quarter_turns and n_rot and n_rot % 4 == 0
+                            and np.allclose(self.rotations, _whole_circle(n_rot)))
         if self.quarter:
             # exact quarter turns (multiplying by 1j only swaps and negates): their rasters
             # are exact quarter turns of the first quarter's
