@@ -221,10 +221,10 @@ class _Study:
         self.blocks = [self.minutiae(area_grey[y:y + bs, x:x + bs], sun)
                        for x, y in self.origins]
         self.block_index = [matcher.index(*b) for b in self.blocks]
-        self.region_sets, self.region_prep = [], []
+        self.region_features, self.region_prep = [], []
         for x0, y0, x1, y1 in self.regions:
             t0 = time.perf_counter()
-            self.region_sets.append(self.minutiae(area_grey[y0:y1, x0:x1], sun, region=True))
+            self.region_features.append(self.minutiae(area_grey[y0:y1, x0:x1], sun, region=True))
             self.region_prep.append(time.perf_counter() - t0)
 
     def minutiae(self, grey: np.ndarray, sun, region: bool = False) -> _Extracted:
@@ -334,7 +334,7 @@ def _localise_cases(study: _Study, cam_greys, cams: list[_Extracted], cam_times,
             if method == "minutiae":
                 t0 = time.perf_counter()
                 # the region is prepared before the frames it serves, as NCC's gradient is
-                ri = matcher.index(*study.region_sets[k]).prepare_as_reference(search=True)
+                ri = matcher.index(*study.region_features[k]).prepare_as_reference(search=True)
                 prep = study.region_prep[k] + time.perf_counter() - t0
                 t0 = time.perf_counter()
                 r = matcher.localise(matcher.index(*cams[k]), ri)
@@ -591,7 +591,7 @@ def run_evaluation(dem=None, gsd=None, blocks: int = 9, out_dir="out/evaluation"
         "camera": asdict(cm), "false_match_rate": false_match_rate, "seed": seed,
         "region_factor": region_factor, "success_px": success_px, "methods": methods,
         "rotation_steps": n_rot, "landmark_counts": [len(b.minutiae) for b in study.blocks],
-        "region_counts": [len(r.minutiae) for r in study.region_sets],
+        "region_counts": [len(r.minutiae) for r in study.region_features],
         "matcher_max_rotation_deg": math.degrees(params.max_rotation),
         "matcher_crease_check": params.crease_check,
         "matcher_ridge_check": ridge_check,
