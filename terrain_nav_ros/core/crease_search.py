@@ -411,7 +411,7 @@ def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference
         With more than ``shortlist * n_best`` rotations, only that many are correlated at
         full resolution: those with the most hits at half the resolution (a quarter of the
         work each). The proposals come from the strongest ``4 * n_best`` of them; in the
-        localisations of gredos 25 m blocks, the planes of the proposals ranked at most 17th
+        localisations of gredos 25 m blocks, the planes of the proposals ranked at most 18th
         of 64-76 at half the resolution, the full-resolution best at most 12th. 0
         correlates every rotation in full.
 
