@@ -73,6 +73,27 @@ def stop(proc: subprocess.Popen, timeout: float = 10.0) -> str:
     return out or ""
 
 
+def call_service(client: SpinningNode, srv_type, name: str, request, timeout: float = 20.0,
+                 resend_after: float = 5.0):
+    """Call service ``name`` from ``client`` and return the response (asserts one comes).
+
+    The request is sent again when no answer comes within ``resend_after`` seconds: a
+    request sent just as the server appears can be lost (the client sees the server before
+    the server has matched the client's endpoints, ros2/rclcpp#625), and these calls are
+    idempotent.
+    """
+    cli = client.node.create_client(srv_type, name)
+    deadline = time.monotonic() + timeout
+    assert cli.wait_for_service(timeout_sec=timeout), f"{name} never appeared"
+    while True:
+        future = cli.call_async(request)
+        left = deadline - time.monotonic()
+        if wait_until(future.done, min(resend_after, max(left, 0.0))):
+            return future.result()
+        cli.remove_pending_request(future)
+        assert left > resend_after, f"no response from {name} in {timeout:.0f} s"
+
+
 def wait_until(predicate, timeout: float, period: float = 0.05) -> bool:
     """Poll ``predicate`` until true or ``timeout`` seconds pass."""
     deadline = time.monotonic() + timeout

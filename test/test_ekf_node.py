@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 import pytest
-from ros_helpers import SpinningNode, start_node, stop, wait_until
+from ros_helpers import SpinningNode, call_service, start_node, stop, wait_until
 
 from terrain_nav_ros import conversions as cv
 from terrain_nav_ros.core.baro import altitude_to_pressure
@@ -382,11 +382,9 @@ def test_every_imu_sample_is_integrated_in_order_by_either_executor(executor):
         node = client.node
         node.create_subscription(Odometry, "/nav/odometry", odom.append, n + 10)
         imu_pub = node.create_publisher(Imu, "/imu/data", n + 10)
-        ask = node.create_client(GetParameters, "/ekf/get_parameters")
-        assert ask.wait_for_service(timeout_sec=20.0), "ekf never came up"
-        future = ask.call_async(GetParameters.Request(names=["executor"]))
-        assert wait_until(future.done, 10)
-        assert future.result().values[0].string_value == (executor or "events")
+        asked = call_service(client, GetParameters, "/ekf/get_parameters",
+                             GetParameters.Request(names=["executor"]))
+        assert asked.values[0].string_value == (executor or "events")
         assert wait_until(lambda: imu_pub.get_subscription_count() > 0, 10)
         for k in range(1, n + 1):       # level flight at 30 m/s: gravity on z
             imu_pub.publish(cv.sample_to_imu(cv.make_header(_stamp(k * 0.01), "base_link"),

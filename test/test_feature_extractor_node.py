@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
-from ros_helpers import SpinningNode, start_node, stop, wait_until
+from ros_helpers import SpinningNode, call_service, start_node, stop, wait_until
 from std_msgs.msg import Header
 from synthetic_minutiae import fractal_surface
 
@@ -48,8 +48,6 @@ def extractor_node(params=None):
 
 
 def _set(client, name, value):
-    cli = client.node.create_client(SetParameters, "/feature_extractor/set_parameters")
-    assert cli.wait_for_service(timeout_sec=20)
     if isinstance(value, bool):
         typed = ParameterValue(type=ParameterType.PARAMETER_BOOL, bool_value=value)
     elif isinstance(value, str):
@@ -57,9 +55,8 @@ def _set(client, name, value):
     else:
         typed = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value)
     param = Parameter(name=name, value=typed)
-    future = cli.call_async(SetParameters.Request(parameters=[param]))
-    assert wait_until(future.done, 20)
-    return future.result().results[0]
+    return call_service(client, SetParameters, "/feature_extractor/set_parameters",
+                        SetParameters.Request(parameters=[param])).results[0]
 
 
 def test_minutiae_empty_reasons_and_parameter_validation():

@@ -5,7 +5,7 @@ from contextlib import contextmanager
 from types import SimpleNamespace
 
 import numpy as np
-from ros_helpers import SpinningNode, start_node, stop, wait_until
+from ros_helpers import SpinningNode, call_service, start_node, stop, wait_until
 from std_msgs.msg import Header
 
 from terrain_nav_msgs.msg import DemTile, GeoImage
@@ -26,15 +26,11 @@ def _peak_tile():
 def _render_view(client, pose_z):
     from terrain_nav_msgs.srv import RenderView
 
-    cli = client.node.create_client(RenderView, "/landmark_renderer/render_view")
-    assert cli.wait_for_service(timeout_sec=20)
     request = RenderView.Request(camera_info=cv.intrinsics_to_camera_info(
         np.array([[100.0, 0, 31.5], [0, 100.0, 23.5], [0, 0, 1]]), [0] * 5, 64, 48))
     request.pose = cv.pose_with_covariance([1000.0, 2000.0, pose_z],
                                            [1.0, 0.0, 0.0, 0.0], np.eye(6)).pose  # nadir
-    future = cli.call_async(request)
-    assert wait_until(future.done, 20)
-    return future.result()
+    return call_service(client, RenderView, "/landmark_renderer/render_view", request)
 
 
 @contextmanager

@@ -3,7 +3,7 @@ the DEM, and a latched tile around the aircraft from odometry."""
 
 import numpy as np
 import pytest
-from ros_helpers import SpinningNode, start_node, stop, wait_until
+from ros_helpers import SpinningNode, call_service, start_node, stop, wait_until
 
 from terrain_nav_msgs.msg import DemTile
 from terrain_nav_msgs.srv import GetDemTile
@@ -25,11 +25,7 @@ def metamap_process():
 
 
 def _call(client, request, timeout=20.0):
-    cli = client.node.create_client(GetDemTile, "/metamap/get_tile")
-    assert cli.wait_for_service(timeout_sec=timeout), "metamap service never appeared"
-    future = cli.call_async(request)
-    assert wait_until(future.done, timeout), "no response"
-    return future.result()
+    return call_service(client, GetDemTile, "/metamap/get_tile", request, timeout)
 
 
 def test_service_returns_the_tile_the_core_computes(metamap_process):
