@@ -146,6 +146,10 @@ assert set(EKF_PARAMETERS) == {f.name for f in fields(EkfParams)}, "map every Ek
 
 _OK, _WARN, _ERROR = 0, 1, 2
 # Reasons that are normal operation, not worth a warning.
+# A request sent just as the metamap appears can be lost (the client sees the service before
+# the service has matched the client, ros2/rclcpp#625): one unanswered this long is sent again.
+_ORIGIN_RESEND_S = 5.0
+
 _QUIET = {Reason.OK, Reason.INITIALIZED, Reason.QUEUED, Reason.WAITING_FOR_INIT,
           Reason.IMU_GAP, Reason.POSITION_RESET, Reason.COMPARED_ONLY, Reason.NOT_INITIALIZED,
           Reason.GATED}   # gate rejections are logged from the diagnostics records (queued
@@ -255,7 +259,7 @@ class EkfNode(Node):
                                       quat_from_euler(*init_rpy))
         self.origin = None
         self._tile_sub = self._origin_client = self._origin_timer = None
-        self._origin_future = None
+        self._origin_future, self._origin_asked = None, 0.0
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         if math.isfinite(lat) and math.isfinite(lon):
             self.origin = EnuOrigin(lat, lon, alt)
@@ -361,11 +365,15 @@ class EkfNode(Node):
                 self.destroy_subscription(self._tile_sub)
             self._tile_sub = self._origin_client = self._origin_timer = None
             return
-        busy = self._origin_future is not None and not self._origin_future.done()
-        if busy or not self._origin_client.service_is_ready():
+        if self._origin_future is not None and not self._origin_future.done():
+            if time.monotonic() - self._origin_asked < _ORIGIN_RESEND_S:
+                return
+            self._origin_client.remove_pending_request(self._origin_future)
+        if not self._origin_client.service_is_ready():
             return
         request = GetDemTile.Request(center_frame=GetDemTile.Request.CENTER_ENU,
                                      center_x=0.0, center_y=0.0, width=1, height=1, gsd=1.0)
+        self._origin_asked = time.monotonic()
         self._origin_future = self._origin_client.call_async(request)
         self._origin_future.add_done_callback(self._on_origin_response)
 

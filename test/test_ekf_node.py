@@ -47,6 +47,14 @@ FINAL_VERTICAL_M = 8.0
 MAX_HORIZONTAL_AFTER_INIT_M = 30.0
 
 
+def _origin_tile():
+    """A tiny DemTile carrying the mission's ENU origin (what the metamap sends)."""
+    from std_msgs.msg import Header
+
+    return cv.dem_tile_to_msg(np.zeros((2, 2), np.float32), GeoReference(0.0, 0.0, 10.0, 2, 2),
+                              Header(frame_id="map"), (ORIGIN.lat, ORIGIN.lon, ORIGIN.alt))
+
+
 def _stamp(t: float):
     return cv.ns_to_stamp(T0_NS + round(t * 1e9))
 
@@ -97,7 +105,6 @@ class Recorder:
 def flight():
     from diagnostic_msgs.msg import DiagnosticArray  # noqa: F401 - type support loaded early
     from sensor_msgs.msg import FluidPressure, Imu, NavSatFix
-    from std_msgs.msg import Header
 
     from terrain_nav_msgs.msg import DemTile, PvaFix
     from terrain_nav_ros.ros_common import LATCHED_QOS
@@ -128,10 +135,7 @@ def flight():
         "baro": node.create_publisher(FluidPressure, "/baro/pressure", 100),
         "tile": node.create_publisher(DemTile, "/metamap/tile", LATCHED_QOS),
     }
-    # A tiny latched tile carrying the mission's ENU origin (the metamap's role).
-    pubs["tile"].publish(cv.dem_tile_to_msg(
-        np.zeros((2, 2), np.float32), GeoReference(0.0, 0.0, 10.0, 2, 2),
-        Header(frame_id="map"), (ORIGIN.lat, ORIGIN.lon, ORIGIN.alt)))
+    pubs["tile"].publish(_origin_tile())   # latched, as the metamap's
     assert wait_until(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 20), \
         "ekf subscriptions never appeared"
     assert wait_until(lambda: rec.diag, 10), "no diagnostics"
@@ -360,6 +364,38 @@ def test_origin_from_the_metamap_service_without_tiles():
     lat, lon, alt = map(float, origin().split(","))
     assert (lat, lon, alt) == pytest.approx((o.lat, o.lon, o.alt), abs=1e-6)
     assert "ENU origin from /metamap/get_tile" in log
+
+
+def test_an_unanswered_origin_request_is_sent_again():
+    """A request sent just as the metamap appears can be lost: a stand-in metamap that never
+    answers the first /metamap/get_tile request still gives the node its origin, from the
+    request it sends again."""
+    import rclpy.task
+    from rclpy.callback_groups import ReentrantCallbackGroup
+
+    from terrain_nav_msgs.srv import GetDemTile
+
+    client = SpinningNode("ekf_origin_server")
+    asked, never = [], rclpy.task.Future()
+
+    async def serve(request, response):
+        asked.append(request)
+        if len(asked) == 1:
+            await never            # the lost request: no response is ever sent
+        response.success = True
+        response.tile = _origin_tile()
+        return response
+
+    # reentrant: the pending first call must not hold back the second
+    client.node.create_service(GetDemTile, "/metamap/get_tile", serve,
+                               callback_group=ReentrantCallbackGroup())
+    ekf = start_node("ekf", {"init_mode": "gnss"})
+    try:
+        assert wait_until(lambda: len(asked) >= 2, 20), "the request was not sent again"
+    finally:
+        log = stop(ekf)
+        client.close()
+    assert "ENU origin from /metamap/get_tile" in log, log
 
 
 @pytest.mark.parametrize("executor", [None, "single_threaded"])
