@@ -15,8 +15,7 @@ from .creases import _fill_nodata
 from .sun import sun_direction_enu
 
 __all__ = ["sun_vector", "surface_normals", "hillshade", "shading_curvature", "LIGHTINGS",
-           "check_lighting",
-           "extractor_input"]
+           "check_lighting", "extractor_input"]
 
 # What the crease extractor sees: the shading itself, or the curvature estimated from it.
 LIGHTINGS = ("shading", "compensated")
