@@ -93,7 +93,8 @@ def test_search_kernels_agree_with_the_numpy_path(region, monkeypatch):
 
     def run():
         query = CreaseSearchQuery(samples, search_rotations(math.pi, 28.0))
-        return query.spectra(reference)[2], search_transforms(query, reference, n_best=4)
+        shape, _ = query.spectra(reference)
+        return query.inside(shape, reference), search_transforms(query, reference, n_best=4)
 
     fast_inside, fast = run()
     monkeypatch.setattr(_matching_kernels, "HAVE_NUMBA", False)
@@ -124,8 +125,8 @@ def test_shortlist_keeps_the_proposals_of_the_full_search(region, rotation_deg):
 def test_quarter_turns_search_as_every_rotation(region):
     """A whole-circle search transforms a quarter of the query's rotations, against the
     reference turned four ways: the same proposals as rasterising every rotation (their
-    hits differ only where a rotated pixel sits on a rounding tie). A reference that is not
-    square, which a quarter turn changes, gets the whole query."""
+    hits differ only where a rotated pixel sits on a rounding tie), also for a reference
+    that is not square (zero-padded to one for the quarter turns)."""
     ms, skel = region
     _, view_skel, truth = _turned_view(ms, skel, 200, 180, 150.0, (5.0, -4.0))
     samples = CreaseSamples.from_image(view_skel)
@@ -133,7 +134,7 @@ def test_quarter_turns_search_as_every_rotation(region):
     assert len(rotations) % 4 == 0
     quarter = CreaseSearchQuery(samples, rotations)
     whole = CreaseSearchQuery(samples, rotations, quarter_turns=False)
-    assert quarter.quarter and not whole.quarter and quarter.whole() is not quarter
+    assert quarter.quarter and not whole.quarter
     assert quarter.raster.shape[0] == len(rotations) // 4
     np.testing.assert_allclose(quarter.c, whole.c, atol=1e-12)
     for reference, region_origin in [
@@ -148,7 +149,7 @@ def test_quarter_turns_search_as_every_rotation(region):
         c, t, _ = got.proposals[0]
         in_block = t - complex(200 - region_origin[0], -(180 - region_origin[1]))
         assert _centre_error((c, in_block), truth) < 3.0
-    assert not reference.square      # the second: searched with every rotation rasterised
+    assert not reference.square and reference.squared().square
 
 
 def test_a_turned_reference_maps_its_pixels_by_turn_offset():
@@ -312,26 +313,35 @@ def test_moving_a_searched_registration_keeps_its_search_penalty(region):
 
 def test_footprint_counts_are_the_query_pixels_over_the_reference():
     """At every shift of the correlation (negative ones wrap to the end of each axis), the
-    count the search keeps shifts by is the number of query pixels landing on B; the
-    search's tighter padding keeps every shift with half the pixels on B unaliased."""
+    count the search keeps shifts by is the number of query pixels landing on B's footprint
+    (all of B, or the part a squared and turned B holds of the original); the search's
+    tighter padding keeps every shift with half the pixels on B unaliased."""
     rng = np.random.default_rng(4)
     query_img = rng.random((23, 17)) < 0.2
     samples = CreaseSamples.from_image(query_img)
-    reference = CreaseSearchReference(CreaseField(rng.random((40, 31)) < 0.1), resolution=1.0)
+    original = CreaseSearchReference(CreaseField(rng.random((40, 31)) < 0.1), resolution=1.0)
+    # the original's 40 rows x 31 cols, padded to 40 x 40 and turned clockwise: cols 0-39,
+    # rows 0-30 from the top
+    turned = original.squared().turned(1)
+    assert turned.shape == (40, 40) and turned.footprint == (0, 31, 0, 40)
     query = CreaseSearchQuery(samples, [0.0, 0.7], resolution=1.0)
-    full_shape, _, full_inside = query.spectra(reference, min_inside=None)
-    shape, _, inside = query.spectra(reference)
-    assert shape[0] < full_shape[0] and shape[1] < full_shape[1]
-    hb, wb = reference.shape
-    ha, wa = query.shape
-    for r in range(2):
-        counts = query.raster[r, 4]
-        rows, cols = np.nonzero(counts)
-        for dy in range(1 - ha, hb):
-            for dx in range(1 - wa, wb):
-                on_b = ((rows + dy >= 0) & (rows + dy < hb) & (cols + dx >= 0)
-                        & (cols + dx < wb))
-                expected = counts[rows[on_b], cols[on_b]].sum()
-                assert full_inside[r, dy % full_shape[0], dx % full_shape[1]] == expected
-                if expected >= 0.5 * query.n:
-                    assert inside[r, dy % shape[0], dx % shape[1]] == expected, (r, dy, dx)
+    for reference in (original, turned):
+        full_shape, _ = query.spectra(reference, min_inside=None)
+        full_inside = query.inside(full_shape, reference)
+        shape, _ = query.spectra(reference)
+        inside = query.inside(shape, reference)
+        assert shape[0] < full_shape[0] and shape[1] < full_shape[1]
+        hb, wb = reference.shape
+        r0, r1, c0, c1 = reference.footprint
+        ha, wa = query.shape
+        for r in range(2):
+            counts = query.raster[r, 4]
+            rows, cols = np.nonzero(counts)
+            for dy in range(1 - ha, hb):
+                for dx in range(1 - wa, wb):
+                    on_b = ((rows + dy >= r0) & (rows + dy < r1) & (cols + dx >= c0)
+                            & (cols + dx < c1))
+                    expected = counts[rows[on_b], cols[on_b]].sum()
+                    assert full_inside[r, dy % full_shape[0], dx % full_shape[1]] == expected
+                    if expected >= 0.5 * query.n:
+                        assert inside[r, dy % shape[0], dx % shape[1]] == expected, (r, dy, dx)

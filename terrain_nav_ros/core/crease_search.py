@@ -14,7 +14,8 @@ such transforms by brute force, cheaply, with FFTs:
 * a whole-circle search tries rotations in quarter turns of each other (their count is a
   multiple of four): a quarter turn of the query is one of a square reference the other
   way, exactly, so only a quarter of the query's rotations are transformed, against the
-  reference turned four ways;
+  reference turned four ways (a reference that is not square is zero-padded to one first:
+  the padding adds no hits, and the shifts searched stay those over its footprint);
 * with many rotations, only the few with the most hits at half the resolution (a quarter
   of the product and of the inverse FFT each, from the spectra's lowest frequencies) are
   correlated at full resolution: the inverse FFT of every rotation was the search's
@@ -94,28 +95,61 @@ class CreaseSearchReference:
             cv2.GaussianBlur(full, (0, 0), blur, dst=full)
             self.channels[k] = cv2.resize(full, self.shape[::-1], interpolation=cv2.INTER_AREA)
         self.channels *= 2.0 * math.pi * blur * blur
+        # search pixels that hold the reference image: rows [r0, r1), cols [c0, c1)
+        self.footprint = (0, self.shape[0], 0, self.shape[1])
         self._spectra = {}
         self._turns = {0: self}
+        self._squared = None
 
     @property
     def square(self) -> bool:
         return self.shape[0] == self.shape[1] and self.full_shape[0] == self.full_shape[1]
 
+    def _derived(self, channels: np.ndarray, full_shape: tuple[int, int],
+                 footprint: tuple[int, int, int, int]) -> CreaseSearchReference:
+        """A reference with these channels (a turned or padded copy of this one)."""
+        out = object.__new__(CreaseSearchReference)
+        out.resolution = self.resolution
+        out.full_shape = full_shape
+        out.channels = channels
+        out.shape = channels.shape[1:]
+        out.footprint = footprint
+        out._spectra, out._turns, out._squared = {}, {}, None
+        return out
+
+    def squared(self) -> CreaseSearchReference:
+        """This reference zero-padded at the bottom or right to a square (itself when square;
+        cached), with the same footprint: the padding holds no crease, so it adds no hit,
+        and a shift over it only is not searched. A square reference can be turned in
+        quarter turns (:meth:`turned`) without changing its frame's extent."""
+        if self.square:
+            return self
+        if self._squared is None:
+            side = max(self.shape)
+            channels = np.zeros((4, side, side), np.float32)
+            channels[:, :self.shape[0], :self.shape[1]] = self.channels
+            full_side = max(self.full_shape)
+            self._squared = self._derived(channels, (full_side, full_side), self.footprint)
+        return self._squared
+
     def turned(self, quarter_turns: int) -> CreaseSearchReference:
         """This reference turned clockwise by ``quarter_turns`` x 90 degrees, its crease
-        directions with it (cached). Math-frame coordinates ``z`` of this reference's search
-        pixels become ``z' = (-1j)**quarter_turns * z + turn_offset(quarter_turns)``."""
+        directions and footprint with it (cached). Math-frame coordinates ``z`` of this
+        reference's search pixels become ``z' = (-1j)**quarter_turns * z +
+        turn_offset(quarter_turns)``."""
         j = quarter_turns % 4
         if j not in self._turns:
-            t = object.__new__(CreaseSearchReference)
-            t.resolution = self.resolution
-            t.full_shape = self.full_shape[::-1] if j % 2 else self.full_shape
             # a quarter turn swaps the 0 / 90 deg and the 45 / 135 deg channels
             channels = self.channels[[2, 3, 0, 1]] if j % 2 else self.channels
-            t.channels = np.ascontiguousarray(np.rot90(channels, -j, axes=(1, 2)))
-            t.shape = t.channels.shape[1:]
-            t._spectra, t._turns = {}, {}
-            self._turns[j] = t
+            footprint, h = self.footprint, self.shape[0]
+            for k in range(j):
+                # one clockwise turn: pixel (row, col) -> (col, h - 1 - row)
+                r0, r1, c0, c1 = footprint
+                footprint = (c0, c1, h - r1, h - r0)
+                h = self.shape[(k + 1) % 2]
+            self._turns[j] = self._derived(
+                np.ascontiguousarray(np.rot90(channels, -j, axes=(1, 2))),
+                self.full_shape[::-1] if j % 2 else self.full_shape, footprint)
         return self._turns[j]
 
     def turn_offset(self, quarter_turns: int) -> complex:
@@ -204,20 +238,9 @@ class CreaseSearchQuery:
         self.shape = (int(ri.max(initial=0)) + 1, int(ci.max(initial=0)) + 1)
         self._pixels = (samples.direction, ri, ci)
         self._raster = None
-        self._spectra, self._low = {}, None
-        self._samples, self._whole = samples, None
+        self._spectra, self._low, self._inside = {}, None, {}
         self._margins = {}
         self.centre = complex(samples.z.mean()) if self.n else 0j   # math frame, image px
-
-    def whole(self) -> CreaseSearchQuery:
-        """This query with every rotation rasterised (for a reference that is not square,
-        which a quarter turn would change; cached)."""
-        if not self.quarter:
-            return self
-        if self._whole is None:
-            self._whole = CreaseSearchQuery(self._samples, self.rotations, self.resolution,
-                                            quarter_turns=False)
-        return self._whole
 
     @property
     def raster(self) -> np.ndarray:
@@ -278,46 +301,56 @@ class CreaseSearchQuery:
 
     def spectra(self, reference: CreaseSearchReference, min_inside: float | None = 0.5):
         """Padded FFT shape (for the shifts that keep ``min_inside`` of the pixels over
-        ``reference``, or any with ``None``), channel spectra (not conjugated) and, at
-        every shift, the count of pixels over ``reference``'s footprint (cached for one
-        padded shape at a time)."""
+        ``reference``, or any with ``None``) and channel spectra, not conjugated (cached for
+        one padded shape at a time)."""
         shape = self.padded_shape(reference.full_shape, min_inside)
-        key = (shape, reference.shape)
-        if key not in self._spectra:
+        if shape not in self._spectra:
             # rfft2 with zero padding, pruned: the row transforms of the all-zero padding
             # rows are skipped (the raster is ~1/3 of the padded height)
             spec = sfft.fft(sfft.rfft(self.raster[:, :4], n=shape[1], axis=-1, workers=1),
                             n=shape[0], axis=-2, workers=1)
-            self._spectra = {key: (shape, spec, self._inside(shape, reference.shape))}
-        return self._spectra[key]
+            self._spectra = {shape: (shape, spec)}
+        return self._spectra[shape]
 
     def low_spectra(self, reference: CreaseSearchReference, min_inside: float | None = 0.5):
         """:meth:`spectra`'s channel spectra cut to their :func:`_low_frequencies` (cached
         with them)."""
-        shape, spec, _ = self.spectra(reference, min_inside)
+        shape, spec = self.spectra(reference, min_inside)
         if self._low is None or self._low[0] is not spec:
             self._low = (spec, _low_frequencies(spec, shape))
         return self._low[1]
 
-    def _inside(self, shape: tuple[int, int], reference_shape: tuple[int, int]) -> np.ndarray:
-        """At every shift (FFT index, as the correlation's), the query pixels that land on
-        the reference image: box sums of the count raster (exact; cheaper than its FFT)."""
+    def inside(self, shape: tuple[int, int], reference: CreaseSearchReference) -> np.ndarray:
+        """At every shift (FFT index of a correlation padded to ``shape``), the query pixels
+        that land on ``reference``'s footprint, per rastered rotation (n_rastered, h, w)
+        (cached for one padded shape at a time)."""
+        key = (reference.shape, reference.footprint)
+        if self._inside.get("shape") != shape:
+            self._inside = {"shape": shape}
+        if key not in self._inside:
+            self._inside[key] = self._footprint_counts(shape, *key)
+        return self._inside[key]
+
+    def _footprint_counts(self, shape: tuple[int, int], reference_shape: tuple[int, int],
+                          footprint: tuple[int, int, int, int]) -> np.ndarray:
+        """:meth:`inside`: box sums of the count raster (exact; cheaper than its FFT)."""
         hb, wb = reference_shape
+        r0, r1, c0, c1 = footprint
         ha, wa = self.shape
         h_pad, w_pad = shape
         counts = self.raster[:, 4]
         n_rot = len(counts)
 
-        def ranges(n_pad, n_ref, n_query):
+        def ranges(n_pad, n_ref, n_query, start, stop):
             # signed shift d at FFT index i (d = i - n_pad past the reference), and the
-            # query rows/cols [lo, hi) that land inside [0, n_ref) after it
+            # query rows/cols [lo, hi) that land inside [start, stop) after it
             i = np.arange(n_pad)
             d = np.where(i <= n_ref - 1, i, i - n_pad)
-            lo = np.clip(-d, 0, n_query)
-            return lo, np.maximum(np.clip(n_ref - d, 0, n_query), lo)
+            lo = np.clip(start - d, 0, n_query)
+            return lo, np.maximum(np.clip(stop - d, 0, n_query), lo)
 
-        col_lo, col_hi = ranges(w_pad, wb, wa)
-        row_lo, row_hi = ranges(h_pad, hb, ha)
+        col_lo, col_hi = ranges(w_pad, wb, wa, c0, c1)
+        row_lo, row_hi = ranges(h_pad, hb, ha, r0, r1)
         if _kernels.HAVE_NUMBA:
             cum = np.zeros((n_rot, ha + 1, wa + 1), np.float32)
             np.cumsum(np.cumsum(counts, axis=1), axis=2, out=cum[:, 1:, 1:])
@@ -360,16 +393,19 @@ def _low_frequencies(spectra: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 
 def _shortlist(query_low: np.ndarray, ref_low: np.ndarray, shape: tuple[int, int],
-               searched: np.ndarray, n_keep: int) -> np.ndarray:
+               searched: list[np.ndarray], n_keep: int) -> np.ndarray:
     """The ``n_keep`` planes (see :func:`_correlations`) with the most hits at half the
     resolution, ascending: from the spectra's :func:`_low_frequencies` (a quarter of the
-    product and of the inverse FFT), over the searched shifts (``searched``, per rotation)
-    at every other row and column."""
+    product and of the inverse FFT), over the searched shifts (``searched``, per reference
+    and rotation) at every other row and column."""
     (h, w), (h2, w2) = shape, _half_shape(shape)
     n_planes = len(ref_low) * len(query_low)
     hits = _correlations(query_low, ref_low, (h2, w2), np.arange(n_planes))
-    near = searched[:, np.arange(h2) * h // h2][:, :, np.arange(w2) * w // w2]
-    hits = hits.reshape(len(ref_low), *near.shape) * near
+    rows, cols = np.arange(h2) * h // h2, np.arange(w2) * w // w2
+    near = {}
+    hits = hits.reshape(len(searched), -1, h2, w2)
+    for turn, s in enumerate(searched):
+        hits[turn] *= near.setdefault(id(s), s[:, rows][:, :, cols])
     best = hits.reshape(n_planes, -1).max(axis=1)
     return np.sort(np.argsort(-best, kind="stable")[:n_keep])
 
@@ -427,23 +463,31 @@ def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference
     n_rot = len(query.c)
     if query.n == 0 or n_rot == 0:
         return CreaseSearchResult([], 0.0)
-    if query.quarter and not reference.square:
-        query = query.whole()
+    if query.quarter:
+        # quarter turns need a square reference: a padded one has the same hits
+        reference = reference.squared()
     scale = query.resolution
-    shape, query_ch, inside = query.spectra(reference, min_inside)
+    shape, query_ch = query.spectra(reference, min_inside)
     # the query's quarter turns: its first quarter against the reference turned back
     turns = range(4) if query.quarter else range(1)
     ref_ch, ref_low = reference.turned_spectra(shape, len(turns))
     # circular correlation: the shift s of A over B is at index s mod shape (the padding
-    # leaves every searched shift free of aliases, see CreaseSearchQuery.padded_shape)
-    searched = inside >= min_inside * query.n
+    # leaves every searched shift free of aliases, see CreaseSearchQuery.padded_shape);
+    # searched[turn][rastered rotation]: the shifts with enough pixels over the footprint
+    # (one array for the turns of a square footprint)
+    by_footprint = {}
+    for j in turns:
+        turned = reference.turned(j)
+        if turned.footprint not in by_footprint:
+            by_footprint[turned.footprint] = query.inside(shape, turned) >= min_inside * query.n
+    searched = [by_footprint[reference.turned(j).footprint] for j in turns]
     planes = np.arange(n_rot)      # rotation r = turn * n_rastered + rastered rotation
     if shortlist and n_rot > shortlist * n_best:
         planes = _shortlist(query.low_spectra(reference, min_inside), ref_low, shape,
                             searched, shortlist * n_best)
     hits = _correlations(query_ch, ref_ch, shape, planes)
-    hits *= searched[planes % query.n_rastered]
-    cells = (len(turns) * np.count_nonzero(searched) / (scale * scale)
+    hits *= np.stack([searched[r // query.n_rastered][r % query.n_rastered] for r in planes])
+    cells = (sum(np.count_nonzero(s) for s in searched) / (scale * scale)
              / (math.pi * hit_radius * hit_radius))
     if distinct_rotations:
         cells *= max(distinct_rotations / n_rot, 1.0)

@@ -421,8 +421,8 @@ class MinutiaIndex:
         """Build now what matching against this set (as B, e.g. a landmark region) builds on
         first use: the edge hash for the hash candidate generator (and its crease
         descriptors), the crease and ridge fields and, with ``search``, the crease search's
-        channels at both levels, turned four ways (a small region that blocks are searched
-        in). A region arrives before the frames it serves, so its first frame need not wait
+        channels at both levels, squared and turned four ways (a small region that blocks are
+        searched in). A region arrives before the frames it serves, so its first frame need not wait
         for them (~60 ms for a demo landmark region with creases). Returns self."""
         p = self.params
         hash_generator = _generator(self, p) == "hash"
@@ -435,7 +435,7 @@ class MinutiaIndex:
                 _ = self.crease
             for level in (FINE, COARSE) if search else ():
                 for turns in range(4):
-                    self.crease_search(level).turned(turns)
+                    self.crease_search(level).squared().turned(turns)
         return self
 
     def edge_hash(self) -> EdgeHash:
