@@ -244,6 +244,18 @@ def test_numba_kernels_agree_with_the_numpy_path(region, other_region, monkeypat
     assert fast[1][3] != fast[1][2]                              # and the ridges pull too
 
 
+def test_the_kernels_axial_remainder_is_numpys_bit_for_bit():
+    """The crease look-ups' remainder by pi, branches instead of fmod, rounds as np.mod
+    does: at random direction differences, at the branch edges and beyond them."""
+    from terrain_nav_ros.core import _matching_kernels
+
+    x = np.random.default_rng(0).uniform(-2.5 * np.pi, 3.5 * np.pi, 200_000)
+    edges = np.array([k * np.pi for k in (-3, -2, -1, 0, 1, 2, 3)] + [-0.0, 1e-300, -1e-300])
+    x = np.concatenate([x, edges, np.nextafter(edges, -np.inf), np.nextafter(edges, np.inf)])
+    got = np.array([_matching_kernels._mod_pi(v) for v in x])
+    np.testing.assert_array_equal(got, np.mod(x, np.pi))
+
+
 def test_coarse_to_fine_icp_pulls_in_what_the_fine_one_cannot(region):
     """A registration 5 degrees and ~13 px off (a few wrong minutiae pairings) is beyond
     the 3 px ICP; the matcher's wider try (``MatchParams.crease_rescue_radii``) brings it

@@ -285,6 +285,23 @@ def vote_weights(s, n_b, ia, ja, ib, jb):
 
 
 @njit(**_JIT)
+def _mod_pi(x):
+    """``np.mod(x, pi)``, bit for bit, without its ``fmod`` (a third of a crease look-up's
+    time): over ``[-2 pi, 3 pi)``, where the look-ups' direction differences lie, ``fmod``
+    subtracts 0, 1 or 2 pi exactly (Sterbenz), and so do these branches; a negative
+    remainder then gets the same rounded ``+ pi`` as numpy's."""
+    if x >= TWO_PI:
+        return x - TWO_PI if x < 3.0 * np.pi else np.mod(x, np.pi)
+    if x >= np.pi:
+        return x - np.pi
+    if x >= 0.0:
+        return x
+    if x >= -np.pi:
+        return x + np.pi
+    return (x + np.pi) + np.pi if x >= -TWO_PI else np.mod(x, np.pi)
+
+
+@njit(**_JIT)
 def _field_test(z, direction, distance, field_dir, radius, angle_tol):
     """One mapped crease sample against a :class:`.crease_check.CreaseField`: -1 outside the
     field, else its flat pixel index, negated minus 2 when it is not a hit (as
@@ -299,7 +316,7 @@ def _field_test(z, direction, distance, field_dir, radius, angle_tol):
     flat = ri * w + ci
     if distance[ri, ci] > radius:   # most samples: no need for the direction
         return -flat - 2
-    dang = abs(np.mod(direction - field_dir[ri, ci] + 0.5 * np.pi, np.pi) - 0.5 * np.pi)
+    dang = abs(_mod_pi(direction - field_dir[ri, ci] + 0.5 * np.pi) - 0.5 * np.pi)
     return flat if dang <= angle_tol else -flat - 2
 
 
