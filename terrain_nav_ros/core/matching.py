@@ -276,6 +276,13 @@ class MatchParams:
     threshold: float = 3.0
     seed: int = 0
 
+    @property
+    def crease_tolerances(self) -> dict:
+        """The crease evidence's and covariance's tolerances, as their keyword arguments
+        (:func:`~.crease_check.crease_evidence`)."""
+        return dict(radius=self.crease_radius, angle_tol=self.crease_angle_tol,
+                    spacing=self.crease_spacing)
+
 
 # sets with at most this many edges get the finer edge hash (see EdgeHash subdivision)
 _FINE_HASH_EDGES = 6000
@@ -1302,14 +1309,12 @@ def _scored(a: MinutiaIndex, b: MinutiaIndex, c, t, pairs, search_area: float,
     creases = ridges = None
     if with_creases:
         creases = crease_evidence(a.crease_samples, b.crease_field, c, t,
-                                  radius=p.crease_radius, angle_tol=p.crease_angle_tol,
-                                  spacing=p.crease_spacing,
-                                  skip=a.crease_samples_around(pairs[:, 0]))
+                                  skip=a.crease_samples_around(pairs[:, 0]),
+                                  **p.crease_tolerances)
         score += creases.score
         ridge_channel = _ridge_channel(a, b, p)
         if ridge_channel is not None:
-            ridges = crease_evidence(*ridge_channel, c, t, radius=p.crease_radius,
-                                     angle_tol=p.crease_angle_tol, spacing=p.crease_spacing)
+            ridges = crease_evidence(*ridge_channel, c, t, **p.crease_tolerances)
             score += ridges.score
     return _Scored(c, t, pairs, score, lam, (n_ao, n_bo), creases, ridges=ridges)
 
@@ -1555,8 +1560,7 @@ class Matcher:
         if use_creases and (len(pairs) < 3 or not np.isfinite(cov).all()):
             # too few pairings for a covariance (a registration found by the crease search)
             cov = crease_covariance(a.crease_samples, b.crease_field, c, t,
-                                    radius=p.crease_radius, angle_tol=p.crease_angle_tol,
-                                    spacing=p.crease_spacing)
+                                    **p.crease_tolerances)
         ok = score >= p.threshold
         return MatchResult(
             decision=Decision.MATCH if ok else Decision.NO_MATCH, score=score,
