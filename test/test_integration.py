@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rasterio
-from rasterio.transform import from_origin
+from affine import Affine
 
 from terrain_nav_ros import bags
 from terrain_nav_ros.flight_sim import SimConfig, simulate
@@ -106,7 +106,8 @@ def test_flight_over_flat_terrain_says_why_there_is_no_fix(tmp_path):
     dem = tmp_path / "lake.tif"
     with rasterio.open(dem, "w", driver="GTiff", width=400, height=400, count=1,
                        dtype="float32", crs="EPSG:32616",
-                       transform=from_origin(600000.0, 4000000.0, 30.0, 30.0)) as dst:
+                       # north-up 30 m pixels (rasterio's from_origin warns inside affine)
+                       transform=Affine(30.0, 0.0, 600000.0, 0.0, -30.0, 4000000.0)) as dst:
         dst.write(np.full((1, 400, 400), 250.0, np.float32))
     bag = tmp_path / "flat"
     simulate(SimConfig(dem=str(dem), duration=32.0, gnss_denied_after=16.0, agl=1500.0,
