@@ -331,6 +331,16 @@ class CreaseSearchQuery:
             self._inside[key] = self._footprint_counts(shape, *key)
         return self._inside[key]
 
+    def searched(self, shape: tuple[int, int], reference: CreaseSearchReference,
+                 min_inside: float) -> SearchedShifts:
+        """The shifts searched against ``reference`` (cached with :meth:`inside`: a camera
+        block in a study meets every landmark block at the same padded shape)."""
+        key = (reference.shape, reference.footprint, min_inside)
+        inside = self.inside(shape, reference)
+        if key not in self._inside:
+            self._inside[key] = SearchedShifts.of(inside >= min_inside * self.n)
+        return self._inside[key]
+
     def _footprint_counts(self, shape: tuple[int, int], reference_shape: tuple[int, int],
                           footprint: tuple[int, int, int, int]) -> np.ndarray:
         """:meth:`inside`: box sums of the count raster (exact; cheaper than its FFT)."""
@@ -363,6 +373,24 @@ class CreaseSearchQuery:
         return cum[:, row_hi] - cum[:, row_lo]                         # (n_rot, h_pad, w_pad)
 
 
+@dataclass(frozen=True)
+class SearchedShifts:
+    """The shifts a search keeps, per rastered rotation: those with at least ``min_inside``
+    of the query's pixels over the reference's footprint."""
+
+    mask: np.ndarray    # (n_rastered, h, w) bool
+    half: np.ndarray    # float32 0 / 1 at every other row and column (:func:`_half_shape`):
+    #                     it masks every plane of the shortlist (a bool would be cast each time)
+    count: int          # searched shifts over all rastered rotations
+
+    @classmethod
+    def of(cls, mask: np.ndarray) -> SearchedShifts:
+        h, w = mask.shape[1:]
+        h2, w2 = _half_shape((h, w))
+        half = mask[:, np.arange(h2) * h // h2][:, :, np.arange(w2) * w // w2]
+        return cls(mask, half.astype(np.float32), int(np.count_nonzero(mask)))
+
+
 def _correlations(query_ch: np.ndarray, ref_ch: np.ndarray, shape: tuple[int, int],
                   planes: np.ndarray) -> np.ndarray:
     """Direction-consistent hits (len(planes), h, w) of the query's channel spectra
@@ -393,19 +421,17 @@ def _low_frequencies(spectra: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 
 def _shortlist(query_low: np.ndarray, ref_low: np.ndarray, shape: tuple[int, int],
-               searched: list[np.ndarray], n_keep: int) -> np.ndarray:
+               searched: list[SearchedShifts], n_keep: int) -> np.ndarray:
     """The ``n_keep`` planes (see :func:`_correlations`) with the most hits at half the
     resolution, ascending: from the spectra's :func:`_low_frequencies` (a quarter of the
-    product and of the inverse FFT), over the searched shifts (``searched``, per reference
-    and rotation) at every other row and column."""
-    (h, w), (h2, w2) = shape, _half_shape(shape)
+    product and of the inverse FFT), over the searched shifts (per reference) at every
+    other row and column."""
+    h2, w2 = _half_shape(shape)
     n_planes = len(ref_low) * len(query_low)
     hits = _correlations(query_low, ref_low, (h2, w2), np.arange(n_planes))
-    rows, cols = np.arange(h2) * h // h2, np.arange(w2) * w // w2
-    near = {}
     hits = hits.reshape(len(searched), -1, h2, w2)
     for turn, s in enumerate(searched):
-        hits[turn] *= near.setdefault(id(s), s[:, rows][:, :, cols])
+        hits[turn] *= s.half
     best = hits.reshape(n_planes, -1).max(axis=1)
     return np.sort(np.argsort(-best, kind="stable")[:n_keep])
 
@@ -473,21 +499,16 @@ def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference
     ref_ch, ref_low = reference.turned_spectra(shape, len(turns))
     # circular correlation: the shift s of A over B is at index s mod shape (the padding
     # leaves every searched shift free of aliases, see CreaseSearchQuery.padded_shape);
-    # searched[turn][rastered rotation]: the shifts with enough pixels over the footprint
-    # (one array for the turns of a square footprint)
-    by_footprint = {}
-    for j in turns:
-        turned = reference.turned(j)
-        if turned.footprint not in by_footprint:
-            by_footprint[turned.footprint] = query.inside(shape, turned) >= min_inside * query.n
-    searched = [by_footprint[reference.turned(j).footprint] for j in turns]
+    # the shifts searched, per reference turn (the same for the turns of a square footprint)
+    searched = [query.searched(shape, reference.turned(j), min_inside) for j in turns]
     planes = np.arange(n_rot)      # rotation r = turn * n_rastered + rastered rotation
     if shortlist and n_rot > shortlist * n_best:
         planes = _shortlist(query.low_spectra(reference, min_inside), ref_low, shape,
                             searched, shortlist * n_best)
     hits = _correlations(query_ch, ref_ch, shape, planes)
-    hits *= np.stack([searched[r // query.n_rastered][r % query.n_rastered] for r in planes])
-    cells = (sum(np.count_nonzero(s) for s in searched) / (scale * scale)
+    hits *= np.stack([searched[turn].mask[r]
+                      for turn, r in zip(*np.divmod(planes, query.n_rastered), strict=True)])
+    cells = (sum(s.count for s in searched) / (scale * scale)
              / (math.pi * hit_radius * hit_radius))
     if distinct_rotations:
         cells *= max(distinct_rotations / n_rot, 1.0)
