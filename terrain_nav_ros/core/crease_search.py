@@ -238,7 +238,8 @@ class CreaseSearchQuery:
         self.shape = (int(ri.max(initial=0)) + 1, int(ci.max(initial=0)) + 1)
         self._pixels = (samples.direction, ri, ci)
         self._raster = None
-        self._spectra, self._low, self._inside = {}, None, {}
+        # footprint counts and searched shifts, for one padded shape at a time
+        self._spectra, self._low, self._per_shape = {}, None, {}
         self._margins = {}
         self.centre = complex(samples.z.mean()) if self.n else 0j   # math frame, image px
 
@@ -325,11 +326,11 @@ class CreaseSearchQuery:
         that land on ``reference``'s footprint, per rastered rotation (n_rastered, h, w)
         (cached for one padded shape at a time)."""
         key = (reference.shape, reference.footprint)
-        if self._inside.get("shape") != shape:
-            self._inside = {"shape": shape}
-        if key not in self._inside:
-            self._inside[key] = self._footprint_counts(shape, *key)
-        return self._inside[key]
+        if self._per_shape.get("shape") != shape:
+            self._per_shape = {"shape": shape}
+        if key not in self._per_shape:
+            self._per_shape[key] = self._footprint_counts(shape, *key)
+        return self._per_shape[key]
 
     def searched(self, shape: tuple[int, int], reference: CreaseSearchReference,
                  min_inside: float) -> SearchedShifts:
@@ -337,9 +338,9 @@ class CreaseSearchQuery:
         block in a study meets every landmark block at the same padded shape)."""
         key = (reference.shape, reference.footprint, min_inside)
         inside = self.inside(shape, reference)
-        if key not in self._inside:
-            self._inside[key] = SearchedShifts.of(inside >= min_inside * self.n)
-        return self._inside[key]
+        if key not in self._per_shape:
+            self._per_shape[key] = SearchedShifts.of(inside >= min_inside * self.n)
+        return self._per_shape[key]
 
     def _footprint_counts(self, shape: tuple[int, int], reference_shape: tuple[int, int],
                           footprint: tuple[int, int, int, int]) -> np.ndarray:
@@ -385,6 +386,7 @@ class SearchedShifts:
 
     @classmethod
     def of(cls, mask: np.ndarray) -> SearchedShifts:
+        """From the (n_rastered, h, w) mask of the searched shifts."""
         h, w = mask.shape[1:]
         h2, w2 = _half_shape((h, w))
         half = mask[:, np.arange(h2) * h // h2][:, :, np.arange(w2) * w // w2]
