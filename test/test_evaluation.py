@@ -57,6 +57,11 @@ def test_outputs_written(study):
     assert "| matcher rotation search | any rotation |" in report
     assert "| crease check | on: " in report
     assert "| ridge check | on below 64 minutiae" in report
+    # per-case time of every method, median and mean (the throughput)
+    assert "ms per case (median / mean)" in report
+    for loc in summary["conditions"][0]["localisation"].values():
+        assert 0 < loc["time_ms_median"] and 0 < loc["time_ms_mean"]
+        assert f"{loc['time_ms_median']:.1f} / {loc['time_ms_mean']:.1f} |" in report
 
 
 def test_pva_scores_exceed_non_pva(study):
