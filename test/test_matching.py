@@ -130,6 +130,20 @@ def test_too_few_minutiae_is_no_decision(block):
     assert compare(MinutiaSet.empty("flat"), block).decision == Decision.NO_DECISION
 
 
+def test_a_set_without_edges_is_no_match_not_a_crash(block):
+    """Twelve minutiae within 2 px: enough in number, but every edge is shorter than
+    ``edge_min``, so the edge hash is empty (it raised on reshaping its empty key table,
+    first met in a study of the embedded DEM under the raw shading)."""
+    rng = np.random.default_rng(0)
+    tight = MinutiaSet(100 + rng.uniform(0, 2, 12), 100 + rng.uniform(0, 2, 12),
+                       rng.uniform(-3, 3, 12), np.ones(12, np.uint8), np.ones(12, np.float32))
+    assert len(Matcher().index(tight).edge_hash()) == 0
+    for a, b in ((block, tight), (tight, block), (tight, tight)):
+        r = compare(a, b)
+        assert r.decision != Decision.MATCH and r.reason
+    assert localise(tight, block).decision != Decision.MATCH
+
+
 def test_too_few_to_ever_reach_threshold_is_no_decision(block):
     # enough minutiae for the floor, but a perfect match could not be significant
     r = compare(block.subset(np.arange(12)), block, threshold=40.0)

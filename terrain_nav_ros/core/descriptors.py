@@ -352,9 +352,10 @@ class EdgeHash:
         kl = ql[:, None, None, None] + dl[None, :, None, None]
         k1 = (q1[:, None, None, None] + da[None, None, :, None]) % self.n_angle
         k2 = (q2[:, None, None, None] + da[None, None, None, :]) % self.n_angle
+        n_cells = len(dl) * len(da) * len(da)   # cells per edge (no edge: no -1 to infer)
         inside = np.broadcast_to((kl >= 0) & (kl < self.n_length), k1.shape[:1] + (
-            len(dl), len(da), len(da))).reshape(len(ql), -1)
-        keys = ((kl * self.n_angle + k1) * self.n_angle + k2).reshape(len(ql), -1)[inside]
+            len(dl), len(da), len(da))).reshape(len(ql), n_cells)
+        keys = ((kl * self.n_angle + k1) * self.n_angle + k2).reshape(len(ql), n_cells)[inside]
         entry = np.broadcast_to(np.arange(len(ql))[:, None], inside.shape)[inside]
         n_keys = self.n_length * self.n_angle ** 2
         # small key space: numpy's stable sort of 16-bit integers is a radix sort
