@@ -272,20 +272,27 @@ def _compare_forked_row(i: int):
     return _compare_row(matcher, block_index, cams[i])
 
 
-def _compare_all(study: _Study, cams: list[_Extracted], jobs: int = 1):
+def _compare_all(study: _Study, cams: list[_Extracted], jobs: int = 1,
+                 progress=lambda done, n: None):
     """Scores, pairings and PVA results of every camera block against every landmark block,
-    the rows in ``jobs`` forked processes (each comparison is seeded: the same results)."""
+    the rows in ``jobs`` forked processes (each comparison is seeded: the same results);
+    ``progress(rows done, rows)`` after each row."""
     global _FORKED_STUDY
     n = len(cams)
+    rows = []
     if jobs > 1 and n > 1:
         _FORKED_STUDY = (study.matcher, study.block_index, cams)
         try:
             with multiprocessing.get_context("fork").Pool(min(jobs, n)) as pool:
-                rows = pool.map(_compare_forked_row, range(n), chunksize=1)
+                for row in pool.imap(_compare_forked_row, range(n), chunksize=1):
+                    rows.append(row)
+                    progress(len(rows), n)
         finally:
             _FORKED_STUDY = None
     else:
-        rows = [_compare_row(study.matcher, study.block_index, cam) for cam in cams]
+        for cam in cams:
+            rows.append(_compare_row(study.matcher, study.block_index, cam))
+            progress(len(rows), n)
     score = np.array([[r.score for r in row] for row, _ in rows], float)
     pairings = np.array([[r.n_pairings for r in row] for row, _ in rows], int)
     undecided = np.array([[r.decision == Decision.NO_DECISION for r in row] for row, _ in rows],
@@ -389,11 +396,26 @@ def _localise_cases(study: _Study, cam_greys, cams: list[_Extracted], cam_times,
     return out
 
 
+def _quarterly_progress(log, what: str, unit: str):
+    """A ``progress(done, n)`` that logs at a quarter, half and three quarters of the work,
+    with the time so far and an estimate of the rest (a 144-block study compares for
+    minutes)."""
+    t0 = time.perf_counter()
+
+    def progress(done: int, n: int) -> None:
+        if done < n and done in {n * q // 4 for q in (1, 2, 3)} - {0}:
+            spent = time.perf_counter() - t0
+            log(f"{what} {done}/{n} {unit}, {spent:.0f} s (~{spent * (n - done) / done:.0f} s "
+                "to go)")
+    return progress
+
+
 def _condition(study, name, cam_rgb, sun, transforms, cm, rate, seed, success_px, methods,
                n_rotations, gsd, log, jobs=1):
     t_start = time.perf_counter()
     greys, cams, ext_times = _camera_blocks(study, cam_rgb, sun, transforms, cm, seed + 17)
-    score, pairings, undecided, pva, cmp_times = _compare_all(study, cams, jobs)
+    score, pairings, undecided, pva, cmp_times = _compare_all(
+        study, cams, jobs, _quarterly_progress(log, f"  [{name}] compared", "camera blocks"))
     cal = _calibrate(score, rate, seed)
     thr = cal["threshold"]
     n = len(score)

@@ -202,21 +202,27 @@ def test_cli_heading_prior_limits_the_rotation_search(tmp_path, capsys):
 
 def test_comparisons_in_several_processes_give_the_same_study(tmp_path):
     """`--jobs 2` forks the N x N comparisons: every score, pairing count and PVA fix is the
-    one-process study's."""
+    one-process study's. Either way the comparisons log their progress."""
     pytest.importorskip("moderngl")
     from terrain_nav_ros.core.renderer import EGLUnavailableError
 
-    kwargs = dict(block_size=128, quick=True, seed=1, camera=_CLEAN, baselines=False,
-                  log=lambda *a: None)
+    logs = {1: [], 2: []}
+    kwargs = dict(block_size=128, quick=True, seed=1, camera=_CLEAN, baselines=False)
     try:
-        one = run_evaluation(None, "x2", 9, tmp_path / "one", **kwargs)
+        one = run_evaluation(None, "x2", 9, tmp_path / "one", log=logs[1].append, **kwargs)
     except EGLUnavailableError as err:
         pytest.skip(f"no headless GL: {err}")
-    two = run_evaluation(None, "x2", 9, tmp_path / "two", jobs=2, **kwargs)
+    two = run_evaluation(None, "x2", 9, tmp_path / "two", jobs=2, log=logs[2].append,
+                         **kwargs)
+    for lines in logs.values():
+        progress = [line for line in lines if "compared" in line and "camera blocks" in line]
+        # a quarter, half and three quarters of the 9 rows, in order, for each condition
+        assert [line.split()[3] for line in progress] == ["2/9", "4/9", "6/9"] * len(
+            one["conditions"]), progress
     a, b = one["conditions"][0], two["conditions"][0]
     assert np.array_equal(np.array(a["score_matrix"]), np.array(b["score_matrix"]))
     assert a["pva_missed_zero_fa"] == b["pva_missed_zero_fa"]
     assert np.array_equal(a["fix_err_px"], b["fix_err_px"], equal_nan=True)
     assert two["setup"]["jobs"] == 2
     with pytest.raises(ValueError, match="jobs"):
-        run_evaluation(None, "x2", 9, tmp_path / "bad", jobs=0, **kwargs)
+        run_evaluation(None, "x2", 9, tmp_path / "bad", jobs=0, log=print, **kwargs)
