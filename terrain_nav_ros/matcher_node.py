@@ -61,8 +61,8 @@ UNOBSERVED_TILT_VAR = math.radians(10.0) ** 2
 class MatcherNode(Node):
     """Localises camera minutiae in landmark minutiae and publishes fixes."""
 
-    def __init__(self):
-        super().__init__("matcher")
+    def __init__(self, **node_kwargs):
+        super().__init__("matcher", **node_kwargs)
         declare_settings(self, "match", MatchParams())
         self.landmark_sigma = declare(self, "landmark_sigma", 5.0,
                                       "horizontal georeferencing error of the DEM [m]",
@@ -154,6 +154,16 @@ class MatcherNode(Node):
 
     @contained
     def on_camera(self, msg: MinutiaArray) -> None:
+        try:
+            self._answer(msg)
+        except Exception as err:
+            # every frame gets an answer: the filter and the recorded bag see this one fail
+            self.publish_no_fix(msg.header.stamp,
+                                f"matching failed: {type(err).__name__}: {err}")
+            raise   # logged and counted by @contained
+
+    def _answer(self, msg: MinutiaArray) -> None:
+        """A fix or a no-fix with its reason for one camera minutiae set."""
         stamp = cv.stamp_to_sec(msg.header.stamp)
         try:
             camera = cv.msg_to_minutiae(msg)

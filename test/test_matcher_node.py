@@ -135,3 +135,38 @@ def test_matcher_checks_the_creases_the_sets_carry():
         position = np.array([fix.pose.pose.position.x, fix.pose.pose.position.y])
         np.testing.assert_allclose(position, TRUE_XY, atol=GSD / 2)
     assert bad.status == PvaFix.STATUS_NO_FIX and "crease pixel" in bad.reason
+
+
+def test_a_failure_inside_matching_is_an_explicit_no_fix(monkeypatch):
+    """An unexpected error while matching one frame (fault injected: the matcher raises) is
+    logged and counted, and the frame still gets its PvaFix: no fix, with the error as the
+    reason. The node in this process, its callbacks called directly."""
+    import rclpy
+
+    from terrain_nav_ros.matcher_node import MatcherNode
+
+    landmark, camera, prior = _sets()
+    header = cv.make_header(5_000_000_000, "map")
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = MatcherNode(context=context)
+    try:
+        published = []
+        monkeypatch.setattr(node.pub, "publish", published.append)
+        node.on_landmark(cv.minutiae_to_msg(landmark, header, MinutiaArray.SOURCE_LANDMARK,
+                                            (36.5, -84.2, 0.0)))
+        node.on_camera(_camera_msg(camera, prior, header))
+        assert [f.status for f in published] == [PvaFix.STATUS_POSITION_ATTITUDE]
+
+        def broken(*args, **kwargs):
+            raise RuntimeError("injected")
+
+        monkeypatch.setattr(node.matcher, "localise", broken)
+        node.on_camera(_camera_msg(camera, prior, header))
+        assert published[-1].status == PvaFix.STATUS_NO_FIX
+        assert published[-1].reason == "matching failed: RuntimeError: injected"
+        assert node.failures == {"on_camera": 1} and node.counts["no_fix"] == 1
+    finally:
+        node.destroy_node()
+        context.try_shutdown()
+
