@@ -145,11 +145,10 @@ EKF_PARAMETERS = {
 assert set(EKF_PARAMETERS) == {f.name for f in fields(EkfParams)}, "map every EkfParams field"
 
 _OK, _WARN, _ERROR = 0, 1, 2
-# Reasons that are normal operation, not worth a warning.
 # A request sent just as the metamap appears can be lost (the client sees the service before
 # the service has matched the client, ros2/rclcpp#625): one unanswered this long is sent again.
 _ORIGIN_RESEND_S = 5.0
-
+# Reasons that are normal operation, not worth a warning.
 _QUIET = {Reason.OK, Reason.INITIALIZED, Reason.QUEUED, Reason.WAITING_FOR_INIT,
           Reason.IMU_GAP, Reason.POSITION_RESET, Reason.COMPARED_ONLY, Reason.NOT_INITIALIZED,
           Reason.GATED}   # gate rejections are logged from the diagnostics records (queued

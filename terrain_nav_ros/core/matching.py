@@ -429,8 +429,8 @@ class MinutiaIndex:
         first use: the edge hash for the hash candidate generator (and its crease
         descriptors), the crease and ridge fields and, with ``search``, the crease search's
         channels at both levels, squared and turned four ways (a small region that blocks are
-        searched in). A region arrives before the frames it serves, so its first frame need not wait
-        for them (~60 ms for a demo landmark region with creases). Returns self."""
+        searched in). A region arrives before the frames it serves, so its first frame need
+        not wait for them (~60 ms for a demo landmark region with creases). Returns self."""
         p = self.params
         hash_generator = _generator(self, p) == "hash"
         if hash_generator:
@@ -441,8 +441,9 @@ class MinutiaIndex:
             if hash_generator:
                 _ = self.crease
             for level in (FINE, COARSE) if search else ():
+                reference = self.crease_search(level).squared()
                 for turns in range(4):
-                    self.crease_search(level).squared().turned(turns)
+                    reference.turned(turns)
         return self
 
     def edge_hash(self) -> EdgeHash:
