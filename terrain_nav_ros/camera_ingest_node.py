@@ -6,9 +6,10 @@ or ``/camera/image_raw/compressed`` with ``image_transport: compressed``), its
 ``/metamap/tile``. Each frame is undistorted with the CameraInfo lens model and projected
 onto the mean terrain plane under the view (homography from the pose interpolated at the
 frame's stamp), then published as a ``terrain_nav_msgs/GeoImage`` on ``/camera/image_ground``
-with a validity mask. Frames that cannot be projected (no estimate or tile yet, no
-calibration, camera above the horizon, undecodable image) are dropped with a throttled
-log line that says why; the count of each reason is kept in ``self.drops``.
+with a validity mask. A frame that cannot be projected (no estimate or tile yet, no
+calibration, camera above the horizon, undecodable image) is still published, as a GeoImage
+without an image whose ``reason`` says why, so that the matcher answers it with a no-fix; a
+throttled log line says so too, and the count of each reason is kept in ``self.drops``.
 """
 
 from __future__ import annotations
@@ -113,7 +114,7 @@ class CameraIngestNode(Node):
         try:
             arr = cv.image_to_array(msg)
         except cv.ConversionError as err:
-            self.drop(str(err))
+            self.drop(str(err), msg.header)
             return
         self.ingest(arr, msg.encoding, msg.header)
 
@@ -122,15 +123,18 @@ class CameraIngestNode(Node):
         try:
             arr, encoding = cv.compressed_image_to_array(msg)
         except cv.ConversionError as err:
-            self.drop(str(err))
+            self.drop(str(err), msg.header)
             return
         self.ingest(arr, encoding, msg.header)
 
     # -- projection ------------------------------------------------------------------------
-    def drop(self, reason: str) -> None:
+    def drop(self, reason: str, header) -> None:
+        """Tell the graph why this frame has no ground image (and count the reason)."""
         key = reason.split(":")[0][:60]
         self.drops[key] += 1
-        self.get_logger().warning(f"frame dropped: {reason}", throttle_duration_sec=2.0)
+        self.pub.publish(cv.unprojected_frame_msg(cv.make_header(header.stamp, self.frame_id),
+                                                  f"frame not projected: {reason}"))
+        self.get_logger().warning(f"frame not projected: {reason}", throttle_duration_sec=2.0)
 
     def terrain_height(self, east: float, north: float, radius: float) -> float | None:
         """Mean DEM height within ``radius`` of (east, north), from the latest tile."""
@@ -147,18 +151,26 @@ class CameraIngestNode(Node):
         return float(np.nanmean(window)) if np.isfinite(window).any() else None
 
     def ingest(self, image: np.ndarray, encoding: str, header) -> None:
+        """Project one frame; every frame comes out, projected or with the reason why not."""
+        try:
+            self._project(image, encoding, header)
+        except Exception as err:
+            self.drop(f"projection failed: {type(err).__name__}: {err}", header)
+            raise   # logged and counted by @contained
+
+    def _project(self, image: np.ndarray, encoding: str, header) -> None:
         if self.intrinsics is None or self.calibration_problem:
-            self.drop(self.calibration_problem or "no CameraInfo")
+            self.drop(self.calibration_problem or "no CameraInfo", header)
             return
         pose, reason = self.poses.at(cv.stamp_to_sec(header.stamp))
         if pose is None:
-            self.drop(reason)
+            self.drop(reason, header)
             return
         camera = CameraPose(pose.position, camera_rotation(pose.quaternion, self.r_body_optical))
         # Terrain plane: mean height near nadir, then over the footprint it implies.
         plane = self.terrain_height(pose.position[0], pose.position[1], 200.0)
         if plane is None:
-            self.drop("no DEM tile under the aircraft yet")
+            self.drop("no DEM tile under the aircraft yet", header)
             return
         agl = pose.position[2] - plane
         max_range = self.max_range_factor * max(agl, 1.0)
@@ -171,7 +183,7 @@ class CameraIngestNode(Node):
                 plane = better
                 georef = footprint_georef(self.intrinsics, camera, plane, self.gsd, max_range)
         if georef is None:
-            self.drop("camera is pointing at or above the horizon")
+            self.drop("camera is pointing at or above the horizon", header)
             return
         georef = self._capped(georef)
         bgr = encoding.startswith("bgr")
@@ -183,7 +195,7 @@ class CameraIngestNode(Node):
             ground = project_to_ground(image, self.intrinsics, camera, plane, georef, bgr=bgr,
                                        max_range=max_range)
         if ground.image is None:
-            self.drop(ground.reason)
+            self.drop(ground.reason, header)
             return
         out = cv.geo_image_to_msg(ground.image, georef, cv.make_header(header.stamp,
                                                                        self.frame_id),

@@ -324,8 +324,15 @@ def geo_image_to_msg(image: np.ndarray, georef: GeoReference, header: Header,
     return msg
 
 
+def unprojected_frame_msg(header: Header, reason: str) -> GeoImage:
+    """The GeoImage of a camera frame that could not be projected: no image, the reason."""
+    return GeoImage(header=header, reason=reason or "unknown")
+
+
 def msg_to_geo_image(msg: GeoImage) -> tuple[np.ndarray, GeoReference, np.ndarray]:
     """GeoImage -> (grey image, GeoReference, boolean validity mask)."""
+    if msg.reason:
+        raise ConversionError(f"no image: {msg.reason}")
     georef = msg_to_georef(msg.georef)
     image = to_grey(image_to_array(msg.image), msg.image.encoding)
     if image.shape != georef.shape:
@@ -409,6 +416,12 @@ def minutiae_to_msg(minutiae: MinutiaSet, header: Header, source: int,
                         georef=georef_to_msg(minutiae.georef, enu_origin, source_crs),
                         source=source, minutiae=items, reason=minutiae.reason,
                         crease_pixels=crease_pixels, ridge_pixels=ridge_pixels)
+
+
+def empty_minutiae_msg(header: Header, source: int, reason: str) -> MinutiaArray:
+    """The MinutiaArray of an image that gave no minutiae set at all (none to extract from,
+    or extraction failed): no georeference, the reason."""
+    return MinutiaArray(header=header, source=source, reason=reason or "unknown")
 
 
 def _skeleton_pixels(skeleton: np.ndarray | None, shape, what: str) -> np.ndarray:

@@ -6,7 +6,9 @@ minutiae as ``MinutiaArray`` on ``/camera/minutiae`` and ``/landmark/minutiae`` 
 the source georeference and (``attach_creases``, ``attach_ridges``) the crease and ridge
 skeletons for the matcher's crease and ridge checks, and the crease images on
 ``/camera/creases`` and ``/landmark/creases`` for debugging.
-An image with no drainage (flat, lake, cloud) yields an empty array whose ``reason`` says so.
+An image with no drainage (flat, lake, cloud) yields an empty array whose ``reason`` says so,
+and so does every camera frame that has no minutiae for another reason (not projected,
+unusable, extraction failed): the matcher answers each frame.
 
 Parameters are the fields of :class:`~.core.creases.CreaseParams` (``crease.*``, Table 3.1)
 and :class:`~.core.minutiae.MinutiaParams` (``minutia.*``); a change is validated by those
@@ -101,9 +103,31 @@ class FeatureExtractorNode(Node):
     @contained
     def on_image(self, msg: GeoImage, stream: str) -> None:
         try:
+            self._extract(msg, stream)
+        except Exception as err:
+            self._no_minutiae(msg, stream,
+                              f"feature extraction failed: {type(err).__name__}: {err}")
+            raise   # logged and counted by @contained
+
+    def _no_minutiae(self, msg: GeoImage, stream: str, reason: str, log: bool = True) -> None:
+        """A camera frame without minutiae still gets its (empty) set, so that the matcher
+        answers it; a landmark image without them is only logged (there is no frame to
+        answer, and an empty set would displace the region's last good one)."""
+        if stream == "camera":
+            minutiae_pub, _, source = self.outputs[stream]
+            minutiae_pub.publish(cv.empty_minutiae_msg(msg.header, source, reason))
+        if log:
+            self.get_logger().error(f"{stream} image without minutiae: {reason}",
+                                    throttle_duration_sec=2.0)
+
+    def _extract(self, msg: GeoImage, stream: str) -> None:
+        if msg.reason:   # not projected: the camera ingest has said why
+            self._no_minutiae(msg, stream, msg.reason, log=False)
+            return
+        try:
             image, georef, valid = cv.msg_to_geo_image(msg)
         except cv.ConversionError as err:
-            self.get_logger().error(f"{stream} image ignored: {err}")
+            self._no_minutiae(msg, stream, f"unusable {stream} image: {err}")
             return
         features = self.extractor(self.lighting_normalised(image, valid, msg, stream),
                                   georef, valid)
@@ -120,7 +144,6 @@ class FeatureExtractorNode(Node):
         if features.minutiae.reason:
             self.get_logger().info(f"{stream}: no minutiae ({features.minutiae.reason})",
                                    throttle_duration_sec=5.0)
-
 
     def lighting_normalised(self, image, valid, msg: GeoImage, stream: str):
         """The image the extractor sees under the ``lighting`` setting."""

@@ -165,6 +165,10 @@ class MatcherNode(Node):
     def _answer(self, msg: MinutiaArray) -> None:
         """A fix or a no-fix with its reason for one camera minutiae set."""
         stamp = cv.stamp_to_sec(msg.header.stamp)
+        if not msg.minutiae:   # flat terrain, or a frame with no minutiae set at all
+            self.publish_no_fix(msg.header.stamp,
+                                f"no camera minutiae: {msg.reason or 'none found'}")
+            return
         try:
             camera = cv.msg_to_minutiae(msg)
             camera_creases, camera_ridges = cv.msg_to_creases(msg), cv.msg_to_ridges(msg)
@@ -179,9 +183,6 @@ class MatcherNode(Node):
         landmark = self._landmark_for(*camera.georef.centre)
         if landmark is None:
             self.publish_no_fix(msg.header.stamp, "no landmark covers the camera footprint")
-            return
-        if len(camera) == 0:
-            self.publish_no_fix(msg.header.stamp, f"no camera minutiae: {camera.reason}")
             return
         land_minutiae, land_index, origin = landmark
         if land_index is None:

@@ -13,6 +13,7 @@ IMU, barometer and pre-denial GNSS, but no terrain fixes: the drift the terrain 
 from __future__ import annotations
 
 import math
+import re
 from collections import Counter
 from pathlib import Path
 
@@ -26,6 +27,7 @@ from .core.ekf_params import EkfParams
 from .core.geodesy import EnuOrigin
 
 STAGE_TOPICS = ("/camera/image_ground", "/camera/minutiae", "/nav/pva_fix")
+CAMERA_TOPICS = ("/camera/image_raw", "/camera/image_raw/compressed")   # in the input bag
 
 
 def _stamp(msg) -> float:
@@ -63,6 +65,11 @@ def _series(bag, topic):
         cov = np.asarray(msg.pose.covariance).reshape(6, 6)
         var.append(max(cov[0, 0], 0.0) + max(cov[1, 1], 0.0))
     return np.array(t), np.array(p).reshape(-1, 3), np.array(var)
+
+
+def _reason_kind(reason: str) -> str:
+    """A no-fix reason without its numbers: the reasons of a replay in a few kinds."""
+    return re.sub(r"-?\d+(\.\d+)?", "#", reason)
 
 
 def _fixes(bag):
@@ -138,7 +145,8 @@ def analyse(input_bag, output_bag, usage: dict | None = None) -> dict:
     good = [f for f in fixes if f["status"] > 0]
     result["fixes"] = {"frames": len(fixes), "fixes": len(good),
                        "no_fix": len(fixes) - len(good),
-                       "reasons": Counter(f["reason"].split(":")[0] for f in fixes
+                       "in_bag": sum(info[t].count for t in CAMERA_TOPICS if t in info),
+                       "reasons": Counter(_reason_kind(f["reason"]) for f in fixes
                                           if f["status"] == 0).most_common(6)}
     result["latency"] = {k: v for k, v in _latencies(output_bag).items()}
     t_fused, p_fused, var_fused = _series(output_bag, "/nav/odometry")
@@ -190,8 +198,8 @@ def format_report(r: dict, gsd: float | None = None) -> str:
     lines = ["", "terrain_nav replay report", "=" * 25,
              f"input bag:  {r['input_bag']}", f"output bag: {r['output_bag']}"]
     f = r["fixes"]
-    lines.append(f"camera frames answered: {f['frames']}  fixes: {f['fixes']}  "
-                 f"no fix: {f['no_fix']}")
+    lines.append(f"camera frames answered: {f['frames']} of {f['in_bag']}  fixes: "
+                 f"{f['fixes']}  no fix: {f['no_fix']}")
     for reason, count in f["reasons"]:
         lines.append(f"  no fix x{count}: {reason}")
     if "fix_error" in r:

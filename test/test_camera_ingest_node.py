@@ -1,5 +1,6 @@
 """camera_ingest node: frames of known geometry land where the geometry says; a frame that
-arrives before the calibration does not kill the node."""
+arrives before the calibration, or cannot be decoded, comes out without an image and with the
+reason, and does not kill the node."""
 
 import numpy as np
 import pytest
@@ -28,7 +29,7 @@ def _frame(stamp_ns):
 ORIGIN = (46.5, 7.5, 0.0)
 
 
-def test_frames_are_projected_to_the_right_place_and_bad_frames_dropped():
+def test_frames_are_projected_to_the_right_place_and_bad_frames_explained():
     node = start_node("camera_ingest", {"gsd": 5.0})
     client = SpinningNode("ingest_client")
     got = []
@@ -55,14 +56,24 @@ def test_frames_are_projected_to_the_right_place_and_bad_frames_dropped():
             pubs["/camera/camera_info"].publish(info)
             pubs["/nav/odometry"].publish(odom)
             pubs["/camera/image_raw"].publish(_frame(stamp))
-            return bool(got)
+            return any(not m.reason for m in got)
 
         assert wait_until(publish_and_check, 30, period=0.3), stop(node)
+        garbled = _frame(stamp + 1)
+        garbled.encoding = "yuv9000"
+        pubs["/camera/image_raw"].publish(garbled)
+        assert wait_until(lambda: got[-1].header.stamp.nanosec == 1, 10), stop(node)
         assert node.poll() is None
     finally:
         client.close()
         log = stop(node)
-    image, georef, valid = cv.msg_to_geo_image(got[0])
+    # every frame comes out: those that could not be projected without an image, saying why
+    assert "no CameraInfo" in got[0].reason and got[0].image.width == 0
+    assert "yuv9000" in got[-1].reason and got[-1].image.width == 0
+    with pytest.raises(cv.ConversionError, match="no CameraInfo"):
+        cv.msg_to_geo_image(got[0])
+    projected = next(m for m in got if not m.reason)
+    image, georef, valid = cv.msg_to_geo_image(projected)
     assert georef.gsd == 5.0
     lab = image > 150
     from scipy import ndimage
@@ -77,5 +88,4 @@ def test_frames_are_projected_to_the_right_place_and_bad_frames_dropped():
     np.testing.assert_allclose(ground[1], (1000.0, 1800.0), atol=2.5)
     assert valid.mean() > 0.9
     # the sun over the tile's origin at the frame's time, for the extractor's lighting option
-    assert cv.geo_image_sun(got[0]) == pytest.approx(sun_at(1.75e9, *ORIGIN[:2]))
-    # (Frames without CameraInfo are dropped with a reason: see test_integration.py.)
+    assert cv.geo_image_sun(projected) == pytest.approx(sun_at(1.75e9, *ORIGIN[:2]))

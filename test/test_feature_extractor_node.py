@@ -134,3 +134,28 @@ def test_compensated_lighting_agrees_across_opposite_suns():
     assert _repeated(cam, land) > 2 * _repeated(raw, land)
     assert _repeated(cam, land) >= 0.15
     assert "carries no sun" in s.log
+
+
+def test_every_camera_frame_gets_a_set_and_a_bad_landmark_is_only_logged():
+    """A frame the camera ingest could not project, and one the extractor cannot read, both
+    come out as empty sets that say why (with their stamps); a bad landmark image does not
+    displace anything."""
+    unprojected = cv.unprojected_frame_msg(cv.make_header(7_000_000_000, "map"),
+                                           "frame not projected: no CameraInfo")
+    garbled = cv.geo_image_to_msg(_drainage_image(), GEOREF, cv.make_header(8_000_000_000,
+                                                                            "map"))
+    garbled.image.data = garbled.image.data[:100]   # truncated in transit
+    with extractor_node() as s:
+        s.land_pub.publish(garbled)
+        assert wait_until(lambda: (s.cam_pub.publish(unprojected), bool(s.camera))[1], 30,
+                          period=0.5)
+        s.cam_pub.publish(garbled)
+        assert wait_until(lambda: len(s.camera) >= 2 and s.camera[-1].reason != s.camera[0]
+                          .reason, 20)
+        assert s.node.poll() is None
+    first, last = s.camera[0], s.camera[-1]
+    assert (len(first.minutiae), first.reason) == (0, "frame not projected: no CameraInfo")
+    assert cv.stamp_to_sec(first.header.stamp) == 7.0
+    assert len(last.minutiae) == 0 and last.reason.startswith("unusable camera image")
+    assert cv.stamp_to_sec(last.header.stamp) == 8.0
+    assert s.landmark == [] and "landmark image without minutiae" in s.log
