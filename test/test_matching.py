@@ -366,6 +366,62 @@ def test_numba_kernels_give_the_numpy_results(region, block, monkeypatch):
     assert fast[0].decision == Decision.MATCH and fast[2].decision == Decision.MATCH
 
 
+def test_scoring_and_ransac_kernels_agree_with_the_numpy_path(region, block, monkeypatch):
+    """The fused minutiae terms of a registration's score, the RANSAC inlier counts and the
+    crease samples around minutiae, against the numpy path, on registrations near and far
+    from the truth (partial overlaps, few and many pairings, a turned and shrunk frame)."""
+    from terrain_nav_ros.core import _matching_kernels
+    from terrain_nav_ros.core import matching as mt
+
+    if not _matching_kernels.HAVE_NUMBA:
+        pytest.skip("numba not installed: the numpy path is the only one")
+    pva, _, _ = _rotated_copy(block, 35.0, 3)
+    p = mt.MatchParams()
+    a = mt.MinutiaIndex(block, p, region[1][128:128 + BLOCK, 128:128 + BLOCK])
+    b = mt.MinutiaIndex(pva, p)
+    truth = complex(np.exp(1j * np.radians(-35.0)))
+    rng = np.random.default_rng(7)
+    cases = []
+    for k in range(40):
+        c = truth * np.exp(1j * rng.normal(0, 0.05 * (k % 4))) * (1 + 0.02 * (k == 3))
+        t = complex(*rng.normal(0, 40, 2))
+        pairs = mt._pair(a, b, c, t, p)
+        if len(pairs) < 2:
+            pairs = np.column_stack([rng.choice(a.n, 5, replace=False),
+                                     rng.choice(b.n, 5, replace=False)])
+        cases.append((c, t, pairs))
+    cases += [(truth, 0j, np.zeros((0, 2), np.intp)),   # a searched registration may have
+              (truth, 0j, np.array([[0, 1]]))]            # no or one minutiae pairing
+    # 60 correspondences, 40 of them true (to ~1 px and ~3 degrees)
+    za = a.z[:60]
+    zb = truth * za + (5 - 3j) + rng.normal(0, 1, 60) + 1j * rng.normal(0, 1, 60)
+    zb[40:] = b.z[:20]
+    dang = np.angle(truth) + rng.normal(0, 0.05, 60)
+    ransac_in = [(za, zb, dang, c, t) for c, t, _ in cases[:10]]
+
+    def run():
+        scored = [mt._scored(a, b, c, t, pairs, 4e5, a.radius, p, False)
+                  for c, t, pairs in cases]
+        ransac = [mt._ransac(za, zb, dang, p, np.random.default_rng(1), c, t)
+                  for za, zb, dang, c, t in ransac_in]
+        around = [a.crease_samples_around(pairs[:, 0]) for _, _, pairs in cases]
+        return scored, ransac, around
+
+    fast = run()
+    monkeypatch.setattr(_matching_kernels, "HAVE_NUMBA", False)
+    slow = run()
+    for f, s in zip(fast[0], slow[0], strict=True):
+        assert f.n_overlap == s.n_overlap
+        assert f.score == pytest.approx(s.score, rel=1e-12, abs=1e-12)
+    assert len({sc.n_overlap for sc in fast[0]}) > 10   # partial overlaps among them
+    for f, s in zip(fast[1], slow[1], strict=True):
+        assert f[0] == s[0] and f[1] == s[1] and np.array_equal(f[2], s[2])
+    assert all(f[2].sum() >= 35 for f in fast[1])
+    for f, s in zip(fast[2], slow[2], strict=True):
+        np.testing.assert_array_equal(f, s)
+    assert fast[2][-2].size == 0
+
+
 def test_rotation_sweep_finds_the_rotation_the_histogram_buries(block):
     """Where the drainage runs one way, edges of unrelated minutiae agree on a rotation and
     bury the true one in the rotation histogram: its peaks then miss the transform, while

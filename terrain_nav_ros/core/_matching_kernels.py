@@ -8,6 +8,12 @@
 * :func:`pair_candidates`: the candidate pairings of ``matching._pair`` for a small
   reference set, by brute force instead of a k-d tree query plus numpy filtering;
 * :func:`greedy_one_to_one`: ``matching._greedy_one_to_one`` as one loop;
+* :func:`listed_segments`: the crease samples around given minutiae, from their stored
+  lists, without the index arithmetic of the numpy path;
+* :func:`ransac_inliers`: the inlier counts of ``matching._ransac``, transform by
+  transform, without its (transforms x correspondences) arrays;
+* :func:`registration_terms`: the minutiae terms of ``matching._scored`` (overlap counts,
+  leave-one-out residuals, pairing evidence) in one pass each;
 * :func:`rotation_histogram`, :func:`near_angles`: the rotation Hough histogram and the
   votes near a rotation peak in ``matching._rotation_peaks`` / ``matching._hypotheses``;
 * :func:`translation_grid`, :func:`cell_members`: the translation Hough cells of
@@ -23,10 +29,14 @@
 They are used when numba is importable and ``TERRAIN_NAV_NO_NUMBA`` is not set, and compute
 the same floating-point operations in the same order as the numpy path (no ``fastmath``:
 no reassociation or fused multiply-adds), so results are identical, not merely close (run
-with ``TERRAIN_NAV_NO_NUMBA=1`` for the numpy path). Two exceptions: :func:`crease_icp` and
-:func:`compound_log10_sf` sum in another order than numpy's pairwise sums, so they agree to
-rounding (~1e-15 relative); and two minutiae of B at exactly the same distance from a
-mapped minutia of A may be ranked in another order than the k-d tree ranks them.
+with ``TERRAIN_NAV_NO_NUMBA=1`` for the numpy path). Exceptions: :func:`crease_icp`,
+:func:`compound_log10_sf` and :func:`registration_terms` sum in another order than numpy's
+pairwise sums, and numpy's own complex products, moduli and logarithms (SIMD, with fused
+multiply-adds where the CPU has them) round differently from scalar code, so values that
+go through them agree to rounding (~1e-15 relative), and a comparison of such a value with
+a tolerance could only differ at the tolerance itself; and two minutiae of B at exactly the
+same distance from a mapped minutia of A may be ranked in another order than the k-d tree
+ranks them.
 """
 
 from __future__ import annotations
@@ -125,6 +135,91 @@ def pair_candidates(zx, zy, bx, by, a_angle, b_angle, rot, k, pos_tol, angle_tol
                 out_c[m] = np.sqrt(best_d[r]) / pos_tol + dang / angle_tol
                 m += 1
     return out_i[:m], out_j[:m], out_c[:m]
+
+
+@njit(**_JIT)
+def ransac_inliers(za, zb, dang, cs, ts, turns, pos_tol, angle_tol):
+    """The candidate transform ``(cs[h], ts[h])`` (rotating directions by ``turns[h]``) with
+    the most inliers among the correspondences ``za -> zb``, the first of equals, and its
+    inlier mask (``matching._ransac``, without its (transforms, correspondences) arrays)."""
+    m = za.size
+    best = 0
+    best_count = -1
+    for h in range(cs.size):
+        count = 0
+        for i in range(m):
+            if (abs(cs[h] * za[i] + ts[h] - zb[i]) <= pos_tol
+                    and _wrapped_abs(dang[i] - turns[h]) <= angle_tol):
+                count += 1
+        if count > best_count:
+            best, best_count = h, count
+    inliers = np.empty(m, np.bool_)
+    for i in range(m):
+        inliers[i] = (abs(cs[best] * za[i] + ts[best] - zb[i]) <= pos_tol
+                      and _wrapped_abs(dang[i] - turns[best]) <= angle_tol)
+    return best, inliers
+
+
+@njit(**_JIT)
+def registration_terms(za, zb, angle_a, angle_b, ia, ib, c, t, turn, box_a, box_b, pos_tol,
+                       angle_tol, pos_floor, angle_floor):
+    """The minutiae terms of ``matching._scored`` in one pass each: A's minutiae mapped by
+    ``c z + t`` into B's footprint box, B's mapped back into A's (``matching._overlap``),
+    and the summed ``matching.pairing_evidence`` of the pairings ``(ia, ib)`` with their
+    leave-one-out position residuals (``matching._residuals``)."""
+    n_ao = 0
+    for i in range(za.size):
+        z = c * za[i] + t
+        n_ao += (box_b[0] <= z.real <= box_b[1]) and (box_b[2] <= z.imag <= box_b[3])
+    n_bo = 0
+    for j in range(zb.size):
+        z = (zb[j] - t) / c
+        n_bo += (box_a[0] <= z.real <= box_a[1]) and (box_a[2] <= z.imag <= box_a[3])
+    m = ia.size
+    mean = 0j
+    spread_sum = 1e-12
+    if m > 2:   # the leverage of each pairing: about their mean
+        for k in range(m):
+            mean += za[ia[k]]
+        mean /= m
+        spread = 0.0
+        for k in range(m):
+            spread += abs(za[ia[k]] - mean) ** 2
+        spread_sum = max(spread, 1e-12)
+    evidence = 0.0
+    for k in range(m):
+        z = za[ia[k]]
+        dist = abs(c * z + t - zb[ib[k]])
+        if m > 2:
+            leverage = 1.0 / m + abs(z - mean) ** 2 / spread_sum
+            dist = dist / max(1.0 - leverage, 1e-3)
+        dang = _wrapped_abs(angle_b[ib[k]] - angle_a[ia[k]] - turn)
+        u = max(dist, pos_floor) ** 2 / pos_tol ** 2
+        v = max(dang, angle_floor) / angle_tol
+        evidence += -np.log(min(u, 1.0)) - np.log(min(v, 1.0))
+    return n_ao, n_bo, evidence
+
+
+@njit(**_JIT)
+def listed_segments(start, flat, lists):
+    """The concatenation of the lists ``flat[start[k]:start[k + 1]]`` for ``k`` in ``lists``
+    (``MinutiaIndex.crease_samples_around``)."""
+    n = 0
+    for k in lists:
+        n += start[k + 1] - start[k]
+    out = np.empty(n, flat.dtype)
+    n = 0
+    for k in lists:
+        for i in range(start[k], start[k + 1]):
+            out[n] = flat[i]
+            n += 1
+    return out
+
+
+@njit(**_JIT)
+def _wrapped_abs(x):
+    """``abs(descriptors.wrap_angle(x))`` of one angle."""
+    return abs(x - TWO_PI * np.rint(x * _INV_TWO_PI))
 
 
 @njit(**_JIT)

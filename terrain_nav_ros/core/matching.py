@@ -374,6 +374,8 @@ class MinutiaIndex:
             self._crease_around = (start, flat.astype(np.intp))
         start, flat = self._crease_around
         minutiae = np.asarray(minutiae, np.intp)
+        if _kernels.HAVE_NUMBA:
+            return _kernels.listed_segments(start, flat, minutiae)
         first, count = start[minutiae], start[minutiae + 1] - start[minutiae]
         # positions of the listed segments in ``flat``, without a Python loop
         ends = np.cumsum(count)
@@ -701,13 +703,18 @@ def _rotation_peaks(theta, w, p: MatchParams, n_peaks: int) -> np.ndarray:
     return (idx + 0.5) * (TWO_PI / nb) - np.pi
 
 
+def _vote_midpoints(v: _Votes, a: MinutiaIndex, b: MinutiaIndex):
+    """Each vote's edge midpoint in A (from A's centroid) and in B: the translation of A's
+    centroid at rotation ``c`` is ``mid_b - c * mid_a``."""
+    return 0.5 * (a.z[v.ia] + a.z[v.ja]) - a.centroid, 0.5 * (b.z[v.ib] + b.z[v.jb])
+
+
 def _rotation_support(v: _Votes, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams,
-                      rotations: np.ndarray) -> np.ndarray:
+                      rotations: np.ndarray, midpoints=None) -> np.ndarray:
     """Weight of the strongest translation cell (3 x 3 cells centred on a voted one) at each
     rotation: the joint rotation-translation Hough, one rotation at a time, as
     :func:`_hypotheses` builds it at a rotation peak."""
-    mid_a = 0.5 * (a.z[v.ia] + a.z[v.ja]) - a.centroid
-    mid_b = 0.5 * (b.z[v.ib] + b.z[v.jb])
+    mid_a, mid_b = midpoints or _vote_midpoints(v, a, b)
     if _kernels.HAVE_NUMBA:
         return _kernels.rotation_support(v.theta, v.weight, mid_a, mid_b, rotations,
                                          2.0 * p.rot_bin, 1.0 / p.trans_bin)
@@ -743,12 +750,13 @@ def _hypotheses(v: _Votes, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams,
             return []
     peaks = _rotation_peaks(v.theta, v.weight, p, n_peaks=p.n_rotation_peaks)
     rotations = peaks
+    mid_a, mid_b = midpoints = _vote_midpoints(v, a, b)
     if sweep:
         # the strongest joint cells among the rotations the peaks did not try (a peak is a
         # cell centre of the same grid: its hypotheses would come out the same)
         nb = max(4, int(round(TWO_PI / p.rot_bin)))
         cells = (np.arange(nb) + 0.5) * (TWO_PI / nb) - np.pi
-        support = _rotation_support(v, a, b, p, cells)
+        support = _rotation_support(v, a, b, p, cells, midpoints)
         support[np.rint((peaks + np.pi) * (nb / TWO_PI) - 0.5).astype(np.intp) % nb] = 0.0
         strongest = np.argsort(-support, kind="stable")[:p.n_rotation_peaks]
         rotations = cells[strongest[support[strongest] > 0]]
@@ -760,9 +768,7 @@ def _hypotheses(v: _Votes, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams,
         c = np.exp(1j * (th0 + np.dot(w, d_sel) / w.sum()))
         # translation of A's centroid at this rotation: a two-stage Hough keeps the
         # translation cells sharp (a per-vote rotation error would smear them)
-        mid_a = 0.5 * (a.z[v.ia[sel]] + a.z[v.ja[sel]]) - a.centroid
-        mid_b = 0.5 * (b.z[v.ib[sel]] + b.z[v.jb[sel]])
-        t = mid_b - c * mid_a
+        t = mid_b[sel] - c * mid_a[sel]
         hyps.extend(_translation_peaks(t, sel, w, c, v, a, p, n_peaks=2,
                                        min_support=p.min_support_ratio * best))
         best = max(h.support for h in hyps) if hyps else 0.0
@@ -875,6 +881,10 @@ def _ransac(za, zb, dang, p: MatchParams, rng, c0: complex, t0: complex):
         keep = np.abs(np.log(np.abs(cs))) <= p.max_scale_change
         keep[0] = True
         cs, ts = cs[keep], ts[keep]
+    if _kernels.HAVE_NUMBA:
+        best, inl = _kernels.ransac_inliers(za, zb, dang, cs, ts, np.angle(cs),
+                                            float(p.pos_tol), float(p.angle_tol))
+        return cs[best], ts[best], inl
     res = np.abs(cs[:, None] * za[None, :] + ts[:, None] - zb[None, :])
     ang = np.abs(wrap_angle(dang[None, :] - np.angle(cs)[:, None]))
     inl = (res <= p.pos_tol) & (ang <= p.angle_tol)
@@ -1108,8 +1118,13 @@ def significance(dist, dang, n_a: float, n_b: float, area: float, search_area: f
     lam : float
         The expected number of chance pairings.
     """
+    return _significance(float(np.sum(pairing_evidence(dist, dang, p))), n_a, n_b, area,
+                         search_area, radius_a, p)
+
+
+def _significance(evidence: float, n_a, n_b, area, search_area, radius_a, p: MatchParams):
+    """:func:`significance` from the summed pairing evidence."""
     lam, log_trials = _chance_model(n_a, n_b, area, search_area, radius_a, p)
-    evidence = float(np.sum(pairing_evidence(dist, dang, p)))
     return -compound_log10_sf(evidence, lam) - log_trials, lam
 
 
@@ -1208,15 +1223,18 @@ def _as_index(x, p: MatchParams, crease=None) -> MinutiaIndex:
 
 def _overlap(a: MinutiaIndex, b: MinutiaIndex, c: complex, t: complex):
     """Minutiae of A inside B's footprint, of B inside A's (mapped), and the overlap area."""
+    in_b = _inside(c * a.z + t, b.footprint_box)
+    in_a = _inside((b.z - t) / c, a.footprint_box)
+    return int(in_b.sum()), int(in_a.sum()), _overlap_area(a, b, c, t)
+
+
+def _overlap_area(a: MinutiaIndex, b: MinutiaIndex, c: complex, t: complex) -> float:
+    """Area of A's footprint mapped into B, inside B's footprint."""
     fa_b = c * a.footprint_z + t
-    poly_a = np.column_stack([fa_b.real, fa_b.imag]).astype(np.float32)
-    poly_b = b.footprint32
-    area, _ = cv2.intersectConvexConvex(poly_a, poly_b)
-    zt = c * a.z + t
-    in_b = _inside(zt, b.footprint_box)
-    zb_a = (b.z - t) / c
-    in_a = _inside(zb_a, a.footprint_box)
-    return int(in_b.sum()), int(in_a.sum()), float(area)
+    # complex128 is (re, im) pairs in memory: the (n, 2) corner array without a stack
+    area, _ = cv2.intersectConvexConvex(fa_b.view(np.float64).reshape(-1, 2)
+                                        .astype(np.float32), b.footprint32)
+    return float(area)
 
 
 def _inside(z, box) -> np.ndarray:
@@ -1303,10 +1321,17 @@ class _Scored:
 def _scored(a: MinutiaIndex, b: MinutiaIndex, c, t, pairs, search_area: float,
             radius_a: float, p: MatchParams, with_creases: bool) -> _Scored:
     """Minutiae significance of a registration, plus its crease evidence when asked."""
-    n_ao, n_bo, area = _overlap(a, b, c, t)
+    if _kernels.HAVE_NUMBA:
+        n_ao, n_bo, evidence = _kernels.registration_terms(
+            a.z, b.z, a.angle, b.angle, pairs[:, 0], pairs[:, 1], complex(c), complex(t),
+            float(np.angle(c)), a.footprint_box, b.footprint_box, float(p.pos_tol),
+            float(p.angle_tol), float(p.pos_floor), float(p.angle_floor))
+        area = _overlap_area(a, b, c, t)
+    else:
+        n_ao, n_bo, area = _overlap(a, b, c, t)
+        evidence = float(np.sum(pairing_evidence(*_residuals(a, b, c, t, pairs), p)))
     n_ao, n_bo = max(n_ao, len(pairs)), max(n_bo, len(pairs))
-    dist, dang = _residuals(a, b, c, t, pairs)
-    score, lam = significance(dist, dang, n_ao, n_bo, area, search_area, radius_a, p)
+    score, lam = _significance(evidence, n_ao, n_bo, area, search_area, radius_a, p)
     creases = ridges = None
     if with_creases:
         creases = crease_evidence(a.crease_samples, b.crease_field, c, t,
