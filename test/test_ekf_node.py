@@ -371,12 +371,14 @@ def test_an_unanswered_origin_request_is_sent_again():
     answers the first /metamap/get_tile request still gives the node its origin, from the
     request it sends again."""
     import rclpy.task
+    from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.callback_groups import ReentrantCallbackGroup
 
     from terrain_nav_msgs.srv import GetDemTile
 
     client = SpinningNode("ekf_origin_server")
-    asked, never = [], rclpy.task.Future()
+    asked, never, diags = [], rclpy.task.Future(), []
+    client.node.create_subscription(DiagnosticArray, "/nav/ekf/diagnostics", diags.append, 10)
 
     async def serve(request, response):
         asked.append(request)
@@ -389,9 +391,15 @@ def test_an_unanswered_origin_request_is_sent_again():
     # reentrant: the pending first call must not hold back the second
     client.node.create_service(GetDemTile, "/metamap/get_tile", serve,
                                callback_group=ReentrantCallbackGroup())
-    ekf = start_node("ekf", {"init_mode": "gnss"})
+    ekf = start_node("ekf", {"init_mode": "gnss", "diagnostics_period": 0.3})
+
+    def origin_known():   # the answer has been handled, not only sent
+        return bool(diags) and cv.diagnostic_values(diags[-1].status[0])[1][
+            "enu_origin"] != "unknown"
+
     try:
         assert wait_until(lambda: len(asked) >= 2, 20), "the request was not sent again"
+        assert wait_until(origin_known, 10), "the answer never reached the node"
     finally:
         log = stop(ekf)
         client.close()
