@@ -9,12 +9,13 @@ frame's stamp), then published as a ``terrain_nav_msgs/GeoImage`` on ``/camera/i
 with a validity mask. A frame that cannot be projected (no estimate or tile yet, no
 calibration, camera above the horizon, undecodable image) is still published, as a GeoImage
 without an image whose ``reason`` says why, so that the matcher answers it with a no-fix; a
-throttled log line says so too, and the count of each reason is kept in ``self.drops``.
+throttled log line says so too, and ``/camera_ingest/diagnostics`` counts each reason.
 """
 
 from __future__ import annotations
 
 import math
+import time
 from collections import Counter
 
 import numpy as np
@@ -36,7 +37,17 @@ from .core.ground_projection import (
 from .core.orthorectify import heights_on, orthorectify
 from .core.pose_buffer import PoseBuffer, StampedPose
 from .core.sun import sun_at
-from .ros_common import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, contained, declare, run
+from .ros_common import (
+    DIAG_OK,
+    DIAG_WARN,
+    LATCHED_QOS,
+    RELIABLE_QOS,
+    SENSOR_QOS,
+    contained,
+    declare,
+    publish_diagnostics,
+    run,
+)
 
 
 class CameraIngestNode(Node):
@@ -69,8 +80,17 @@ class CameraIngestNode(Node):
         self.calibration_problem = "no CameraInfo received yet"
         self.tile: tuple[np.ndarray, GeoReference] | None = None
         self.tile_origin = (0.0, 0.0, 0.0)
+        diagnostics_period = declare(self, "diagnostics_period", 1.0,
+                                     "period of /camera_ingest/diagnostics, wall clock [s]",
+                                     min_value=0.01)
+        self.camera_timeout = declare(self, "camera_timeout", 5.0,
+                                      "no camera frame for this long is a warning [s]",
+                                      min_value=0.0)
         self.drops: Counter = Counter()
         self.published = 0
+        self._reported = (0, 0)   # projected and not projected at the last report
+        self._started_wall = time.monotonic()
+        self.last_frame_wall: float | None = None
         self.pub = self.create_publisher(GeoImage, "/camera/image_ground", RELIABLE_QOS)
         if transport == "compressed":
             self.create_subscription(CompressedImage, "/camera/image_raw/compressed",
@@ -82,6 +102,8 @@ class CameraIngestNode(Node):
         self.create_subscription(CameraInfo, "/camera/camera_info", self.on_info, SENSOR_QOS)
         self.create_subscription(Odometry, "/nav/odometry", self.on_odometry, RELIABLE_QOS)
         self.create_subscription(DemTile, "/metamap/tile", self.on_tile, LATCHED_QOS)
+        publish_diagnostics(self, "/camera_ingest/diagnostics", diagnostics_period,
+                            self.diagnostics)
 
     # -- inputs ----------------------------------------------------------------------------
     @contained
@@ -111,6 +133,7 @@ class CameraIngestNode(Node):
 
     @contained
     def on_image(self, msg: Image) -> None:
+        self.last_frame_wall = time.monotonic()
         try:
             arr = cv.image_to_array(msg)
         except cv.ConversionError as err:
@@ -120,6 +143,7 @@ class CameraIngestNode(Node):
 
     @contained
     def on_compressed(self, msg: CompressedImage) -> None:
+        self.last_frame_wall = time.monotonic()
         try:
             arr, encoding = cv.compressed_image_to_array(msg)
         except cv.ConversionError as err:
@@ -221,6 +245,29 @@ class CameraIngestNode(Node):
         return GeoReference.centred(*georef.centre, georef.gsd,
                                     min(georef.width, self.max_size),
                                     min(georef.height, self.max_size))
+
+    def diagnostics(self) -> list:
+        """Frames projected and not (these by reason) so far; a warning when frames stop
+        coming or none of those since the last report could be projected."""
+        level, problems = DIAG_OK, []
+        not_projected = sum(self.drops.values())
+        new_projected = self.published - self._reported[0]
+        new_dropped = not_projected - self._reported[1]
+        self._reported = (self.published, not_projected)
+        since = time.monotonic() - (self.last_frame_wall or self._started_wall)
+        if since > self.camera_timeout:
+            level = DIAG_WARN
+            problems.append(f"no camera frame for {since:.0f} s")
+        if new_dropped and not new_projected:
+            level = DIAG_WARN
+            problems.append(f"{new_dropped} frame(s) not projected, none projected: "
+                            f"{self.drops.most_common(1)[0][0]}")
+        values = {"projected": self.published, "not_projected": not_projected,
+                  "frames_since_last_report": new_projected + new_dropped,
+                  "time_since_last_frame": since}
+        values.update({f"not projected: {k}": n for k, n in self.drops.most_common()})
+        message = "; ".join(problems) or f"{new_projected} frame(s) projected since the last report"
+        return [cv.diagnostic_status("camera_ingest", level, message, values, "terrain_nav")]
 
 
 def main(args=None):

@@ -81,7 +81,6 @@ from collections import Counter
 from dataclasses import fields
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import PublisherEventCallbacks
@@ -101,11 +100,15 @@ from .core.ekf import EkfParams, Outcome, Reason, TerrainEkf
 from .core.geodesy import EnuOrigin
 from .core.strapdown import quat_from_euler, quat_to_matrix
 from .ros_common import (
+    DIAG_ERROR,
+    DIAG_OK,
+    DIAG_WARN,
     EVENTS_EXECUTOR,
     LATCHED_QOS,
     RELIABLE_QOS,
     declare,
     declare_executor,
+    publish_diagnostics,
     reject_all_changes,
     run,
 )
@@ -144,7 +147,6 @@ EKF_PARAMETERS = {
 }
 assert set(EKF_PARAMETERS) == {f.name for f in fields(EkfParams)}, "map every EkfParams field"
 
-_OK, _WARN, _ERROR = 0, 1, 2
 # A request sent just as the metamap appears can be lost (the client sees the service before
 # the service has matched the client, ros2/rclcpp#625): one unanswered this long is sent again.
 _ORIGIN_RESEND_S = 5.0
@@ -300,14 +302,11 @@ class EkfNode(Node):
             if self.publish_tf else None
         self.navsat_pub = self.create_publisher(NavSatFix, "/nav/fix", RELIABLE_QOS,
                                                 event_callbacks=quiet)
-        self.diag_pub = self.create_publisher(DiagnosticArray, "/nav/ekf/diagnostics",
-                                              RELIABLE_QOS, event_callbacks=quiet)
         self.create_subscription(Imu, "/imu/data", self.on_imu, imu_qos)
         self.create_subscription(PvaFix, "/nav/pva_fix", self.on_pva_fix, RELIABLE_QOS)
         self.create_subscription(FluidPressure, "/baro/pressure", self.on_baro, imu_qos)
         self.create_subscription(NavSatFix, "/gnss/fix", self.on_gnss, imu_qos)
-        # Steady clock: diagnostics also flow when sim time stands still (no /clock).
-        self.create_timer(diag_period, self.publish_diagnostics, clock=steady)
+        publish_diagnostics(self, "/nav/ekf/diagnostics", diag_period, self.diagnostics)
         origin = "from the metamap (tile or get_tile)" if self.origin is None else \
             f"{self.origin.lat:.6f}, {self.origin.lon:.6f}, {self.origin.alt:.1f} m"
         self.get_logger().info(f"init_mode={self.params.init_mode}, ENU origin {origin}, "
@@ -565,10 +564,11 @@ class EkfNode(Node):
             self.navsat_pub.publish(cv.arrays_to_navsatfix(
                 header, float(lat), float(lon), float(h), P[:3, :3]))
 
-    def publish_diagnostics(self):
+    def diagnostics(self) -> list:
+        """The filter's health and each measurement source's updates since the last report."""
         d = self.ekf.diagnostics
         now = time.monotonic()
-        level, problems = _OK, []
+        level, problems = DIAG_OK, []
 
         def worse(lvl, text):
             nonlocal level
@@ -577,28 +577,28 @@ class EkfNode(Node):
 
         since_imu = now - (self._last_imu_wall or self._started_wall)
         if since_imu > self.imu_timeout:
-            worse(_ERROR, f"no IMU for {since_imu:.1f} s")
+            worse(DIAG_ERROR, f"no IMU for {since_imu:.1f} s")
         if not d.initialized:
-            worse(_WARN, f"not initialised (init_mode={self.params.init_mode})")
+            worse(DIAG_WARN, f"not initialised (init_mode={self.params.init_mode})")
         ages = [a for a in (d.time_since("fix"), d.time_since("gnss")) if a is not None]
         since_fix = min(ages) if ages else None
         if d.initialized:
             if since_fix is None:
-                worse(_WARN, "no fix accepted yet")
+                worse(DIAG_WARN, "no fix accepted yet")
             elif since_fix > self.fix_error_s:
-                worse(_ERROR, f"no accepted fix for {since_fix:.0f} s")
+                worse(DIAG_ERROR, f"no accepted fix for {since_fix:.0f} s")
             elif since_fix > self.fix_warn_s:
-                worse(_WARN, f"no accepted fix for {since_fix:.0f} s")
+                worse(DIAG_WARN, f"no accepted fix for {since_fix:.0f} s")
             if d.position_sigma > self.sigma_error:
-                worse(_ERROR, f"position sigma {d.position_sigma:.0f} m")
+                worse(DIAG_ERROR, f"position sigma {d.position_sigma:.0f} m")
             elif d.position_sigma > self.sigma_warn:
-                worse(_WARN, f"position sigma {d.position_sigma:.0f} m")
+                worse(DIAG_WARN, f"position sigma {d.position_sigma:.0f} m")
 
         new = self._new_records(d.records)
         gated = [r for r in new if not r.accepted and r.nis > r.gate
                  and (r.source != "gnss" or self.params.fuse_gnss)]
         if gated:
-            worse(_WARN, f"{len(gated)} measurement(s) rejected by the gate")
+            worse(DIAG_WARN, f"{len(gated)} measurement(s) rejected by the gate")
             for r in gated:
                 self._log_refusal(f"{r.source}:{Reason.GATED.value}",
                                   f"{r.source} at {r.stamp:.3f} s rejected by the "
@@ -618,16 +618,14 @@ class EkfNode(Node):
             f"{self.origin.lat:.7f},{self.origin.lon:.7f},{self.origin.alt:.2f}",
         }
         values.update({f"rejected_input/{k}": v for k, v in sorted(rejections.items())})
-        header = cv.make_header(self.get_clock().now().to_msg(), "")
-        msg = DiagnosticArray(header=header)
-        msg.status.append(cv.diagnostic_status(
-            "ekf: filter", level, "; ".join(problems) or "ok", values, "terrain_nav"))
+        statuses = [cv.diagnostic_status(
+            "ekf: filter", level, "; ".join(problems) or "ok", values, "terrain_nav")]
         for source in ("fix", "baro", "gnss"):
             recs = [r for r in d.records if r.source == source]
             mine = [r for r in new if r.source == source]
             last = recs[-1] if recs else None
-            msg.status.append(cv.diagnostic_status(
-                f"ekf: {source}", _OK, f"{len(mine)} update(s) since the last report", {
+            statuses.append(cv.diagnostic_status(
+                f"ekf: {source}", DIAG_OK, f"{len(mine)} update(s) since the last report", {
                     "accepted": d.accepted[source], "rejected": d.rejected[source],
                     "last_nis": last.nis if last else float("nan"),
                     "gate": last.gate if last else float("nan"),
@@ -638,7 +636,7 @@ class EkfNode(Node):
                                     for r in mine),
                     "last_accepted_stamp": f"{d.last_accepted.get(source, math.nan):.3f}",
                 }, "terrain_nav"))
-        self.diag_pub.publish(msg)
+        return statuses
 
     def _new_records(self, records) -> list:
         """Records appended since the previous diagnostics (by identity)."""

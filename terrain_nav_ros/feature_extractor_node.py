@@ -21,6 +21,11 @@ is then used as it is, with a warning.
 
 from __future__ import annotations
 
+import math
+import time
+from collections import Counter
+
+import numpy as np
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from sensor_msgs.msg import Image
@@ -31,12 +36,17 @@ from . import conversions as cv
 from .core.creases import CreaseParams
 from .core.hillshade import check_lighting, extractor_input
 from .core.minutiae import FeatureExtractor, MinutiaParams, warm_up
+from .core.pva_fix import reason_kind
 from .ros_common import (
+    DIAG_ERROR,
+    DIAG_OK,
     LATCHED_QOS,
     RELIABLE_QOS,
     contained,
     declare,
     declare_settings,
+    new_failures,
+    publish_diagnostics,
     run,
     settings_from_parameters,
 )
@@ -62,6 +72,12 @@ class FeatureExtractorNode(Node):
                                 "extractor input: 'shading' (the image) or 'compensated' "
                                 "(terrain curvature from the shading and the image's sun)")
         check_lighting(self.lighting)
+        diagnostics_period = declare(self, "diagnostics_period", 1.0,
+                                     "period of /feature_extractor/diagnostics, wall clock [s]",
+                                     min_value=0.01)
+        self.images = Counter()               # per stream
+        self.without_minutiae = Counter()     # per stream and reason kind
+        self.extract_ms = {"camera": [], "landmark": []}   # since the last report
         self.extractor = self._build()
         self.add_on_set_parameters_callback(self.on_set_parameters)
         self.outputs = {}
@@ -76,6 +92,8 @@ class FeatureExtractorNode(Node):
                                  lambda m: self.on_image(m, "landmark"), LATCHED_QOS)
         # numba's kernels load on first use (seconds): not on the first frame's clock
         warm_up()
+        publish_diagnostics(self, "/feature_extractor/diagnostics", diagnostics_period,
+                            self.diagnostics)
 
     def _build(self, overrides=None, ridges=None) -> FeatureExtractor:
         return FeatureExtractor(
@@ -102,8 +120,11 @@ class FeatureExtractorNode(Node):
 
     @contained
     def on_image(self, msg: GeoImage, stream: str) -> None:
+        self.images[stream] += 1
+        start = time.monotonic()
         try:
             self._extract(msg, stream)
+            self.extract_ms[stream].append(1e3 * (time.monotonic() - start))
         except Exception as err:
             self._no_minutiae(msg, stream,
                               f"feature extraction failed: {type(err).__name__}: {err}")
@@ -113,6 +134,7 @@ class FeatureExtractorNode(Node):
         """A camera frame without minutiae still gets its (empty) set, so that the matcher
         answers it; a landmark image without them is only logged (there is no frame to
         answer, and an empty set would displace the region's last good one)."""
+        self.without_minutiae[f"{stream}: {reason_kind(reason)}"] += 1
         if stream == "camera":
             minutiae_pub, _, source = self.outputs[stream]
             minutiae_pub.publish(cv.empty_minutiae_msg(msg.header, source, reason))
@@ -142,6 +164,7 @@ class FeatureExtractorNode(Node):
         if self.publish_creases:
             crease_pub.publish(cv.array_to_image(features.crease_image(), "mono8", msg.header))
         if features.minutiae.reason:
+            self.without_minutiae[f"{stream}: {reason_kind(features.minutiae.reason)}"] += 1
             self.get_logger().info(f"{stream}: no minutiae ({features.minutiae.reason})",
                                    throttle_duration_sec=5.0)
 
@@ -153,6 +176,22 @@ class FeatureExtractorNode(Node):
                                       throttle_duration_sec=10.0)
             return image
         return extractor_input(image, self.lighting, sun, valid)
+
+    def diagnostics(self) -> list:
+        """Images per stream and those without minutiae (by reason) so far, the extraction
+        time since the last report; an error when extraction failed since then."""
+        failures, new = new_failures(self)
+        level, message = DIAG_OK, "ok"
+        if new:
+            level, message = DIAG_ERROR, f"{new} image(s) failed: see the log"
+        values = {"failures": failures}
+        for stream, times in self.extract_ms.items():
+            values[f"{stream}_images"] = self.images[stream]
+            values[f"{stream}_ms_median"] = float(np.median(times)) if times else math.nan
+            times.clear()
+        values.update({f"no minutiae: {k}": n for k, n in self.without_minutiae.most_common()})
+        return [cv.diagnostic_status("feature_extractor", level, message, values,
+                                     "terrain_nav")]
 
 
 def main(args=None):

@@ -8,6 +8,8 @@ above the calibrated significance threshold becomes a position fix
 (:func:`.core.pva_fix.fix_from_ground_match`), published as ``terrain_nav_msgs/PvaFix`` on
 ``/nav/pva_fix`` with its covariance, similarity and pairings. Every camera set gets an answer:
 when there is no fix the message has ``status = STATUS_NO_FIX`` and the reason.
+``/matcher/diagnostics`` (diagnostic_msgs/DiagnosticArray, every ``diagnostics_period`` s)
+counts fixes and no-fixes (by reason) and times the answers.
 
 The fix is the aircraft (``base_link``) pose: the camera's lever arm (centimetres) is
 neglected and its attitude is the prior's turned back through the camera mount. The
@@ -20,7 +22,8 @@ covariance -1).
 from __future__ import annotations
 
 import math
-from collections import deque
+import time
+from collections import Counter, deque
 
 import numpy as np
 from rclpy.node import Node
@@ -40,15 +43,21 @@ from .core.pva_fix import (
     fix_from_ground_match,
     fix_from_pnp,
     inflate_covariance,
+    reason_kind,
     velocity_from_fixes,
 )
 from .ros_common import (
+    DIAG_ERROR,
+    DIAG_OK,
+    DIAG_WARN,
     LATCHED_QOS,
     RELIABLE_QOS,
     SENSOR_QOS,
     contained,
     declare,
     declare_settings,
+    new_failures,
+    publish_diagnostics,
     reject_all_changes,
     run,
     settings_from_parameters,
@@ -97,12 +106,23 @@ class MatcherNode(Node):
             self, "mount_rpy", [0.0, 0.0, 0.0],
             "camera tilt from the nadir mount, roll/pitch/yaw about body FLU [deg]")]
         self.frame_id = declare(self, "frame_id", "map", "frame of the fixes")
+        diagnostics_period = declare(self, "diagnostics_period", 1.0,
+                                     "period of /matcher/diagnostics, wall clock [s]",
+                                     min_value=0.01)
+        self.camera_timeout = declare(self, "camera_timeout", 5.0,
+                                      "no camera minutiae for this long is a warning [s]",
+                                      min_value=0.0)
         self.add_on_set_parameters_callback(reject_all_changes)
         self.r_body_optical = mount_rotation(*mount)
         self.matcher = Matcher(settings_from_parameters(self, "match", MatchParams()))
         self.landmarks: deque = deque(maxlen=self.max_landmarks)
         self.last_fix: tuple[float, np.ndarray, np.ndarray] | None = None
         self.counts = {"fix": 0, "no_fix": 0}
+        self.no_fix_kinds: Counter = Counter()
+        self.answer_ms: list[float] = []        # time per camera set since the last report
+        self.last_camera_wall: float | None = None
+        self.last_fix_wall: float | None = None
+        self.last_match = (math.nan, 0)          # score and pairings of the last fix
         self.pub = self.create_publisher(PvaFix, "/nav/pva_fix", RELIABLE_QOS)
         self.create_subscription(MinutiaArray, "/landmark/minutiae", self.on_landmark,
                                  LATCHED_QOS)
@@ -113,6 +133,9 @@ class MatcherNode(Node):
         self.create_subscription(CameraInfo, "/camera/camera_info", self.on_info, SENSOR_QOS)
         # numba's kernels load on first use (~0.4 s): not on the first frame's clock
         warm_up(self.matcher.params)
+        self._started_wall = time.monotonic()
+        publish_diagnostics(self, "/matcher/diagnostics", diagnostics_period,
+                            self.diagnostics)
 
     @contained
     def on_tile(self, msg: DemTile) -> None:
@@ -154,8 +177,10 @@ class MatcherNode(Node):
 
     @contained
     def on_camera(self, msg: MinutiaArray) -> None:
+        start = self.last_camera_wall = time.monotonic()
         try:
             self._answer(msg)
+            self.answer_ms.append(1e3 * (time.monotonic() - start))
         except Exception as err:
             # every frame gets an answer: the filter and the recorded bag see this one fail
             self.publish_no_fix(msg.header.stamp,
@@ -238,6 +263,7 @@ class MatcherNode(Node):
         out.pose.covariance = cv.array_to_covariance(-np.eye(6))
         self.pub.publish(out)
         self.counts["no_fix"] += 1
+        self.no_fix_kinds[reason_kind(reason)] += 1
         self.get_logger().info(f"no fix: {reason}", throttle_duration_sec=2.0)
 
     def publish_fix(self, stamp, stamp_s: float, fix: PvaFixEstimate, origin) -> None:
@@ -272,10 +298,47 @@ class MatcherNode(Node):
         self.last_fix = (stamp_s, fix.position.copy(), fix.covariance.copy())
         self.pub.publish(out)
         self.counts["fix"] += 1
+        self.last_fix_wall = time.monotonic()
+        self.last_match = (float(fix.similarity), fix.num_pairings)
         sigma = math.sqrt(max(fix.covariance[0, 0] + fix.covariance[1, 1], 0.0))
         self.get_logger().info(
             f"fix ({fix.position[0]:.0f}, {fix.position[1]:.0f}) m +- {sigma:.0f} m, "
             f"{fix.num_pairings} pairings, score {fix.similarity:.1f}")
+
+    def diagnostics(self) -> list:
+        """Fixes and no-fixes so far (these by reason), the time per camera set since the
+        last report; a warning when camera minutiae stop coming or no landmark set is held,
+        an error when matching failed since the last report."""
+        now = time.monotonic()
+        level, problems = DIAG_OK, []
+        failures, new = new_failures(self)
+        if new:
+            level = DIAG_ERROR
+            problems.append(f"{new} message(s) failed in a callback: see the log")
+        since_camera = now - (self.last_camera_wall or self._started_wall)
+        if since_camera > self.camera_timeout:
+            level = max(level, DIAG_WARN)
+            problems.append(f"no camera minutiae for {since_camera:.0f} s")
+        if not any(index is not None for _, index, _ in self.landmarks):
+            level = max(level, DIAG_WARN)
+            problems.append("no landmark set with minutiae")
+        times, self.answer_ms = self.answer_ms, []
+        values = {
+            "fixes": self.counts["fix"], "no_fixes": self.counts["no_fix"],
+            "camera_sets_since_last_report": len(times),
+            "answer_ms_median": float(np.median(times)) if times else math.nan,
+            "answer_ms_max": max(times, default=math.nan),
+            "time_since_last_fix": (math.nan if self.last_fix_wall is None
+                                    else now - self.last_fix_wall),
+            "last_fix_similarity": self.last_match[0],
+            "last_fix_pairings": self.last_match[1],
+            "landmark_sets": len(self.landmarks),
+            "failures": failures,
+        }
+        values.update({f"no_fix: {kind}": n for kind, n in self.no_fix_kinds.most_common()})
+        message = "; ".join(problems) or (f"{len(times)} camera set(s) answered since the "
+                                          "last report")
+        return [cv.diagnostic_status("matcher", level, message, values, "terrain_nav")]
 
 
 def main(args=None):

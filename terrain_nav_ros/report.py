@@ -13,7 +13,6 @@ IMU, barometer and pre-denial GNSS, but no terrain fixes: the drift the terrain 
 from __future__ import annotations
 
 import math
-import re
 from collections import Counter
 from pathlib import Path
 
@@ -25,6 +24,7 @@ from .core.baro import pressure_to_altitude
 from .core.ekf import TerrainEkf
 from .core.ekf_params import EkfParams
 from .core.geodesy import EnuOrigin
+from .core.pva_fix import reason_kind
 
 STAGE_TOPICS = ("/camera/image_ground", "/camera/minutiae", "/nav/pva_fix")
 CAMERA_TOPICS = ("/camera/image_raw", "/camera/image_raw/compressed")   # in the input bag
@@ -65,11 +65,6 @@ def _series(bag, topic):
         cov = np.asarray(msg.pose.covariance).reshape(6, 6)
         var.append(max(cov[0, 0], 0.0) + max(cov[1, 1], 0.0))
     return np.array(t), np.array(p).reshape(-1, 3), np.array(var)
-
-
-def _reason_kind(reason: str) -> str:
-    """A no-fix reason without its numbers: the reasons of a replay in a few kinds."""
-    return re.sub(r"-?\d+(\.\d+)?", "#", reason)
 
 
 def _fixes(bag):
@@ -146,7 +141,7 @@ def analyse(input_bag, output_bag, usage: dict | None = None) -> dict:
     result["fixes"] = {"frames": len(fixes), "fixes": len(good),
                        "no_fix": len(fixes) - len(good),
                        "in_bag": sum(info[t].count for t in CAMERA_TOPICS if t in info),
-                       "reasons": Counter(_reason_kind(f["reason"]) for f in fixes
+                       "reasons": Counter(reason_kind(f["reason"]) for f in fixes
                                           if f["status"] == 0).most_common(6)}
     result["latency"] = {k: v for k, v in _latencies(output_bag).items()}
     t_fused, p_fused, var_fused = _series(output_bag, "/nav/odometry")

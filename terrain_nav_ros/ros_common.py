@@ -19,12 +19,15 @@ import sys
 from collections.abc import Callable
 
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import (
     FloatingPointRange,
     IntegerRange,
     ParameterDescriptor,
     SetParametersResult,
 )
+from rclpy.clock import Clock, ClockType
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import (
@@ -44,6 +47,26 @@ RELIABLE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL,
                          history=HistoryPolicy.KEEP_LAST)
+
+
+# diagnostic_msgs/DiagnosticStatus levels
+DIAG_OK, DIAG_WARN, DIAG_ERROR, DIAG_STALE = 0, 1, 2, 3
+
+
+def publish_diagnostics(node: Node, topic: str, period: float,
+                        report: Callable[[], list[DiagnosticStatus]]):
+    """Publish ``report()`` as a ``diagnostic_msgs/DiagnosticArray`` on ``topic`` every
+    ``period`` s of wall time (a steady clock: reports also flow when sim time stands still,
+    e.g. a paused bag). Returns the timer."""
+    quiet = PublisherEventCallbacks(use_default_callbacks=False)
+    pub = node.create_publisher(DiagnosticArray, topic, RELIABLE_QOS, event_callbacks=quiet)
+
+    def tick():
+        msg = DiagnosticArray(status=report())
+        msg.header.stamp = node.get_clock().now().to_msg()
+        pub.publish(msg)
+
+    return node.create_timer(period, tick, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
 
 def declare(node: Node, name: str, default, description: str, *, min_value=None,
@@ -119,6 +142,15 @@ def contained(callback):
             return None
 
     return wrapper
+
+
+def new_failures(node: Node) -> tuple[int, int]:
+    """Callback failures counted by :func:`contained`: in all, and since the last call (for
+    a diagnostics report)."""
+    total = sum(node.__dict__.get("failures", {}).values())
+    new = total - node.__dict__.get("_failures_reported", 0)
+    node._failures_reported = total
+    return total, new
 
 
 # The executors a node can ask for with its ``executor`` parameter (see :func:`run`).

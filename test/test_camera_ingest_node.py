@@ -30,12 +30,16 @@ ORIGIN = (46.5, 7.5, 0.0)
 
 
 def test_frames_are_projected_to_the_right_place_and_bad_frames_explained():
-    node = start_node("camera_ingest", {"gsd": 5.0})
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    node = start_node("camera_ingest", {"gsd": 5.0, "diagnostics_period": 0.3})
     client = SpinningNode("ingest_client")
-    got = []
+    got, diagnostics = [], []
     try:
         n = client.node
         n.create_subscription(GeoImage, "/camera/image_ground", got.append, 10)
+        n.create_subscription(DiagnosticArray, "/camera_ingest/diagnostics",
+                              diagnostics.append, 10)
         pubs = {t: n.create_publisher(m, t, q) for t, m, q in (
             ("/camera/image_raw", Image, 10), ("/camera/camera_info", CameraInfo, 10),
             ("/nav/odometry", Odometry, 10), ("/metamap/tile", DemTile, LATCHED_QOS))}
@@ -63,6 +67,8 @@ def test_frames_are_projected_to_the_right_place_and_bad_frames_explained():
         garbled.encoding = "yuv9000"
         pubs["/camera/image_raw"].publish(garbled)
         assert wait_until(lambda: got[-1].header.stamp.nanosec == 1, 10), stop(node)
+        n_reports = len(diagnostics)
+        assert wait_until(lambda: len(diagnostics) > n_reports, 10), stop(node)
         assert node.poll() is None
     finally:
         client.close()
@@ -72,6 +78,11 @@ def test_frames_are_projected_to_the_right_place_and_bad_frames_explained():
     assert "yuv9000" in got[-1].reason and got[-1].image.width == 0
     with pytest.raises(cv.ConversionError, match="no CameraInfo"):
         cv.msg_to_geo_image(got[0])
+    # ... and the diagnostics count them by reason
+    _, values = cv.diagnostic_values(diagnostics[-1].status[0])
+    assert int(values["projected"]) == sum(not m.reason for m in got)
+    assert int(values["not_projected"]) == sum(bool(m.reason) for m in got) >= 2
+    assert int(values["not projected: no CameraInfo received yet"]) >= 1
     projected = next(m for m in got if not m.reason)
     image, georef, valid = cv.msg_to_geo_image(projected)
     assert georef.gsd == 5.0

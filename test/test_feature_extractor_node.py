@@ -145,13 +145,20 @@ def test_every_camera_frame_gets_a_set_and_a_bad_landmark_is_only_logged():
     garbled = cv.geo_image_to_msg(_drainage_image(), GEOREF, cv.make_header(8_000_000_000,
                                                                             "map"))
     garbled.image.data = garbled.image.data[:100]   # truncated in transit
-    with extractor_node() as s:
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    with extractor_node({"diagnostics_period": 0.3}) as s:
+        diagnostics = []
+        s.client.node.create_subscription(DiagnosticArray, "/feature_extractor/diagnostics",
+                                          diagnostics.append, 10)
         s.land_pub.publish(garbled)
         assert wait_until(lambda: (s.cam_pub.publish(unprojected), bool(s.camera))[1], 30,
                           period=0.5)
         s.cam_pub.publish(garbled)
         assert wait_until(lambda: len(s.camera) >= 2 and s.camera[-1].reason != s.camera[0]
                           .reason, 20)
+        n_reports = len(diagnostics)
+        assert wait_until(lambda: len(diagnostics) > n_reports, 10)
         assert s.node.poll() is None
     first, last = s.camera[0], s.camera[-1]
     assert (len(first.minutiae), first.reason) == (0, "frame not projected: no CameraInfo")
@@ -159,3 +166,11 @@ def test_every_camera_frame_gets_a_set_and_a_bad_landmark_is_only_logged():
     assert len(last.minutiae) == 0 and last.reason.startswith("unusable camera image")
     assert cv.stamp_to_sec(last.header.stamp) == 8.0
     assert s.landmark == [] and "landmark image without minutiae" in s.log
+    # the diagnostics count them by stream and reason
+    level, values = cv.diagnostic_values(diagnostics[-1].status[0])
+    assert level == 0 and values["landmark_images"] == "1"
+    assert int(values["camera_images"]) == len(s.camera)
+    assert values["no minutiae: camera: frame not projected: no CameraInfo"] == str(
+        len(s.camera) - 1)
+    assert [values[k] for k in values if k.startswith("no minutiae: landmark: unusable")] == [
+        "1"]

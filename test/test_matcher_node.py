@@ -55,7 +55,7 @@ def matcher_node():
     node = start_node("matcher", {"prior_tilt_sigma": 0.0, "landmark_sigma": 0.0})
     client = SpinningNode("matcher_client")
     n = client.node
-    s = SimpleNamespace(node=node, fixes=[], log="")
+    s = SimpleNamespace(node=node, client=client, fixes=[], log="")
     try:
         n.create_subscription(PvaFix, "/nav/pva_fix", s.fixes.append, 10)
         s.land_pub = n.create_publisher(MinutiaArray, "/landmark/minutiae", LATCHED_QOS)
@@ -75,10 +75,14 @@ def _camera_msg(camera, prior, header, creases=None):
 
 
 def test_matcher_publishes_the_true_position_and_explains_no_fix():
+    from diagnostic_msgs.msg import DiagnosticArray
+
     landmark, camera, prior = _sets()
     header = cv.make_header(5_000_000_000, "map")
     with matcher_node() as s:
-        fixes = s.fixes
+        fixes, diagnostics = s.fixes, []
+        s.client.node.create_subscription(DiagnosticArray, "/matcher/diagnostics",
+                                          diagnostics.append, 10)
         s.land_pub.publish(cv.minutiae_to_msg(landmark, header, MinutiaArray.SOURCE_LANDMARK,
                                               (36.5, -84.2, 0.0)))
         cam_msg = _camera_msg(camera, prior, header)
@@ -98,6 +102,8 @@ def test_matcher_publishes_the_true_position_and_explains_no_fix():
         # (late fixes of the repeated camera set may arrive in between)
         assert wait_until(lambda: sum(f.status == PvaFix.STATUS_NO_FIX
                                       for f in fixes[before:]) >= 3, 20)
+        n_reports = len(diagnostics)
+        assert wait_until(lambda: len(diagnostics) > n_reports, 10)
         assert s.node.poll() is None
     fix = next(f for f in fixes if f.status)
     assert fix.status == PvaFix.STATUS_POSITION_ATTITUDE, f"{fix.reason}\n{s.log}"
@@ -111,6 +117,10 @@ def test_matcher_publishes_the_true_position_and_explains_no_fix():
     reasons = [f.reason for f in no_fix]
     assert "no camera minutiae: no drainage: flat" in reasons
     assert "no camera minutiae: frame not projected: no CameraInfo" in reasons
+    level, values = cv.diagnostic_values(diagnostics[-1].status[0])
+    assert level == 0, diagnostics[-1].status[0].message
+    assert int(values["fixes"]) >= 1 and int(values["no_fixes"]) >= 3
+    assert values["no_fix: no camera minutiae: no drainage: flat"] == "1"
 
 
 def test_matcher_checks_the_creases_the_sets_carry():
@@ -173,6 +183,15 @@ def test_a_failure_inside_matching_is_an_explicit_no_fix(monkeypatch):
         assert published[-1].status == PvaFix.STATUS_NO_FIX
         assert published[-1].reason == "matching failed: RuntimeError: injected"
         assert node.failures == {"on_camera": 1} and node.counts["no_fix"] == 1
+        # the diagnostics say so once, and count the answers by reason
+        (status,) = node.diagnostics()
+        level, values = cv.diagnostic_values(status)
+        assert level == 2 and "1 message(s) failed" in status.message
+        assert values["fixes"] == "1" and values["no_fixes"] == "1"
+        assert values["no_fix: matching failed: RuntimeError: injected"] == "1"
+        assert float(values["answer_ms_median"]) > 0   # the frame that matched
+        assert float(values["last_fix_pairings"]) >= 10
+        assert cv.diagnostic_values(node.diagnostics()[0])[0] == 0   # nothing new: OK
     finally:
         node.destroy_node()
         context.try_shutdown()

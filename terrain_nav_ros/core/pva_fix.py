@@ -25,6 +25,7 @@ y down, z forward) to ENU. Status codes mirror ``terrain_nav_msgs/PvaFix``.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 
 import cv2
@@ -304,6 +305,11 @@ def fix_from_pnp(result: MatchResult, camera_pixels, landmark_enu, landmark_heig
     note = f"PnP on {n} of {len(obj)} pairings, rms {np.sqrt(np.mean(res ** 2)):.2f} px"
     fix.reason = f"{fix.reason}; {note}" if fix.reason else note
     return _fill_match(fix, result)
+
+
+def reason_kind(reason: str) -> str:
+    """A no-fix reason without its numbers, to count reasons by kind."""
+    return re.sub(r"-?\d+(\.\d+)?", "#", reason)
 
 
 def inflate_covariance(fix: PvaFixEstimate, scale: float) -> None:
