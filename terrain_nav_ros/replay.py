@@ -21,7 +21,9 @@ from . import bags, report
 from .graph_runner import GraphError, GraphRunner, NodeSpec, load_graph
 
 RECORDED_TOPICS = ["/nav/odometry", "/nav/pva_fix", "/nav/fix", "/nav/ekf/diagnostics",
-                   "/camera/image_ground", "/camera/minutiae", "/landmark/minutiae"]
+                   "/camera/image_ground", "/camera/minutiae", "/landmark/minutiae",
+                   "/camera_ingest/diagnostics", "/feature_extractor/diagnostics",
+                   "/matcher/diagnostics"]
 
 
 def _mission_parameters(topics: set[str], mission: dict) -> dict[str, dict]:

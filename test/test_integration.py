@@ -55,6 +55,9 @@ def test_recorded_outputs_are_readable_by_rosbags_and_mcap(nominal):
     out = Path(nominal["output_bag"])
     topics = {t.topic: t.count for t in bags.topics(out)}
     assert topics["/nav/odometry"] > 100 and topics["/nav/pva_fix"] >= 30
+    # every node's health, once a second
+    assert min(topics[f"/{node}/diagnostics"] for node in (
+        "camera_ingest", "feature_extractor", "matcher")) >= 10, topics
     (mcap_file,) = out.glob("*.mcap")
     with open(mcap_file, "rb") as stream:
         names = {schema.name for schema, _, _ in make_reader(stream).iter_messages()}
