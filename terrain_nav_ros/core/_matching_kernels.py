@@ -10,8 +10,8 @@
 * :func:`greedy_one_to_one`: ``matching._greedy_one_to_one`` as one loop;
 * :func:`listed_segments`: the crease samples around given minutiae, from their stored
   lists, without the index arithmetic of the numpy path;
-* :func:`ransac_inliers`: the inlier counts of ``matching._ransac``, transform by
-  transform, without its (transforms x correspondences) arrays;
+* :func:`ransac`: ``matching._ransac`` from its random samples, transform by transform,
+  without its (transforms x correspondences) arrays;
 * :func:`registration_terms`: the minutiae terms of ``matching._scored`` (overlap counts,
   leave-one-out residuals, pairing evidence) in one pass each;
 * :func:`rotation_histogram`, :func:`near_angles`: the rotation Hough histogram and the
@@ -31,12 +31,12 @@ the same floating-point operations in the same order as the numpy path (no ``fas
 no reassociation or fused multiply-adds), so results are identical, not merely close (run
 with ``TERRAIN_NAV_NO_NUMBA=1`` for the numpy path). Exceptions: :func:`crease_icp`,
 :func:`compound_log10_sf` and :func:`registration_terms` sum in another order than numpy's
-pairwise sums, and numpy's own complex products, moduli and logarithms (SIMD, with fused
-multiply-adds where the CPU has them) round differently from scalar code, so values that
-go through them agree to rounding (~1e-15 relative), and a comparison of such a value with
-a tolerance could only differ at the tolerance itself; and two minutiae of B at exactly the
-same distance from a mapped minutia of A may be ranked in another order than the k-d tree
-ranks them.
+pairwise sums, and numpy's own complex products, quotients, moduli and logarithms (SIMD,
+with fused multiply-adds where the CPU has them) round differently from the scalar code of
+those and of :func:`ransac`, so values that go through them agree to rounding (~1e-15
+relative), and a comparison of such a value with a tolerance could only differ at the
+tolerance itself; and two minutiae of B at exactly the same distance from a mapped minutia
+of A may be ranked in another order than the k-d tree ranks them.
 """
 
 from __future__ import annotations
@@ -138,26 +138,55 @@ def pair_candidates(zx, zy, bx, by, a_angle, b_angle, rot, k, pos_tol, angle_tol
 
 
 @njit(**_JIT)
-def ransac_inliers(za, zb, dang, cs, ts, turns, pos_tol, angle_tol):
-    """The candidate transform ``(cs[h], ts[h])`` (rotating directions by ``turns[h]``) with
-    the most inliers among the correspondences ``za -> zb``, the first of equals, and its
-    inlier mask (``matching._ransac``, without its (transforms, correspondences) arrays)."""
-    m = za.size
+def ransac(za, zb, dang, si, sj, c0, t0, edge_min, estimate_scale, max_scale_change,
+           pos_tol, angle_tol):
+    """``matching._ransac`` from its samples ``(si, sj)``: the transform of each sample pair
+    (those with both edges longer than ``edge_min``; a rotation unless ``estimate_scale``,
+    then within ``max_scale_change``), after the Hough guess ``(c0, t0)``; the one with the
+    most inliers among the correspondences ``za -> zb``, the first of equals, and its inlier
+    mask. Without the (transforms x correspondences) arrays of the numpy path."""
+    cs = np.empty(si.size + 1, np.complex128)
+    ts = np.empty(si.size + 1, np.complex128)
+    cs[0], ts[0] = c0, t0
+    n = 1
+    for k in range(si.size):
+        i, j = si[k], sj[k]
+        dz = za[j] - za[i]
+        dw = zb[j] - zb[i]
+        if not (abs(dz) > edge_min and abs(dw) > edge_min):
+            continue
+        c = dw / dz
+        if not estimate_scale:
+            c = c / abs(c)
+        elif abs(np.log(abs(c))) > max_scale_change:
+            continue
+        cs[n] = c
+        ts[n] = 0.5 * (zb[i] + zb[j]) - c * 0.5 * (za[i] + za[j])
+        n += 1
     best = 0
     best_count = -1
-    for h in range(cs.size):
-        count = 0
-        for i in range(m):
-            if (abs(cs[h] * za[i] + ts[h] - zb[i]) <= pos_tol
-                    and _wrapped_abs(dang[i] - turns[h]) <= angle_tol):
-                count += 1
+    for h in range(n):
+        count = _inliers(za, zb, dang, cs[h], ts[h], pos_tol, angle_tol, None)
         if count > best_count:
             best, best_count = h, count
-    inliers = np.empty(m, np.bool_)
-    for i in range(m):
-        inliers[i] = (abs(cs[best] * za[i] + ts[best] - zb[i]) <= pos_tol
-                      and _wrapped_abs(dang[i] - turns[best]) <= angle_tol)
-    return best, inliers
+    inliers = np.empty(za.size, np.bool_)
+    _inliers(za, zb, dang, cs[best], ts[best], pos_tol, angle_tol, inliers)
+    return cs[best], ts[best], inliers
+
+
+@njit(**_JIT)
+def _inliers(za, zb, dang, c, t, pos_tol, angle_tol, out):
+    """Correspondences within the tolerances under ``z -> c z + t`` (counted, and marked in
+    ``out`` unless None)."""
+    turn = np.arctan2(c.imag, c.real)
+    count = 0
+    for i in range(za.size):
+        ok = (abs(c * za[i] + t - zb[i]) <= pos_tol
+              and _wrapped_abs(dang[i] - turn) <= angle_tol)
+        count += ok
+        if out is not None:
+            out[i] = ok
+    return count
 
 
 @njit(**_JIT)

@@ -865,26 +865,26 @@ def _ransac(za, zb, dang, p: MatchParams, rng, c0: complex, t0: complex):
     """Best transform over 2-point samples (and the Hough guess); inlier mask."""
     m = len(za)
     n_it = min(p.ransac_iterations, m * (m - 1) // 2)
+    i = j = np.zeros(0, np.int64)
     if n_it > 0:
         i = rng.integers(0, m, n_it)
         j = (i + rng.integers(1, m, n_it)) % m
-        dz = za[j] - za[i]
-        ok = (np.abs(dz) > p.edge_min) & (np.abs(zb[j] - zb[i]) > p.edge_min)
-        c = (zb[j] - zb[i])[ok] / dz[ok]
-        if not p.estimate_scale:
-            c = c / np.abs(c)
-        t = 0.5 * (zb[i] + zb[j])[ok] - c * 0.5 * (za[i] + za[j])[ok]
-        cs, ts = np.concatenate([[c0], c]), np.concatenate([[t0], t])
-    else:
-        cs, ts = np.array([c0], complex), np.array([t0], complex)
+    if _kernels.HAVE_NUMBA:
+        return _kernels.ransac(za, zb, dang, i, j, complex(c0), complex(t0),
+                               float(p.edge_min), bool(p.estimate_scale),
+                               float(p.max_scale_change), float(p.pos_tol),
+                               float(p.angle_tol))
+    dz = za[j] - za[i]
+    ok = (np.abs(dz) > p.edge_min) & (np.abs(zb[j] - zb[i]) > p.edge_min)
+    c = (zb[j] - zb[i])[ok] / dz[ok]
+    if not p.estimate_scale:
+        c = c / np.abs(c)
+    t = 0.5 * (zb[i] + zb[j])[ok] - c * 0.5 * (za[i] + za[j])[ok]
+    cs, ts = np.concatenate([[c0], c]), np.concatenate([[t0], t])
     if p.estimate_scale:
         keep = np.abs(np.log(np.abs(cs))) <= p.max_scale_change
         keep[0] = True
         cs, ts = cs[keep], ts[keep]
-    if _kernels.HAVE_NUMBA:
-        best, inl = _kernels.ransac_inliers(za, zb, dang, cs, ts, np.angle(cs),
-                                            float(p.pos_tol), float(p.angle_tol))
-        return cs[best], ts[best], inl
     res = np.abs(cs[:, None] * za[None, :] + ts[:, None] - zb[None, :])
     ang = np.abs(wrap_angle(dang[None, :] - np.angle(cs)[:, None]))
     inl = (res <= p.pos_tol) & (ang <= p.angle_tol)
