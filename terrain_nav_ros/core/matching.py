@@ -1467,6 +1467,10 @@ class Matcher:
 
     def __init__(self, params: MatchParams | None = None, **overrides):
         self.params = replace(params or MatchParams(), **overrides)
+        # every comparison draws the same RANSAC samples: one generator, rewound to its
+        # seeded state (a new default_rng per comparison costs ~15 us)
+        self._rng = np.random.default_rng(self.params.seed)
+        self._rng_start = self._rng.bit_generator.state
 
     def index(self, ms: MinutiaSet, crease: np.ndarray | None = None,
               ridges: np.ndarray | None = None) -> MinutiaIndex:
@@ -1546,7 +1550,8 @@ class Matcher:
                                f"{best_possible:.2f} < threshold {p.threshold:.2f}")
                 return base
         votes = _root_votes(a, b, p) if _generator(b, p) == "roots" else _hash_votes(a, b, p)
-        rng = np.random.default_rng(p.seed)
+        rng = self._rng
+        rng.bit_generator.state = self._rng_start
         registered = _registrations(_hypotheses(votes, a, b, p), a, b, p, rng)
         best, scored = _best_registration(a, b, registered, search_area, p, use_creases)
         n_scored = len(scored)
