@@ -15,6 +15,7 @@ throttled log line says so too, and ``/camera_ingest/diagnostics`` counts each r
 from __future__ import annotations
 
 import math
+import re
 import time
 from collections import Counter
 
@@ -154,7 +155,7 @@ class CameraIngestNode(Node):
     # -- projection ------------------------------------------------------------------------
     def drop(self, reason: str, header) -> None:
         """Tell the graph why this frame has no ground image (and count the reason)."""
-        key = reason.split(":")[0][:60]
+        key = re.split(r"[:(]", reason)[0].strip()[:60]   # the reason without its details
         self.drops[key] += 1
         self.pub.publish(cv.unprojected_frame_msg(cv.make_header(header.stamp, self.frame_id),
                                                   f"frame not projected: {reason}"))

@@ -45,7 +45,10 @@ def test_frames_are_projected_to_the_right_place_and_bad_frames_explained():
             ("/nav/odometry", Odometry, 10), ("/metamap/tile", DemTile, LATCHED_QOS))}
         assert wait_until(lambda: all(p.get_subscription_count() for p in pubs.values()), 20)
         stamp = 1_750_000_000 * 10**9          # 2025-06-15 15:06 UTC: daylight in the Alps
-        pubs["/camera/image_raw"].publish(_frame(stamp))  # no calibration yet: dropped
+        # no calibration yet: the frame comes out without an image (sent until one does:
+        # the camera topic is best effort)
+        assert wait_until(lambda: (pubs["/camera/image_raw"].publish(_frame(stamp)),
+                                   bool(got))[1], 20, period=0.3), stop(node)
         info = cv.intrinsics_to_camera_info(np.array([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2],
                                                       [0, 0, 1]]), [0] * 5, W, H)
         pubs["/camera/camera_info"].publish(info)
@@ -74,15 +77,17 @@ def test_frames_are_projected_to_the_right_place_and_bad_frames_explained():
         client.close()
         log = stop(node)
     # every frame comes out: those that could not be projected without an image, saying why
+    garbled_out = next(m for m in got if m.header.stamp.nanosec == 1)
     assert "no CameraInfo" in got[0].reason and got[0].image.width == 0
-    assert "yuv9000" in got[-1].reason and got[-1].image.width == 0
+    assert "yuv9000" in garbled_out.reason and garbled_out.image.width == 0
     with pytest.raises(cv.ConversionError, match="no CameraInfo"):
         cv.msg_to_geo_image(got[0])
     # ... and the diagnostics count them by reason
     _, values = cv.diagnostic_values(diagnostics[-1].status[0])
-    assert int(values["projected"]) == sum(not m.reason for m in got)
-    assert int(values["not_projected"]) == sum(bool(m.reason) for m in got) >= 2
+    assert 1 <= int(values["projected"]) <= sum(not m.reason for m in got)
+    assert 2 <= int(values["not_projected"]) <= sum(bool(m.reason) for m in got)
     assert int(values["not projected: no CameraInfo received yet"]) >= 1
+    assert int(values["not projected: unsupported image encoding 'yuv9000'"]) == 1
     projected = next(m for m in got if not m.reason)
     image, georef, valid = cv.msg_to_geo_image(projected)
     assert georef.gsd == 5.0
