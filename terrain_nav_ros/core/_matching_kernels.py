@@ -128,8 +128,7 @@ def pair_candidates(zx, zy, bx, by, a_angle, b_angle, rot, k, pos_tol, angle_tol
                     cnt += 1
         for r in range(cnt):
             j = best_j[r]
-            x = b_angle[j] - a_angle[i] - rot
-            dang = abs(x - TWO_PI * np.rint(x * _INV_TWO_PI))
+            dang = abs(_wrap_angle(b_angle[j] - a_angle[i] - rot))
             if dang <= angle_tol:
                 out_i[m] = i
                 out_j[m] = j
@@ -183,7 +182,7 @@ def _inliers(za, zb, dang, c, t, pos_tol, angle_tol, out):
     count = 0
     for i in range(za.size):
         ok = (abs(c * za[i] + t - zb[i]) <= pos_tol
-              and _wrapped_abs(dang[i] - turn) <= angle_tol)
+              and abs(_wrap_angle(dang[i] - turn)) <= angle_tol)
         count += ok
         if out is not None:
             out[i] = ok
@@ -223,7 +222,7 @@ def registration_terms(za, zb, angle_a, angle_b, ia, ib, c, t, turn, box_a, box_
         if m > 2:
             leverage = 1.0 / m + abs(z - mean) ** 2 / spread_sum
             dist = dist / max(1.0 - leverage, 1e-3)
-        dang = _wrapped_abs(angle_b[ib[k]] - angle_a[ia[k]] - turn)
+        dang = abs(_wrap_angle(angle_b[ib[k]] - angle_a[ia[k]] - turn))
         u = max(dist, pos_floor) ** 2 / pos_tol ** 2
         v = max(dang, angle_floor) / angle_tol
         evidence += -np.log(min(u, 1.0)) - np.log(min(v, 1.0))
@@ -247,9 +246,9 @@ def listed_segments(start, flat, lists):
 
 
 @njit(**_JIT)
-def _wrapped_abs(x):
-    """``abs(descriptors.wrap_angle(x))`` of one angle."""
-    return abs(x - TWO_PI * np.rint(x * _INV_TWO_PI))
+def _wrap_angle(x):
+    """``descriptors.wrap_angle`` of one angle."""
+    return x - TWO_PI * np.rint(x * _INV_TWO_PI)
 
 
 @njit(**_JIT)
@@ -321,8 +320,7 @@ def near_angles(theta, th0, limit):
     out = np.empty(theta.size)
     m = 0
     for r in range(theta.size):
-        x = theta[r] - th0
-        d = x - TWO_PI * np.rint(x * _INV_TWO_PI)
+        d = _wrap_angle(theta[r] - th0)
         idx[m] = r
         out[m] = d
         m += abs(d) <= limit
@@ -393,8 +391,7 @@ def hash_votes(q, e, qi, qj, qdir, rows, j, direction):
         ja[r] = qj[q[r]]
         ib[r] = rows[e[r]]
         jb[r] = j[e[r]]
-        x = direction[e[r]] - qdir[q[r]]
-        theta[r] = x - TWO_PI * np.rint(x * _INV_TWO_PI)
+        theta[r] = _wrap_angle(direction[e[r]] - qdir[q[r]])
     return ia, ja, ib, jb, theta
 
 
@@ -431,18 +428,29 @@ def _field_test(z, direction, distance, field_dir, radius, angle_tol):
     """One mapped crease sample against a :class:`.crease_check.CreaseField`: -1 outside the
     field, else its flat pixel index, negated minus 2 when it is not a hit (as
     ``CreaseField._lookup`` / ``hits``)."""
-    h, w = distance.shape
-    col = np.rint(z.real)
-    row = np.rint(-z.imag)
-    if not (col >= 0 and col <= w - 1 and row >= 0 and row <= h - 1):
+    ri, ci = _field_pixel(z, distance.shape)
+    if ri < 0:
         return -1
-    ri = np.intp(row)
-    ci = np.intp(col)
-    flat = ri * w + ci
+    flat = ri * distance.shape[1] + ci
     if distance[ri, ci] > radius:   # most samples: no need for the direction
         return -flat - 2
-    dang = abs(_mod_pi(direction - field_dir[ri, ci] + 0.5 * np.pi) - 0.5 * np.pi)
-    return flat if dang <= angle_tol else -flat - 2
+    return flat if _axial_hit(direction, field_dir[ri, ci], angle_tol) else -flat - 2
+
+
+@njit(**_JIT)
+def _field_pixel(z, shape):
+    """The field pixel (row, col) a mapped sample (math frame) falls on; (-1, -1) outside."""
+    col = np.rint(z.real)
+    row = np.rint(-z.imag)
+    if not (col >= 0 and col <= shape[1] - 1 and row >= 0 and row <= shape[0] - 1):
+        return -1, -1
+    return np.intp(row), np.intp(col)
+
+
+@njit(**_JIT)
+def _axial_hit(direction, field_direction, angle_tol):
+    """Whether two axial directions (rad) agree within ``angle_tol``."""
+    return abs(_mod_pi(direction - field_direction + 0.5 * np.pi) - 0.5 * np.pi) <= angle_tol
 
 
 @njit(**_JIT)
@@ -459,17 +467,12 @@ def near_mask(distance, radius):
 @njit(**_JIT)
 def _near_test(z, direction, near, field_dir, angle_tol):
     """:func:`_field_test` on a :func:`near_mask`: -1 outside the field, 1 a hit, 0 not."""
-    h, w = near.shape
-    col = np.rint(z.real)
-    row = np.rint(-z.imag)
-    if not (col >= 0 and col <= w - 1 and row >= 0 and row <= h - 1):
+    ri, ci = _field_pixel(z, near.shape)
+    if ri < 0:
         return -1
-    ri = np.intp(row)
-    ci = np.intp(col)
     if not near[ri, ci]:   # most samples: no need for the direction
         return 0
-    dang = abs(_mod_pi(direction - field_dir[ri, ci] + 0.5 * np.pi) - 0.5 * np.pi)
-    return 1 if dang <= angle_tol else 0
+    return 1 if _axial_hit(direction, field_dir[ri, ci], angle_tol) else 0
 
 
 @njit(**_JIT)
