@@ -703,10 +703,11 @@ def _rotation_peaks(theta, w, p: MatchParams, n_peaks: int) -> np.ndarray:
     return (idx + 0.5) * (TWO_PI / nb) - np.pi
 
 
-def _vote_midpoints(v: _Votes, a: MinutiaIndex, b: MinutiaIndex):
-    """Each vote's edge midpoint in A (from A's centroid) and in B: the translation of A's
-    centroid at rotation ``c`` is ``mid_b - c * mid_a``."""
-    return 0.5 * (a.z[v.ia] + a.z[v.ja]) - a.centroid, 0.5 * (b.z[v.ib] + b.z[v.jb])
+def _vote_midpoints(v: _Votes, a: MinutiaIndex, b: MinutiaIndex, sel=slice(None)):
+    """The edge midpoints in A (from A's centroid) and in B of the votes ``sel``: the
+    translation of A's centroid at rotation ``c`` is ``mid_b - c * mid_a``."""
+    return (0.5 * (a.z[v.ia[sel]] + a.z[v.ja[sel]]) - a.centroid,
+            0.5 * (b.z[v.ib[sel]] + b.z[v.jb[sel]]))
 
 
 def _rotation_support(v: _Votes, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams,
@@ -714,7 +715,7 @@ def _rotation_support(v: _Votes, a: MinutiaIndex, b: MinutiaIndex, p: MatchParam
     """Weight of the strongest translation cell (3 x 3 cells centred on a voted one) at each
     rotation: the joint rotation-translation Hough, one rotation at a time, as
     :func:`_hypotheses` builds it at a rotation peak."""
-    mid_a, mid_b = midpoints or _vote_midpoints(v, a, b)
+    mid_a, mid_b = midpoints if midpoints is not None else _vote_midpoints(v, a, b)
     if _kernels.HAVE_NUMBA:
         return _kernels.rotation_support(v.theta, v.weight, mid_a, mid_b, rotations,
                                          2.0 * p.rot_bin, 1.0 / p.trans_bin)
@@ -750,10 +751,11 @@ def _hypotheses(v: _Votes, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams,
             return []
     peaks = _rotation_peaks(v.theta, v.weight, p, n_peaks=p.n_rotation_peaks)
     rotations = peaks
-    mid_a, mid_b = midpoints = _vote_midpoints(v, a, b)
+    midpoints = None   # of all votes, when the sweep needs them anyway
     if sweep:
         # the strongest joint cells among the rotations the peaks did not try (a peak is a
         # cell centre of the same grid: its hypotheses would come out the same)
+        midpoints = _vote_midpoints(v, a, b)
         nb = max(4, int(round(TWO_PI / p.rot_bin)))
         cells = (np.arange(nb) + 0.5) * (TWO_PI / nb) - np.pi
         support = _rotation_support(v, a, b, p, cells, midpoints)
@@ -768,7 +770,9 @@ def _hypotheses(v: _Votes, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams,
         c = np.exp(1j * (th0 + np.dot(w, d_sel) / w.sum()))
         # translation of A's centroid at this rotation: a two-stage Hough keeps the
         # translation cells sharp (a per-vote rotation error would smear them)
-        t = mid_b[sel] - c * mid_a[sel]
+        mid_a, mid_b = ((midpoints[0][sel], midpoints[1][sel]) if midpoints is not None
+                        else _vote_midpoints(v, a, b, sel))
+        t = mid_b - c * mid_a
         hyps.extend(_translation_peaks(t, sel, w, c, v, a, p, n_peaks=2,
                                        min_support=p.min_support_ratio * best))
         best = max(h.support for h in hyps) if hyps else 0.0
