@@ -50,7 +50,7 @@ LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
 
 
 # diagnostic_msgs/DiagnosticStatus levels
-DIAG_OK, DIAG_WARN, DIAG_ERROR, DIAG_STALE = 0, 1, 2, 3
+DIAG_OK, DIAG_WARN, DIAG_ERROR = 0, 1, 2
 
 
 def publish_diagnostics(node: Node, topic: str, period: float,
