@@ -5,6 +5,7 @@ import math
 import cv2
 import numpy as np
 import pytest
+from skimage.morphology import skeletonize
 from synthetic_minutiae import crop_set
 
 from terrain_nav_ros.core.crease_check import (
@@ -137,6 +138,30 @@ def test_refinement_brings_the_creases_together(region):
     assert refine_on_creases(samples, empty, c0, t0) == (c0, t0)
 
 
+def test_refinement_with_scale_recovers_a_scaled_view(region):
+    """A view 6 % larger, started at scale 1 and 1 degree off: the ICP with the scale brings
+    it onto the creases and recovers the scale; without it, the view stays off at its
+    edges."""
+    skel = region[1]
+    big = skel[100:356, 100:356]
+    small = skel[130:290, 140:300].astype(np.float32)
+    m = cv2.getRotationMatrix2D((79.5, 79.5), 0.0, 1.06)     # block px -> view px
+    view = skeletonize(cv2.warpAffine(small, m, (160, 160)) > 0.3)
+    samples, field = CreaseSamples.from_image(view), CreaseField(big)
+    # truth: view -> block (1 / 1.06 about the centre), block -> big (+40, +30 px)
+    c_true = 1 / 1.06
+    t_true = complex(79.5, -79.5) * (1 - c_true) + (40 - 30j)
+    c0, t0 = np.exp(1j * np.radians(1.0)), t_true + (1.0 - 1.0j)
+    corner = 0j                                             # the view's corner: far out
+    for scale, tol in [(True, 1.0), (False, None)]:
+        c, t = refine_on_creases(samples, field, c0, t0, scale=scale)
+        err = abs(c * corner + t - (c_true * corner + t_true))
+        if scale:
+            assert abs(abs(c) - c_true) < 0.01 and err < tol
+        else:
+            assert abs(c) == pytest.approx(1.0) and err > 3.0
+
+
 def test_ridges_fix_the_shift_that_parallel_valleys_leave_free():
     """Valleys that all run East-West cannot say where along them the block lies (the ICP
     solve is singular and leaves the transform alone); ridges running North-South beside
@@ -227,6 +252,7 @@ def test_numba_kernels_agree_with_the_numpy_path(region, other_region, monkeypat
                         crease_evidence(samples, field, c, t, skip=skip),
                         refine_on_creases(samples, field, c, t),
                         refine_on_creases(samples, field, c, t, ridges=ridges),
+                        refine_on_creases(samples, field, c, t, ridges=ridges, scale=True),
                         field.correspondences(c * samples.z + t, samples.direction, 1.5,
                                               0.35)))
         return out
@@ -236,9 +262,9 @@ def test_numba_kernels_agree_with_the_numpy_path(region, other_region, monkeypat
     slow = run()
     for f, s in zip(fast, slow, strict=True):
         assert f[0] == s[0] and f[1] == s[1]
-        for k in (2, 3):
+        for k in (2, 3, 4):
             assert abs(f[k][0] - s[k][0]) < 1e-12 and abs(f[k][1] - s[k][1]) < 1e-9
-        for got, want in zip(f[4], s[4], strict=True):
+        for got, want in zip(f[5], s[5], strict=True):
             np.testing.assert_array_equal(got, want)
     assert fast[0][0].score > 20 and fast[1][2] != starts[1]   # the cases do something
     assert fast[1][3] != fast[1][2]                              # and the ridges pull too

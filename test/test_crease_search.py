@@ -14,9 +14,11 @@ from terrain_nav_ros.core.crease_search import (
     CreaseSearchQuery,
     CreaseSearchReference,
     search_rotations,
+    search_scales,
     search_transforms,
 )
 from terrain_nav_ros.core.matching import Decision, Matcher
+from terrain_nav_ros.core.minutia_set import MinutiaSet
 
 SIZE = 64
 
@@ -345,3 +347,98 @@ def test_footprint_counts_are_the_query_pixels_over_the_reference():
                     assert full_inside[r, dy % full_shape[0], dx % full_shape[1]] == expected
                     if expected >= 0.5 * query.n:
                         assert inside[r, dy % shape[0], dx % shape[1]] == expected, (r, dy, dx)
+
+
+def _scaled_view(skel, x0, y0, size, rotation_deg, scale):
+    """A ``size`` px view of the skeleton around block (x0, y0), turned and scaled about its
+    centre, re-thinned; and the pixel transform view -> skeleton."""
+    c = 0.5 * (size - 1)
+    m = cv2.getRotationMatrix2D((c, c), rotation_deg, scale)   # block px -> view px
+    block = skel[y0:y0 + size, x0:x0 + size].astype(np.float32)
+    view = skeletonize(cv2.warpAffine(block, m, (size, size), flags=cv2.INTER_LINEAR) > 0.3)
+    back = cv2.invertAffineTransform(m)
+    back[:, 2] += (x0, y0)
+    return view, back
+
+
+def test_scales_step_by_the_tolerance_at_the_reach():
+    scales = search_scales(0.1, radius=100.0, tolerance=3.0)
+    assert 1.0 in scales and np.allclose(np.diff(scales), 0.03)
+    assert scales[0] <= 0.9 + 0.015 and scales[-1] >= 1.1 - 0.015
+    assert list(search_scales(0.0, radius=100.0)) == [1.0]
+
+
+def test_search_over_scales_finds_a_scaled_view(region):
+    """A view 8 % larger than the reference is found, with its scale, only when scales are
+    searched: at its reach 8 % is more than a hit's tolerance."""
+    _, skel = region
+    view, truth = _scaled_view(skel, 120, 140, 160, 30.0, 1.08)
+    samples = CreaseSamples.from_image(view)
+    reach = float(np.percentile(np.abs(samples.z - samples.z.mean()), 90))
+    reference = CreaseSearchReference(CreaseField(skel), resolution=0.25)
+    rotations = search_rotations(math.pi, reach, 6.0)
+    scaled = search_transforms(CreaseSearchQuery(samples, rotations, 0.25,
+                                                 scales=search_scales(0.1, reach, 6.0)),
+                               reference, n_best=3)
+    c, t, _ = scaled.proposals[0]
+    centre = 0.5 * (160 - 1)
+    z = c * complex(centre, -centre) + t
+    expected = truth @ np.array([centre, centre, 1.0])
+    assert np.hypot(z.real - expected[0], -z.imag - expected[1]) < 6.0
+    assert abs(abs(c) - 1 / 1.08) < 0.04
+    # more transforms searched: the scales are paid for
+    fixed = search_transforms(CreaseSearchQuery(samples, rotations, 0.25), reference, n_best=3)
+    assert scaled.log10_transforms > fixed.log10_transforms
+
+
+def test_background_draws_proposals_to_agreement_not_density(region):
+    """Where the reference's creases are dense (a patch of random lines, like the albedo
+    edges of fields), raw hits draw the proposals there; counting hits above the local
+    density finds the view's true place."""
+    _, skel = region
+    view, truth = _scaled_view(skel, 300, 300, 128, 0.0, 1.0)
+    noisy = skel.copy()
+    rng = np.random.default_rng(3)
+    for x0, y0 in rng.integers(20, 230, (300, 2)):   # ~18 % of the patch's pixels
+        a = rng.uniform(0.0, np.pi)
+        cv2.line(noisy, (int(x0), int(y0)), (int(x0 + 30 * np.cos(a)), int(y0 + 30 * np.sin(a))),
+                 1, 1)
+    samples = CreaseSamples.from_image(view)
+    query = CreaseSearchQuery(samples, [0.0], resolution=0.25)
+    centre = 0.5 * (128 - 1)
+    expected = truth @ np.array([centre, centre, 1.0])
+
+    def error(background):
+        ref = CreaseSearchReference(CreaseField(noisy), resolution=0.25,
+                                    background=background)
+        c, t, _ = search_transforms(query, ref, n_best=1).proposals[0]
+        z = c * complex(centre, -centre) + t
+        return np.hypot(z.real - expected[0], -z.imag - expected[1])
+
+    assert error(0.0) > 20.0
+    assert error(3.0) < 6.0
+
+
+def test_a_large_view_is_found_by_the_view_search(region):
+    """A 192 px view, turned and 7 % larger, with its minutiae gone (a real image's albedo
+    minutiae repeat none of the render's): the minutiae's tries find nothing, the view
+    search over rotations and scales does."""
+    ms, skel = region
+    view, truth = _scaled_view(skel, 150, 160, 192, 140.0, 1.07)
+    centre = 0.5 * (192 - 1)
+    expected = truth @ np.array([centre, centre, 1.0])
+    rng = np.random.default_rng(5)
+    n = 40
+    unrelated = MinutiaSet(rng.uniform(0, 191, n), rng.uniform(0, 191, n),
+                           rng.uniform(-np.pi, np.pi, n), rng.choice([1, 3], n).astype(np.uint8),
+                           np.ones(n, np.float32))
+    for view_search, found in [(True, True), (False, False)]:
+        matcher = Matcher(view_search=view_search)
+        region_index = matcher.index(ms, skel).prepare_as_reference(search=True)
+        r = matcher.localise(matcher.index(unrelated, view), region_index)
+        err = np.hypot(*(np.array(r.apply(centre, centre)) - expected)) \
+            if np.isfinite(r.transform).all() else np.inf
+        assert (r.decision == Decision.MATCH and err < 3.0) == found, (view_search, r.reason,
+                                                                       err)
+        if found:
+            assert abs(r.scale - 1 / 1.07) < 0.03

@@ -544,10 +544,11 @@ def _icp_correspondences(z, direction, distance, field_dir, label, crease_z, cre
 @njit(**_JIT)
 def crease_icp(z, direction, distance, field_dir, label, crease_z, crease_normal,
                z2, direction2, distance2, field_dir2, label2, crease_z2, crease_normal2,
-               c, t, radius, angle_tol, iterations, min_matches):
+               c, t, radius, angle_tol, iterations, min_matches, with_scale=False):
     """``crease_check.refine_on_creases`` in one pass per iteration: the correspondences of
     both channels (the second, e.g. the ridges, may have no samples), the 3x3 normal
-    equations (accumulated, not from the (m, 3) Jacobian) and their solve (Cramer's rule).
+    equations (accumulated, not from the (m, 3) Jacobian) and their solve (Cramer's rule);
+    ``with_scale``: the 4x4 system with the scale too (solved by LU).
     Sums in another order than numpy's: agrees to rounding."""
     n = z.size + z2.size
     p = np.empty(n, np.complex128)
@@ -566,6 +567,11 @@ def crease_icp(z, direction, distance, field_dir, label, crease_z, crease_normal
         if m < min_matches:
             break
         p0 = centroid / m
+        if with_scale:
+            c, t, settled = _scaled_icp_step(p, q, normal, m, p0, c, t)
+            if settled:
+                break
+            continue
         a00 = a01 = a02 = a11 = a12 = a22 = 0.0
         b0 = b1 = b2 = 0.0
         for k in range(m):
@@ -602,6 +608,35 @@ def crease_icp(z, direction, distance, field_dir, label, crease_z, crease_normal
         if abs(s0) * 100.0 + abs(shift) < 0.01:
             break   # settled: < 0.01 px at 100 px from the centroid
     return c, t
+
+
+@njit(**_JIT)
+def _scaled_icp_step(p, q, normal, m, p0, c, t):
+    """One point-to-line step for rotation, scale and shift about ``p0``: the new (c, t) and
+    whether it settled. The scale step is bounded to 5 % (a few wrong pairings on parallel
+    creases must not shrink the view onto them)."""
+    a = np.zeros((4, 4))
+    b = np.zeros(4)
+    j = np.empty(4)
+    for k in range(m):
+        nc = normal[k].conjugate()
+        r = (nc * (p[k] - q[k])).real
+        j[0] = (nc * 1j * (p[k] - p0)).real
+        j[1] = (nc * (p[k] - p0)).real
+        j[2] = normal[k].real
+        j[3] = normal[k].imag
+        for u in range(4):
+            b[u] -= j[u] * r
+            for v in range(4):
+                a[u, v] += j[u] * j[v]
+    if abs(np.linalg.det(a)) < 1e-12:
+        return c, t, True
+    s = np.linalg.solve(a, b)
+    ds = min(max(s[1], -0.05), 0.05)
+    factor = (1.0 + ds) * complex(np.cos(s[0]), np.sin(s[0]))
+    shift = complex(s[2], s[3])
+    c, t = factor * c, factor * t + p0 * (1.0 - factor) + shift
+    return c, t, abs(s[0]) * 100.0 + abs(ds) * 100.0 + abs(shift) < 0.01
 
 
 @njit(**_JIT)

@@ -57,6 +57,10 @@ class SearchLevel:
 
 FINE = SearchLevel(resolution=0.5, rotation_tolerance=3.0)
 COARSE = SearchLevel(resolution=0.25, rotation_tolerance=6.0)
+# large views (a camera footprint, not a block): an eighth, 12 px; their proposals need the
+# coarse-to-fine ICP too
+COARSER = SearchLevel(resolution=0.125, rotation_tolerance=12.0)
+LEVELS = (FINE, COARSE, COARSER)
 
 
 def _channel_weights(direction: np.ndarray) -> np.ndarray:
@@ -78,9 +82,16 @@ class CreaseSearchReference:
     resolution : float
         The search runs at this fraction of the pixel resolution (0.5: a quarter of the FFT
         work); its proposals are refined at full resolution on the creases afterwards.
+    background : float
+        With a positive value, the channels' local mean (Gaussian, this sigma in search px)
+        is subtracted: a query then counts the hits above those the reference's local crease
+        density gives any transform. A large view over dense creases (albedo edges of
+        fields, the noise of an old DEM) otherwise draws its proposals to where the creases
+        are densest, not to where they agree.
     """
 
-    def __init__(self, field: CreaseField, blur: float = 1.5, resolution: float = 0.5):
+    def __init__(self, field: CreaseField, blur: float = 1.5, resolution: float = 0.5,
+                 background: float = 0.0):
         self.resolution = float(resolution)
         rows, cols = np.nonzero(field.distance == 0)
         w = _channel_weights(field.direction[rows, cols].astype(float))
@@ -95,6 +106,12 @@ class CreaseSearchReference:
             cv2.GaussianBlur(full, (0, 0), blur, dst=full)
             self.channels[k] = cv2.resize(full, self.shape[::-1], interpolation=cv2.INTER_AREA)
         self.channels *= 2.0 * math.pi * blur * blur
+        self.background = float(background)
+        if background > 0:
+            # hits above the local density of creases: where creases are dense (fields,
+            # noise of the DEM), any transform scores many hits; only the excess locates
+            for k in range(4):
+                self.channels[k] -= cv2.GaussianBlur(self.channels[k], (0, 0), background)
         # search pixels that hold the reference image: rows [r0, r1), cols [c0, c1)
         self.footprint = (0, self.shape[0], 0, self.shape[1])
         self._spectra = {}
@@ -110,6 +127,7 @@ class CreaseSearchReference:
         """A reference with these channels (a turned or padded copy of this one)."""
         out = object.__new__(CreaseSearchReference)
         out.resolution = self.resolution
+        out.background = self.background
         out.full_shape = full_shape
         out.channels = channels
         out.shape = channels.shape[1:]
@@ -186,6 +204,18 @@ def search_rotations(max_rotation: float, radius: float, tolerance: float = 3.0)
     return np.linspace(-max_rotation, max_rotation, 2 * n + 1)
 
 
+def search_scales(max_scale_change: float, radius: float, tolerance: float = 3.0) -> np.ndarray:
+    """Scales to search: 1 and steps that move a pixel at ``radius`` by <= ``tolerance``
+    (half a step either way is within the tolerance), out to ``1 +- max_scale_change``.
+
+    A scale error of the view (the prior's height above ground) of 10 % moves the edge of a
+    256 px view by 13 px: more than a hit's tolerance at any level but the coarsest.
+    """
+    step = tolerance / max(radius, 1.0)
+    k = int(round(max(max_scale_change, 0.0) / step))
+    return 1.0 + step * np.arange(-k, k + 1)
+
+
 def _whole_circle(n: int) -> np.ndarray:
     """``n`` rotations evenly over the circle, from -pi."""
     return np.arange(n) * (2.0 * math.pi / n) - math.pi
@@ -210,25 +240,29 @@ class CreaseSearchQuery:
         transform only the first quarter: the others are its exact quarter turns, searched
         as the first quarter against the reference turned the other way
         (:meth:`CreaseSearchReference.turned`); a quarter of the query's FFT work.
+    scales : sequence of float
+        Scales to search (:func:`search_scales`), each at every rotation; the transforms
+        searched are ``c = scale * exp(1j * rotation)``.
     """
 
     def __init__(self, samples: CreaseSamples, rotations: np.ndarray, resolution: float = 0.5,
-                 quarter_turns: bool = True):
+                 quarter_turns: bool = True, scales=(1.0,)):
         self.n = len(samples)
         self.resolution = float(resolution)
         self.rotations = np.asarray(rotations, float)
+        self.scales = np.asarray(scales, float).ravel()
         n_rot = len(self.rotations)
         self.quarter = bool(quarter_turns and n_rot and n_rot % 4 == 0
                             and np.allclose(self.rotations, _whole_circle(n_rot)))
         if self.quarter:
             # exact quarter turns (multiplying by 1j only swaps and negates): their rasters
             # are exact quarter turns of the first quarter's
-            first = np.exp(1j * self.rotations[:n_rot // 4])
+            first = (self.scales[:, None] * np.exp(1j * self.rotations[:n_rot // 4])).ravel()
             self.c = np.concatenate([first * turn for turn in _QUARTER_TURNS])
         else:
-            self.c = np.exp(1j * self.rotations)
-        # rotations rasterised and transformed: the first quarter, or all
-        self.n_rastered = n_rot // 4 if self.quarter else n_rot
+            self.c = (self.scales[:, None] * np.exp(1j * self.rotations)).ravel()
+        # transforms rasterised and transformed: the first quarter's, or all
+        self.n_rastered = len(self.c) // 4 if self.quarter else len(self.c)
         q = self.c[:, None] * (samples.z[None, :] * self.resolution)   # (n_rot, n), search px
         cols, rows = np.rint(q.real), np.rint(-q.imag)
         self.col0 = cols.min(axis=1) if self.n else np.zeros(len(self.c))
@@ -251,8 +285,9 @@ class CreaseSearchQuery:
             direction, ri, ci = self._pixels
             n_rot = self.n_rastered
             size = self.shape[0] * self.shape[1]
+            turn = np.angle(self.c[:n_rot])
             weights = _channel_weights(np.mod(
-                direction[None, :] + self.rotations[:n_rot, None], np.pi))   # (4, n_rot, n)
+                direction[None, :] + turn[:, None], np.pi))   # (4, n_rot, n)
             flat = (np.arange(n_rot)[:, None] * size + ri[:n_rot] * self.shape[1]
                     + ci[:n_rot]).ravel()
             raster = np.empty((n_rot, 5, size), np.float32)
@@ -521,7 +556,7 @@ def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference
     rots, sub = planes[strongest], flat[strongest]
     n_top = min(50 * n_best, sub.size)
     top = np.argpartition(-sub, n_top - 1, axis=None)[:n_top]
-    step = 2.0 * np.ptp(query.rotations) / max(n_rot - 1, 1)
+    step = 2.0 * np.ptp(query.rotations) / max(len(query.rotations) - 1, 1)
     hb, wb = reference.shape
     out = []
     for idx in top[np.argsort(-sub.ravel()[top], kind="stable")]:
@@ -542,7 +577,8 @@ def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference
         # the same transform: as close in rotation, and mapping the query's centre as close
         # (its origin, a corner, moves 4 px per rotation step at the query's reach)
         if any(abs(math.remainder(np.angle(c) - np.angle(c2), 2 * math.pi)) <= step
-               and abs((c - c2) * query.centre + t - t2) <= 4.0 for c2, t2, _ in out):
+               and abs((c - c2) * query.centre + t - t2) <= 4.0
+               for c2, t2, _ in out):
             continue
         out.append((c, t, h))
         if len(out) == n_best:

@@ -62,10 +62,12 @@ from .crease_check import (
 from .crease_search import (
     COARSE,
     FINE,
+    LEVELS,
     CreaseSearchQuery,
     CreaseSearchReference,
     SearchLevel,
     search_rotations,
+    search_scales,
     search_transforms,
 )
 from .descriptors import (
@@ -192,6 +194,20 @@ class MatchParams:
         work) and its proposals get the coarse-to-fine ICP (``crease_rescue_radii``). The
         default keeps block-vs-block searches of blocks up to ~130 px fine; a block of more
         than ~80 px in its 3x localisation region is searched coarse, 4-6x faster.
+    view_search : bool
+        With crease images, a set too large for the crease search above (a camera footprint
+        in its landmark region) whose first and wider tries both stay below
+        ``rescue_below`` is searched too, at the finest level (:data:`~.crease_search.LEVELS`)
+        whose work fits ``crease_search_max_work``, over scales as well
+        (``view_search_scale``). On real images the minutiae of albedo edges (snow, forest,
+        fields) rarely repeat those of a render, so the minutiae's votes may propose nothing
+        right; the crease skeleton largely repeats.
+    view_search_scale : float
+        Relative scale error searched by that search (the prior's height above ground:
+        10 % moves the edge of a 256 px view by 13 px).
+    view_search_background : float
+        That search counts hits above the reference's local crease density within this
+        sigma (search px, :class:`~.crease_search.CreaseSearchReference`).
     ridge_check : bool
         When both sets also come with ridge skeletons (the lines between the valleys, see
         :class:`~.minutiae.FeatureExtractor`), add their agreement at each registration to
@@ -268,6 +284,9 @@ class MatchParams:
     crease_search_max_work: int = 12_000_000
     crease_search_proposals: int = 3
     crease_search_fine_work: int = 4_000_000
+    view_search: bool = True
+    view_search_scale: float = 0.1
+    view_search_background: float = 3.0
     ridge_check: bool = True
     ridge_check_below: int = 64
     min_crease_pixels: int = 100
@@ -326,8 +345,8 @@ class MinutiaIndex:
         self._crease_descriptor = None
         self._crease_samples = None
         self._crease_field = None
-        self._crease_search = {}   # by search resolution
-        self._crease_query = {}    # by (max_rotation, search level)
+        self._crease_search = {}   # by (search resolution, background)
+        self._crease_query = {}    # by (max_rotation, search level, scale change)
         self._crease_around = None
         self.footprint = _footprint(ms)
         # the footprint as complex corners and as its box (x0, x1, y0, y1), for _overlap
@@ -404,26 +423,45 @@ class MinutiaIndex:
             self._ridge_field = CreaseField(self.ridge_image)
         return self._ridge_field
 
-    def crease_search(self, level: SearchLevel = FINE) -> CreaseSearchReference | None:
-        """Direction channels for the crease search as the reference (built on first use)."""
-        if level.resolution not in self._crease_search and self.crease_field is not None:
-            self._crease_search[level.resolution] = CreaseSearchReference(
-                self.crease_field, resolution=level.resolution)
-        return self._crease_search.get(level.resolution)
+    def crease_search(self, level: SearchLevel = FINE,
+                      background: float = 0.0) -> CreaseSearchReference | None:
+        """Direction channels for the crease search as the reference (built on first use;
+        ``background`` as :class:`~.crease_search.CreaseSearchReference`'s)."""
+        key = (level.resolution, background)
+        if key not in self._crease_search and self.crease_field is not None:
+            self._crease_search[key] = CreaseSearchReference(
+                self.crease_field, resolution=level.resolution, background=background)
+        return self._crease_search.get(key)
 
-    def crease_search_query(self, max_rotation: float,
-                            level: SearchLevel = FINE) -> CreaseSearchQuery | None:
-        """This set's creases rasterised at the rotations the crease search tries within
-        ``max_rotation`` (built on first use: a camera block meets every landmark block)."""
+    @property
+    def crease_reach(self) -> float:
+        """90th percentile of the crease pixels' distance from their mean (px): the lever
+        arm of a rotation or scale step in the crease search."""
+        z = self.crease_samples.z if self.crease_samples is not None else np.zeros(0)
+        return float(np.percentile(np.abs(z - z.mean()), 90)) if len(z) else 0.0
+
+    def crease_search_transforms(self, max_rotation: float, level: SearchLevel = FINE,
+                                 max_scale_change: float = 0.0) -> tuple[np.ndarray,
+                                                                         np.ndarray]:
+        """Rotations and scales the crease search tries at ``level``."""
+        reach, tol = self.crease_reach, level.rotation_tolerance
+        return (search_rotations(max_rotation, reach, tol),
+                search_scales(max_scale_change, reach, tol))
+
+    def crease_search_query(self, max_rotation: float, level: SearchLevel = FINE,
+                            max_scale_change: float = 0.0) -> CreaseSearchQuery | None:
+        """This set's creases rasterised at the rotations (and scales within
+        ``1 +- max_scale_change``) the crease search tries within ``max_rotation`` (built on
+        first use: a camera block meets every landmark block)."""
         samples = self.crease_samples
         if samples is None:
             return None
-        key = (max_rotation, level)
+        key = (max_rotation, level, max_scale_change)
         if key not in self._crease_query:
-            z = samples.z
-            reach = float(np.percentile(np.abs(z - z.mean()), 90)) if len(z) else 0.0
-            rotations = search_rotations(max_rotation, reach, level.rotation_tolerance)
-            self._crease_query[key] = CreaseSearchQuery(samples, rotations, level.resolution)
+            rotations, scales = self.crease_search_transforms(max_rotation, level,
+                                                              max_scale_change)
+            self._crease_query[key] = CreaseSearchQuery(samples, rotations, level.resolution,
+                                                        scales=scales)
         return self._crease_query[key]
 
     def prepare_as_reference(self, search: bool = False) -> MinutiaIndex:
@@ -442,8 +480,12 @@ class MinutiaIndex:
             _ = self.ridge_field
             if hash_generator:
                 _ = self.crease
-            for level in (FINE, COARSE) if search else ():
-                reference = self.crease_search(level).squared()
+            # the small sets' search (fine, coarse) and the view search (every level)
+            wanted = [(level, 0.0) for level in (FINE, COARSE)]
+            if p.view_search:
+                wanted += [(level, p.view_search_background) for level in LEVELS]
+            for level, background in wanted if search else ():
+                reference = self.crease_search(level, background).squared()
                 for turns in range(4):
                     reference.turned(turns)
         return self
@@ -1400,24 +1442,53 @@ def _searches_creases(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> bool:
                 b.crease_image.shape) <= p.crease_search_max_work)
 
 
-def _crease_search_registrations(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams):
+def _view_search_level(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> SearchLevel | None:
+    """The finest level at which the view search (``MatchParams.view_search``) of A in B
+    fits the work bound, or None."""
+    for level in LEVELS:
+        rotations, scales = a.crease_search_transforms(p.max_rotation, level,
+                                                       p.view_search_scale)
+        if len(rotations) * len(scales) > 4096:
+            continue   # too many rasters for this level: try a coarser one
+        query = a.crease_search_query(p.max_rotation, level, p.view_search_scale)
+        if query.work(b.crease_image.shape) <= p.crease_search_max_work:
+            return level
+    return None
+
+
+def _crease_search_registrations(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams,
+                                 level: SearchLevel | None = None,
+                                 scale_change: float = 0.0, background: float = 0.0):
     """Registrations (c, t, pairings) proposed by the crease search, each moved onto B's
     creases (they may have fewer than two minutiae pairings), and log10 of the transforms
-    searched (at the fine level's rotations: a coarse proposal is refined over them)."""
-    level = _search_level(a, b, p)
+    searched (at the fine level's rotations and scales: a coarse proposal is refined over
+    them). ``level`` defaults to :func:`_search_level`'s; ``scale_change`` and
+    ``background`` are the view search's (:class:`MatchParams`)."""
+    level = level or _search_level(a, b, p)
     coarse = level != FINE
+    fine_rotations, fine_scales = a.crease_search_transforms(p.max_rotation, FINE,
+                                                             scale_change)
     found = search_transforms(
-        a.crease_search_query(p.max_rotation, level), b.crease_search(level),
+        a.crease_search_query(p.max_rotation, level, scale_change),
+        b.crease_search(level, background),
         n_best=p.crease_search_proposals * (2 if coarse else 1), hit_radius=p.crease_radius,
-        distinct_rotations=len(a.crease_search_query(p.max_rotation, FINE).c))
+        distinct_rotations=len(fine_rotations) * len(fine_scales))
     out = []
     ridges = _ridge_channel(a, b, p)
     for c, t, _ in found.proposals:
         for radius in p.crease_rescue_radii if coarse else (3.0,):
             c, t = refine_on_creases(a.crease_samples, b.crease_field, c, t, radius=radius,
-                                     angle_tol=p.crease_angle_tol, ridges=ridges)
+                                     angle_tol=p.crease_angle_tol, ridges=ridges,
+                                     scale=scale_change > 0)
         out.append((c, t, _pair(a, b, c, t, p)))
     return out, found.log10_transforms
+
+
+def _low(best: _Scored | None, n_scored: int, p: MatchParams) -> bool:
+    """Whether a try is not clear enough, on the evidence the wider tries were tuned for
+    (the ridges add to chance registrations too)."""
+    return best is None or (best.score - (best.ridges.score if best.ridges else 0.0)
+                            - math.log10(max(n_scored, 1))) < p.rescue_below
 
 
 def _registrations(hyps, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, rng):
@@ -1559,10 +1630,7 @@ class Matcher:
         registered = _registrations(_hypotheses(votes, a, b, p), a, b, p, rng)
         best, scored = _best_registration(a, b, registered, search_area, p, use_creases)
         n_scored = len(scored)
-        # whether the first try is clear enough, on the evidence the wider try was tuned
-        # for: the ridges add to chance registrations too
-        low = best is None or (best.score - (best.ridges.score if best.ridges else 0.0)
-                               - math.log10(max(n_scored, 1))) < p.rescue_below
+        low = _low(best, n_scored, p)
         if low and search:
             # the wider try of a set small enough for the crease search: it covers every
             # rotation and translation at the crease resolution (a sweep or a wide ICP would
@@ -1582,6 +1650,16 @@ class Matcher:
             if best is not None and use_creases:
                 best = _refined_on_creases(a, b, best, search_area, radius_a, p,
                                            radii=p.crease_rescue_radii)
+            if use_creases and p.view_search and _low(best, n_scored, p):
+                level = _view_search_level(a, b, p)
+                if level is not None:
+                    searched, trials = _crease_search_registrations(
+                        a, b, p, level, p.view_search_scale, p.view_search_background)
+                    view, view_scored = _best_registration(a, b, [], search_area, p, True,
+                                                           searched, trials)
+                    n_scored += len(view_scored)
+                    if view is not None and (best is None or view.score > best.score):
+                        best = view
         base.decision = Decision.NO_MATCH
         if best is None:
             base.reason = "no consistent transform"
