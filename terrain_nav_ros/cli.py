@@ -111,6 +111,8 @@ def _cmd_evaluate(args) -> int:
     from .core.matching import MatchParams
     from .evaluation import run_evaluation
 
+    if args.image or args.scenes:
+        return _cmd_evaluate_imagery(args)
     out = Path(args.out) if args.out else REPO / "out" / f"evaluate-{_now()}"
     params = MatchParams()
     if args.no_creases:
@@ -136,6 +138,50 @@ def _cmd_evaluate(args) -> int:
     print(summary["report"])
     print(f"wrote {out}")
     return 0
+
+
+def _cmd_evaluate_imagery(args) -> int:
+    """``evaluate --image IMG --dem DEM`` / ``--scenes YAML``: the real-imagery study."""
+    from .core.matching import MatchParams
+    from .real_imagery import load_scene, load_scenes, run_real_imagery_study
+
+    out = Path(args.out) if args.out else REPO / "out" / f"evaluate-imagery-{_now()}"
+    try:
+        if args.scenes:
+            scenes = load_scenes(args.scenes, args.data_dir)
+        else:
+            if not args.dem:
+                raise ValueError("--image needs --dem (the DEM of the same place)")
+            sun = _pair(args.sun, "--sun") if args.sun else None
+            gsd = None if args.gsd in (None, "native") else float(args.gsd)
+            scenes = [load_scene(args.image, args.dem, band=args.band, gsd=gsd, sun=sun,
+                                 when=args.time)]
+        sizes = tuple(int(x) for x in args.sizes.split(","))
+        if min(sizes) < 16 or args.cases < 1:
+            raise ValueError("--sizes must be >= 16 px and --cases >= 1")
+        headings = ("unknown", "known") if args.heading == "both" else (args.heading,)
+        baselines = () if args.no_baselines else tuple(args.baselines.split(","))
+        params = MatchParams(view_search=not args.no_view_search)
+        summary = run_real_imagery_study(scenes, sizes=sizes, cases=args.cases,
+                                         match_params=params,
+                                         out_dir=out, seed=args.seed, headings=headings,
+                                         baselines=baselines,
+                                         false_match_rate=args.false_match_rate,
+                                         threshold=args.threshold)
+    except (ValueError, OSError, KeyError) as err:
+        print(f"terrain-nav evaluate: {err}", file=sys.stderr)
+        return 2
+    print(summary["report"])
+    print(f"wrote {out}")
+    return 0
+
+
+def _pair(text: str, option: str) -> tuple[float, float]:
+    try:
+        a, b = (float(x) for x in text.split(","))
+    except ValueError:
+        raise ValueError(f"{option} takes two numbers, e.g. 160.5,41.2; got {text!r}") from None
+    return a, b
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -247,6 +293,26 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--jobs", type=int, default=1,
                     help="processes for the block comparisons (same results; the reported "
                          "compare times are per comparison either way)")
+    im = ev.add_argument_group(
+        "real imagery", "with --image (and --dem) or --scenes: views cut from a real image "
+        "localised in the landmark render of its DEM, with non-PVA controls and baselines")
+    im.add_argument("--image", help="a georeferenced real image of the DEM's place")
+    im.add_argument("--band", help="its band (1-based; default: the mean of bands 1-3)")
+    im.add_argument("--sun", metavar="AZ,EL", help="the image's sun [deg]")
+    im.add_argument("--time", metavar="ISO8601",
+                    help="the image's acquisition time (UTC), for its sun")
+    im.add_argument("--scenes", help="YAML list of scenes (e.g. benchmarks/real_scenes.yaml)")
+    im.add_argument("--data-dir", dest="data_dir",
+                    help="folder the --scenes file names are relative to")
+    im.add_argument("--sizes", default="64,128,256,512", help="view sides [px]")
+    im.add_argument("--cases", type=int, default=20,
+                    help="views per scene, size and heading condition")
+    im.add_argument("--heading", choices=["unknown", "known", "both"], default="both")
+    im.add_argument("--baselines", default="ncc,orb", help="of ncc, orb, sift")
+    im.add_argument("--no-view-search", dest="no_view_search", action="store_true",
+                    help="without the matcher's crease search of large views")
+    im.add_argument("--threshold", type=float,
+                    help="acceptance threshold (default the graph's, 5.0)")
     ev.set_defaults(func=_cmd_evaluate)
     return parser
 

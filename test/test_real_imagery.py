@@ -1,0 +1,127 @@
+"""The real-imagery study (terrain_nav_ros.real_imagery, ``evaluate --image/--scenes``)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from terrain_nav_ros.cli import main
+from terrain_nav_ros.real_imagery import load_scene, load_scenes, run_real_imagery_study
+
+SCENES_YAML = "benchmarks/real_scenes.yaml"
+
+
+def _write_pair(tmp_path, *, geographic: bool, nodata_hole: bool = False):
+    """A synthetic image + DEM pair in one CRS: the image is the DEM's hillshade plus a
+    stripe of "albedo", so the pair is co-registered by construction."""
+    import rasterio
+    from affine import Affine
+
+    from terrain_nav_ros.core.hillshade import hillshade
+    from terrain_nav_ros.core.synthetic_terrain import synthetic_dem
+
+    z = synthetic_dem(160, gsd=30.0, seed=3).astype(np.float32)
+    image = (hillshade(z, 160.0, 40.0, gsd=30.0) * 200.0 + 20.0).astype(np.float32)
+    image[:, 100:110] += 40.0
+    if nodata_hole:
+        image[:20, :20] = -9999.0
+    if geographic:
+        crs, transform = "EPSG:4326", Affine(0.0003, 0.0, 6.0, 0.0, -0.0003, 45.0)
+    else:
+        crs, transform = "EPSG:32632", Affine(30.0, 0.0, 500000.0, 0.0, -30.0, 5000000.0)
+    paths = []
+    for name, data, nodata in (("image.tif", image, -9999.0), ("dem.tif", z, None)):
+        path = tmp_path / name
+        with rasterio.open(path, "w", driver="GTiff", height=160, width=160, count=1,
+                           dtype="float32", crs=crs, transform=transform,
+                           nodata=nodata) as ds:
+            ds.write(data, 1)
+        paths.append(path)
+    return paths
+
+
+def test_a_pair_in_degrees_is_put_on_a_utm_grid(tmp_path):
+    image, dem = _write_pair(tmp_path, geographic=True, nodata_hole=True)
+    scene = load_scene(image, dem, when="2021-06-21T10:00:00Z")
+    # 0.0003 deg of latitude is ~33 m: the image's cell in metres, about its own size
+    assert 30.0 < scene.gsd < 36.0
+    assert scene.image.dtype == np.uint8 and scene.image.shape == scene.elevation.shape
+    h, w = scene.valid.shape
+    assert not scene.valid[:10, :10].any() and scene.valid[h // 3:-h // 3, w // 3:-w // 3].all()
+    assert np.isfinite(scene.elevation).all()
+    # the sun of a June morning in the Alps: in the south-east, well up
+    az, el = scene.sun
+    assert 90.0 < az < 180.0 and 40.0 < el < 70.0
+
+
+def test_a_study_gsd_resamples_both(tmp_path):
+    image, dem = _write_pair(tmp_path, geographic=False)
+    native = load_scene(image, dem, sun=(150.0, 40.0))
+    half = load_scene(image, dem, sun=(150.0, 40.0), gsd=15.0)
+    assert native.gsd == 30.0 and native.image.shape == (160, 160)
+    assert half.gsd == 15.0 and half.image.shape == (320, 320)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"band": 4}, "band 4 does not exist"),
+    ({}, "the scene's sun is needed"),
+    ({"sun": (150.0, -5.0)}, "sun elevation"),
+])
+def test_bad_scene_options_are_clear_errors(tmp_path, kwargs, message):
+    image, dem = _write_pair(tmp_path, geographic=False)
+    with pytest.raises(ValueError, match=message):
+        load_scene(image, dem, **kwargs)
+
+
+def test_a_corrupt_image_is_a_clear_error(tmp_path):
+    image, dem = _write_pair(tmp_path, geographic=False)
+    image.write_bytes(b"II*\x00" + b"\x00" * 40)
+    with pytest.raises(ValueError, match="cannot read the scene"):
+        load_scene(image, dem, sun=(150.0, 40.0))
+
+
+def test_cli_answers_bad_input_with_one_line(tmp_path, capsys):
+    code = main(["evaluate", "--image", str(tmp_path / "missing.tif"), "--dem",
+                 str(tmp_path / "missing_dem.tif"), "--sun", "150,40"])
+    err = capsys.readouterr().err
+    assert code == 2 and "no such file" in err and "Traceback" not in err
+    image, dem = _write_pair(tmp_path, geographic=False)
+    code = main(["evaluate", "--image", str(image), "--dem", str(dem), "--sun", "150"])
+    assert code == 2 and "--sun takes two numbers" in capsys.readouterr().err
+
+
+def test_study_on_real_scenes(tmp_path, shared_data):
+    """Two real places (Athabasca, Pennsylvania): views are localised at their place,
+    views of one place are never accepted in the other's regions, and the outputs say so."""
+    scenes = [s for s in load_scenes(SCENES_YAML, shared_data / "imagery")
+              if s.name in ("athabasca_l30", "pa_november@30m")]
+    assert len(scenes) == 2
+    out = tmp_path / "study"
+    summary = run_real_imagery_study(scenes, sizes=(128,), cases=4, out_dir=out,
+                                     headings=("known",), baselines=("ncc",),
+                                     log=lambda *_: None)
+    rows = summary["rows"]
+    assert {r["scene"] for r in rows} == {"athabasca_l30", "pa_november@30m"}
+    for r in rows:
+        assert r["minutiae"]["cases"] == 4 and len(r["cases"]) == 4
+        assert "ncc" in r
+    localised = sum(r["minutiae"]["success"] for r in rows)
+    wrong = sum(r["minutiae"]["wrong"] for r in rows)
+    assert localised >= 4 and wrong == 0
+    non = summary["non_pva"]
+    # each view meets the other place's regions (and far parts of its own scene if any)
+    assert non["comparisons"] >= 2 * 8 and non["accepted"] == 0
+    assert {"report.md", "results.json"} <= {p.name for p in out.iterdir()}
+    saved = json.loads((out / "results.json").read_text())
+    assert saved["non_pva"]["comparisons"] == non["comparisons"]
+    assert "Controls (non-PVA)" in (out / "report.md").read_text()
+
+
+def test_scenes_file_lists_every_dev_pair(shared_data):
+    """benchmarks/real_scenes.yaml names files that exist in the shared imagery folder."""
+    import yaml
+
+    doc = yaml.safe_load(open(SCENES_YAML))
+    for entry in doc["scenes"]:
+        for key in ("image", "dem"):
+            assert (shared_data / "imagery" / entry[key]).is_file(), entry[key]
