@@ -258,6 +258,14 @@ def build_parser() -> argparse.ArgumentParser:
                      help="GNSS lost from this time [s]")
     sim.add_argument("--gnss-denial", dest="gnss_denial", choices=["stop", "nofix"])
     sim.add_argument("--seed", type=int)
+    sim.add_argument("--albedo", help="a real georeferenced orthoimage of the DEM's place, "
+                     "draped over the terrain for the camera frames (landmarks stay DEM "
+                     "renders)")
+    sim.add_argument("--albedo-band", dest="albedo_band",
+                     help="its band (1-based) as grey (default: bands 1-3 as RGB)")
+    sim.add_argument("--start-time", dest="start_time", metavar="ISO8601",
+                     help="bag time of the start, UTC (with --albedo: the image's "
+                          "acquisition, so the landmarks get its sun)")
     sim.set_defaults(func=_cmd_simulate)
 
     ev = sub.add_parser("evaluate", help="PVA / non-PVA block study with baselines "

@@ -19,9 +19,12 @@ topic                                      type                                f
 Camera frames are rendered in perspective from the true pose by the landmark renderer, but
 made to look like a camera rather than a landmark: another sun, another albedo, haze, auto
 exposure, blur, vignetting, lens distortion (published in CameraInfo) and sensor noise
-(:mod:`.core.camera_effects`). GNSS is denied from a configurable time. Everything is
-deterministic given the seed. A ``mission.yaml`` beside the MCAP file records the DEM, the
-ENU origin and the camera mount, so the replay configures the graph to match.
+(:mod:`.core.camera_effects`). With ``albedo`` a real orthoimage is draped over the terrain
+instead and shown as it is (its own sun, snow, forest, fields and roads), and ``start_time``
+puts the bag at the image's acquisition, so the landmarks are lit by its sun. GNSS is denied
+from a configurable time. Everything is deterministic given the seed. A ``mission.yaml``
+beside the MCAP file records the DEM, the ENU origin and the camera mount, so the replay
+configures the graph to match.
 """
 
 from __future__ import annotations
@@ -40,12 +43,13 @@ from . import bags
 from .core.baro import altitude_to_pressure
 from .core.camera_effects import CameraEffects, apply_camera_effects, distortion_maps
 from .core.camera_mount import R_BODY_OPTICAL_NADIR, camera_rotation
+from .core.dem_io import Dem
 from .core.dem_sources import open_dem_source
 from .core.ekf_params import EkfParams
 from .core.geodesy import EnuOrigin
 from .core.georef import GeoReference
 from .core.imu_sim import ImuErrorModel, simulate_imu
-from .core.metamap import MetaMap
+from .core.metamap import MetaMap, OutsideDemError
 from .core.renderer import AlbedoRamp, LandmarkRenderer, PinholeCamera, create_headless_context
 from .core.strapdown import quat_conjugate, quat_rotate
 from .core.trajectory_sim import Segment, simulate_trajectory, survey_flight, turning_flight
@@ -93,6 +97,13 @@ class SimConfig:
     truth_rate: float = 20.0         # Hz
     seed: int = 1
     landmark_gsd: float = 20.0       # m/px the replay's metamap and camera_ingest should use
+    albedo: str = ""                 # a real orthoimage (any georeferenced raster) draped
+    #                                  over the terrain for the camera frames, shown as it
+    #                                  is (it holds its own sun); "" = the rendered albedo
+    albedo_band: str = ""            # its band (1-based) as grey; "" = bands 1-3 as RGB
+    start_time: str = ""             # ISO 8601 UTC bag time of t = 0 (with --albedo: the
+    #                                  image's acquisition, so landmarks get its sun);
+    #                                  "" = 2026-06-21T13:30:00Z
     effects: CameraEffects = field(default_factory=CameraEffects)
 
 
@@ -262,7 +273,7 @@ def simulate(cfg: SimConfig, output: str | Path) -> dict:
     rng = np.random.default_rng(cfg.seed)
     metamap, dem_name = _open_metamap(cfg)
     truth, ground_low = fly(cfg, metamap)
-    t_ns = EPOCH_NS + np.rint(truth.t * 1e9).astype(np.int64)
+    t_ns = _epoch_ns(cfg.start_time) + np.rint(truth.t * 1e9).astype(np.int64)
     params = EkfParams()
     imu = simulate_imu(truth, ImuErrorModel.from_params(params), rng)
     msgs = _Messages()
@@ -331,6 +342,73 @@ def simulate(cfg: SimConfig, output: str | Path) -> dict:
     return summary
 
 
+def _epoch_ns(start_time: str) -> int:
+    """Bag time (ns) of t = 0: ``start_time`` (ISO 8601, UTC unless stated) or EPOCH_NS."""
+    if not start_time:
+        return EPOCH_NS
+    import datetime as dt
+    try:
+        t = dt.datetime.fromisoformat(str(start_time).replace("Z", "+00:00"))
+    except ValueError:
+        raise ValueError(f"start time {start_time!r} is not ISO 8601 "
+                         "(e.g. 2002-11-25T15:40:00Z)") from None
+    if t.tzinfo is None:
+        t = t.replace(tzinfo=dt.UTC)
+    return int(round(t.timestamp() * 1e9))
+
+
+def drape_photo(path: str, band: str, metamap: MetaMap, box: GeoReference) -> np.ndarray:
+    """A real orthoimage sampled on the render grid ``box``: (rows, cols, 3) in [0, 1],
+    stretched between its 1st and 99th percentiles (raw DN or reflectance alike); cells
+    it does not cover are its median grey.
+
+    Each band goes through a :class:`MetaMap` of its own with the terrain's origin, the
+    same reprojection as the heights; an image much finer than the grid is first averaged
+    down to it (no aliasing of 2.5 m detail on a 45 m grid).
+    """
+    import rasterio
+    from affine import Affine
+
+    try:
+        with rasterio.open(path) as ds:
+            if band:
+                b = int(band)
+                if not 1 <= b <= ds.count:
+                    raise ValueError(f"{path}: band {b} does not exist ({ds.count} bands)")
+                bands = [b] * 3
+            else:
+                bands = [min(k, ds.count) for k in (1, 2, 3)]
+            data = ds.read(bands, masked=True).astype(np.float32).filled(np.nan)
+            transform, crs = ds.transform, ds.crs
+    except rasterio.errors.RasterioError as err:
+        raise ValueError(f"cannot read the albedo image {path}: {err}") from err
+    if crs is None:
+        raise ValueError(f"{path}: the albedo image has no CRS, so it cannot be draped")
+    cell_m = abs(transform.a) * (111_320.0 if crs.is_geographic else 1.0)
+    factor = int(box.gsd // max(cell_m, 1e-9))
+    if factor >= 2:   # average down: the render grid cannot hold finer detail
+        rows, cols = data.shape[1:]
+        data = np.stack([cv2.resize(np.nan_to_num(b, nan=float(np.nanmedian(b))), None,
+                                    fx=1.0 / factor, fy=1.0 / factor,
+                                    interpolation=cv2.INTER_AREA) for b in data])
+        transform = transform @ Affine.scale(cols / data.shape[2], rows / data.shape[1])
+    rgb = np.empty((*box.shape, 3), np.float32)
+    for k in range(3):
+        dem = Dem.from_array(data[k], transform, crs, name=f"{Path(path).name} band {k}")
+        try:
+            tile = MetaMap(dem, metamap.origin, interpolation="bilinear").tile(box)
+        except OutsideDemError:
+            tile = None
+        if tile is None or tile.nodata.all():
+            raise ValueError(f"{path}: the albedo image does not cover the flight's terrain")
+        rgb[..., k] = np.where(tile.nodata, np.nan, tile.elevation)
+    covered = np.isfinite(rgb).all(axis=-1)
+    lo, hi = np.percentile(rgb[covered], [1.0, 99.0])
+    rgb = np.clip((rgb - lo) / max(hi - lo, 1e-6), 0.0, 1.0)
+    rgb[~covered] = np.median(rgb[covered], axis=0)
+    return rgb
+
+
 def _solar(origin: EnuOrigin, t_ns: int) -> tuple[float, float]:
     from .core.sun import sun_at
 
@@ -358,6 +436,8 @@ def _render_frames(cfg, metamap, truth, t_ns, msgs, rng, sun):
     heights = np.where(tile.nodata, np.nanmin(tile.elevation), tile.elevation)
     renderer = LandmarkRenderer(create_headless_context(), albedo=CAMERA_ALBEDO, shadows=True)
     renderer.set_terrain(heights, box)
+    if cfg.albedo:
+        renderer.set_photo(drape_photo(cfg.albedo, cfg.albedo_band, metamap, box))
     out = []
     started = time.monotonic()
     for n, k in enumerate(idx):

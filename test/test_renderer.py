@@ -159,6 +159,34 @@ def test_nadir_georeference_is_exact(renderer):
     np.testing.assert_allclose(res.hit_enu[..., 2], h, atol=0.05)
 
 
+def test_a_draped_photo_is_shown_as_it_is_under_any_sun(renderer):
+    """A real orthophoto holds its own light: a nadir render shows it pixel for pixel,
+    whatever the sun; a perspective view shows its pixels where the rays hit; a new terrain
+    or ``set_photo(None)`` brings back the lit albedo ramp."""
+    h, g = peak_tile()
+    renderer.set_terrain(h, g)
+    rng = np.random.default_rng(0)
+    photo = rng.uniform(0.05, 0.95, (*h.shape, 3)).astype(np.float32)
+    renderer.set_photo(photo)
+    for sun in ((315.0, 45.0), (135.0, 10.0)):
+        np.testing.assert_allclose(renderer.render_nadir(sun=sun).rgb, photo, atol=1e-5)
+    cam = PinholeCamera(60.0, 60.0, 31.5, 31.5, 64, 64)
+    eye = (2960.0, 8040.0, 4000.0)
+    persp = renderer.render_perspective(cam, eye, look_at(eye, (2960.0, 8100.0, 0.0)))
+    seen = persp.mask
+    assert seen.mean() > 0.2
+    hit_col, hit_row = g.enu_to_pixel(persp.hit_enu[seen, 0], persp.hit_enu[seen, 1])
+    expected = photo[np.clip(np.rint(hit_row).astype(int), 0, 63),
+                     np.clip(np.rint(hit_col).astype(int), 0, 63)]
+    # bilinear against the nearest pixel of random noise
+    assert np.median(np.abs(persp.rgb[seen] - expected)) < 0.15
+    renderer.set_photo(None)
+    lit = renderer.render_nadir(sun=(315.0, 45.0)).rgb
+    assert np.abs(lit - photo).mean() > 0.1
+    with pytest.raises(ValueError, match="shaped"):
+        renderer.set_photo(photo[:10])
+
+
 def test_nadir_matches_reference_on_other_raster(renderer):
     h, g = peak_tile()
     renderer.set_terrain(h, g)

@@ -545,6 +545,8 @@ uniform sampler2D u_normal;    // RGBA32F tangent-space normals
 uniform sampler3D u_dist;      // R32F conservative distance (m), texel (x, y, z)
 uniform sampler2D u_lip;       // R32F max slope around each voxel column
 uniform sampler2D u_albedo;    // RGBA32F elevation ramp, one row
+uniform sampler2D u_photo;     // RGBA32F draped orthophoto on the DEM grid (set_photo)
+uniform bool u_use_photo;      // show the photo as it is (it holds its own sun)
 uniform ivec2 u_dem_size;      // (cols, rows)
 uniform float u_gsd;
 uniform vec3 u_box;            // box extent (m)
@@ -689,6 +691,12 @@ void main() {
         return;
     }
     vec3 p = o + t * d;
+    if (u_use_photo) {
+        // a real orthophoto already shows the terrain lit by its sun: draped, not relit
+        out_color = vec4(bilinear(u_photo, p.xy).rgb, 1.0);
+        out_hit = vec4(p, t);
+        return;
+    }
     vec3 n = normalize(bilinear(u_normal, p.xy).xyz);
     vec3 l = normalize(v_light);
     float diffuse = l.z > 0.0 ? max(dot(n, l), 0.0) : 0.0;  // no direct light at night
@@ -778,6 +786,8 @@ class LandmarkRenderer:
         self.heights: np.ndarray | None = None
         self.distance_map: DistanceMap | None = None
         self._set_albedo(self.albedo)
+        self._photo = False
+        self._texture("photo", np.zeros((1, 1, 4), np.float32))
 
     # -- resources
     def _texture(self, name: str, data: np.ndarray, *, dims: int = 2):
@@ -808,6 +818,30 @@ class LandmarkRenderer:
         """Replace the elevation albedo ramp."""
         self.albedo = ramp
         self._set_albedo(ramp)
+
+    def set_photo(self, rgb: np.ndarray | None):
+        """Drape a real orthophoto over the terrain, or remove it (``None``).
+
+        Parameters
+        ----------
+        rgb : ndarray (rows, cols, 3) or None
+            Linear RGB in [0, 1] on the grid of the heights of :meth:`set_terrain` (pixel
+            (r, c) at height (r, c)). The photo already holds its own sun's shading and
+            shadows: it is shown as it is, not lit again (the sun of a render then only
+            matters for its absence of effect). Set after :meth:`set_terrain`; a new
+            terrain removes it.
+        """
+        if rgb is None:
+            self._photo = False
+            return
+        if self.heights is None:
+            raise RendererError("set_terrain() must be called before set_photo()")
+        rgb = np.asarray(rgb, np.float32)
+        if rgb.shape != (*self.heights.shape, 3) or not np.isfinite(rgb).all():
+            raise ValueError(f"photo must be finite, shaped {(*self.heights.shape, 3)} like "
+                             f"the terrain; got {rgb.shape}")
+        self._texture("photo", np.concatenate([rgb, np.ones_like(rgb[..., :1])], axis=-1))
+        self._photo = True
 
     def set_terrain(self, heights, georef: GeoReference, *, distance_map_voxels=None):
         """Upload a height tile and build its normal, distance and slope maps.
@@ -852,6 +886,7 @@ class LandmarkRenderer:
             self._vbo.write(box.tobytes())
         self.frame, self.heights, self.distance_map = frame, h, dmap
         self._h_local = h - frame.z0
+        self._photo = False
 
     def _fbo(self, width: int, height: int):
         key = (width, height)
@@ -879,6 +914,7 @@ class LandmarkRenderer:
             "u_min_step": self.min_step_cells * g.gsd, "u_max_steps": self.max_steps,
             "u_refine_steps": self.refine_steps, "u_ambient": self.ambient,
             "u_slope_steps": self.slope_steps, "u_hit_eps": self.hit_eps_cells * g.gsd,
+            "u_use_photo": self._photo,
             **uniforms,
         }
         prog = self.program
@@ -889,7 +925,7 @@ class LandmarkRenderer:
                 prog[name].write(value)
             else:
                 prog[name].value = value
-        for unit, name in enumerate(("height", "normal", "dist", "lip", "albedo")):
+        for unit, name in enumerate(("height", "normal", "dist", "lip", "albedo", "photo")):
             self._textures[name].use(unit)
             if f"u_{name}" in prog:
                 prog[f"u_{name}"].value = unit

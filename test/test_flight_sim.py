@@ -1,0 +1,103 @@
+"""The flight simulator's real albedo (``simulate --albedo``) and start time."""
+
+import numpy as np
+import pytest
+import rasterio
+from affine import Affine
+
+from terrain_nav_ros import bags
+from terrain_nav_ros.core.georef import GeoReference
+from terrain_nav_ros.core.synthetic_terrain import synthetic_dem
+from terrain_nav_ros.flight_sim import SimConfig, _epoch_ns, _open_metamap, drape_photo, simulate
+
+# UTM 32N, north-up 30 m cells (rasterio's from_origin warns inside affine)
+TRANSFORM = Affine(30.0, 0.0, 500000.0, 0.0, -30.0, 5000000.0)
+
+
+def _write(path, data, transform=TRANSFORM, crs="EPSG:32632"):
+    data = np.asarray(data, np.float32)
+    data = data[None] if data.ndim == 2 else data
+    with rasterio.open(path, "w", driver="GTiff", width=data.shape[2], height=data.shape[1],
+                       count=data.shape[0], dtype="float32", crs=crs,
+                       transform=transform) as ds:
+        ds.write(data)
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """A 256 px synthetic DEM and a photo of it: dark in the west half, bright in the east,
+    with a band 2 that is the other way round."""
+    tmp = tmp_path_factory.mktemp("scene")
+    dem = _write(tmp / "dem.tif", synthetic_dem(256, gsd=30.0, seed=5) + 400.0)
+    west_dark = np.where(np.arange(256)[None, :] < 128, 10.0, 200.0) * np.ones((256, 1))
+    photo = _write(tmp / "photo.tif", np.stack([west_dark, 210.0 - west_dark, west_dark]))
+    return dem, photo
+
+
+def test_start_time_is_the_bags_time():
+    assert _epoch_ns("2002-11-25T15:35:00Z") == 1038238500 * 10**9
+    assert _epoch_ns("2002-11-25T16:35:00+01:00") == 1038238500 * 10**9
+    with pytest.raises(ValueError, match="ISO 8601"):
+        _epoch_ns("25/11/2002")
+
+
+def test_a_photo_is_draped_on_the_render_grid(scene):
+    dem, photo = scene
+    metamap, _ = _open_metamap(SimConfig(dem=dem))
+    # the DEM's centre is the ENU origin: west of it dark, east bright
+    box = GeoReference.centred(0.0, 0.0, 15.0, 400, 300)
+    rgb = drape_photo(photo, "", metamap, box)
+    assert rgb.shape == (300, 400, 3) and rgb.min() >= 0.0 and rgb.max() <= 1.0
+    assert rgb[150, 100, 0] < 0.1 and rgb[150, 300, 0] > 0.9
+    assert rgb[150, 100, 1] > 0.9                            # band 2 is the other way round
+    one_band = drape_photo(photo, "2", metamap, box)
+    np.testing.assert_allclose(one_band[..., 0], one_band[..., 2])
+    assert one_band[150, 100, 0] > 0.9
+    # beyond the photo: its median grey, not black or NaN
+    wide = drape_photo(photo, "", metamap, GeoReference.centred(0.0, 0.0, 60.0, 400, 400))
+    assert np.isfinite(wide).all() and 0.2 < wide[5, 5, 0] < 0.8
+    with pytest.raises(ValueError, match="band 4 does not exist"):
+        drape_photo(photo, "4", metamap, box)
+
+
+def test_a_photo_elsewhere_is_a_clear_error(scene, tmp_path):
+    dem, _ = scene
+    far = _write(tmp_path / "far.tif", np.ones((50, 50)),
+                 transform=Affine(30.0, 0.0, 700000.0, 0.0, -30.0, 4000000.0))
+    metamap, _ = _open_metamap(SimConfig(dem=dem))
+    with pytest.raises(ValueError, match="does not cover"):
+        drape_photo(far, "", metamap, GeoReference.centred(0.0, 0.0, 30.0, 100, 100))
+
+
+def test_camera_frames_see_the_draped_photo(scene, tmp_path):
+    """Flying north along the photo's dark-bright edge: every frame shows the photo (one
+    half dark, the other bright) instead of the rendered albedo, and the bag starts at the
+    start time."""
+    dem, photo = scene
+    cfg = dict(dem=dem, duration=4.0, gnss_denied_after=100.0, agl=1500.0, camera_rate=1.0,
+               pattern="straight", heading=90.0, start_north=-600.0, seed=2,
+               image_format="mono8", start_time="2020-06-21T10:00:00Z")
+    simulate(SimConfig(albedo=photo, **cfg), tmp_path / "photo")
+    simulate(SimConfig(**cfg), tmp_path / "rendered")
+
+    def frames(bag):
+        out = []
+        for msg in bags.read(bag):
+            if msg.topic == "/camera/image_raw":
+                m = bags.decode(msg)
+                out.append(np.frombuffer(bytes(m.data), np.uint8).reshape(m.height, m.width))
+        first = next(iter(bags.read(bag))).timestamp_ns
+        return out, first
+
+    draped, first = frames(tmp_path / "photo")
+    rendered, _ = frames(tmp_path / "rendered")
+    assert first >= _epoch_ns("2020-06-21T10:00:00Z")
+    assert len(draped) == len(rendered) >= 3
+    def split(frame):   # the contrast between the frame's halves across the track
+        return abs(float(frame[:, frame.shape[1] // 2:].mean())
+                   - frame[:, : frame.shape[1] // 2].mean())
+
+    for d, r in zip(draped, rendered, strict=True):
+        # haze and auto exposure compress the photo's contrast, but its split stays
+        assert split(d) > 20.0 and split(d) > 3.0 * split(r)
