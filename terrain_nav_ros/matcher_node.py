@@ -39,6 +39,7 @@ from .core.ground_projection import CameraIntrinsics, CameraPose, ground_to_imag
 from .core.matching import Matcher, MatchParams, warm_up
 from .core.pva_fix import (
     PvaFixEstimate,
+    checked_pnp,
     dem_heights,
     fix_from_ground_match,
     fix_from_pnp,
@@ -84,6 +85,10 @@ class MatcherNode(Node):
             self, "fix_covariance_scale", 3.5,
             "factor on the position and attitude variances of every fix: the PnP covariance "
             "treats the minutiae's errors as independent, which they are not", min_value=1.0)
+        self.pnp_gate = declare(
+            self, "pnp_gate_sigma", 3.0,
+            "a PnP pose farther than this from the ground match of the same registration, in "
+            "sigma of both, is dropped for the ground match [sigma]", min_value=0.0)
         self.velocity_gap = declare(self, "velocity_max_gap", 5.0,
                                     "largest time between two fixes that give a velocity [s]",
                                     min_value=0.0)
@@ -216,15 +221,14 @@ class MatcherNode(Node):
             return
         result = self.matcher.localise(
             self.matcher.index(camera, camera_creases, camera_ridges), land_index)
-        fix = None
+        fix = fix_from_ground_match(result, camera.georef, land_minutiae.georef, position,
+                                    rotation, plane, landmark_sigma=self.landmark_sigma)
+        if fix.valid:
+            agl = position[2] - plane
+            fix.covariance[:2, :2] += np.eye(2) * (agl * self.tilt_sigma) ** 2
         if result.matched and self.method == "pnp":
-            fix = self.pnp_fix(result, camera, land_minutiae, position, rotation)
-        if fix is None or not fix.valid:
-            fix = fix_from_ground_match(result, camera.georef, land_minutiae.georef, position,
-                                        rotation, plane, landmark_sigma=self.landmark_sigma)
-            if fix.valid:
-                agl = position[2] - plane
-                fix.covariance[:2, :2] += np.eye(2) * (agl * self.tilt_sigma) ** 2
+            fix = checked_pnp(self.pnp_fix(result, camera, land_minutiae, position, rotation),
+                              fix, self.pnp_gate)
         if not fix.valid:
             self.publish_no_fix(msg.header.stamp, fix.reason, fix)
             return

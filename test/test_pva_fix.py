@@ -152,3 +152,37 @@ def test_inflate_covariance_scales_what_was_measured():
     assert fix.yaw_variance == pytest.approx(0.02)
     with pytest.raises(ValueError):
         inflate_covariance(fix, 0.5)
+
+
+def _estimate(east, north, sigma):
+    from terrain_nav_ros.core.pva_fix import STATUS_POSITION, PvaFixEstimate
+
+    cov = np.zeros((6, 6))
+    cov[:2, :2] = np.eye(2) * sigma ** 2
+    cov[2, 2] = 100.0
+    return PvaFixEstimate(STATUS_POSITION, "", np.array([east, north, 3000.0]), np.eye(3), cov)
+
+
+def test_a_pnp_pose_far_from_the_ground_match_is_dropped():
+    """PnP and the ground match estimate one position: within their joint uncertainty the
+    PnP pose stands; a kilometre off with a few hundred metres claimed, the ground match
+    is used, and the reason says so."""
+    from terrain_nav_ros.core.pva_fix import checked_pnp, horizontal_disagreement
+
+    ground = _estimate(0.0, 0.0, 30.0)
+    near = _estimate(120.0, -90.0, 150.0)
+    assert horizontal_disagreement(near, ground) == pytest.approx(150.0 / np.hypot(150, 30))
+    assert checked_pnp(near, ground, gate=3.0) is near
+    far = _estimate(1500.0, 600.0, 200.0)
+    assert horizontal_disagreement(far, ground) > 7.0
+    used = checked_pnp(far, ground, gate=3.0)
+    assert used is ground and "ground match used" in used.reason and "1616 m" in used.reason
+    # no PnP, or a PnP no-fix: the ground match; no ground match: the PnP
+    from terrain_nav_ros.core.pva_fix import STATUS_NO_FIX, PvaFixEstimate
+
+    assert checked_pnp(None, ground, 3.0) is ground
+    assert checked_pnp(PvaFixEstimate(STATUS_NO_FIX, "x"), ground, 3.0) is ground
+    assert checked_pnp(near, PvaFixEstimate(STATUS_NO_FIX, "y"), 3.0) is near
+    nan_cov = _estimate(10.0, 0.0, 10.0)
+    nan_cov.covariance[:2, :2] = np.nan
+    assert horizontal_disagreement(nan_cov, ground) == float("inf")

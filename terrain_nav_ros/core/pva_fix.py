@@ -25,6 +25,7 @@ y down, z forward) to ENU. Status codes mirror ``terrain_nav_msgs/PvaFix``.
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, field
 
@@ -305,6 +306,44 @@ def fix_from_pnp(result: MatchResult, camera_pixels, landmark_enu, landmark_heig
     note = f"PnP on {n} of {len(obj)} pairings, rms {np.sqrt(np.mean(res ** 2)):.2f} px"
     fix.reason = f"{fix.reason}; {note}" if fix.reason else note
     return _fill_match(fix, result)
+
+
+def horizontal_disagreement(a: PvaFixEstimate, b: PvaFixEstimate) -> float:
+    """Mahalanobis distance (sigma) between two fixes' horizontal positions under the sum of
+    their covariances: two estimates of one camera position (e.g. PnP and the ground match)
+    that should agree within their uncertainties; inf when either lacks a covariance."""
+    d = np.asarray(a.position[:2], float) - np.asarray(b.position[:2], float)
+    cov = np.asarray(a.covariance[:2, :2], float) + np.asarray(b.covariance[:2, :2], float)
+    if not (np.isfinite(d).all() and np.isfinite(cov).all()):
+        return math.inf
+    try:
+        return float(math.sqrt(max(d @ np.linalg.solve(cov, d), 0.0)))
+    except np.linalg.LinAlgError:
+        return math.inf
+
+
+def checked_pnp(pnp: PvaFixEstimate | None, ground: PvaFixEstimate,
+                gate: float) -> PvaFixEstimate:
+    """The PnP fix when it agrees with the ground match within ``gate`` sigma
+    (:func:`horizontal_disagreement`), else the ground match with the reason.
+
+    A PnP pose from a few nearly collinear pairings (minutiae along parallel ridges) seen
+    from kilometres up trades tilt against translation: it can land a kilometre off with a
+    covariance that claims a few hundred metres. The ground match of the same registration
+    is biased by the prior's tilt (height x tilt) but never that far off; where the two
+    disagree beyond their uncertainties the PnP solution is the one to drop.
+    """
+    if pnp is None or not pnp.valid:
+        return ground
+    if not ground.valid:
+        return pnp
+    sigma = horizontal_disagreement(pnp, ground)
+    if sigma <= gate:
+        return pnp
+    note = (f"PnP pose {sigma:.1f} sigma from the ground match "
+            f"({np.hypot(*(pnp.position[:2] - ground.position[:2])):.0f} m): ground match used")
+    ground.reason = f"{ground.reason}; {note}" if ground.reason else note
+    return ground
 
 
 def reason_kind(reason: str) -> str:
