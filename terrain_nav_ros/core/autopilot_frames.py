@@ -51,67 +51,43 @@ def _apply(matrix: np.ndarray, v) -> np.ndarray:
 
 
 def enu_to_ned(v) -> np.ndarray:
-    """World vectors (positions, velocities, rotation vectors) from ENU to NED.
+    """World vectors (positions, velocities, rotation vectors) from ENU to NED, or back.
+
+    The change of axes is its own inverse, so :func:`ned_to_enu` is this same function.
 
     Parameters
     ----------
     v : array_like, shape (..., 3)
-        East, north, up components.
+        East, north, up components (or north, east, down).
 
     Returns
     -------
     ndarray, shape (..., 3)
-        North, east, down components.
-    """
-    return _apply(R_NED_ENU, v)
-
-
-def ned_to_enu(v) -> np.ndarray:
-    """World vectors from NED to ENU (the inverse of :func:`enu_to_ned`).
-
-    Parameters
-    ----------
-    v : array_like, shape (..., 3)
-        North, east, down components.
-
-    Returns
-    -------
-    ndarray, shape (..., 3)
-        East, north, up components.
+        North, east, down components (or east, north, up).
     """
     return _apply(R_NED_ENU, v)
 
 
 def flu_to_frd(v) -> np.ndarray:
-    """Body vectors (velocities, angular rates) from FLU to FRD.
+    """Body vectors (velocities, angular rates) from FLU to FRD, or back.
+
+    The change of axes is its own inverse, so :func:`frd_to_flu` is this same function.
 
     Parameters
     ----------
     v : array_like, shape (..., 3)
-        Forward, left, up components.
+        Forward, left, up components (or forward, right, down).
 
     Returns
     -------
     ndarray, shape (..., 3)
-        Forward, right, down components.
+        Forward, right, down components (or forward, left, up).
     """
     return _apply(R_FLU_FRD, v)
 
 
-def frd_to_flu(v) -> np.ndarray:
-    """Body vectors from FRD to FLU (the inverse of :func:`flu_to_frd`).
-
-    Parameters
-    ----------
-    v : array_like, shape (..., 3)
-        Forward, right, down components.
-
-    Returns
-    -------
-    ndarray, shape (..., 3)
-        Forward, left, up components.
-    """
-    return _apply(R_FLU_FRD, v)
+ned_to_enu = enu_to_ned
+frd_to_flu = flu_to_frd
 
 
 def quaternion_enu_flu_to_ned_frd(q_xyzw) -> np.ndarray:
