@@ -4,6 +4,7 @@ The node list is not repeated here: it is read from config/graph.yaml, the same 
 ``terrain-nav graph`` runner uses, so both start the same nodes with the same parameters.
 
     ros2 launch terrain_nav_ros terrain_nav.launch.py [graph:=/path/graph.yaml] [use_sim_time:=true]
+        [enable:=autopilot_bridge]     # nodes the graph file disables, comma-separated
 """
 
 import os
@@ -17,9 +18,9 @@ from launch_ros.actions import Node
 from terrain_nav_ros.graph_runner import load_graph
 
 
-def graph_nodes(graph_path, use_sim_time=False):
-    """launch_ros Node actions for every node of a graph file."""
-    spec = load_graph(graph_path)
+def graph_nodes(graph_path, use_sim_time=False, enable=()):
+    """launch_ros Node actions for every enabled node of a graph file (plus ``enable``)."""
+    spec = load_graph(graph_path, enable)
     params_files = [str(p) for p in spec.params_files]
     return [
         Node(package="terrain_nav_ros", executable=node.executable, name=node.name,
@@ -33,7 +34,8 @@ def graph_nodes(graph_path, use_sim_time=False):
 def _from_arguments(context):
     graph = LaunchConfiguration("graph").perform(context)
     sim = LaunchConfiguration("use_sim_time").perform(context).lower() in ("1", "true")
-    return graph_nodes(graph, sim)
+    enable = [n.strip() for n in LaunchConfiguration("enable").perform(context).split(",")]
+    return graph_nodes(graph, sim, [n for n in enable if n])
 
 
 def generate_launch_description():
@@ -44,5 +46,8 @@ def generate_launch_description():
                               description="graph YAML listing the nodes"),
         DeclareLaunchArgument("use_sim_time", default_value="false",
                               description="use /clock (when replaying a bag)"),
+        DeclareLaunchArgument("enable", default_value="",
+                              description="comma-separated nodes that the graph file "
+                                          "disables (e.g. autopilot_bridge) to start too"),
         OpaqueFunction(function=_from_arguments),
     ])

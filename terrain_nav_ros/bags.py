@@ -2,7 +2,8 @@
 
 The bags this module writes are ordinary rosbag2 (metadata version 9, MCAP storage) bags:
 ``ros2 bag``, Foxglove and the ``mcap`` package read them. The type store knows every ROS 2
-Jazzy standard message plus this project's ``terrain_nav_msgs``.
+Jazzy standard message plus this project's ``terrain_nav_msgs`` and the vendored PX4
+messages (``vendor/px4_msgs``), so the autopilot bridge's output can be recorded.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StorageP
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 MSGS_SOURCE = Path(__file__).resolve().parents[1] / "terrain_nav_msgs"
+PX4_MSGS_SOURCE = Path(__file__).resolve().parents[1] / "vendor" / "px4_msgs"
 
 
 class BagError(RuntimeError):
@@ -45,7 +47,7 @@ def _msg_dirs() -> list[Path]:
 
 @functools.cache
 def typestore():
-    """Jazzy type store with terrain_nav_msgs registered (cached)."""
+    """Jazzy type store with terrain_nav_msgs and px4_msgs registered (cached)."""
     store = get_typestore(Stores.ROS2_JAZZY)
     dirs = _msg_dirs()
     if not dirs:
@@ -53,6 +55,8 @@ def typestore():
     types = {}
     for path in sorted(dirs[0].glob("*.msg")):
         types.update(get_types_from_msg(path.read_text(), f"terrain_nav_msgs/msg/{path.stem}"))
+    for path in sorted((PX4_MSGS_SOURCE / "msg").glob("*.msg")):
+        types.update(get_types_from_msg(path.read_text(), f"px4_msgs/msg/{path.stem}"))
     store.register(types)
     return store
 

@@ -21,7 +21,7 @@ def _cmd_graph(args) -> int:
     from .graph_runner import GraphError, load_graph, run_graph
 
     try:
-        spec = load_graph(args.config)
+        spec = load_graph(args.config, args.enable or ())
     except GraphError as err:
         print(f"terrain-nav graph: {err}", file=sys.stderr)
         return 2
@@ -80,7 +80,8 @@ def _cmd_replay(args) -> int:
         print(f"terrain-nav: bag {bag} not found", file=sys.stderr)
         return 2
     out = Path(args.out) if args.out else REPO / "out" / f"replay-{bag.name}-{_now()}"
-    result = run_replay(bag, out, args.config, rate=args.rate, verbose=args.verbose)
+    result = run_replay(bag, out, args.config, rate=args.rate, verbose=args.verbose,
+                        enable=args.enable or ())
     return 0 if result["graph_status"] == 0 and not result["died"] else 1
 
 
@@ -192,6 +193,8 @@ def build_parser() -> argparse.ArgumentParser:
     graph.add_argument("--config", default=DEFAULT_GRAPH, type=Path,
                        help="graph YAML (default: config/graph.yaml)")
     graph.add_argument("--only", nargs="+", help="run only these nodes")
+    graph.add_argument("--enable", nargs="+", metavar="NODE",
+                       help="also run these nodes the graph file disables (enabled: false)")
     graph.add_argument("--use-sim-time", action="store_true",
                        help="set use_sim_time on every node (when a bag publishes /clock)")
     graph.add_argument("--duration", type=float, help="stop after this many seconds")
@@ -229,6 +232,8 @@ def build_parser() -> argparse.ArgumentParser:
         job.add_argument("--rate", type=float, default=1.0, help="playback speed factor")
         job.add_argument("--config", type=Path, default=DEFAULT_GRAPH, help="graph YAML")
         job.add_argument("--verbose", action="store_true", help="show all node output")
+        job.add_argument("--enable", nargs="+", metavar="NODE",
+                         help="also run these disabled nodes (e.g. autopilot_bridge)")
         job.set_defaults(func=_cmd_replay)
 
     sim = sub.add_parser("simulate", help="simulate a flight over a DEM into an MCAP bag")

@@ -30,8 +30,10 @@ from tf2_msgs.msg import TFMessage
 from terrain_nav_msgs.msg import DemTile, GeoImage, Minutia, MinutiaArray, PvaFix
 from terrain_nav_msgs.msg import GeoReference as GeoReferenceMsg
 
+from .core import autopilot_frames as af
 from .core.georef import GeoReference
 from .core.minutia_set import MinutiaSet
+from .core.strapdown import quat_to_matrix
 
 # encoding -> (numpy dtype, channels). Byte order of multi-byte types comes from is_bigendian.
 IMAGE_ENCODINGS = {
@@ -603,3 +605,83 @@ def diagnostic_values(status: DiagnosticStatus) -> tuple[int, dict]:
     """DiagnosticStatus -> (level as int, {key: value string})."""
     level = status.level[0] if isinstance(status.level, bytes | bytearray) else status.level
     return int(level), {kv.key: kv.value for kv in status.values}
+
+
+# ---------------------------------------------------------------------------------------------
+# Autopilot messages (PX4 over uXRCE-DDS). px4_msgs is optional on a ROS install, so the
+# message is passed in rather than imported here.
+# ---------------------------------------------------------------------------------------------
+
+def fill_vehicle_odometry(out, stamp_ns: int, now_ns: int, position, quaternion, pose_cov,
+                          linear, angular, twist_cov, reset_counter: int, quality: int):
+    """Fill a ``px4_msgs/VehicleOdometry`` from a REP 103 odometry's arrays; return it.
+
+    ``position``, ``quaternion`` (x, y, z, w, FLU -> ENU) and ``pose_cov`` (6x6, rotation
+    about the ENU axes) are the pose, ``linear``, ``angular`` and ``twist_cov`` the twist in
+    the FLU body frame (nav_msgs/Odometry, REP 105). PX4 gets NED position, FRD -> NED
+    attitude, NED velocity, FRD angular rate and the diagonals of the rotated covariances;
+    ``timestamp_sample`` is the estimate's stamp and ``timestamp`` ``now_ns``, in microseconds.
+    """
+    q = np.asarray(quaternion, float)
+    r_world_body = quat_to_matrix(q)
+    velocity_enu = r_world_body @ np.asarray(linear, float)
+    out.timestamp = af.ns_to_px4_us(now_ns)
+    out.timestamp_sample = af.ns_to_px4_us(stamp_ns)
+    out.pose_frame = out.POSE_FRAME_NED
+    out.position = af.enu_to_ned(position).astype(np.float32)
+    out.q = af.quaternion_enu_flu_to_ned_frd(q).astype(np.float32)
+    out.velocity_frame = out.VELOCITY_FRAME_NED
+    out.velocity = af.enu_to_ned(velocity_enu).astype(np.float32)
+    out.angular_velocity = af.flu_to_frd(angular).astype(np.float32)
+    pose_ned = af.covariance_enu_to_ned(pose_cov)
+    out.position_variance = np.diag(pose_ned)[:3].astype(np.float32)
+    out.orientation_variance = np.diag(pose_ned)[3:].astype(np.float32)
+    velocity_cov = af.covariance_enu_to_ned(
+        af.body_to_world_covariance(np.asarray(twist_cov, float)[:3, :3], q))
+    out.velocity_variance = np.diag(velocity_cov).astype(np.float32)
+    out.reset_counter = int(reset_counter) % 256
+    out.quality = int(quality)
+    return out
+
+
+def fill_sensor_gps(out, stamp_ns: int, now_ns: int, lat: float, lon: float,
+                    ellipsoid_height: float, geoid_undulation: float, position_cov_enu,
+                    velocity_enu, velocity_cov_enu, fix_type: int):
+    """Fill a ``px4_msgs/SensorGps`` with a fused estimate standing in for a receiver.
+
+    Accuracies are the estimate's own 1-sigma figures (``eph``: long axis of the horizontal
+    error ellipse, ``epv``: vertical, ``s_variance_m_s``: speed, despite its name a sigma in
+    PX4); what a navigation filter does not have stays unknown: no satellites, DOPs NaN,
+    jamming and spoofing unknown, no UTC time, no dual-antenna heading. ``velocity_enu`` None
+    leaves the velocity invalid.
+    """
+    nan = float("nan")
+    out.timestamp = af.ns_to_px4_us(now_ns)
+    out.timestamp_sample = af.ns_to_px4_us(stamp_ns)
+    out.latitude_deg, out.longitude_deg = float(lat), float(lon)
+    out.altitude_ellipsoid_m = float(ellipsoid_height)
+    out.altitude_msl_m = float(ellipsoid_height) - float(geoid_undulation)
+    cov = np.asarray(position_cov_enu, float)
+    out.eph = af.horizontal_accuracy(cov)
+    out.epv = float(np.sqrt(max(cov[2, 2], 0.0)))
+    out.hdop = out.vdop = nan
+    out.fix_type = int(fix_type)
+    out.satellites_used = 0
+    out.jamming_state = out.JAMMING_STATE_UNKNOWN
+    out.spoofing_state = out.SPOOFING_STATE_UNKNOWN
+    out.time_utc_usec = 0
+    out.heading = out.heading_offset = out.heading_accuracy = nan
+    if velocity_enu is None:
+        out.vel_ned_valid = False
+        out.vel_m_s = out.vel_n_m_s = out.vel_e_m_s = out.vel_d_m_s = nan
+        out.cog_rad = out.s_variance_m_s = out.c_variance_rad = nan
+        return out
+    vn, ve, vd = (float(x) for x in af.enu_to_ned(velocity_enu))
+    speed = float(np.hypot(vn, ve))
+    s_acc = float(np.sqrt(max(np.max(np.diag(np.asarray(velocity_cov_enu, float))), 0.0)))
+    out.vel_n_m_s, out.vel_e_m_s, out.vel_d_m_s, out.vel_m_s = vn, ve, vd, speed
+    out.cog_rad = float(np.arctan2(ve, vn))
+    out.s_variance_m_s = s_acc
+    out.c_variance_rad = float(min(s_acc / speed, np.pi)) if speed > 0 else float(np.pi)
+    out.vel_ned_valid = True
+    return out

@@ -15,6 +15,7 @@ NODES = {
     "landmark_renderer": "terrain_nav_ros.landmark_renderer_node:main",
     "matcher": "terrain_nav_ros.matcher_node:main",
     "ekf": "terrain_nav_ros.ekf_node:main",
+    "autopilot_bridge": "terrain_nav_ros.autopilot_bridge_node:main",
 }
 
 # Command-line tools that are not nodes.

@@ -7,8 +7,13 @@ The graph is described once, in a YAML file (``config/graph.yaml``)::
       - name: metamap                  # node name; its block in the params files
         executable: metamap            # an entry of terrain_nav_ros.executables.NODES
         required: true                 # if it dies, the whole graph is stopped
+        enabled: true                  # false: started only when asked for by name
         parameters: {gsd: 5.0}         # overrides on top of the params files
         remappings: {/in: /out}
+
+A node with ``enabled: false`` (an optional output such as the autopilot bridge) is left out
+unless :func:`load_graph` is given its name in ``enable`` (``--enable NAME`` on the command
+line, ``enable:=NAME`` for the launch file).
 
 ``launch/terrain_nav.launch.py`` builds the same nodes from the same file for normal ROS
 installs. The runner starts every node in its own process (and session, so a terminal's
@@ -45,6 +50,7 @@ class NodeSpec:
     name: str
     executable: str
     required: bool = True
+    enabled: bool = True
     parameters: dict = field(default_factory=dict)
     remappings: dict = field(default_factory=dict)
 
@@ -57,8 +63,12 @@ class GraphSpec:
     params_files: list[Path] = field(default_factory=list)
 
 
-def load_graph(path: str | Path) -> GraphSpec:
-    """Parse and validate a graph YAML file (see the module docstring)."""
+def load_graph(path: str | Path, enable=()) -> GraphSpec:
+    """Parse and validate a graph YAML file (see the module docstring).
+
+    The spec holds the enabled nodes, and those with ``enabled: false`` whose names are in
+    ``enable``; a name in ``enable`` that the file does not have is an error.
+    """
     path = Path(path)
     try:
         doc = yaml.safe_load(path.read_text()) or {}
@@ -73,11 +83,13 @@ def load_graph(path: str | Path) -> GraphSpec:
             raise GraphError(f"{path}: params file {params_path} does not exist")
     nodes = []
     for entry in doc.get("nodes") or []:
-        unknown = set(entry) - {"name", "executable", "required", "parameters", "remappings"}
+        unknown = set(entry) - {"name", "executable", "required", "enabled", "parameters",
+                                "remappings"}
         if unknown:
             raise GraphError(f"{path}: node entry {entry.get('name')} has unknown keys {unknown}")
         spec = NodeSpec(name=entry["name"], executable=entry.get("executable", entry["name"]),
                         required=bool(entry.get("required", True)),
+                        enabled=bool(entry.get("enabled", True)),
                         parameters=dict(entry.get("parameters") or {}),
                         remappings=dict(entry.get("remappings") or {}))
         if spec.executable not in NODES:
@@ -87,6 +99,11 @@ def load_graph(path: str | Path) -> GraphSpec:
     names = [n.name for n in nodes]
     if len(set(names)) != len(names):
         raise GraphError(f"{path}: duplicate node names in {names}")
+    unknown = set(enable) - set(names)
+    if unknown:
+        raise GraphError(f"{path}: cannot enable {', '.join(sorted(unknown))}: not in the "
+                         f"graph (nodes: {', '.join(names)})")
+    nodes = [n for n in nodes if n.enabled or n.name in enable]
     if not nodes:
         raise GraphError(f"{path}: no nodes")
     return GraphSpec(nodes, params_paths)

@@ -23,7 +23,11 @@ from .graph_runner import GraphError, GraphRunner, NodeSpec, load_graph
 RECORDED_TOPICS = ["/nav/odometry", "/nav/pva_fix", "/nav/fix", "/nav/ekf/diagnostics",
                    "/camera/image_ground", "/camera/minutiae", "/landmark/minutiae",
                    "/camera_ingest/diagnostics", "/feature_extractor/diagnostics",
-                   "/matcher/diagnostics"]
+                   "/matcher/diagnostics",
+                   # the autopilot bridge's, when it is enabled (--enable autopilot_bridge)
+                   "/fmu/in/vehicle_visual_odometry", "/fmu/in/sensor_gps",
+                   "/mavros/odometry/out", "/mavros/vision_pose/pose_cov",
+                   "/autopilot_bridge/diagnostics"]
 
 
 def _mission_parameters(topics: set[str], mission: dict) -> dict[str, dict]:
@@ -66,15 +70,19 @@ def _echo(name: str, line: str) -> bool:
 
 def run_replay(bag: str | Path, out_dir: str | Path, graph_config: str | Path,
                rate: float = 1.0, drain: float = 5.0, startup_timeout: float = 60.0,
-               verbose: bool = False) -> dict:
-    """Replay ``bag`` through the graph; return the report's metrics (see :mod:`.report`)."""
+               verbose: bool = False, enable=()) -> dict:
+    """Replay ``bag`` through the graph; return the report's metrics (see :mod:`.report`).
+
+    ``enable`` names nodes the graph file disables to run too (e.g. ``autopilot_bridge``,
+    whose outputs are then recorded).
+    """
     bag, out_dir = Path(bag).resolve(), Path(out_dir).resolve()
     out_dir.mkdir(parents=True, exist_ok=True)
     output_bag = out_dir / "outputs"
     if output_bag.exists():
         raise FileExistsError(f"{output_bag} exists: choose another --out directory")
     mission = report.read_mission(bag)
-    spec = load_graph(graph_config)
+    spec = load_graph(graph_config, enable)
     input_topics = [t.topic for t in bags.topics(bag)]
     overrides = _mission_parameters(set(input_topics), mission)
     for node in spec.nodes:

@@ -259,3 +259,19 @@ def test_geo_image_sun_round_trip_and_unknown():
     assert cv.geo_image_sun(msg) is None
     msg.sun_elevation = -3.0                     # below the horizon: no usable shading
     assert cv.geo_image_sun(msg) is None
+
+
+def test_sensor_gps_without_a_velocity_says_so_and_stationary_course_is_unknown():
+    from px4_msgs.msg import SensorGps
+
+    cov = np.diag([16.0, 9.0, 25.0])
+    msg = cv.fill_sensor_gps(SensorGps(), 2_000_000_999, 3_000_000_000, 36.5, -84.3, 400.0,
+                             -31.0, cov, None, None, SensorGps.FIX_TYPE_3D)
+    assert (msg.timestamp_sample, msg.timestamp) == (2_000_000, 3_000_000)
+    assert msg.altitude_msl_m == pytest.approx(431.0)
+    assert (msg.eph, msg.epv) == pytest.approx((4.0, 5.0))
+    assert not msg.vel_ned_valid and np.isnan(msg.vel_n_m_s) and np.isnan(msg.cog_rad)
+    still = cv.fill_sensor_gps(SensorGps(), 0, 0, 0.0, 0.0, 0.0, 0.0, cov, [0.0, 0.0, 0.0],
+                               np.eye(3) * 0.04, SensorGps.FIX_TYPE_3D)
+    assert still.vel_ned_valid and still.s_variance_m_s == pytest.approx(0.2)
+    assert still.c_variance_rad == pytest.approx(np.pi)

@@ -89,6 +89,20 @@ def test_runner_forwards_stop_request_and_nodes_exit_cleanly(tmp_path):
     assert codes == {"recorder": 0, "player": 0}
 
 
+def test_disabled_nodes_start_only_when_enabled_by_name(tmp_path):
+    graph = tmp_path / "g.yaml"
+    graph.write_text("nodes:\n  - {name: a, executable: bag_player}\n"
+                     "  - {name: b, executable: bag_recorder, enabled: false}\n")
+    assert [n.name for n in load_graph(graph).nodes] == ["a"]
+    assert [n.name for n in load_graph(graph, ["b"]).nodes] == ["a", "b"]
+    with pytest.raises(GraphError, match="cannot enable c"):
+        load_graph(graph, ["c"])
+    # the shipped graph has the autopilot bridge, off by default
+    shipped = REPO / "config" / "graph.yaml"
+    assert "autopilot_bridge" not in [n.name for n in load_graph(shipped).nodes]
+    assert "autopilot_bridge" in [n.name for n in load_graph(shipped, ["autopilot_bridge"]).nodes]
+
+
 def test_invalid_graph_files_are_rejected_with_the_reason(tmp_path):
     bad = tmp_path / "g.yaml"
     bad.write_text("nodes:\n  - {name: x, executable: no_such_node}\n")

@@ -32,7 +32,10 @@ def _nodes_survived(result):
 
 @pytest.fixture(scope="module")
 def nominal(tmp_path_factory):
-    return run_replay(SHORT_BAG, tmp_path_factory.mktemp("nominal"), GRAPH)
+    # with the autopilot bridge (target px4), whose output is checked below: one more light
+    # node in the same replay costs the suite almost nothing
+    return run_replay(SHORT_BAG, tmp_path_factory.mktemp("nominal"), GRAPH,
+                      enable=["autopilot_bridge"])
 
 
 def test_replay_produces_fixes_and_bounds_the_error(nominal):
@@ -62,6 +65,52 @@ def test_recorded_outputs_are_readable_by_rosbags_and_mcap(nominal):
     with open(mcap_file, "rb") as stream:
         names = {schema.name for schema, _, _ in make_reader(stream).iter_messages()}
     assert {"terrain_nav_msgs/msg/PvaFix", "nav_msgs/msg/Odometry"} <= names
+
+
+def test_autopilot_bridge_output_in_the_replay(nominal):
+    """The recorded PX4 odometry: 30 Hz of estimate time, NED/FRD of the ekf's odometry at
+    the same stamp, its variances rotated, the reset counter what the bridge counted."""
+    from terrain_nav_ros.core.autopilot_frames import (
+        covariance_enu_to_ned,
+        enu_to_ned,
+        quaternion_enu_flu_to_ned_frd,
+    )
+
+    out = Path(nominal["output_bag"])
+    odom = {}
+    for m in bags.read(out, ["/nav/odometry"]):
+        msg = bags.decode(m)
+        p, o = msg.pose.pose.position, msg.pose.pose.orientation
+        stamp_us = (msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec) // 1000
+        odom[stamp_us] = (np.array([p.x, p.y, p.z]), np.array([o.x, o.y, o.z, o.w]),
+                          np.asarray(msg.pose.covariance).reshape(6, 6))
+    px4 = [bags.decode(m) for m in bags.read(out, ["/fmu/in/vehicle_visual_odometry"])]
+    assert len(px4) > 100, f"{len(px4)} VehicleOdometry recorded"
+    t = np.array([m.timestamp_sample for m in px4]) * 1e-6
+    # 30 Hz from 50 Hz odometry (the recorder's subscription is best effort: a few may drop)
+    rate = (len(t) - 1) / (t[-1] - t[0])
+    assert 25.0 <= rate <= 30.5 and np.diff(t).min() >= 0.02 - 1e-6, rate
+    matched = 0
+    for m in px4[::10]:
+        if m.timestamp_sample not in odom:
+            continue
+        matched += 1
+        position, q, cov = odom[m.timestamp_sample]
+        assert m.pose_frame == 1 and m.velocity_frame == 1            # NED
+        assert np.allclose(m.position, enu_to_ned(position), atol=0.01)
+        assert np.allclose(m.q, quaternion_enu_flu_to_ned_frd(q), atol=1e-6)
+        expected = np.diag(covariance_enu_to_ned(cov))
+        assert np.allclose(m.position_variance, expected[:3], rtol=1e-5)
+        assert np.allclose(m.orientation_variance, expected[3:], rtol=1e-5, atol=1e-12)
+        assert (np.asarray(m.velocity_variance) > 0).all()
+    assert matched >= 0.9 * len(px4[::10])
+    # the reset counter only moves on, and ends where the bridge's own count says
+    counters = [m.reset_counter for m in px4]
+    assert counters == sorted(counters)
+    diag = [bags.decode(m) for m in bags.read(out, ["/autopilot_bridge/diagnostics"])]
+    values = {kv.key: kv.value for kv in diag[-1].status[0].values}
+    assert values["target"] == "px4" and values["sending"] == "True"
+    assert counters[-1] == int(values["reset_counter"])
 
 
 def _copy_bag(src: Path, dst: Path, drop_topics=(), until_s=None):
