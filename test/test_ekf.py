@@ -332,22 +332,69 @@ def test_bad_inputs_rejected_with_reasons():
 
 
 def test_time_jump_backwards_resets():
-    """A bag loop (IMU jumps back by more than time_jump_reset) resets the filter, which
-    re-initialises from the configured pose and keeps running."""
-    params = EkfParams(init_mode="pose")
+    """A bag loop (the IMU goes on from a stamp more than time_jump_reset back) resets the
+    filter once time_jump_confirm samples confirm it; it re-initialises from the configured
+    pose and keeps running."""
+    params = EkfParams(init_mode="pose", time_jump_confirm=5)
     _, truth, imu = flight(straight_flight(10.0), 2, params)
     ekf = TerrainEkf(params)
     ekf.set_initial_pose(truth.position[0], truth.velocity[0], truth.quaternion[0])
     assert ekf.process_imu(truth.t[0], imu.gyro[0], imu.accel[0]).reason == Reason.INITIALIZED
     for k in range(1, 800):
         ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
-    out = ekf.process_imu(truth.t[0], imu.gyro[0], imu.accel[0])
-    assert out.reason == Reason.TIME_JUMP_RESET
-    assert ekf.initialized and ekf.t == truth.t[0]
-    assert ekf.diagnostics.resets == 1
-    for k in range(1, 300):
+    reasons = [ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k]).reason for k in range(5)]
+    assert reasons == [Reason.STAMP_OFF_PERIOD] * 4 + [Reason.TIME_JUMP_RESET]
+    assert ekf.initialized and ekf.t == truth.t[4]
+    assert ekf.diagnostics.resets == 1 and ekf.diagnostics.imu_stamps_refused == 4
+    for k in range(5, 300):
         assert ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k]).accepted
     np.testing.assert_allclose(ekf.state.position, truth.position[299], atol=2.0)
+
+
+@pytest.mark.parametrize("offset", [-5.0, 3600.0])
+def test_single_bad_imu_stamp_is_refused_not_integrated(offset):
+    """One sample stamped 5 s in the past or 1 h ahead is refused and counted; the filter
+    neither resets nor integrates over it, and goes on with the next samples."""
+    params = EkfParams(init_mode="gnss")
+    _, truth, imu = flight(straight_flight(6.0), 3, params)
+    ekf = start_filter(truth, params)
+    for k in range(1, 300):
+        ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
+    out = ekf.process_imu(truth.t[299] + offset, imu.gyro[299], imu.accel[299])
+    assert not out.accepted and out.reason == Reason.STAMP_OFF_PERIOD
+    for k in range(300, 600):
+        assert ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k]).accepted
+    d = ekf.diagnostics
+    assert (d.imu_stamps_refused, d.resets, d.reinitialisations) == (1, 0, 0)
+    assert d.input_rejections["imu:stamp_far_from_expected_period"] == 1
+    np.testing.assert_allclose(ekf.state.position, truth.position[599], atol=2.0)
+
+
+def test_time_jump_without_gnss_reinitialises_from_the_last_good_state():
+    """init_mode gnss, GNSS gone: after a confirmed jump the filter does not wait forever
+    but restarts from its last state, reinit_timeout into the new timeline, with a larger
+    covariance."""
+    params = EkfParams(init_mode="gnss", reinit_timeout=0.5)
+    _, truth, imu = flight(straight_flight(6.0), 4, params)
+    ekf = start_filter(truth, params)
+    for k in range(1, 300):
+        ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
+    before = ekf.state
+    jump = 100.0      # a simulator restarted 100 s later: samples go on from there
+    reasons = [ekf.process_imu(truth.t[k] + jump, imu.gyro[k], imu.accel[k]).reason
+               for k in range(300, 400)]
+    assert reasons[4] == Reason.TIME_JUMP_RESET
+    assert reasons.count(Reason.REINITIALIZED) == 1
+    k_init = 300 + reasons.index(Reason.REINITIALIZED)
+    assert truth.t[k_init] - truth.t[300] == pytest.approx(0.5, abs=0.011)
+    assert ekf.initialized and reasons[-1] == Reason.OK
+    d = ekf.diagnostics
+    assert (d.resets, d.reinitialisations, d.imu_stamps_refused) == (1, 1, 4)
+    s = ekf.state
+    assert np.trace(s.covariance[:3, :3]) > np.trace(before.covariance[:3, :3]) + 250.0
+    # position carried on from the last good state (plus the dead reckoning since)
+    assert np.linalg.norm(s.position - before.position) < 30.0 * (s.stamp - truth.t[300]
+                                                                  - jump) + 5.0
 
 
 # ----------------------------------------------------------------------------- initialisation
