@@ -276,7 +276,8 @@ def run(node_factory: Callable[[], Node], args=None) -> int:
     """The Jazzy main() pattern: init, spin, clean shutdown on Ctrl-C or external shutdown.
 
     The node is spun by the executor its ``executor`` parameter names, if it declared one
-    (:func:`declare_executor`), else by rclpy's default single-threaded executor.
+    (:func:`declare_executor`), else by rclpy's default single-threaded executor. A node
+    that ends on bad input it could only partly serve (a damaged bag) sets ``exit_code``.
     """
     # A crash in a C extension (rclpy, DDS) prints every thread's Python stack to stderr,
     # which the graph runner shows with the node's name.
@@ -298,6 +299,7 @@ def run(node_factory: Callable[[], Node], args=None) -> int:
         code = 1
     finally:
         if node is not None:
+            code = code or getattr(node, "exit_code", 0)
             close = getattr(node, "close", None)
             if close is not None:
                 close()

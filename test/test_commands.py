@@ -1,0 +1,134 @@
+"""The terrain-nav command on bad input (issue 22): one line saying what is wrong and what
+to do, exit status 2, no traceback, nothing started; damaged bags called damaged, with a
+non-zero exit. Every case runs the real command in a subprocess."""
+
+from __future__ import annotations
+
+import subprocess
+
+import pytest
+from ros_helpers import VENV_BIN
+from rosbags.typesys.stores.ros2_jazzy import std_msgs__msg__String as String
+
+from terrain_nav_ros import bags
+
+
+def terrain_nav(*args, timeout=60) -> subprocess.CompletedProcess:
+    return subprocess.run([str(VENV_BIN / "terrain-nav"), *map(str, args)], text=True,
+                          capture_output=True, timeout=timeout)
+
+
+def _one_line_error(proc, *words):
+    """Exit 2 and a single stderr line holding ``words``."""
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2, (proc.returncode, proc.stderr)
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    for word in words:
+        assert word in lines[0], lines[0]
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def bag_dir(tmp_path_factory):
+    """A small zstd bag on /imu/data (several chunks), its variants made on demand."""
+    root = tmp_path_factory.mktemp("bags")
+    bag = root / "whole"
+    with bags.BagWriter(bag, compress=True) as writer:
+        for i in range(3000):
+            writer.write_message("/imu/data", i * 10_000_000,
+                                 String(data=f"{i:06d}" + "x" * 1000), "std_msgs/msg/String")
+    return root
+
+
+def _variant(bag_dir, name, change):
+    """A copy of the whole bag with ``change(mcap_bytes) -> bytes`` applied (None: drop the
+    metadata instead)."""
+    bag = bag_dir / name
+    if not bag.exists():
+        bag.mkdir()
+        for f in (bag_dir / "whole").iterdir():
+            data = f.read_bytes()
+            if f.suffix == ".mcap" and change is not None:
+                data = change(data)
+            if f.suffix == ".mcap" or change is not None:
+                (bag / f.name).write_bytes(data)
+    return bag
+
+
+def _corrupt(data: bytes) -> bytes:
+    """Bytes flipped inside the compressed data of the second chunk."""
+    import io
+
+    from mcap.reader import make_reader
+
+    chunks = make_reader(io.BytesIO(data)).get_summary().chunk_indexes
+    start = chunks[1].chunk_start_offset + chunks[1].chunk_length // 2
+    return data[:start] + bytes(b ^ 0x5A for b in data[start:start + 64]) + data[start + 64:]
+
+
+DAMAGE = {"cut": lambda d: d[: len(d) // 2], "corrupt": _corrupt, "no_metadata": None}
+
+
+@pytest.mark.parametrize("name", ["cut", "corrupt", "no_metadata"])
+def test_bag_info_calls_a_damaged_bag_damaged(bag_dir, name):
+    proc = terrain_nav("bag", "info", _variant(bag_dir, name, DAMAGE[name]))
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    health = next(line for line in proc.stdout.splitlines() if line.startswith("Health:"))
+    assert "DAMAGED" in health and {"cut": "cut short", "corrupt": "corrupt data",
+                                    "no_metadata": "metadata.yaml"}[name] in health
+
+
+def test_bag_info_of_a_whole_bag_and_of_no_bag(bag_dir, tmp_path):
+    proc = terrain_nav("bag", "info", bag_dir / "whole")
+    assert proc.returncode == 0 and "Health:     whole: 3000 messages" in proc.stdout
+    _one_line_error(terrain_nav("bag", "info", tmp_path), "no .mcap file", "rosbag2")
+
+
+def test_bag_play_of_a_corrupt_bag_plays_what_it_can_and_fails(bag_dir):
+    proc = terrain_nav("bag", "play", _variant(bag_dir, "corrupt", _corrupt), "--rate", 100)
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert "is DAMAGED: corrupt data" in proc.stderr and "stopped after" in proc.stderr
+
+
+def _mission(bag_dir, name, text):
+    bag = bag_dir / f"mission_{name}"
+    if not bag.exists():
+        bag.mkdir()
+        for f in (bag_dir / "whole").iterdir():
+            (bag / f.name).write_bytes(f.read_bytes())
+        (bag / "mission.yaml").write_text(text)
+    return bag
+
+
+@pytest.mark.parametrize("case", ["empty_folder", "broken_mission", "missing_dem", "rate_0",
+                                  "existing_out"])
+def test_replay_checks_its_inputs_before_starting_the_graph(bag_dir, tmp_path, case):
+    out = tmp_path / "out"
+    bag, extra, words = {
+        "empty_folder": (tmp_path, [], ["no .mcap file"]),
+        "broken_mission": (_mission(bag_dir, "broken", "dem: [unclosed\n"), [],
+                           ["mission.yaml is not valid YAML", "fix it"]),
+        "missing_dem": (_mission(bag_dir, "dem", "dem: /no/such/dem.tif\n"), [],
+                        ["/no/such/dem.tif: no such DEM file", "give a readable DEM"]),
+        "rate_0": (bag_dir / "whole", ["--rate", 0], ["--rate 0.0: must be > 0"]),
+        "existing_out": (bag_dir / "whole", [], ["exists: choose another --out"]),
+    }[case]
+    if case == "existing_out":
+        (out / "outputs").mkdir(parents=True)
+    _one_line_error(terrain_nav("replay", "--bag", bag, "--out", out, *extra), *words)
+    assert not (out / "logs").exists(), "the graph was started"
+
+
+def test_simulate_refuses_bad_options_and_a_truncated_dem(tmp_path):
+    _one_line_error(terrain_nav("simulate", "-o", tmp_path / "a", "--duration", -5),
+                    "--duration -5.0: must be > 0")
+    dem = tmp_path / "cut.asc"
+    dem.write_text("ncols 100\nnrows 100\nxllcorner 0\nyllcorner 0\ncellsize 30\n1 2 3 4\n")
+    _one_line_error(terrain_nav("simulate", "-o", tmp_path / "b", "--dem", dem, timeout=30),
+                    "truncated ESRI ASCII grid")
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_debug_shows_the_traceback(tmp_path):
+    proc = terrain_nav("replay", "--bag", tmp_path, "--debug")
+    assert proc.returncode == 2 and "Traceback" in proc.stderr
