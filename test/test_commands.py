@@ -1,20 +1,32 @@
 """The terrain-nav command on bad input (issue 22): one line saying what is wrong and what
 to do, exit status 2, no traceback, nothing started; damaged bags called damaged, with a
-non-zero exit. Every case runs the real command in a subprocess."""
+non-zero exit. Every case runs the real command in a subprocess. Last, the CI subset of
+``scripts/fault_cases.py`` (which shares its fault makers with these tests)."""
 
 from __future__ import annotations
 
+import importlib.util
 import subprocess
+import sys
+from pathlib import Path
 
 import pytest
-from ros_helpers import VENV_BIN
-from rosbags.typesys.stores.ros2_jazzy import std_msgs__msg__String as String
 
-from terrain_nav_ros import bags
+
+def _load_fault_cases():
+    path = Path(__file__).resolve().parents[1] / "scripts" / "fault_cases.py"
+    spec = importlib.util.spec_from_file_location("fault_cases", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module   # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+faults = _load_fault_cases()
 
 
 def terrain_nav(*args, timeout=60) -> subprocess.CompletedProcess:
-    return subprocess.run([str(VENV_BIN / "terrain-nav"), *map(str, args)], text=True,
+    return subprocess.run([str(a) for a in faults.terrain_nav(*args)], text=True,
                           capture_output=True, timeout=timeout)
 
 
@@ -30,43 +42,23 @@ def _one_line_error(proc, *words):
 
 @pytest.fixture(scope="module")
 def bag_dir(tmp_path_factory):
-    """A small zstd bag on /imu/data (several chunks), its variants made on demand."""
+    """Holds ``whole``, a small zstd bag on /imu/data (several chunks), and its variants."""
     root = tmp_path_factory.mktemp("bags")
-    bag = root / "whole"
-    with bags.BagWriter(bag, compress=True) as writer:
-        for i in range(3000):
-            writer.write_message("/imu/data", i * 10_000_000,
-                                 String(data=f"{i:06d}" + "x" * 1000), "std_msgs/msg/String")
+    faults.make_bag(root / "whole")
     return root
 
 
 def _variant(bag_dir, name, change):
-    """A copy of the whole bag with ``change(mcap_bytes) -> bytes`` applied (None: drop the
-    metadata instead)."""
     bag = bag_dir / name
-    if not bag.exists():
-        bag.mkdir()
-        for f in (bag_dir / "whole").iterdir():
-            data = f.read_bytes()
-            if f.suffix == ".mcap" and change is not None:
-                data = change(data)
-            if f.suffix == ".mcap" or change is not None:
-                (bag / f.name).write_bytes(data)
-    return bag
+    return bag if bag.exists() else faults.damaged_copy(bag_dir / "whole", bag, change)
 
 
-def _corrupt(data: bytes) -> bytes:
-    """Bytes flipped inside the compressed data of the second chunk."""
-    import io
-
-    from mcap.reader import make_reader
-
-    chunks = make_reader(io.BytesIO(data)).get_summary().chunk_indexes
-    start = chunks[1].chunk_start_offset + chunks[1].chunk_length // 2
-    return data[:start] + bytes(b ^ 0x5A for b in data[start:start + 64]) + data[start + 64:]
+def _mission(bag_dir, name, text):
+    bag = bag_dir / f"mission_{name}"
+    return bag if bag.exists() else faults.with_mission(bag_dir / "whole", bag, text)
 
 
-DAMAGE = {"cut": lambda d: d[: len(d) // 2], "corrupt": _corrupt, "no_metadata": None}
+DAMAGE = {"cut": faults.cut_half, "corrupt": faults.corrupt_chunk, "no_metadata": None}
 
 
 @pytest.mark.parametrize("name", ["cut", "corrupt", "no_metadata"])
@@ -85,19 +77,10 @@ def test_bag_info_of_a_whole_bag_and_of_no_bag(bag_dir, tmp_path):
 
 
 def test_bag_play_of_a_corrupt_bag_plays_what_it_can_and_fails(bag_dir):
-    proc = terrain_nav("bag", "play", _variant(bag_dir, "corrupt", _corrupt), "--rate", 100)
+    proc = terrain_nav("bag", "play", _variant(bag_dir, "corrupt", faults.corrupt_chunk),
+                       "--rate", 100)
     assert proc.returncode == 1, proc.stdout + proc.stderr
     assert "is DAMAGED: corrupt data" in proc.stderr and "stopped after" in proc.stderr
-
-
-def _mission(bag_dir, name, text):
-    bag = bag_dir / f"mission_{name}"
-    if not bag.exists():
-        bag.mkdir()
-        for f in (bag_dir / "whole").iterdir():
-            (bag / f.name).write_bytes(f.read_bytes())
-        (bag / "mission.yaml").write_text(text)
-    return bag
 
 
 @pytest.mark.parametrize("case", ["empty_folder", "broken_mission", "missing_dem", "rate_0",
@@ -123,7 +106,7 @@ def test_simulate_refuses_bad_options_and_a_truncated_dem(tmp_path):
     _one_line_error(terrain_nav("simulate", "-o", tmp_path / "a", "--duration", -5),
                     "--duration -5.0: must be > 0")
     dem = tmp_path / "cut.asc"
-    dem.write_text("ncols 100\nnrows 100\nxllcorner 0\nyllcorner 0\ncellsize 30\n1 2 3 4\n")
+    dem.write_text(faults.ASC_HEADER.format(c=100, r=100) + "1 2 3 4\n")
     _one_line_error(terrain_nav("simulate", "-o", tmp_path / "b", "--dem", dem, timeout=30),
                     "truncated ESRI ASCII grid")
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
@@ -132,3 +115,9 @@ def test_simulate_refuses_bad_options_and_a_truncated_dem(tmp_path):
 def test_debug_shows_the_traceback(tmp_path):
     proc = terrain_nav("replay", "--bag", tmp_path, "--debug")
     assert proc.returncode == 2 and "Traceback" in proc.stderr
+
+
+@pytest.mark.parametrize("case", [c for c in faults.cases() if c.ci], ids=lambda c: c.name)
+def test_fault_cases_ci_subset_are_answered_well(case, tmp_path):
+    verdict, detail = case.run(tmp_path)
+    assert verdict == faults.GOOD, f"{case.fault}: {case.name}: {verdict}: {detail}"
