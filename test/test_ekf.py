@@ -370,6 +370,24 @@ def test_single_bad_imu_stamp_is_refused_not_integrated(offset):
     np.testing.assert_allclose(ekf.state.position, truth.position[599], atol=2.0)
 
 
+def test_init_from_a_late_fix_replays_the_buffered_imu_as_it_is():
+    """The IMU buffered while waiting for initialisation is replayed from the fix's stamp,
+    2.5 s behind the newest sample: passed by the timing screen already, never taken for a
+    time jump."""
+    params = EkfParams(init_mode="fix")
+    _, truth, imu = flight(straight_flight(5.0), 5, params)
+    ekf = TerrainEkf(params)
+    for k in range(1, 400):
+        ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
+    k0 = 150
+    out = ekf.process_fix(truth.t[k0], truth.position[k0], np.eye(9) * 0.01,
+                          velocity=truth.velocity[k0], quaternion=truth.quaternion[k0])
+    assert out.reason == Reason.INITIALIZED and ekf.t == truth.t[399]
+    d = ekf.diagnostics
+    assert (d.imu_stamps_refused, d.resets) == (0, 0)
+    np.testing.assert_allclose(ekf.state.position, truth.position[399], atol=1.0)
+
+
 def test_time_jump_without_gnss_reinitialises_from_the_last_good_state():
     """init_mode gnss, GNSS gone: after a confirmed jump the filter does not wait forever
     but restarts from its last state, reinit_timeout into the new timeline, with a larger

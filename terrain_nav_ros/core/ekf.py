@@ -429,7 +429,7 @@ class TerrainEkf:
         self.initialized = True
         self._store(None, None)
         for t, gyro, accel in pre_init:   # IMU that arrived while waiting for a fix
-            self.process_imu(t, gyro, accel)
+            self._integrate(t, gyro, accel)   # screened by the timing guard already
         return Outcome(True, Reason.INITIALIZED)
 
     def set_initial_pose(self, position, velocity, quaternion, stamp: float | None = None,
