@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import io
+import os
 import subprocess
 import sys
 import tempfile
@@ -276,6 +277,9 @@ def table(rows) -> str:
 
 
 def main(argv=None) -> int:
+    # the nodes started here must not meet another graph on this machine (as in the tests)
+    os.environ.setdefault("ROS_DOMAIN_ID", str(101 + os.getpid() % 100))
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--ci", action="store_true", help="only the subset ./tn test runs")
     parser.add_argument("-k", default="", help="only cases whose name holds this")

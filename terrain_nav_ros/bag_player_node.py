@@ -124,6 +124,10 @@ class BagPlayer(Node):
         except bags.BagError as err:
             self.exit_code = 1
             self.get_logger().error(f"stopped after {self.played} messages: {err}")
+        except Exception:
+            if self.context.ok():
+                raise
+            # Ctrl-C shut the context down while a message was on its way: nothing to say
         finally:
             self.done.set()
             if self.exit_when_done and rclpy.ok():

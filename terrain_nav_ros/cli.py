@@ -91,6 +91,8 @@ def _cmd_replay(args) -> int:
         raise InputError(f"bag {bag} not found: give a bag directory with --bag")
     out = Path(args.out) if args.out else REPO / "out" / f"replay-{bag.name}-{_now()}"
     result = run_replay(bag, out, args.config, rate=args.rate, verbose=args.verbose)
+    if "stopped" in result["partial"]:
+        return 130
     return 0 if result["graph_status"] == 0 and not result["died"] else 1
 
 

@@ -11,6 +11,7 @@ configures the metamap; bags recorded elsewhere use the parameter files as they 
 from __future__ import annotations
 
 import math
+import signal
 import sys
 import time
 from pathlib import Path
@@ -148,12 +149,20 @@ def run_replay(bag: str | Path, out_dir: str | Path, graph_config: str | Path,
         runner.report(f"the bag is {health.describe()}: replaying those")
     started = time.monotonic()
     status = 1
+    stopped_by: list[str] = []
+
+    def stop(signum, _frame):
+        # Ctrl-C or SIGTERM: stop the graph, then write the report of what was replayed
+        stopped_by.append(signal.Signals(signum).name)
+        runner.request_stop()
+
+    previous = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         runner.start()
         runner.wait_until_up(startup_timeout)
         status = runner.spin(duration=duration / rate + startup_timeout + 120.0,
                              until_exit="bag_player")
-        if status == 0:
+        if status == 0 and not stopped_by:
             runner.report(f"bag finished after {time.monotonic() - started:.0f} s; "
                           f"draining for {drain:.0f} s")
             status = runner.spin(duration=drain)
@@ -164,17 +173,24 @@ def run_replay(bag: str | Path, out_dir: str | Path, graph_config: str | Path,
         usage = {k: v for k, v in runner.usage.items()
                  if k not in ("bag_player", "bag_recorder")}
         codes = runner.shutdown()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     died = [n for n, c in codes.items() if c not in (0, None) and n in runner.died
             and not (n == "bag_player" and health.damaged)]   # it says so: exit 1
     if not output_bag.exists():
+        if stopped_by:   # stopped before the recorder wrote anything: no report to write
+            raise KeyboardInterrupt
         raise RuntimeError(f"the recorder wrote no bag (graph status {status}, died: {died})")
     result = report.analyse(bag, output_bag, usage)
     result["graph_status"], result["died"] = status, died
     result["input_damaged"] = health.problem
+    result["partial"] = _cut_short(stopped_by, status, died)
     gsd = mission.get("landmark_gsd")
     text = report.format_report(result, gsd)
     if health.damaged:
         text = f"INPUT BAG {health.describe()}: this report covers those only\n\n{text}"
+    if result["partial"]:
+        text = f"PARTIAL REPORT: {result['partial']}\n\n{text}"
     (out_dir / "report.txt").write_text(text + "\n")
     (out_dir / "report.yaml").write_text(yaml.safe_dump(_summary(result), sort_keys=False))
     background = _hillshade_background(mission, result)
@@ -183,6 +199,17 @@ def run_replay(bag: str | Path, out_dir: str | Path, graph_config: str | Path,
     print(f"\nplots: {', '.join(result['plots'])}\nreport: {out_dir / 'report.txt'}",
           flush=True)
     return result
+
+
+def _cut_short(stopped_by: list[str], status: int, died: list[str]) -> str:
+    """Why the replay did not run to the end of the bag ("" when it did)."""
+    if stopped_by:
+        return f"the replay was stopped ({stopped_by[0]}) before the end of the bag"
+    if died:
+        return f"node(s) {', '.join(died)} died during the replay"
+    if status != 0:
+        return "the graph stopped before the end of the bag"
+    return ""
 
 
 def _bag_duration(bag: Path) -> float:
@@ -197,7 +224,7 @@ def _summary(result: dict) -> dict:
     """The scalar part of the metrics, for report.yaml."""
     keep = {}
     for key in ("fixes", "fix_error", "fused_error", "dr_error", "graph_status", "died",
-                "denied_after", "input_damaged"):
+                "denied_after", "input_damaged", "partial"):
         if key in result:
             keep[key] = result[key]
     keep["latency_ms"] = {k: {"p50": float(1e3 * np.median(v)),

@@ -221,8 +221,9 @@ def format_report(r: dict, gsd: float | None = None) -> str:
     if r["usage"]:
         lines.append("per node: CPU (share of one core) / peak RSS:")
         for name, u in sorted(r["usage"].items()):
-            wall = max(u.get("last", 0) - u.get("started", 0), 1e-9)
-            lines.append(f"  {name:18s} {u['cpu_s']:7.1f} s CPU ({100 * u['cpu_s'] / wall:5.1f}%)"
+            wall = u.get("last", 0) - u.get("started", 0)
+            share = f"{100 * u['cpu_s'] / wall:5.1f}%" if wall >= 1.0 else "  n/a"
+            lines.append(f"  {name:18s} {u['cpu_s']:7.1f} s CPU ({share})"
                          f" / {u['peak_rss_mb']:6.0f} MB")
     return "\n".join(lines)
 
