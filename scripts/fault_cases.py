@@ -160,7 +160,9 @@ def _node_params(yaml_text: str, *words) -> Callable:
     def run(tmp: Path):
         params = tmp / "params.yaml"
         params.write_text(yaml_text)
-        return judge([BIN / "ekf", "--ros-args", "--params-file", params], 1, words)
+        # the node may log its start before it checks its parameters: not one line
+        return judge([BIN / "ekf", "--ros-args", "--params-file", params], 1, words,
+                     one_line=False)
     return run
 
 
