@@ -289,6 +289,7 @@ class EkfNode(Node):
         self._imu_dt = 0.01      # running mean of the IMU period, for the twist covariance
         self._prev_imu_t = None
         self._imu_count = 0
+        self._imu_span = None    # (first, last) IMU stamp since start or reset
         self._last_imu_wall = None
         self._started_wall = time.monotonic()
         self.rejections = Counter()        # refused by the node before reaching the core
@@ -350,9 +351,13 @@ class EkfNode(Node):
             return
         if out.reason in _QUIET:
             if out.reason == Reason.NOT_INITIALIZED:
+                # a warning once it takes longer than a fix may: GNSS lost before the
+                # second fix leaves the filter waiting for good
+                waited = self._imu_span[1] - self._imu_span[0] if self._imu_span else 0.0
                 self._log_refusal("not_initialized",
-                                  f"waiting for initialisation (init_mode="
-                                  f"{self.params.init_mode})", "info")
+                                  f"not initialised after {waited:.0f} s of IMU: waiting for "
+                                  f"{self.ekf.waiting_for()}",
+                                  "warning" if waited > self.fix_warn_s else "info")
             return
         self._log_refusal(f"{source}:{out.reason.value}",
                           f"{source} refused: {out.reason.value}")
@@ -407,6 +412,7 @@ class EkfNode(Node):
     def on_imu(self, msg: Imu):
         stamp, gyro, accel = cv.imu_to_sample(msg)
         self._imu_count += 1
+        self._imu_span = (self._imu_span or (stamp, stamp))[:1] + (stamp,)
         self._last_imu_wall = time.monotonic()
         prev = self._prev_imu_t
         out = self.ekf.process_imu(stamp, gyro, accel)
@@ -441,7 +447,7 @@ class EkfNode(Node):
             f"loop, simulator restart?): filter reset, re-initialising with init_mode="
             f"{self.params.init_mode}")
         self._last_odom = self._last_navsat = -math.inf
-        self._prev_imu_t = None
+        self._prev_imu_t = self._imu_span = None
         if not math.isfinite(self.baro_offset_param):
             self.baro_offset = None
 
@@ -596,7 +602,7 @@ class EkfNode(Node):
         if since_imu > self.imu_timeout:
             worse(DIAG_ERROR, f"no IMU for {since_imu:.1f} s")
         if not d.initialized:
-            worse(DIAG_WARN, f"not initialised (init_mode={self.params.init_mode})")
+            worse(DIAG_WARN, f"not initialised: waiting for {self.ekf.waiting_for()}")
         ages = [a for a in (d.time_since("fix"), d.time_since("gnss")) if a is not None]
         since_fix = min(ages) if ages else None
         if d.initialized:

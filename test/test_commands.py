@@ -138,8 +138,10 @@ def test_an_interrupted_replay_writes_its_report_marked_partial(bag_dir, tmp_pat
     text = "".join(seen) + rest
     assert proc.returncode == 130, text
     assert "Traceback" not in text
-    assert (out / "report.txt").read_text().startswith(
+    report = (out / "report.txt").read_text()
+    assert report.startswith(
         "PARTIAL REPORT: the replay was stopped (SIGINT) before the end of the bag")
+    assert "NO ODOMETRY: the EKF published none; its last diagnostics: " in report
 
 
 @pytest.mark.parametrize("case", [c for c in faults.cases() if c.ci], ids=lambda c: c.name)

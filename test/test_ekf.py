@@ -370,6 +370,18 @@ def test_single_bad_imu_stamp_is_refused_not_integrated(offset):
     np.testing.assert_allclose(ekf.state.position, truth.position[599], atol=2.0)
 
 
+def test_waiting_for_says_what_initialisation_needs():
+    """GNSS lost after one fix: the diagnostics say a second one is missing, not only that
+    the filter is not initialised (issue 22)."""
+    ekf = TerrainEkf(EkfParams(init_mode="gnss", init_min_fix_interval=10.0))
+    assert ekf.waiting_for() == "a first gnss measurement"
+    ekf.process_gnss(2.0, [0.0, 0.0, 500.0], np.eye(3))
+    assert ekf.waiting_for() == ("a second gnss measurement 10 s or more after the one at "
+                                 "2.000 s (or one with velocity)")
+    ekf.process_gnss(12.5, [300.0, 0.0, 500.0], np.eye(3))
+    assert ekf.initialized and ekf.waiting_for() == ""
+
+
 def test_init_from_a_late_fix_replays_the_buffered_imu_as_it_is():
     """The IMU buffered while waiting for initialisation is replayed from the fix's stamp,
     2.5 s behind the newest sample: passed by the timing screen already, never taken for a

@@ -481,6 +481,20 @@ class TerrainEkf:
             self._diag.accepted[meas.source] += 1
         return out
 
+    def waiting_for(self) -> str:
+        """What the filter waits for to initialise ("" once initialised), for diagnostics:
+        a bag whose GNSS ends before the second fix otherwise left only "not initialised"."""
+        if self.initialized:
+            return ""
+        p = self.params
+        if p.init_mode == "pose":
+            return "an initial pose and an IMU sample"
+        first = self._init_candidate
+        if first is None:
+            return f"a first {p.init_mode} measurement"
+        return (f"a second {p.init_mode} measurement {p.init_min_fix_interval:g} s or more "
+                f"after the one at {first.stamp:.3f} s (or one with velocity)")
+
     def reset(self):
         """Forget the estimate (keeps counters); re-initialises per ``init_mode``."""
         self._clear()
