@@ -148,6 +148,8 @@ EKF_PARAMETERS = {
                         "refused, or resets the filter when the stream goes on from it [s]",
                         1e-3, 3600.0),
     "time_jump_confirm": ("consecutive samples that confirm a time jump", 1, 1000),
+    "max_imu_outage": ("a confirmed jump ahead up to this long is integrated as an IMU gap, "
+                       "not a reset [s]", 0.0, 3600.0),
     "reinit_timeout": ("after a reset without the init source for this long, restart from "
                        "the last good state [s]", 0.0, 600.0),
     "max_imu_dt": ("IMU intervals longer than this are flagged as gaps [s]", 1e-4, 10.0),

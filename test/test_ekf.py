@@ -400,6 +400,24 @@ def test_init_from_a_late_fix_replays_the_buffered_imu_as_it_is():
     np.testing.assert_allclose(ekf.state.position, truth.position[399], atol=1.0)
 
 
+def test_an_imu_outage_is_integrated_across_not_reset():
+    """The IMU stream stops for 3 s and goes on: after the confirming samples the filter
+    integrates across the gap from the state it had (issue 22), as before the timing
+    screen, and loses no sample."""
+    params = EkfParams(init_mode="gnss")
+    _, truth, imu = flight(straight_flight(8.0), 6, params)
+    ekf = start_filter(truth, params)
+    for k in range(1, 300):
+        ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
+    reasons = [ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k]).reason
+               for k in range(600, 700)]                 # 3 s of IMU lost
+    assert reasons[:5] == [Reason.STAMP_OFF_PERIOD] * 4 + [Reason.IMU_GAP]
+    assert set(reasons[5:]) == {Reason.OK} and ekf.t == truth.t[699]
+    d = ekf.diagnostics
+    assert (d.resets, d.imu_gaps, d.imu_stamps_refused) == (0, 1, 4)
+    np.testing.assert_allclose(ekf.state.position, truth.position[699], atol=3.0)
+
+
 def test_time_jump_without_gnss_reinitialises_from_the_last_good_state():
     """init_mode gnss, GNSS gone: after a confirmed jump the filter does not wait forever
     but restarts from its last state, reinit_timeout into the new timeline, with a larger

@@ -36,11 +36,13 @@ estimate. Measurements older than the history are stale.
 IMU stamps are screened first (:class:`~terrain_nav_ros.core.imu_timing.ImuTimingGuard`): a
 sample stamped more than ``time_jump_reset`` from the previous one, in either direction, is
 refused (``STAMP_OFF_PERIOD``) unless ``time_jump_confirm`` consecutive samples continue
-from it, which is a real time jump (bag loop, simulator restart): the filter resets
-(``TIME_JUMP_RESET``) and starts the new timeline with those samples. It re-initialises per
-``init_mode``; with ``gnss``/``fix``, when no measurement of that source has come
-``reinit_timeout`` s into the new timeline, it starts again from the last good state with the
-initial covariance added (``REINITIALIZED``) rather than wait for a source that may be gone.
+from it, which is a real time jump. A jump ahead of at most ``max_imu_outage`` is an IMU
+outage: integrated across as a gap (``IMU_GAP``). Any other (bag loop, simulator restart)
+resets the filter (``TIME_JUMP_RESET``), which starts the new timeline with those samples and
+re-initialises per ``init_mode``; with ``gnss``/``fix``, when no measurement of that source
+has come ``reinit_timeout`` s into the new timeline, it starts again from the last good state
+with the initial covariance added (``REINITIALIZED``) rather than wait for a source that may
+be gone.
 
 Every public ``process_*`` method returns an :class:`Outcome` with a :class:`Reason`; bad input
 never raises and never stops the filter.
@@ -204,7 +206,8 @@ class EkfDiagnostics:
     reinitialisations : int
         Restarts from the last good state after a reset (no init source came).
     imu_stamps_refused : int
-        IMU samples refused because their stamp was far from the expected period.
+        IMU samples refused when they came because their stamp was far from the expected
+        period (those that a confirmed jump then proves right are integrated after all).
     position_resets : int
         Position resets after consecutive rejections.
     imu_gaps : int
@@ -501,11 +504,16 @@ class TerrainEkf:
         self._diag.resets += 1
 
     def _time_jump(self) -> Outcome:
-        """Reset on a confirmed jump and start the new timeline with its samples."""
+        """Bridge an IMU outage, or reset on any other confirmed jump and start the new
+        timeline with its samples."""
+        pending = self._timing.take_pending()
+        if self.initialized and 0 < pending[0][0] - self.t <= self.params.max_imu_outage:
+            for sample in pending:   # the first one integrates across the outage
+                self._integrate(*sample)
+            return Outcome(True, Reason.IMU_GAP)
         last = self.state if self.initialized else None
         self.reset()
         self._last_good = last
-        pending = self._timing.take_pending()
         self._reinit_after = pending[0][0] + self.params.reinit_timeout
         for sample in pending:
             self._integrate(*sample)
