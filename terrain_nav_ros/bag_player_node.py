@@ -60,12 +60,17 @@ class BagPlayer(Node):
         self.publishers_by_topic = {}
         self.clock_pub = self.create_publisher(Clock, "/clock", 10)
         self.played = 0
+        self.exit_code = 0       # 1 when the bag is damaged: what played is not all of it
         self.done = threading.Event()
         self._create_publishers()
         self._thread = threading.Thread(target=self._play, daemon=True)
         self._thread.start()
 
     def _create_publishers(self) -> None:
+        if bags.is_damaged(self.bag):
+            self.exit_code = 1
+            self.get_logger().error(f"{self.bag} is damaged (cut short or no metadata.yaml): "
+                                    "playing the messages that can be salvaged")
         for info in bags.topics(self.bag):
             if self.topics and info.topic not in self.topics:
                 continue
@@ -117,7 +122,12 @@ class BagPlayer(Node):
                 self.played += 1
             self.get_logger().info(f"finished: {self.played} messages played")
         except bags.BagError as err:
+            self.exit_code = 1
             self.get_logger().error(f"stopped after {self.played} messages: {err}")
+        except Exception:
+            if self.context.ok():
+                raise
+            # Ctrl-C shut the context down while a message was on its way: nothing to say
         finally:
             self.done.set()
             if self.exit_when_done and rclpy.ok():

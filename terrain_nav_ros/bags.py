@@ -9,6 +9,7 @@ messages (``vendor/px4_msgs``), so the autopilot bridge's output can be recorded
 from __future__ import annotations
 
 import functools
+import struct
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -177,8 +178,8 @@ def _salvage(path: Path) -> Iterator[BagMessage]:
                 elif isinstance(record, Message) and record.channel_id in channels:
                     topic, msgtype = channels[record.channel_id]
                     yield BagMessage(topic, msgtype, record.log_time, bytes(record.data))
-        except (McapError, EOFError, ValueError, OSError):
-            return  # the damaged tail
+        except (McapError, EOFError, ValueError, OSError, struct.error):
+            return  # the damaged tail (a record cut inside its length fields: struct.error)
 
 
 def _salvaged_topics(path: Path) -> list[TopicInfo]:
@@ -207,6 +208,103 @@ def is_damaged(path: str | Path) -> bool:
         return True
     opened.close()
     return False
+
+
+@dataclass(frozen=True)
+class BagHealth:
+    """What :func:`verify` found reading a whole bag.
+
+    Attributes
+    ----------
+    problem : str
+        Why the bag is damaged ("" when it is not).
+    readable : int
+        Messages readable (from the start, up to any damage).
+    expected : int or None
+        Messages the MCAP summary promises (None when the summary is lost).
+    """
+
+    problem: str
+    readable: int
+    expected: int | None
+
+    @property
+    def damaged(self) -> bool:
+        return bool(self.problem)
+
+    def describe(self) -> str:
+        """One line: the damage and what is left, or that the bag is whole."""
+        if not self.damaged:
+            return f"whole: {self.readable} messages read and checked"
+        of = f" of {self.expected}" if self.expected is not None else ""
+        return f"DAMAGED: {self.problem}; {self.readable}{of} messages readable"
+
+
+def verify(path: str | Path) -> BagHealth:
+    """Read every message of a bag, decompressing and CRC-checking every chunk.
+
+    Opening a bag reads only its metadata and summary, so a bag with corrupted bytes inside
+    looked whole and failed halfway through a replay (issue 22). Raises BagError when
+    ``path`` is no bag at all.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise BagError(f"bag {path} does not exist")
+    mcap = _mcap_file(path)
+    if mcap is None or not mcap.is_file():
+        raise BagError(f"{path} holds no .mcap file: not a rosbag2 MCAP bag")
+    missing_meta = path.is_dir() and not (path / "metadata.yaml").is_file()
+    problem, expected = _check_mcap(mcap)
+    if missing_meta and not problem:
+        problem = "metadata.yaml is missing (rosbag2 tools will not open it)"
+    if not problem:
+        return BagHealth("", expected, expected)
+    readable = 0
+    try:
+        for _ in read(path):   # what a player gets: up to the damage, or salvaged
+            readable += 1
+    except BagError:
+        pass
+    return BagHealth(problem, readable, expected)
+
+
+_MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def _unreadable_mcap(stream, err) -> str:
+    """Why an MCAP file without a usable summary is unreadable, from its magic bytes."""
+    stream.seek(0)
+    if stream.read(len(_MCAP_MAGIC)) != _MCAP_MAGIC:
+        return "not an MCAP file (no MCAP magic at its start)"
+    stream.seek(max(stream.seek(0, 2) - len(_MCAP_MAGIC), 0))
+    if stream.read() != _MCAP_MAGIC:
+        return "the MCAP file has no end (recording cut short)"
+    return f"unreadable MCAP: {err}"
+
+
+def _check_mcap(mcap: Path) -> tuple[str, int | None]:
+    """(problem or "", messages the summary promises) of one MCAP file, read in full."""
+    from mcap.reader import make_reader
+
+    count, expected = 0, None
+    with open(mcap, "rb") as stream:
+        try:
+            reader = make_reader(stream, validate_crcs=True)
+            summary = reader.get_summary()
+            if summary is not None and summary.statistics is not None:
+                expected = summary.statistics.message_count
+            for _ in reader.iter_messages(log_time_order=False):
+                count += 1
+        # mcap and its decompressors raise their own types (McapError, ZstdError, ...)
+        except Exception as err:  # noqa: BLE001
+            if expected is None:
+                return _unreadable_mcap(stream, err), None
+            return f"corrupt data: {err}", expected
+    if expected is None:
+        return "the MCAP file has no summary (recording cut short)", None
+    if count != expected:
+        return f"{count} messages where the summary promises {expected}", expected
+    return "", expected
 
 
 def _open_reader(path: str | Path) -> Reader:
@@ -274,12 +372,13 @@ def decode(message: BagMessage):
     return typestore().deserialize_cdr(message.rawdata, message.msgtype)
 
 
-def info(path: str | Path) -> str:
-    """Human-readable summary like ``ros2 bag info``."""
+def info(path: str | Path, health: BagHealth | None = None) -> str:
+    """Human-readable summary like ``ros2 bag info``, with what :func:`verify` found."""
+    health = health or verify(path)
     reader = _open_or_salvage(path)
     if isinstance(reader, Path):
         lines = [f"Bag:        {Path(path)}",
-                 "DAMAGED:    the MCAP file has no end (recording cut short); salvageable:"]
+                 f"Health:     {health.describe()}; salvageable:"]
         for t in sorted(_salvaged_topics(reader), key=lambda t: t.topic):
             lines.append(f"  {t.topic:32s} {t.msgtype:40s} {t.count:8d} msgs")
         return "\n".join(lines)
@@ -290,6 +389,7 @@ def info(path: str | Path) -> str:
                  f"Start:      {reader.start_time * 1e-9:.3f} s" if reader.message_count else
                  "Start:      -",
                  f"Messages:   {reader.message_count}",
+                 f"Health:     {health.describe()}",
                  "Topics:"]
         for conn in sorted(reader.connections, key=lambda c: c.topic):
             lines.append(f"  {conn.topic:32s} {conn.msgtype:40s} {conn.msgcount:8d} msgs")

@@ -33,6 +33,7 @@ from .core.ground_projection import (
     CameraIntrinsics,
     CameraPose,
     footprint_georef,
+    mean_height_near,
     project_to_ground,
 )
 from .core.orthorectify import heights_on, orthorectify
@@ -161,19 +162,13 @@ class CameraIngestNode(Node):
                                                   f"frame not projected: {reason}"))
         self.get_logger().warning(f"frame not projected: {reason}", throttle_duration_sec=2.0)
 
-    def terrain_height(self, east: float, north: float, radius: float) -> float | None:
-        """Mean DEM height within ``radius`` of (east, north), from the latest tile."""
+    def terrain_height(self, east: float, north: float,
+                       radius: float) -> tuple[float | None, str]:
+        """Mean DEM height within ``radius`` of (east, north) from the latest tile, or None
+        and why not."""
         if self.tile is None:
-            return None
-        heights, georef = self.tile
-        c0, r0 = georef.enu_to_pixel(east - radius, north + radius)
-        c1, r1 = georef.enu_to_pixel(east + radius, north - radius)
-        c0, r0 = max(int(c0), 0), max(int(r0), 0)
-        c1, r1 = min(int(c1) + 1, georef.width), min(int(r1) + 1, georef.height)
-        if c1 <= c0 or r1 <= r0:
-            return None
-        window = heights[r0:r1, c0:c1]
-        return float(np.nanmean(window)) if np.isfinite(window).any() else None
+            return None, "no DEM tile under the aircraft yet"
+        return mean_height_near(*self.tile, east, north, radius)
 
     def ingest(self, image: np.ndarray, encoding: str, header) -> None:
         """Project one frame; every frame comes out, projected or with the reason why not."""
@@ -193,17 +188,17 @@ class CameraIngestNode(Node):
             return
         camera = CameraPose(pose.position, camera_rotation(pose.quaternion, self.r_body_optical))
         # Terrain plane: mean height near nadir, then over the footprint it implies.
-        plane = self.terrain_height(pose.position[0], pose.position[1], 200.0)
+        plane, why = self.terrain_height(pose.position[0], pose.position[1], 200.0)
         if plane is None:
-            self.drop("no DEM tile under the aircraft yet", header)
+            self.drop(why, header)
             return
         agl = pose.position[2] - plane
         max_range = self.max_range_factor * max(agl, 1.0)
         georef = footprint_georef(self.intrinsics, camera, plane, self.gsd, max_range)
         if georef is not None:
             centre = georef.centre
-            better = self.terrain_height(centre[0], centre[1],
-                                         0.5 * max(georef.width, georef.height) * self.gsd)
+            better, _ = self.terrain_height(centre[0], centre[1],
+                                            0.5 * max(georef.width, georef.height) * self.gsd)
             if better is not None and better < pose.position[2]:
                 plane = better
                 georef = footprint_georef(self.intrinsics, camera, plane, self.gsd, max_range)

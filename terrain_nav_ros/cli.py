@@ -9,8 +9,11 @@ import argparse
 import math
 import os
 import sys
+import traceback
 from dataclasses import replace
 from pathlib import Path
+
+from .errors import InputError
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_GRAPH = REPO / "config" / "graph.yaml"
@@ -43,15 +46,22 @@ def _exec_node(executable: str, params: dict) -> int:
 def _cmd_bag_info(args) -> int:
     from . import bags
 
-    try:
-        print(bags.info(args.bag))
-    except bags.BagError as err:
-        print(f"terrain-nav bag info: {err}", file=sys.stderr)
-        return 1
-    return 0
+    health = bags.verify(args.bag)
+    print(bags.info(args.bag, health))
+    return 1 if health.damaged else 0
 
 
 def _cmd_bag_play(args) -> int:
+    from . import bags
+
+    _check_positive(args, "rate")
+    health = bags.verify(args.bag)
+    if health.damaged:
+        if not health.readable:
+            raise InputError(f"bag {args.bag} is damaged and holds nothing to play "
+                             f"({health.problem})")
+        print(f"terrain-nav bag play: bag {args.bag} is {health.describe()}: playing those; "
+              "exit status 1 when done", file=sys.stderr)
     params = {"bag": str(Path(args.bag).resolve()), "rate": float(args.rate),
               "publish_clock": not args.no_clock, "start_delay": float(args.delay)}
     if args.topics:
@@ -64,6 +74,7 @@ def _cmd_bag_play(args) -> int:
 
 
 def _cmd_bag_record(args) -> int:
+    _check_new(args.output, "-o")
     params = {"output": str(Path(args.output).resolve())}
     if args.topics:
         params["topics"] = args.topics
@@ -77,11 +88,12 @@ def _cmd_replay(args) -> int:
 
     bag = Path(args.bag) if args.bag else DEFAULT_BAG
     if not bag.exists():
-        print(f"terrain-nav: bag {bag} not found", file=sys.stderr)
-        return 2
+        raise InputError(f"bag {bag} not found: give a bag directory with --bag")
     out = Path(args.out) if args.out else REPO / "out" / f"replay-{bag.name}-{_now()}"
     result = run_replay(bag, out, args.config, rate=args.rate, verbose=args.verbose,
                         enable=args.enable or ())
+    if "stopped" in result["partial"]:
+        return 130
     return 0 if result["graph_status"] == 0 and not result["died"] else 1
 
 
@@ -94,14 +106,29 @@ def _now() -> str:
 def _cmd_simulate(args) -> int:
     from dataclasses import fields
 
-    from .flight_sim import SimConfig, simulate
+    from .flight_sim import SimConfig, SimInputError, simulate
 
+    _check_positive(args, "duration", "speed", "agl", "camera_rate", "camera_width",
+                    "camera_height", "camera_hfov", "imu_rate", "landmark_gsd")
+    if args.camera_hfov is not None and args.camera_hfov >= 180:
+        raise InputError(f"--camera-hfov {args.camera_hfov}: must be below 180 deg")
+    if args.gnss_denied_after is not None and not args.gnss_denied_after >= 0:
+        raise InputError(f"--gnss-denied-after {args.gnss_denied_after}: must be >= 0 s")
+    _check_new(args.output, "-o")
     cfg = SimConfig()
     for f in fields(SimConfig):
         value = getattr(args, f.name, None)
         if value is not None:
             setattr(cfg, f.name, tuple(value) if isinstance(value, list) else value)
-    summary = simulate(cfg, args.output)
+    if cfg.dem and not cfg.dem.startswith(("synthetic", "matplotlib:")):
+        # a DEM file that cannot be read fails now, not after the set-up
+        from .core.dem_sources import open_dem_source
+
+        open_dem_source(cfg.dem).close()
+    try:
+        summary = simulate(cfg, args.output)
+    except SimInputError as err:   # --albedo or --start-time: the user's input
+        raise InputError(str(err)) from err
     print(f"wrote {args.output}: {summary['duration_s']:.0f} s over {summary['dem']}, "
           f"{summary['camera_frames']} camera frames, GNSS denied after "
           f"{summary['gnss_denied_after_s']:.0f} s")
@@ -185,9 +212,73 @@ def _pair(text: str, option: str) -> tuple[float, float]:
     return a, b
 
 
+def _check_positive(args, *names):
+    """InputError for an option given as zero, negative or NaN."""
+    for name in names:
+        value = getattr(args, name, None)
+        if value is not None and not value > 0:
+            raise InputError(f"--{name.replace('_', '-')} {value}: must be > 0")
+
+
+def _check_new(path, option: str):
+    """InputError when an output path exists already (nothing is overwritten)."""
+    if Path(path).exists():
+        raise InputError(f"{path} exists already: give a new path with {option}")
+
+
+def _input_error_hint(err: BaseException) -> str | None:
+    """What to do about an error that is the user's input, or None for any other error."""
+    import yaml
+
+    from .bags import BagError
+    from .graph_runner import GraphError
+
+    dem_io = sys.modules.get("terrain_nav_ros.core.dem_io")
+    if isinstance(err, InputError):
+        return ""
+    if dem_io is not None and isinstance(err, dem_io.DemError):
+        return "give a readable DEM (GeoTIFF, ESRI ASCII grid, SRTM .hgt)"
+    if isinstance(err, BagError):
+        return "give a rosbag2 MCAP bag (a directory with metadata.yaml and .mcap)"
+    if isinstance(err, GraphError):
+        return "fix the graph file (--config)"
+    if isinstance(err, yaml.YAMLError):
+        return "fix the YAML file"
+    if isinstance(err, OSError):
+        return "check the path and its permissions"
+    return None
+
+
+def _run(args) -> int:
+    """Run a command; bad input is one line on stderr and exit status 2."""
+    prog = " ".join(["terrain-nav", args.command] + ([args.bag_command]
+                                                      if args.command == "bag" else []))
+    try:
+        return args.func(args)
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:   # `terrain-nav bag info BAG | head`: the reader has gone
+        sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - for the interpreter's final flush
+        return 1
+    except Exception as err:
+        hint = _input_error_hint(err)
+        if hint is None:
+            raise
+        if getattr(args, "debug", False):
+            traceback.print_exc()
+        text = " ".join(str(err).split())   # one line whatever the message holds
+        print(f"{prog}: {text}{'; ' + hint if hint else ''} (--debug shows the traceback)",
+              file=sys.stderr)
+        return 2
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="terrain-nav", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true",
+                        help="show the traceback of an error, not only its line")
+    sub = _Subparsers(parser.add_subparsers(dest="command", required=True), [common])
 
     graph = sub.add_parser("graph", help="run the node graph, one process per node")
     graph.add_argument("--config", default=DEFAULT_GRAPH, type=Path,
@@ -204,7 +295,7 @@ def build_parser() -> argparse.ArgumentParser:
     graph.set_defaults(func=_cmd_graph)
 
     bag = sub.add_parser("bag", help="rosbag2 MCAP tools (info, play, record)")
-    bag_sub = bag.add_subparsers(dest="bag_command", required=True)
+    bag_sub = _Subparsers(bag.add_subparsers(dest="bag_command", required=True), [common])
     info = bag_sub.add_parser("info", help="summarise a bag")
     info.add_argument("bag")
     info.set_defaults(func=_cmd_bag_info)
@@ -330,9 +421,19 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _Subparsers:
+    """add_parser with the common options (--debug) on every command."""
+
+    def __init__(self, action, parents):
+        self._action, self._parents = action, parents
+
+    def add_parser(self, name, **kwargs):
+        return self._action.add_parser(name, parents=self._parents, **kwargs)
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    return args.func(args)
+    return _run(args)
 
 
 if __name__ == "__main__":

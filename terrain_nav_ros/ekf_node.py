@@ -11,8 +11,12 @@ Subscribed:
 
 * ``/imu/data`` (sensor_msgs/Imu, best effort, depth ``imu_queue_depth``): angular velocity
   and specific force in ``base_link`` (FLU; an IMU mounted otherwise must be rotated first).
-  Every sample is integrated; NaN samples, duplicates and small backward steps are refused,
-  a step back of more than ``time_jump_reset`` (bag loop) resets the filter.
+  Every sample is integrated; NaN samples, duplicates and small backward steps are refused.
+  A stamp more than ``time_jump_reset`` from the previous one, back or ahead, is refused and
+  counted (one bad stamp must not end navigation); when ``time_jump_confirm`` samples in a
+  row go on from it (bag loop, simulator restart) the filter resets and re-initialises per
+  ``init_mode``, or from its last good state when that source stays silent for
+  ``reinit_timeout`` s (GNSS denied).
 * ``/nav/pva_fix`` (terrain_nav_msgs/PvaFix, reliable): the position always, the attitude
   when ``status == STATUS_POSITION_ATTITUDE``, the velocity when ``velocity_valid``.
   ``STATUS_NO_FIX`` messages are counted (diagnostics), not fused. The pose is the body's
@@ -140,8 +144,14 @@ EKF_PARAMETERS = {
                                "position reset to the next one; 0 = never", 0, 1000),
     "history_length": ("state/IMU history for delayed measurements [s]", 0.01, 60.0),
     "max_future": ("measurements up to this far ahead of the IMU are queued [s]", 0.0, 10.0),
-    "time_jump_reset": ("an IMU stamp this much older than the filter resets it [s]",
+    "time_jump_reset": ("an IMU stamp this far from the previous one (either way) is "
+                        "refused, or resets the filter when the stream goes on from it [s]",
                         1e-3, 3600.0),
+    "time_jump_confirm": ("consecutive samples that confirm a time jump", 1, 1000),
+    "max_imu_outage": ("a confirmed jump ahead up to this long is integrated as an IMU gap, "
+                       "not a reset [s]", 0.0, 3600.0),
+    "reinit_timeout": ("after a reset without the init source for this long, restart from "
+                       "the last good state [s]", 0.0, 600.0),
     "max_imu_dt": ("IMU intervals longer than this are flagged as gaps [s]", 1e-4, 10.0),
     "nis_history_length": ("NIS records kept for the diagnostics", 1, 100000),
 }
@@ -281,6 +291,7 @@ class EkfNode(Node):
         self._imu_dt = 0.01      # running mean of the IMU period, for the twist covariance
         self._prev_imu_t = None
         self._imu_count = 0
+        self._imu_span = None    # (first, last) IMU stamp since start or reset
         self._last_imu_wall = None
         self._started_wall = time.monotonic()
         self.rejections = Counter()        # refused by the node before reaching the core
@@ -288,6 +299,7 @@ class EkfNode(Node):
         self._last_log = {}
         self._suppressed = Counter()
         self._last_record = None
+        self._stamps_reported = 0
         self._init_stamp = None
 
         imu_qos = QoSProfile(depth=imu_depth, reliability=ReliabilityPolicy.BEST_EFFORT,
@@ -341,9 +353,13 @@ class EkfNode(Node):
             return
         if out.reason in _QUIET:
             if out.reason == Reason.NOT_INITIALIZED:
+                # a warning once it takes longer than a fix may: GNSS lost before the
+                # second fix leaves the filter waiting for good
+                waited = self._imu_span[1] - self._imu_span[0] if self._imu_span else 0.0
                 self._log_refusal("not_initialized",
-                                  f"waiting for initialisation (init_mode="
-                                  f"{self.params.init_mode})", "info")
+                                  f"not initialised after {waited:.0f} s of IMU: waiting for "
+                                  f"{self.ekf.waiting_for()}",
+                                  "warning" if waited > self.fix_warn_s else "info")
             return
         self._log_refusal(f"{source}:{out.reason.value}",
                           f"{source} refused: {out.reason.value}")
@@ -398,12 +414,19 @@ class EkfNode(Node):
     def on_imu(self, msg: Imu):
         stamp, gyro, accel = cv.imu_to_sample(msg)
         self._imu_count += 1
+        self._imu_span = (self._imu_span or (stamp, stamp))[:1] + (stamp,)
         self._last_imu_wall = time.monotonic()
+        prev = self._prev_imu_t
         out = self.ekf.process_imu(stamp, gyro, accel)
         if out.reason == Reason.INITIALIZED:
             self._report("initial pose", out, stamp)
+        elif out.reason == Reason.REINITIALIZED:
+            self.get_logger().warning(
+                f"no {self.params.init_mode} within {self.params.reinit_timeout:.1f} s of the "
+                f"reset: re-initialised from the last good state at {stamp:.3f} s, "
+                "covariance inflated")
         elif out.reason == Reason.TIME_JUMP_RESET:
-            self._on_reset(stamp)
+            self._on_reset(stamp, prev)
             return
         if not out.accepted:
             # The sample at the stamp a measurement initialised the filter at is no news.
@@ -419,12 +442,14 @@ class EkfNode(Node):
             self._last_odom = t
             self.publish_state(msg.header.stamp, t)
 
-    def _on_reset(self, stamp: float):
+    def _on_reset(self, stamp: float, prev: float | None):
+        way = "back" if prev is None or stamp < prev else "ahead"
         self.get_logger().warning(
-            f"IMU time jumped back to {stamp:.3f} s (bag loop?): filter reset, "
-            f"re-initialising with init_mode={self.params.init_mode}")
+            f"IMU time jumped {way} to {stamp:.3f} s and the stream went on from there (bag "
+            f"loop, simulator restart?): filter reset, re-initialising with init_mode="
+            f"{self.params.init_mode}")
         self._last_odom = self._last_navsat = -math.inf
-        self._prev_imu_t = None
+        self._prev_imu_t = self._imu_span = None
         if not math.isfinite(self.baro_offset_param):
             self.baro_offset = None
 
@@ -579,7 +604,7 @@ class EkfNode(Node):
         if since_imu > self.imu_timeout:
             worse(DIAG_ERROR, f"no IMU for {since_imu:.1f} s")
         if not d.initialized:
-            worse(DIAG_WARN, f"not initialised (init_mode={self.params.init_mode})")
+            worse(DIAG_WARN, f"not initialised: waiting for {self.ekf.waiting_for()}")
         ages = [a for a in (d.time_since("fix"), d.time_since("gnss")) if a is not None]
         since_fix = min(ages) if ages else None
         if d.initialized:
@@ -594,6 +619,10 @@ class EkfNode(Node):
             elif d.position_sigma > self.sigma_warn:
                 worse(DIAG_WARN, f"position sigma {d.position_sigma:.0f} m")
 
+        refused_now = d.imu_stamps_refused - self._stamps_reported
+        self._stamps_reported = d.imu_stamps_refused
+        if refused_now:
+            worse(DIAG_WARN, f"{refused_now} IMU stamp(s) far from the expected period refused")
         new = self._new_records(d.records)
         gated = [r for r in new if not r.accepted and r.nis > r.gate
                  and (r.source != "gnss" or self.params.fuse_gnss)]
@@ -610,7 +639,9 @@ class EkfNode(Node):
             "filter_time": "nan" if d.stamp is None else f"{d.stamp:.3f}",
             "time_since_last_fix": float("nan") if since_fix is None else since_fix,
             "position_sigma_m": d.position_sigma, "covariance_trace": d.covariance_trace,
-            "resets": d.resets, "position_resets": d.position_resets, "imu_gaps": d.imu_gaps,
+            "resets": d.resets, "reinitialisations": d.reinitialisations,
+            "imu_stamps_refused": d.imu_stamps_refused,
+            "position_resets": d.position_resets, "imu_gaps": d.imu_gaps,
             "imu_received": self._imu_count, "imu_rate_hz": 1.0 / self._imu_dt,
             "no_fix_messages": self.no_fix_count,
             "baro_offset_m": float("nan") if self.baro_offset is None else self.baro_offset,

@@ -342,6 +342,11 @@ def simulate(cfg: SimConfig, output: str | Path) -> dict:
     return summary
 
 
+class SimInputError(ValueError):
+    """Bad simulator input: an albedo image that cannot be draped (unreadable, no CRS, no
+    such band, elsewhere) or a start time that is not ISO 8601."""
+
+
 def _epoch_ns(start_time: str) -> int:
     """Bag time (ns) of t = 0: ``start_time`` (ISO 8601, UTC unless stated) or EPOCH_NS."""
     if not start_time:
@@ -350,8 +355,8 @@ def _epoch_ns(start_time: str) -> int:
     try:
         t = dt.datetime.fromisoformat(str(start_time).replace("Z", "+00:00"))
     except ValueError:
-        raise ValueError(f"start time {start_time!r} is not ISO 8601 "
-                         "(e.g. 2002-11-25T15:40:00Z)") from None
+        raise SimInputError(f"start time {start_time!r} is not ISO 8601 "
+                            "(e.g. 2002-11-25T15:40:00Z)") from None
     if t.tzinfo is None:
         t = t.replace(tzinfo=dt.UTC)
     return int(round(t.timestamp() * 1e9))
@@ -374,16 +379,16 @@ def drape_photo(path: str, band: str, metamap: MetaMap, box: GeoReference) -> np
             if band:
                 b = int(band)
                 if not 1 <= b <= ds.count:
-                    raise ValueError(f"{path}: band {b} does not exist ({ds.count} bands)")
+                    raise SimInputError(f"{path}: band {b} does not exist ({ds.count} bands)")
                 bands = [b] * 3
             else:
                 bands = [min(k, ds.count) for k in (1, 2, 3)]
             data = ds.read(bands, masked=True).astype(np.float32).filled(np.nan)
             transform, crs = ds.transform, ds.crs
     except rasterio.errors.RasterioError as err:
-        raise ValueError(f"cannot read the albedo image {path}: {err}") from err
+        raise SimInputError(f"cannot read the albedo image {path}: {err}") from err
     if crs is None:
-        raise ValueError(f"{path}: the albedo image has no CRS, so it cannot be draped")
+        raise SimInputError(f"{path}: the albedo image has no CRS, so it cannot be draped")
     cell_m = abs(transform.a) * (111_320.0 if crs.is_geographic else 1.0)
     factor = int(box.gsd // max(cell_m, 1e-9))
     if factor >= 2:   # average down: the render grid cannot hold finer detail
@@ -400,7 +405,7 @@ def drape_photo(path: str, band: str, metamap: MetaMap, box: GeoReference) -> np
         except OutsideDemError:
             tile = None
         if tile is None or tile.nodata.all():
-            raise ValueError(f"{path}: the albedo image does not cover the flight's terrain")
+            raise SimInputError(f"{path}: the albedo image does not cover the flight's terrain")
         rgb[..., k] = np.where(tile.nodata, np.nan, tile.elevation)
     covered = np.isfinite(rgb).all(axis=-1)
     lo, hi = np.percentile(rgb[covered], [1.0, 99.0])

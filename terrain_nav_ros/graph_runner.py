@@ -230,6 +230,8 @@ class GraphRunner:
         try:
             wanted = {n.name for n in self.spec.nodes}
             while time.monotonic() - start < timeout:
+                if self._stop.is_set():
+                    raise GraphError("stopped during start-up")
                 self._check_exits()
                 if self.died:
                     raise GraphError(f"node(s) died during start-up: {', '.join(self.died)}")
@@ -270,13 +272,17 @@ class GraphRunner:
                 p = psutil.Process(proc.pid)
                 cpu = p.cpu_times()
                 rss = p.memory_info().rss
+                created = p.create_time()
             except psutil.Error:
                 continue
+            # wall time from the process's own start (epoch clock, as psutil's): CPU spent
+            # before the first sample over the time since the first sample gave shares in
+            # the millions of percent when a graph stopped at once (issue 22)
             entry = self.usage.setdefault(name, {"cpu_s": 0.0, "peak_rss_mb": 0.0,
-                                                 "started": time.monotonic()})
+                                                 "started": created})
             entry["cpu_s"] = cpu.user + cpu.system
             entry["peak_rss_mb"] = max(entry["peak_rss_mb"], rss / 2**20)
-            entry["last"] = time.monotonic()
+            entry["last"] = time.time()
 
     def spin(self, duration: float | None = None, until_exit: str | None = None) -> int:
         """Watch the processes until a stop condition; return the graph's exit status.

@@ -80,6 +80,16 @@ def _fixes(bag):
     return out
 
 
+def _ekf_health(bag) -> str:
+    """The EKF's last word on its health (its /nav/ekf/diagnostics filter status)."""
+    last = ""
+    for m in bags.read(bag, ["/nav/ekf/diagnostics"]):
+        for status in bags.decode(m).status:
+            if status.name == "ekf: filter":
+                last = status.message
+    return last or "it published no diagnostics either"
+
+
 def _latencies(bag) -> dict:
     """Receive time minus the camera frame's stamp for each pipeline stage (s)."""
     out = {}
@@ -146,6 +156,8 @@ def analyse(input_bag, output_bag, usage: dict | None = None) -> dict:
     result["latency"] = {k: v for k, v in _latencies(output_bag).items()}
     t_fused, p_fused, var_fused = _series(output_bag, "/nav/odometry")
     result["series"] = {"fused": (t_fused, p_fused, var_fused), "fixes": good}
+    if not len(t_fused):   # say why, or the report only shows empty sections
+        result["no_odometry"] = _ekf_health(output_bag)
     if "/ground_truth/odometry" not in info:
         result["truth"] = None
         return result
@@ -192,6 +204,9 @@ def format_report(r: dict, gsd: float | None = None) -> str:
     """Human-readable summary of :func:`analyse`'s result."""
     lines = ["", "terrain_nav replay report", "=" * 25,
              f"input bag:  {r['input_bag']}", f"output bag: {r['output_bag']}"]
+    if r.get("no_odometry"):
+        lines.append(f"NO ODOMETRY: the EKF published none; its last diagnostics: "
+                     f"{r['no_odometry']}")
     f = r["fixes"]
     lines.append(f"camera frames answered: {f['frames']} of {f['in_bag']}  fixes: "
                  f"{f['fixes']}  no fix: {f['no_fix']}")
@@ -221,8 +236,9 @@ def format_report(r: dict, gsd: float | None = None) -> str:
     if r["usage"]:
         lines.append("per node: CPU (share of one core) / peak RSS:")
         for name, u in sorted(r["usage"].items()):
-            wall = max(u.get("last", 0) - u.get("started", 0), 1e-9)
-            lines.append(f"  {name:18s} {u['cpu_s']:7.1f} s CPU ({100 * u['cpu_s'] / wall:5.1f}%)"
+            wall = u.get("last", 0) - u.get("started", 0)
+            share = f"{100 * u['cpu_s'] / wall:5.1f}%" if wall >= 1.0 else "  n/a"
+            lines.append(f"  {name:18s} {u['cpu_s']:7.1f} s CPU ({share})"
                          f" / {u['peak_rss_mb']:6.0f} MB")
     return "\n".join(lines)
 

@@ -11,6 +11,7 @@ uses one).
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import faulthandler
 import functools
 import importlib
@@ -101,13 +102,41 @@ def field_docs(cls) -> dict[str, str]:
     return docs
 
 
-def declare_settings(node: Node, prefix: str, settings) -> None:
-    """Declare one parameter per field of a settings dataclass, as ``prefix.field``."""
+def declare_settings(node: Node, prefix: str, settings, ranges=None) -> None:
+    """Declare one parameter per field of a settings dataclass, as ``prefix.field``.
+
+    Float fields are declared finite (a NaN ``match.threshold`` silently gave no fixes,
+    issue 22) and ``ranges`` maps a field to its ``(min, max)`` (None: open); rclpy refuses
+    a value outside, from a params file at start-up or from a later change.
+    """
     docs = field_docs(type(settings))
+    ranges = ranges or {}
     for f in dataclasses.fields(settings):
         value = getattr(settings, f.name)
         if isinstance(value, bool | int | float | str):
-            declare(node, f"{prefix}.{f.name}", value, docs.get(f.name, f.name))
+            lo, hi = ranges.get(f.name, (None, None))
+            if isinstance(value, float) and lo is None:
+                lo = -sys.float_info.max
+            declare(node, f"{prefix}.{f.name}", value, docs.get(f.name, f.name),
+                    min_value=lo, max_value=hi)
+
+
+def check_parameters_known(node: Node) -> None:
+    """Raise ValueError naming every parameter given to ``node`` (params file, ``-p``) that
+    it never declared: rclpy ignores those, so a misspelt ``match.thresold`` ran with the
+    default threshold (issue 22). Call once every parameter is declared."""
+    # rclpy keeps what it was given only here (no public accessor)
+    given = getattr(node, "_parameter_overrides", {})
+    unknown = sorted(name for name in given if not node.has_parameter(name))
+    if not unknown:
+        return
+    known = list(node.get_parameters_by_prefix(""))
+    hints = []
+    for name in unknown:
+        close = difflib.get_close_matches(name, known, n=1)
+        hints.append(f"{name} (did you mean {close[0]}?)" if close else name)
+    raise ValueError(f"{node.get_name()}: unknown parameter(s) {', '.join(hints)}: fix or "
+                     "remove them in the params file")
 
 
 def settings_from_parameters(node: Node, prefix: str, settings, overrides=None):
@@ -247,7 +276,8 @@ def run(node_factory: Callable[[], Node], args=None) -> int:
     """The Jazzy main() pattern: init, spin, clean shutdown on Ctrl-C or external shutdown.
 
     The node is spun by the executor its ``executor`` parameter names, if it declared one
-    (:func:`declare_executor`), else by rclpy's default single-threaded executor.
+    (:func:`declare_executor`), else by rclpy's default single-threaded executor. A node
+    that ends on bad input it could only partly serve (a damaged bag) sets ``exit_code``.
     """
     # A crash in a C extension (rclpy, DDS) prints every thread's Python stack to stderr,
     # which the graph runner shows with the node's name.
@@ -257,6 +287,7 @@ def run(node_factory: Callable[[], Node], args=None) -> int:
     code = 0
     try:
         node = node_factory()
+        check_parameters_known(node)
         # held until rclpy is shut down (see spin): a metamap node once died with SIGSEGV
         # in destroy_node after Ctrl-C when the executor had already been freed
         executor = make_executor(node, node_executor(node))
@@ -268,6 +299,7 @@ def run(node_factory: Callable[[], Node], args=None) -> int:
         code = 1
     finally:
         if node is not None:
+            code = code or getattr(node, "exit_code", 0)
             close = getattr(node, "close", None)
             if close is not None:
                 close()

@@ -309,6 +309,44 @@ def test_truncated_asc(tmp_path):
     _assert_dem_error(p, "truncated")
 
 
+@pytest.mark.parametrize("dims,values", [
+    ((100, 100), "1 2 3 4\n"),                        # too short to hold them: no scan
+    ((100, 100), " ".join(["1234.5"] * 9000)),         # long enough in bytes: counted
+    ((10**9, 10**9), "1 2 3\n"),                      # a header promising 8 GB of row index
+], ids=["four_values", "nine_tenths", "absurd_header"])
+def test_truncated_asc_fails_at_once_within_the_file(tmp_path, dims, values):
+    """GDAL's AAIGrid driver hung and grew to 24 GB on a 100x100 header with four values
+    (issue 22): the size the header promises is checked against the file first."""
+    p = tmp_path / "cut.asc"
+    p.write_text(f"ncols {dims[1]}\nnrows {dims[0]}\nxllcorner 0\nyllcorner 0\n"
+                 f"cellsize 30\n{values}")
+    _assert_dem_error(p, "truncated ESRI ASCII grid: the header promises")
+
+
+def test_ascii_grid_checked_whatever_its_suffix(tmp_path):
+    p = tmp_path / "grid.txt"
+    p.write_text(ASC_HEADER + "1 2 3 4\n5 6\n")
+    _assert_dem_error(p, "header promises 3 x 4 = 12 values")
+    p.write_text(ASC_HEADER.upper() + ASC_ROWS)
+    assert open_dem(p).read()[2, 3] == 12
+
+
+def test_truncated_hgt_and_corrupt_geotiff_header(tmp_path):
+    p = tmp_path / "N44E005.hgt"
+    p.write_bytes(bytes(2 * 1201 * 1201 - 100))
+    _assert_dem_error(p, "truncated")
+    tif = tmp_path / "corrupt.tif"
+    with rasterio.open(tif, "w", driver="GTiff", width=64, height=64, count=1, dtype="int16",
+                       crs="EPSG:32611", transform=Affine(30, 0, 4e5, 0, -30, 3.8e6)) as ds:
+        ds.write(np.ones((64, 64), np.int16), 1)
+    data = bytearray(tif.read_bytes())
+    data[8:200] = np.random.default_rng(3).integers(0, 256, 192, np.uint8).tobytes()
+    tif.write_bytes(bytes(data))
+    _assert_dem_error(tif, "corrupt header")
+    tif.write_bytes(b"")
+    _assert_dem_error(tif, "not a readable DEM")
+
+
 def test_truncated_and_misnamed_hgt(shared_data, tmp_path):
     data = (shared_data / "dem/N44E005.hgt").read_bytes()
     p = tmp_path / "N44E005.hgt"

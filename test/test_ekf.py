@@ -332,22 +332,117 @@ def test_bad_inputs_rejected_with_reasons():
 
 
 def test_time_jump_backwards_resets():
-    """A bag loop (IMU jumps back by more than time_jump_reset) resets the filter, which
-    re-initialises from the configured pose and keeps running."""
-    params = EkfParams(init_mode="pose")
+    """A bag loop (the IMU goes on from a stamp more than time_jump_reset back) resets the
+    filter once time_jump_confirm samples confirm it; it re-initialises from the configured
+    pose and keeps running."""
+    params = EkfParams(init_mode="pose", time_jump_confirm=5)
     _, truth, imu = flight(straight_flight(10.0), 2, params)
     ekf = TerrainEkf(params)
     ekf.set_initial_pose(truth.position[0], truth.velocity[0], truth.quaternion[0])
     assert ekf.process_imu(truth.t[0], imu.gyro[0], imu.accel[0]).reason == Reason.INITIALIZED
     for k in range(1, 800):
         ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
-    out = ekf.process_imu(truth.t[0], imu.gyro[0], imu.accel[0])
-    assert out.reason == Reason.TIME_JUMP_RESET
-    assert ekf.initialized and ekf.t == truth.t[0]
-    assert ekf.diagnostics.resets == 1
-    for k in range(1, 300):
+    reasons = [ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k]).reason for k in range(5)]
+    assert reasons == [Reason.STAMP_OFF_PERIOD] * 4 + [Reason.TIME_JUMP_RESET]
+    assert ekf.initialized and ekf.t == truth.t[4]
+    assert ekf.diagnostics.resets == 1 and ekf.diagnostics.imu_stamps_refused == 4
+    for k in range(5, 300):
         assert ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k]).accepted
     np.testing.assert_allclose(ekf.state.position, truth.position[299], atol=2.0)
+
+
+@pytest.mark.parametrize("offset", [-5.0, 3600.0])
+def test_single_bad_imu_stamp_is_refused_not_integrated(offset):
+    """One sample stamped 5 s in the past or 1 h ahead is refused and counted; the filter
+    neither resets nor integrates over it, and goes on with the next samples."""
+    params = EkfParams(init_mode="gnss")
+    _, truth, imu = flight(straight_flight(6.0), 3, params)
+    ekf = start_filter(truth, params)
+    for k in range(1, 300):
+        ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
+    out = ekf.process_imu(truth.t[299] + offset, imu.gyro[299], imu.accel[299])
+    assert not out.accepted and out.reason == Reason.STAMP_OFF_PERIOD
+    for k in range(300, 600):
+        assert ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k]).accepted
+    d = ekf.diagnostics
+    assert (d.imu_stamps_refused, d.resets, d.reinitialisations) == (1, 0, 0)
+    assert d.input_rejections["imu:stamp_far_from_expected_period"] == 1
+    np.testing.assert_allclose(ekf.state.position, truth.position[599], atol=2.0)
+
+
+def test_waiting_for_says_what_initialisation_needs():
+    """GNSS lost after one fix: the diagnostics say a second one is missing, not only that
+    the filter is not initialised (issue 22)."""
+    ekf = TerrainEkf(EkfParams(init_mode="gnss", init_min_fix_interval=10.0))
+    assert ekf.waiting_for() == "a first gnss measurement"
+    ekf.process_gnss(2.0, [0.0, 0.0, 500.0], np.eye(3))
+    assert ekf.waiting_for() == ("a second gnss measurement 10 s or more after the one at "
+                                 "2.000 s (or one with velocity)")
+    ekf.process_gnss(12.5, [300.0, 0.0, 500.0], np.eye(3))
+    assert ekf.initialized and ekf.waiting_for() == ""
+
+
+def test_init_from_a_late_fix_replays_the_buffered_imu_as_it_is():
+    """The IMU buffered while waiting for initialisation is replayed from the fix's stamp,
+    2.5 s behind the newest sample: passed by the timing screen already, never taken for a
+    time jump."""
+    params = EkfParams(init_mode="fix")
+    _, truth, imu = flight(straight_flight(5.0), 5, params)
+    ekf = TerrainEkf(params)
+    for k in range(1, 400):
+        ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
+    k0 = 150
+    out = ekf.process_fix(truth.t[k0], truth.position[k0], np.eye(9) * 0.01,
+                          velocity=truth.velocity[k0], quaternion=truth.quaternion[k0])
+    assert out.reason == Reason.INITIALIZED and ekf.t == truth.t[399]
+    d = ekf.diagnostics
+    assert (d.imu_stamps_refused, d.resets) == (0, 0)
+    np.testing.assert_allclose(ekf.state.position, truth.position[399], atol=1.0)
+
+
+def test_an_imu_outage_is_integrated_across_not_reset():
+    """The IMU stream stops for 3 s and goes on: after the confirming samples the filter
+    integrates across the gap from the state it had (issue 22), as before the timing
+    screen, and loses no sample."""
+    params = EkfParams(init_mode="gnss")
+    _, truth, imu = flight(straight_flight(8.0), 6, params)
+    ekf = start_filter(truth, params)
+    for k in range(1, 300):
+        ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
+    reasons = [ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k]).reason
+               for k in range(600, 700)]                 # 3 s of IMU lost
+    assert reasons[:5] == [Reason.STAMP_OFF_PERIOD] * 4 + [Reason.IMU_GAP]
+    assert set(reasons[5:]) == {Reason.OK} and ekf.t == truth.t[699]
+    d = ekf.diagnostics
+    assert (d.resets, d.imu_gaps, d.imu_stamps_refused) == (0, 1, 4)
+    np.testing.assert_allclose(ekf.state.position, truth.position[699], atol=3.0)
+
+
+def test_time_jump_without_gnss_reinitialises_from_the_last_good_state():
+    """init_mode gnss, GNSS gone: after a confirmed jump the filter does not wait forever
+    but restarts from its last state, reinit_timeout into the new timeline, with a larger
+    covariance."""
+    params = EkfParams(init_mode="gnss", reinit_timeout=0.5)
+    _, truth, imu = flight(straight_flight(6.0), 4, params)
+    ekf = start_filter(truth, params)
+    for k in range(1, 300):
+        ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
+    before = ekf.state
+    jump = 100.0      # a simulator restarted 100 s later: samples go on from there
+    reasons = [ekf.process_imu(truth.t[k] + jump, imu.gyro[k], imu.accel[k]).reason
+               for k in range(300, 400)]
+    assert reasons[4] == Reason.TIME_JUMP_RESET
+    assert reasons.count(Reason.REINITIALIZED) == 1
+    k_init = 300 + reasons.index(Reason.REINITIALIZED)
+    assert truth.t[k_init] - truth.t[300] == pytest.approx(0.5, abs=0.011)
+    assert ekf.initialized and reasons[-1] == Reason.OK
+    d = ekf.diagnostics
+    assert (d.resets, d.reinitialisations, d.imu_stamps_refused) == (1, 1, 4)
+    s = ekf.state
+    assert np.trace(s.covariance[:3, :3]) > np.trace(before.covariance[:3, :3]) + 250.0
+    # position carried on from the last good state (plus the dead reckoning since)
+    assert np.linalg.norm(s.position - before.position) < 30.0 * (s.stamp - truth.t[300]
+                                                                  - jump) + 5.0
 
 
 # ----------------------------------------------------------------------------- initialisation

@@ -4,7 +4,8 @@ One 60 s flight (straight, S-turn, climb; 100 Hz IMU with the default MEMS error
 published at ~5x real time with correct stamps: GNSS for the first 20 s (5 Hz, initialises
 the filter), terrain fixes every 2 s (sigma 20 m, delivered 0.3 s late, two 500 m outliers),
 barometric pressure at 10 Hz with a sea level pressure the node does not know, a NaN IMU
-sample, a fix with a non-positive-definite covariance; then the first 8 s are replayed (bag
+sample, a fix with a non-positive-definite covariance, after the GNSS is gone one IMU sample
+stamped 5 s in the past and one stamped 1 h ahead; then the first 8 s are replayed (bag
 loop). The ENU origin is learnt from a latched /metamap/tile; the node runs with
 use_sim_time and no /clock. Everything the node publishes is recorded once (module fixture)
 and the tests assert on it.
@@ -37,6 +38,7 @@ FIX_DELAY = 0.3
 OUTLIER_TIMES = (30.0, 44.0)
 NON_PD_TIME = 25.0
 NAN_IMU_TIME = 35.005
+BAD_STAMPS = {"past": (40.005, -5.0), "future": (42.005, 3600.0)}   # arrival, stamp offset
 LOOP_S = 8.0
 DAY_PRESSURE = 100_800.0                 # the node assumes 101325 Pa: offset to learn
 
@@ -67,6 +69,7 @@ def _events(truth, imu, rng):
     """(arrival time, kind, payload) of everything the flight publishes, in arrival order."""
     ev = [(t, 0, k) for k, t in enumerate(truth.t) if k > 0]
     ev.append((NAN_IMU_TIME, 0, "nan"))
+    ev.extend((t, 0, name) for name, (t, _) in BAD_STAMPS.items())
     for t in np.arange(0.2, GNSS_UNTIL + 1e-9, 0.2):
         ev.append((t, 1, int(truth.at(t))))
     for t in np.arange(2.0, truth.t[-1] + 1e-9, 2.0):
@@ -145,6 +148,10 @@ def flight():
             if k == "nan":
                 pubs["imu"].publish(cv.sample_to_imu(cv.make_header(_stamp(t), "base_link"),
                                                      [math.nan, 0, 0], [0, 0, 9.8]))
+            elif k in BAD_STAMPS:
+                pubs["imu"].publish(cv.sample_to_imu(
+                    cv.make_header(_stamp(t + BAD_STAMPS[k][1]), "base_link"),
+                    [0, 0, 0], [0, 0, 9.8]))
             else:
                 pubs["imu"].publish(cv.sample_to_imu(cv.make_header(_stamp(truth.t[k]),
                                                                     "base_link"),
@@ -302,6 +309,20 @@ def test_bad_input_is_refused_and_the_node_survives(flight):
     assert flight["alive"], log
     assert flight["proc"].returncode == 0, log
     assert "Traceback" not in log
+
+
+def test_single_bad_imu_stamps_after_gnss_loss_keep_the_odometry(flight):
+    """One sample 5 s in the past, one 1 h ahead, with GNSS gone: both refused and counted,
+    no reset, and /nav/odometry goes on at its rate through them (issue 22)."""
+    rec = flight["rec"]
+    _, filt = flight["diag_flight"]["ekf: filter"]
+    assert int(filt["imu_stamps_refused"]) == 2
+    assert int(filt["rejected_input/imu:stamp_far_from_expected_period"]) == 2
+    assert int(filt["resets"]) == 0 and int(filt["reinitialisations"]) == 0
+    t, _ = _odometry(rec, rec.odom[:flight["n_before_loop"]])
+    around = t[(t > GNSS_UNTIL + 15.0) & (t < GNSS_UNTIL + 30.0)]
+    assert around.size > 0 and np.diff(around).max() < 0.05, "odometry stopped"
+    assert "imu refused: stamp_far_from_expected_period" in flight["log"]
 
 
 def test_time_jump_backwards_resets_and_reinitialises(flight):

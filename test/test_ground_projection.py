@@ -14,6 +14,7 @@ from terrain_nav_ros.core.ground_projection import (
     ground_to_image,
     image_to_ground,
     look_at_rotation,
+    mean_height_near,
     nadir_rotation,
     project_to_ground,
 )
@@ -182,3 +183,16 @@ def test_colour_frames_become_grey():
     assert out.image.dtype == np.uint8 and np.all(out.image[out.valid] == expect)
     bgr = project_to_ground(rgb, PINHOLE, pose, PLANE, geo, bgr=True)
     assert np.all(bgr.image[bgr.valid] == cv2.cvtColor(rgb, cv2.COLOR_BGR2GRAY)[0, 0])
+
+
+def test_mean_height_near_says_why_there_is_none():
+    """An all-nodata DEM under the aircraft is said as such, not as a tile still to come
+    (issue 22)."""
+    georef = GeoReference(0.0, 1000.0, 10.0, 100, 100)     # 1 km square, NW corner (0, 1000)
+    heights = np.full((100, 100), 250.0, np.float32)
+    heights[:, 50:] = np.nan                                # eastern half: nodata
+    assert mean_height_near(heights, georef, 200.0, 500.0, 100.0) == (250.0, "")
+    assert mean_height_near(heights, georef, 800.0, 500.0, 100.0) == (
+        None, "the DEM has no heights under the aircraft (nodata or voids)")
+    assert mean_height_near(heights, georef, 5000.0, 500.0, 100.0) == (
+        None, "the DEM tile does not reach the aircraft yet")

@@ -1,18 +1,24 @@
 """Shared node helpers: failing callbacks are contained, settings become parameters, a node
 is spun by the executor it asks for."""
 
+import math
 import threading
 
 import pytest
 import rclpy
 from rclpy._rclpy_pybind11 import RCLError
+from rclpy.exceptions import InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from ros_helpers import wait_until
+from ros_helpers import start_node, wait_until
 
+from terrain_nav_ros.core.creases import CreaseParams
+from terrain_nav_ros.core.matching import MatchParams
 from terrain_nav_ros.core.minutiae import MinutiaParams
+from terrain_nav_ros.matcher_node import MATCH_RANGES
 from terrain_nav_ros.ros_common import (
+    check_parameters_known,
     contained,
     declare_executor,
     declare_settings,
@@ -136,3 +142,60 @@ def test_an_unknown_executor_is_refused():
         node.destroy_node()
     finally:
         context.try_shutdown()
+
+
+def _settings_node(context, **given):
+    return Node("settings", context=context, parameter_overrides=[
+        Parameter(name, value=value) for name, value in given.items()])
+
+
+def test_unknown_parameters_are_an_error_naming_them():
+    """rclpy ignores a parameter no one declared: a misspelt match.thresold ran with the
+    default threshold (issue 22)."""
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        node = _settings_node(context, **{"match.thresold": 4.0, "match.threshold": 4.0,
+                                          "zzz": 1})
+        declare_settings(node, "match", MatchParams(), MATCH_RANGES)
+        with pytest.raises(ValueError, match=r"settings: unknown parameter\(s\) "
+                           r"match.thresold \(did you mean match.threshold\?\), zzz: fix"):
+            check_parameters_known(node)
+        node.destroy_node()
+        node = _settings_node(context, **{"match.threshold": 4.0})
+        declare_settings(node, "match", MatchParams(), MATCH_RANGES)
+        check_parameters_known(node)
+        node.destroy_node()
+    finally:
+        context.try_shutdown()
+
+
+@pytest.mark.parametrize("prefix,settings,name,value", [
+    ("match", MatchParams(), "threshold", math.nan),
+    ("match", MatchParams(), "threshold", -1.0),
+    ("match", MatchParams(), "pos_tol", 0.0),
+    ("match", MatchParams(), "k_query", 0),
+    ("crease", CreaseParams(), "sigma", math.inf),
+])
+def test_nan_and_out_of_range_settings_are_refused(prefix, settings, name, value):
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        node = _settings_node(context, **{f"{prefix}.{name}": value})
+        ranges = MATCH_RANGES if prefix == "match" else None
+        with pytest.raises(InvalidParameterValueException, match=f"{prefix}.{name}"):
+            declare_settings(node, prefix, settings, ranges)
+        node.destroy_node()
+    finally:
+        context.try_shutdown()
+
+
+def test_a_node_given_a_misspelt_parameter_stops_with_one_line(tmp_path):
+    params = tmp_path / "ekf.yaml"
+    params.write_text("ekf:\n  ros__parameters:\n    time_jump_reste: 2.0\n")
+    proc = start_node("ekf", None, "--params-file", str(params))
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 1, out
+    assert ("fatal: ValueError: ekf: unknown parameter(s) time_jump_reste (did you mean "
+            "time_jump_reset?)") in out
+    assert "Traceback" not in out

@@ -55,6 +55,9 @@ __all__ = [
 SRTM_VOID = -32768
 _HGT_NAME = re.compile(r"^([NS])(\d{2})([EW])(\d{3})\.hgt$", re.IGNORECASE)
 _HGT_SIZES = {1201: 3.0, 3601: 1.0}  # samples per side -> arc-seconds
+_ASC_KEYS = {b"ncols", b"nrows", b"xllcorner", b"yllcorner", b"xllcenter", b"yllcenter",
+             b"cellsize", b"dx", b"dy", b"nodata_value"}
+_CHUNK = 1 << 22
 
 
 class DemError(ValueError):
@@ -286,6 +289,7 @@ def open_dem(path, crs=None, *, validate: bool = True) -> Dem:
     else:
         if suffix == ".hgt":
             _check_hgt(path)
+        _check_ascii_grid(path)
         dem = _open_gdal(path, crs is not None)
     if crs is not None:
         dem.crs = None if str(crs).lower() == "local" else _parse_crs(crs, path)
@@ -312,6 +316,57 @@ def _check_hgt(path: Path):
             return
     raise DemError(f"{path}: {size} bytes is not an SRTM tile (expected {2 * 1201 ** 2} for "
                    f"3\" 1201x1201 or {2 * 3601 ** 2} for 1\" 3601x3601): truncated?")
+
+
+def _check_ascii_grid(path: Path):
+    """Check that an ESRI ASCII grid holds the ``ncols x nrows`` values its header promises,
+    before GDAL sees it: GDAL's AAIGrid driver allocates per promised row and, on a short
+    file, searches for the missing values forever (100x100 with four values hung and grew
+    to 24 GB, issue 22). Any other file is left alone."""
+    with open(path, "rb") as f:
+        header = _ascii_grid_header(f)
+        if not header:
+            return
+        try:
+            ncols, nrows = int(header[b"ncols"]), int(header[b"nrows"])
+        except (KeyError, ValueError):
+            raise DemError(f"{path}: ESRI ASCII grid header needs integer ncols and nrows, "
+                           f"got {header}") from None
+        if ncols <= 0 or nrows <= 0:
+            raise DemError(f"{path}: ESRI ASCII grid header gives {ncols} x {nrows} cells")
+        promised = ncols * nrows
+        # every value takes a character and a separator: a short file fails without a scan
+        room = path.stat().st_size - f.tell()
+        held = _count_values(f, promised) if room >= 2 * promised - 1 else None
+    if held is None or held < promised:
+        what = f"{held} values" if held is not None else f"only {room} bytes of values"
+        raise DemError(f"{path}: truncated ESRI ASCII grid: the header promises {nrows} x "
+                       f"{ncols} = {promised} values, the file holds {what}; export or copy "
+                       "it again")
+
+
+def _ascii_grid_header(f) -> dict:
+    """The ``key value`` lines an ESRI ASCII grid starts with (empty if none); ``f`` is
+    left at the first value."""
+    header = {}
+    while True:
+        pos = f.tell()
+        parts = f.readline(256).split()
+        if len(parts) != 2 or parts[0].lower() not in _ASC_KEYS:
+            f.seek(pos)
+            return header
+        header[parts[0].lower()] = parts[1]
+
+
+def _count_values(f, enough: int) -> int:
+    """Whitespace-separated tokens from ``f``'s position, counted in chunks (stops at
+    ``enough``): memory stays at one chunk whatever the file's size."""
+    count, tail = 0, b""
+    while count < enough and (chunk := f.read(_CHUNK)):
+        tokens = (tail + chunk).split()
+        tail = tokens.pop() if tokens and not chunk[-1:].isspace() else b""
+        count += len(tokens)
+    return count + (1 if tail else 0)
 
 
 def _open_gdal(path: Path, crs_given: bool = False) -> Dem:

@@ -33,6 +33,17 @@ late (the filter rewinds to the history entry before the stamp and re-propagates
 IMU samples, re-applying the later measurements). All three orders therefore give the same
 estimate. Measurements older than the history are stale.
 
+IMU stamps are screened first (:class:`~terrain_nav_ros.core.imu_timing.ImuTimingGuard`): a
+sample stamped more than ``time_jump_reset`` from the previous one, in either direction, is
+refused (``STAMP_OFF_PERIOD``) unless ``time_jump_confirm`` consecutive samples continue
+from it, which is a real time jump. A jump ahead of at most ``max_imu_outage`` is an IMU
+outage: integrated across as a gap (``IMU_GAP``). Any other (bag loop, simulator restart)
+resets the filter (``TIME_JUMP_RESET``), which starts the new timeline with those samples and
+re-initialises per ``init_mode``; with ``gnss``/``fix``, when no measurement of that source
+has come ``reinit_timeout`` s into the new timeline, it starts again from the last good state
+with the initial covariance added (``REINITIALIZED``) rather than wait for a source that may
+be gone.
+
 Every public ``process_*`` method returns an :class:`Outcome` with a :class:`Reason`; bad input
 never raises and never stops the filter.
 
@@ -63,6 +74,7 @@ from filterpy.kalman import ExtendedKalmanFilter
 from scipy.stats import chi2
 
 from .ekf_params import EkfParams
+from .imu_timing import ImuTiming, ImuTimingGuard
 from .strapdown import (
     DIM_ERR,
     IDX_BA,
@@ -103,7 +115,9 @@ class Reason(StrEnum):
     TOO_FAR_AHEAD = "too_far_in_future"
     GATED = "chi_square_gate"
     COMPARED_ONLY = "compared_not_fused"
-    TIME_JUMP_RESET = "time_jump_backwards_reset"
+    TIME_JUMP_RESET = "time_jump_reset"
+    STAMP_OFF_PERIOD = "stamp_far_from_expected_period"
+    REINITIALIZED = "reinitialised_from_last_good_state"
 
 
 @dataclass(frozen=True)
@@ -188,7 +202,12 @@ class EkfDiagnostics:
     input_rejections : Counter
         Inputs refused before any update, per ``"<source>:<reason>"``.
     resets : int
-        Time-jump resets.
+        Time-jump resets (confirmed jumps, either direction).
+    reinitialisations : int
+        Restarts from the last good state after a reset (no init source came).
+    imu_stamps_refused : int
+        IMU samples refused when they came because their stamp was far from the expected
+        period (those that a confirmed jump then proves right are integrated after all).
     position_resets : int
         Position resets after consecutive rejections.
     imu_gaps : int
@@ -208,6 +227,8 @@ class EkfDiagnostics:
     rejected: Counter = field(default_factory=Counter)
     input_rejections: Counter = field(default_factory=Counter)
     resets: int = 0
+    reinitialisations: int = 0
+    imu_stamps_refused: int = 0
     position_resets: int = 0
     imu_gaps: int = 0
     last_accepted: dict = field(default_factory=dict)
@@ -307,6 +328,8 @@ class TerrainEkf:
         self._Q3[i3, i3] = qa / 3.0
         self._seq = itertools.count()
         self._initial_pose = None
+        # Outlives resets: it decides what a reset is.
+        self._timing = ImuTimingGuard(p.time_jump_reset, p.max_imu_dt, p.time_jump_confirm)
         self._diag = EkfDiagnostics(records=deque(maxlen=p.nis_history_length))
         self._clear()
 
@@ -325,6 +348,9 @@ class TerrainEkf:
         self._init_candidate = None
         self._consecutive = Counter()
         self._reset_armed: set[str] = set()
+        self._last_good: NavState | None = None   # set after a time jump, for re-init
+        self._init_source_seen = False
+        self._reinit_after = math.inf
         self._diag.initialized = False
         self._diag.stamp = None
 
@@ -344,6 +370,7 @@ class TerrainEkf:
     def _refresh_diagnostics(self):
         d = self._diag
         d.initialized, d.stamp = self.initialized, self.t
+        d.imu_stamps_refused = self._timing.refused
         P = self.kf.P
         d.covariance_trace = float(np.trace(P))
         d.position_sigma = float(np.sqrt(np.trace(P[IDX_P, IDX_P])))
@@ -405,7 +432,7 @@ class TerrainEkf:
         self.initialized = True
         self._store(None, None)
         for t, gyro, accel in pre_init:   # IMU that arrived while waiting for a fix
-            self.process_imu(t, gyro, accel)
+            self._integrate(t, gyro, accel)   # screened by the timing guard already
         return Outcome(True, Reason.INITIALIZED)
 
     def set_initial_pose(self, position, velocity, quaternion, stamp: float | None = None,
@@ -424,6 +451,7 @@ class TerrainEkf:
         otherwise from two fixes ``init_min_fix_interval`` apart (velocity by difference,
         yaw from course, level roll/pitch)."""
         p = self.params
+        self._init_source_seen = True
         pos, pcov = meas.z[:3], meas.R[:3, :3]
         has_v = 3 in meas.rows
         if has_v:
@@ -456,10 +484,52 @@ class TerrainEkf:
             self._diag.accepted[meas.source] += 1
         return out
 
+    def waiting_for(self) -> str:
+        """What the filter waits for to initialise ("" once initialised), for diagnostics:
+        a bag whose GNSS ends before the second fix otherwise left only "not initialised"."""
+        if self.initialized:
+            return ""
+        p = self.params
+        if p.init_mode == "pose":
+            return "an initial pose and an IMU sample"
+        first = self._init_candidate
+        if first is None:
+            return f"a first {p.init_mode} measurement"
+        return (f"a second {p.init_mode} measurement {p.init_min_fix_interval:g} s or more "
+                f"after the one at {first.stamp:.3f} s (or one with velocity)")
+
     def reset(self):
         """Forget the estimate (keeps counters); re-initialises per ``init_mode``."""
         self._clear()
         self._diag.resets += 1
+
+    def _time_jump(self) -> Outcome:
+        """Bridge an IMU outage, or reset on any other confirmed jump and start the new
+        timeline with its samples."""
+        pending = self._timing.take_pending()
+        if self.initialized and 0 < pending[0][0] - self.t <= self.params.max_imu_outage:
+            for sample in pending:   # the first one integrates across the outage
+                self._integrate(*sample)
+            return Outcome(True, Reason.IMU_GAP)
+        last = self.state if self.initialized else None
+        self.reset()
+        self._last_good = last
+        self._reinit_after = pending[0][0] + self.params.reinit_timeout
+        for sample in pending:
+            self._integrate(*sample)
+        return Outcome(False, Reason.TIME_JUMP_RESET)
+
+    def _reinitialize(self, stamp: float) -> Outcome:
+        """Start again from the last good state with the initial covariance added: the
+        time across the jump is unknown, so the state is a guess that fixes must correct."""
+        s = self._last_good
+        P = s.covariance + self.default_covariance()
+        out = self.initialize(stamp, s.position, s.velocity, s.quaternion, 0.5 * (P + P.T),
+                              s.gyro_bias, s.accel_bias)
+        if not out.accepted:
+            return out
+        self._diag.reinitialisations += 1
+        return Outcome(True, Reason.REINITIALIZED)
 
     # ------------------------------------------------------------------ IMU
     def process_imu(self, stamp: float, gyro, accel) -> Outcome:
@@ -480,7 +550,9 @@ class TerrainEkf:
         Outcome
             ``OK``/``IMU_GAP`` when integrated; ``INITIALIZED`` when a stored initial pose
             started the filter; rejections: ``NON_FINITE``, ``BAD_SHAPE``, ``DUPLICATE``,
-            ``OUT_OF_ORDER``, ``NOT_INITIALIZED``; ``TIME_JUMP_RESET`` after a reset.
+            ``OUT_OF_ORDER``, ``NOT_INITIALIZED``, ``STAMP_OFF_PERIOD``;
+            ``TIME_JUMP_RESET`` after a reset, ``REINITIALIZED`` when it restarted from the
+            last good state.
         """
         # Plain floats: cheaper than numpy for 3-vectors at IMU rate.
         try:
@@ -493,15 +565,20 @@ class TerrainEkf:
             return self._refuse("imu", Reason.BAD_SHAPE)
         if not math.isfinite(stamp + sum(gyro) + sum(accel)):
             return self._refuse("imu", Reason.NON_FINITE)
+        timing = self._timing.check(stamp, (stamp, gyro, accel))
+        if timing == ImuTiming.SUSPECT:
+            return self._refuse("imu", Reason.STAMP_OFF_PERIOD)
+        if timing == ImuTiming.JUMP:
+            return self._time_jump()
+        return self._integrate(stamp, gyro, accel)
+
+    def _integrate(self, stamp: float, gyro, accel) -> Outcome:
+        """A sample whose stamp passed the timing screen: integrate, buffer or refuse."""
         if not self.initialized:
             return self._imu_before_init(stamp, gyro, accel)
         if stamp == self.t:
             return self._refuse("imu", Reason.DUPLICATE)
         if stamp < self.t:
-            if self.t - stamp > self.params.time_jump_reset:
-                self.reset()
-                self._imu_before_init(stamp, gyro, accel)
-                return Outcome(False, Reason.TIME_JUMP_RESET)
             return self._refuse("imu", Reason.OUT_OF_ORDER)
         gap = stamp - self.t > self.params.max_imu_dt
         self._advance(stamp, gyro, accel)
@@ -513,12 +590,12 @@ class TerrainEkf:
     def _imu_before_init(self, stamp, gyro, accel) -> Outcome:
         if self.params.init_mode == "pose" and self._initial_pose is not None:
             return self.initialize(stamp, *self._initial_pose)
+        if (self._last_good is not None and not self._init_source_seen
+                and stamp >= self._reinit_after):
+            return self._reinitialize(stamp)
         buf = self._pre_init_imu
         if buf and stamp <= buf[-1][0]:
-            if buf[-1][0] - stamp > self.params.time_jump_reset:
-                buf.clear()
-            else:
-                return self._refuse("imu", Reason.OUT_OF_ORDER)
+            return self._refuse("imu", Reason.OUT_OF_ORDER)
         buf.append((stamp, gyro, accel))
         while buf and buf[0][0] < stamp - self.params.history_length:
             buf.popleft()

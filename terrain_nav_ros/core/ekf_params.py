@@ -90,8 +90,22 @@ class EkfParams:
         A measurement stamped up to this far ahead of the newest IMU sample is queued and
         applied when the IMU reaches its stamp; further ahead it is rejected (s). Default 0.5.
     time_jump_reset : float
-        An IMU stamp this much older than the filter time resets the filter (bag loop);
-        smaller backward steps are rejected as out of order (s). Default 1.0.
+        An IMU stamp this far from the previous one, back or ahead, is refused as a glitch
+        unless ``time_jump_confirm`` samples continue from it (bag loop, simulator restart),
+        which resets the filter; smaller backward steps are rejected as out of order (s).
+        Default 1.0.
+    time_jump_confirm : int
+        Consecutive samples, each within ``max_imu_dt`` of the previous, that confirm a time
+        jump. Default 5 (50 ms at 100 Hz): one or a few bad stamps never reset the filter.
+    max_imu_outage : float
+        A confirmed jump ahead of up to this long is an IMU outage, not a new timeline: the
+        filter integrates across it as a gap (as it does for any gap shorter than
+        ``time_jump_reset``) instead of resetting (s). Default 10.0.
+    reinit_timeout : float
+        After a reset with ``init_mode`` gnss or fix, when no measurement of that source came
+        within this time of the new timeline, the filter restarts from its last good state
+        with the initial covariance added, instead of waiting for a source that may be gone
+        (GNSS denied) (s). Default 2.0.
     max_imu_dt : float
         IMU intervals longer than this are integrated but flagged as a gap (s). Default 0.1.
     nis_history_length : int
@@ -119,6 +133,9 @@ class EkfParams:
     history_length: float = 3.0
     max_future: float = 0.5
     time_jump_reset: float = 1.0
+    time_jump_confirm: int = 5
+    max_imu_outage: float = 10.0
+    reinit_timeout: float = 2.0
     max_imu_dt: float = 0.1
     nis_history_length: int = 200
 
@@ -136,6 +153,10 @@ class EkfParams:
         for name in ("fix_gate_probability", "baro_gate_probability", "gnss_gate_probability"):
             if not 0.0 < getattr(self, name):
                 raise ValueError(f"EkfParams.{name} must be in (0, 1], got {getattr(self, name)}")
+        if self.time_jump_confirm < 1 or self.reinit_timeout < 0 or self.max_imu_outage < 0:
+            raise ValueError("EkfParams.time_jump_confirm must be >= 1, reinit_timeout and "
+                             f"max_imu_outage >= 0, got {self.time_jump_confirm}, "
+                             f"{self.reinit_timeout}, {self.max_imu_outage}")
         if self.init_mode not in ("pose", "gnss", "fix"):
             raise ValueError("EkfParams.init_mode must be pose, gnss or fix, "
                              f"not {self.init_mode!r}")

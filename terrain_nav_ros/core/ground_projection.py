@@ -35,6 +35,7 @@ __all__ = [
     "look_at_rotation",
     "nadir_rotation",
     "check_view",
+    "mean_height_near",
     "image_to_ground",
     "ground_to_image",
     "ground_homography",
@@ -241,6 +242,23 @@ def check_view(intr: CameraIntrinsics, pose: CameraPose, plane_height: float) ->
     if not (_ground_rays(u, v, intr, pose)[:, 2] < 0).any():
         return "camera is pointing at or above the horizon: no ground in view"
     return ""
+
+
+def mean_height_near(heights: np.ndarray, georef: GeoReference, east: float, north: float,
+                     radius: float) -> tuple[float | None, str]:
+    """Mean DEM height within ``radius`` of (east, north): ``(height, "")``, or
+    ``(None, why)`` when the tile does not reach there or holds only nodata there (an
+    all-nodata DEM read "no DEM tile under the aircraft yet", issue 22)."""
+    c0, r0 = georef.enu_to_pixel(east - radius, north + radius)
+    c1, r1 = georef.enu_to_pixel(east + radius, north - radius)
+    c0, r0 = max(int(c0), 0), max(int(r0), 0)
+    c1, r1 = min(int(c1) + 1, georef.width), min(int(r1) + 1, georef.height)
+    if c1 <= c0 or r1 <= r0:
+        return None, "the DEM tile does not reach the aircraft yet"
+    window = heights[r0:r1, c0:c1]
+    if not np.isfinite(window).any():
+        return None, "the DEM has no heights under the aircraft (nodata or voids)"
+    return float(np.nanmean(window)), ""
 
 
 def footprint_georef(intr: CameraIntrinsics, pose: CameraPose, plane_height: float,

@@ -1,0 +1,296 @@
+#!/usr/bin/env python3
+"""Fault cases through the real commands (issue 22): prints a GOOD / POOR / BAD table.
+
+Each case makes one bad input (a DEM, a bag, an option, a parameter, an IMU stamp), feeds
+it to the real ``terrain-nav`` command, node executable or EKF core and judges the answer:
+
+* GOOD: the expected clear answer (exit status, one line naming the fault, no traceback) in
+  time;
+* POOR: refused, but with a traceback, several lines, another exit status or a message
+  that does not name the fault;
+* BAD: accepted as if nothing were wrong, a hang, or navigation lost.
+
+Usage::
+
+    .venv/bin/python scripts/fault_cases.py            # every case (~1 min on 2 cores)
+    .venv/bin/python scripts/fault_cases.py --ci       # the subset ./tn test runs
+    .venv/bin/python scripts/fault_cases.py -k bag     # cases whose name holds "bag"
+
+Exit status 1 when any case is BAD. ``test/test_commands.py`` runs the ``--ci`` subset.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import os
+import subprocess
+import sys
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+BIN = Path(sys.executable).parent
+GOOD, POOR, BAD = "GOOD", "POOR", "BAD"
+ASC_HEADER = "ncols {c}\nnrows {r}\nxllcorner 0\nyllcorner 0\ncellsize 30\n"
+
+
+# ----------------------------------------------------------------------------- fault makers
+def make_bag(path: Path, n: int = 3000) -> Path:
+    """A small zstd bag on /imu/data with several chunks (std_msgs/String payloads)."""
+    from rosbags.typesys.stores.ros2_jazzy import std_msgs__msg__String as String
+
+    from terrain_nav_ros import bags
+
+    with bags.BagWriter(path, compress=True) as writer:
+        for i in range(n):
+            writer.write_message("/imu/data", i * 10_000_000,
+                                 String(data=f"{i:06d}" + "x" * 1000), "std_msgs/msg/String")
+    return path
+
+
+def cut_half(data: bytes) -> bytes:
+    """An MCAP recording cut short."""
+    return data[: len(data) // 2]
+
+
+def corrupt_chunk(data: bytes) -> bytes:
+    """Bytes flipped inside the compressed data of the second chunk."""
+    from mcap.reader import make_reader
+
+    chunks = make_reader(io.BytesIO(data)).get_summary().chunk_indexes
+    start = chunks[1].chunk_start_offset + chunks[1].chunk_length // 2
+    return data[:start] + bytes(b ^ 0x5A for b in data[start:start + 64]) + data[start + 64:]
+
+
+def damaged_copy(bag: Path, dest: Path, change: Callable[[bytes], bytes] | None) -> Path:
+    """A copy of ``bag`` with ``change`` applied to its MCAP file (None: no metadata.yaml)."""
+    dest.mkdir()
+    for f in bag.iterdir():
+        data = f.read_bytes()
+        if f.suffix == ".mcap" and change is not None:
+            data = change(data)
+        if f.suffix == ".mcap" or change is not None:
+            (dest / f.name).write_bytes(data)
+    return dest
+
+
+def with_mission(bag: Path, dest: Path, text: str) -> Path:
+    """A copy of ``bag`` with ``text`` as its mission.yaml."""
+    dest.mkdir()
+    for f in bag.iterdir():
+        (dest / f.name).write_bytes(f.read_bytes())
+    (dest / "mission.yaml").write_text(text)
+    return dest
+
+
+def geotiff(path: Path) -> Path:
+    """A valid 64 x 64 GeoTIFF (UTM 11N)."""
+    import numpy as np
+    import rasterio
+    from affine import Affine
+
+    with rasterio.open(path, "w", driver="GTiff", width=64, height=64, count=1, dtype="int16",
+                       crs="EPSG:32611", transform=Affine(30, 0, 4e5, 0, -30, 3.8e6)) as ds:
+        ds.write(np.ones((64, 64), np.int16), 1)
+    return path
+
+
+def corrupt_header(path: Path) -> Path:
+    data = bytearray(path.read_bytes())
+    data[8:200] = bytes((i * 37) % 256 for i in range(192))
+    path.write_bytes(bytes(data))
+    return path
+
+
+# ----------------------------------------------------------------------------- judging
+@dataclass
+class Case:
+    """One fault: ``run(tmp)`` returns (verdict, detail)."""
+
+    name: str
+    fault: str
+    run: Callable[[Path], tuple[str, str]]
+    ci: bool = False
+
+
+def judge(cmd: list, expect: int, words: tuple[str, ...], timeout: float = 60.0,
+          stream: str = "stderr", one_line: bool = True) -> tuple[str, str]:
+    """Run ``cmd`` and judge its answer against the exit status and words expected."""
+    try:
+        proc = subprocess.run([str(c) for c in cmd], text=True, capture_output=True,
+                              timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return BAD, f"no answer within {timeout:.0f} s"
+    out = getattr(proc, stream)
+    lines = [line for line in out.strip().splitlines() if line.strip()]
+    last = lines[-1][:110] if lines else "(no output)"
+    if proc.returncode == 0 and expect != 0:
+        return BAD, f"exit 0: {last}"
+    if "Traceback" in proc.stdout + proc.stderr:
+        return POOR, f"traceback, exit {proc.returncode}"
+    missing = [w for w in words if w not in out]
+    if proc.returncode != expect or missing or (one_line and len(lines) != 1):
+        return POOR, f"exit {proc.returncode}, {len(lines)} lines, missing {missing}: {last}"
+    return GOOD, f"exit {proc.returncode}: {last}"
+
+
+def terrain_nav(*args) -> list:
+    return [BIN / "terrain-nav", *args]
+
+
+def _simulate_dem(make: Callable[[Path], Path], *words) -> Callable:
+    return lambda tmp: judge(terrain_nav("simulate", "-o", tmp / "out", "--duration", 5,
+                                         "--dem", make(tmp)), 2, words, timeout=30)
+
+
+def _bag_info(change, *words) -> Callable:
+    return lambda tmp: judge(terrain_nav("bag", "info", damaged_copy(
+        make_bag(tmp / "whole"), tmp / "bag", change)), 1, ("DAMAGED", *words),
+        stream="stdout", one_line=False)
+
+
+def _replay(make_bag_dir: Callable[[Path], Path], extra: tuple, *words) -> Callable:
+    return lambda tmp: judge(terrain_nav("replay", "--bag", make_bag_dir(tmp), "--out",
+                                         tmp / "replay", *extra), 2, words)
+
+
+def _node_params(yaml_text: str, *words) -> Callable:
+    def run(tmp: Path):
+        params = tmp / "params.yaml"
+        params.write_text(yaml_text)
+        # the node may log its start before it checks its parameters: not one line
+        return judge([BIN / "ekf", "--ros-args", "--params-file", params], 1, words,
+                     one_line=False)
+    return run
+
+
+def _ekf_stamp(offset: float) -> Callable:
+    def run(_tmp: Path):
+        import numpy as np
+
+        from terrain_nav_ros.core.ekf import EkfParams, TerrainEkf
+        from terrain_nav_ros.core.imu_sim import ImuErrorModel, simulate_imu
+        from terrain_nav_ros.core.trajectory_sim import simulate_trajectory, straight_flight
+
+        params = EkfParams(init_mode="gnss")
+        truth = simulate_trajectory(straight_flight(8.0), rate_hz=100.0)
+        imu = simulate_imu(truth, ImuErrorModel.from_params(params), np.random.default_rng(1))
+        ekf = TerrainEkf(params)
+        ekf.initialize(truth.t[0], truth.position[0], truth.velocity[0], truth.quaternion[0])
+        for k in range(1, len(truth)):   # GNSS gone: IMU only, one bad stamp at 4 s
+            ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
+            if k == 400:
+                ekf.process_imu(truth.t[k] + offset, imu.gyro[k], imu.accel[k])
+        d = ekf.diagnostics
+        err = float(np.linalg.norm(ekf.state.position - truth.position[-1]))
+        detail = (f"refused {d.imu_stamps_refused}, resets {d.resets}, final error "
+                  f"{err:.1f} m, filter at {ekf.t:.2f} s")
+        if not ekf.initialized or abs(ekf.t - truth.t[-1]) > 1e-6 or err > 50.0:
+            return BAD, detail
+        return (GOOD if d.imu_stamps_refused == 1 and d.resets == 0 else POOR), detail
+    return run
+
+
+def cases() -> list[Case]:
+    """Every fault case, in table order."""
+    asc = ASC_HEADER.format
+    return [
+        Case("truncated ESRI ASCII grid (100x100, 4 values)", "dem", _simulate_dem(
+            lambda t: _write(t / "cut.asc", asc(c=100, r=100) + "1 2 3 4\n"),
+            "truncated ESRI ASCII grid")),
+        Case("ESRI ASCII header promising 1e18 cells", "dem", _simulate_dem(
+            lambda t: _write(t / "huge.asc", asc(c=10**9, r=10**9) + "1 2 3\n"),
+            "truncated ESRI ASCII grid"), ci=True),
+        Case("ESRI ASCII grid with 9/10 of its values", "dem", _simulate_dem(
+            lambda t: _write(t / "short.asc", asc(c=100, r=100) + "1234.5 " * 9000),
+            "holds 9000 values")),
+        Case("SRTM .hgt cut short", "dem", _simulate_dem(
+            lambda t: _write(t / "N44E005.hgt", bytes(2 * 1201 * 1201 - 100)), "truncated?")),
+        Case("GeoTIFF with a corrupt header", "dem", _simulate_dem(
+            lambda t: corrupt_header(geotiff(t / "bad.tif")), "corrupt header")),
+        Case("empty GeoTIFF", "dem", _simulate_dem(
+            lambda t: _write(t / "empty.tif", b""), "not a readable DEM")),
+        Case("DEM file missing", "dem", _simulate_dem(
+            lambda t: t / "nope.tif", "no such DEM file")),
+        Case("bag cut to 50 %", "bag", _bag_info(cut_half, "cut short"), ci=True),
+        Case("bag with corrupted bytes", "bag", _bag_info(corrupt_chunk, "corrupt data")),
+        Case("bag without metadata.yaml", "bag", _bag_info(None, "metadata.yaml")),
+        Case("bag play of a corrupt bag", "bag", lambda tmp: judge(terrain_nav(
+            "bag", "play", damaged_copy(make_bag(tmp / "whole"), tmp / "bag", corrupt_chunk),
+            "--rate", 100), 1, ("DAMAGED", "stopped after"), one_line=False)),
+        Case("replay of an empty folder", "replay", _replay(
+            lambda t: t, (), "no .mcap file")),
+        Case("replay with a broken mission.yaml", "replay", _replay(
+            lambda t: with_mission(make_bag(t / "whole"), t / "bag", "dem: [unclosed\n"), (),
+            "mission.yaml is not valid YAML")),
+        Case("replay with a mission origin of two numbers", "replay", _replay(
+            lambda t: with_mission(make_bag(t / "whole"), t / "bag", "origin: [36.5, -84]\n"),
+            (), "origin must be [lat, lon, height]"), ci=True),
+        Case("replay of a mission naming a missing DEM", "replay", _replay(
+            lambda t: with_mission(make_bag(t / "whole"), t / "bag", "dem: /no/dem.tif\n"), (),
+            "no such DEM file")),
+        Case("replay --rate 0", "replay", _replay(
+            lambda t: make_bag(t / "whole"), ("--rate", 0), "--rate 0.0: must be > 0")),
+        Case("replay --rate nan", "replay", _replay(
+            lambda t: make_bag(t / "whole"), ("--rate", "nan"), "must be > 0")),
+        Case("simulate --duration -5", "options", lambda tmp: judge(terrain_nav(
+            "simulate", "-o", tmp / "out", "--duration", -5), 2, ("--duration",))),
+        Case("simulate over an existing output", "options", lambda tmp: judge(terrain_nav(
+            "simulate", "-o", tmp, "--duration", 5), 2, ("exists already",))),
+        Case("graph --config missing", "options", lambda tmp: judge(terrain_nav(
+            "graph", "--config", tmp / "nope.yaml"), 2, ("cannot read graph file",))),
+        Case("misspelt parameter (time_jump_reste)", "parameters", _node_params(
+            "ekf:\n  ros__parameters:\n    time_jump_reste: 2.0\n",
+            "unknown parameter(s) time_jump_reste (did you mean time_jump_reset?)")),
+        Case("NaN parameter (gravity: .nan)", "parameters", _node_params(
+            "ekf:\n  ros__parameters:\n    gravity: .nan\n", "gravity out of range"),
+             ci=True),
+        Case("IMU stamp 5 s in the past, GNSS gone", "ekf", _ekf_stamp(-5.0)),
+        Case("IMU stamp 1 h ahead, GNSS gone", "ekf", _ekf_stamp(3600.0), ci=True),
+    ]
+
+
+def _write(path: Path, data) -> Path:
+    (path.write_bytes if isinstance(data, bytes) else path.write_text)(data)
+    return path
+
+
+def run_cases(selected: list[Case]) -> list[tuple[Case, str, str]]:
+    """Run each case in its own temporary folder; (case, verdict, detail) rows."""
+    rows = []
+    for case in selected:
+        with tempfile.TemporaryDirectory(prefix="fault-") as tmp:
+            try:
+                verdict, detail = case.run(Path(tmp))
+            except Exception as err:  # noqa: BLE001 - a case that breaks is a finding
+                verdict, detail = BAD, f"the case itself failed: {type(err).__name__}: {err}"
+        rows.append((case, verdict, detail))
+    return rows
+
+
+def table(rows) -> str:
+    lines = [f"{'class':10s} {'case':48s} {'verdict':7s} answer"]
+    lines += [f"{c.fault:10s} {c.name:48s} {v:7s} {d}" for c, v, d in rows]
+    counts = {v: sum(1 for _, got, _ in rows if got == v) for v in (GOOD, POOR, BAD)}
+    lines.append(", ".join(f"{n} {v}" for v, n in counts.items()) + f" of {len(rows)}")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    # the nodes started here must not meet another graph on this machine (as in the tests)
+    os.environ.setdefault("ROS_DOMAIN_ID", str(101 + os.getpid() % 100))
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--ci", action="store_true", help="only the subset ./tn test runs")
+    parser.add_argument("-k", default="", help="only cases whose name holds this")
+    args = parser.parse_args(argv)
+    selected = [c for c in cases() if (c.ci or not args.ci) and args.k in c.name]
+    rows = run_cases(selected)
+    print(table(rows))
+    return 1 if any(v == BAD for _, v, _ in rows) else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
