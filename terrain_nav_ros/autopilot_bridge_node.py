@@ -203,20 +203,28 @@ class AutopilotBridge(Node):
                     self.get_logger().info(f"ekf reset (count {resets}): reset_counter "
                                            f"now {self.resets.value}")
 
+    def _health_reason(self) -> str | None:
+        """Why the ekf's own word holds every output back (None: it does not)."""
+        if not (self.require_diagnostics or self.stop_on_error):
+            return None
+        if self.ekf_status is None:
+            return "no ekf diagnostics yet"
+        if time.monotonic() - self._ekf_status_wall > self.diagnostics_timeout:
+            return "ekf diagnostics stale"
+        level, _message, values = self.ekf_status
+        if self.require_diagnostics and values.get("initialized") != "True":
+            return "ekf not initialised"
+        if self.stop_on_error and level >= DIAG_ERROR:
+            return "ekf reports ERROR"
+        return None
+
     def _hold_back_reason(self, pose_cov: np.ndarray, position, quaternion) -> str | None:
         """Why this estimate must not reach the autopilot (None: it may)."""
         if not (np.isfinite(position).all() and np.isfinite(quaternion).all()):
             return "non-finite estimate"
-        if self.require_diagnostics or self.stop_on_error:
-            if self.ekf_status is None:
-                return "no ekf diagnostics yet"
-            if time.monotonic() - self._ekf_status_wall > self.diagnostics_timeout:
-                return "ekf diagnostics stale"
-            level, _message, values = self.ekf_status
-            if self.require_diagnostics and values.get("initialized") != "True":
-                return "ekf not initialised"
-            if self.stop_on_error and level >= DIAG_ERROR:
-                return "ekf reports ERROR"
+        health = self._health_reason()
+        if health is not None:
+            return health
         sigma = math.sqrt(max(float(np.trace(pose_cov[:3, :3])), 0.0))
         if self.max_position_sigma > 0 and not sigma <= self.max_position_sigma:
             return "position sigma above max_position_sigma"
@@ -269,7 +277,8 @@ class AutopilotBridge(Node):
     @contained
     def on_navsatfix(self, msg: NavSatFix):
         """SensorGps from the ekf's NavSatFix, while the odometry goes out."""
-        if not self._sending or self._last_odometry is None:
+        # the ekf's word counts at once: a NavSatFix may come before the next odometry
+        if not self._sending or self._last_odometry is None or self._health_reason():
             return
         stamp, _status, lla, cov, _cov_type = cv.navsatfix_to_arrays(msg)
         if not (np.isfinite(lla).all() and np.isfinite(cov).all()):

