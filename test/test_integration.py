@@ -175,3 +175,28 @@ def test_flight_over_flat_terrain_says_why_there_is_no_fix(tmp_path):
     _nodes_survived(result)
     assert result["fixes"]["fixes"] == 0 and result["fixes"]["no_fix"] >= 5
     assert "no drainage" in _no_fix_reasons(result) or "minutiae" in _no_fix_reasons(result)
+
+
+def test_flight_over_a_real_image_bounds_the_error(tmp_path, shared_data):
+    """150 s over the real Landsat 7 November image of Pennsylvania's ridges, draped on its
+    DEM (simulate --albedo: fields, forest and roads the landmark renders do not have; the
+    landmarks stay DEM renders lit by the image's sun): every frame is answered, most get a
+    fix, the fixes are consistent with their covariances, and the fused error stays well
+    below dead reckoning. The bag is made here from ../shared, never committed."""
+    imagery = shared_data / "imagery"
+    bag = tmp_path / "pa_real"
+    simulate(SimConfig(dem=str(imagery / "pa_ridgevalley_dem30m_utm18.tif"),
+                       albedo=str(imagery / "pa_ridgevalley_l7_20021125.tif"),
+                       albedo_band="4", start_time="2002-11-25T15:35:00Z", duration=150.0,
+                       pattern="survey", start_east=-900.0, start_north=-300.0, agl=3000.0,
+                       camera_hfov=70.0, landmark_gsd=30.0, gnss_denied_after=15.0, seed=3),
+             bag)
+    result = run_replay(bag, tmp_path / "out", GRAPH)
+    _nodes_survived(result)
+    fixes = result["fixes"]
+    assert fixes["frames"] >= fixes["in_bag"] - 1, fixes
+    assert fixes["fixes"] >= 0.7 * fixes["frames"], fixes
+    assert result["fix_error"]["within_3_sigma"] >= 0.9, result["fix_error"]
+    fused, dr = result["fused_error"], result["dr_error"]
+    assert fused["rms"] <= 5 * 30.0, fused
+    assert fused["rms"] < 0.6 * dr["rms"] and fused["final"] < 0.5 * dr["final"], (fused, dr)
