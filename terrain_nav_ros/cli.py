@@ -185,8 +185,8 @@ def _cmd_evaluate_imagery(args) -> int:
             scenes = [load_scene(args.image, args.dem, band=args.band, gsd=gsd, sun=sun,
                                  when=args.time)]
         sizes = tuple(int(x) for x in args.sizes.split(","))
-        if min(sizes) < 16 or args.cases < 1:
-            raise ValueError("--sizes must be >= 16 px and --cases >= 1")
+        if min(sizes) < 16 or args.cases < 1 or args.controls < 0:
+            raise ValueError("--sizes must be >= 16 px, --cases >= 1 and --controls >= 0")
         headings = ("unknown", "known") if args.heading == "both" else (args.heading,)
         baselines = () if args.no_baselines else tuple(args.baselines.split(","))
         params = MatchParams(view_search=not args.no_view_search)
@@ -194,6 +194,7 @@ def _cmd_evaluate_imagery(args) -> int:
                                          match_params=params,
                                          out_dir=out, seed=args.seed, headings=headings,
                                          baselines=baselines,
+                                         controls_per_case=args.controls,
                                          false_match_rate=args.false_match_rate,
                                          threshold=args.threshold)
     except (ValueError, OSError, KeyError) as err:
@@ -412,6 +413,9 @@ def build_parser() -> argparse.ArgumentParser:
     im.add_argument("--cases", type=int, default=20,
                     help="views per scene, size and heading condition")
     im.add_argument("--heading", choices=["unknown", "known", "both"], default="both")
+    im.add_argument("--controls", type=int, default=2,
+                    help="non-PVA regions of other places per view (and one far part of its "
+                         "own scene where the scene holds one)")
     im.add_argument("--baselines", default="ncc,orb", help="of ncc, orb, sift")
     im.add_argument("--no-view-search", dest="no_view_search", action="store_true",
                     help="without the matcher's crease search of large views")

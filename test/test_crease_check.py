@@ -141,7 +141,7 @@ def test_refinement_brings_the_creases_together(region):
 def test_refinement_with_scale_recovers_a_scaled_view(region):
     """A view 6 % larger, started at scale 1 and 1 degree off: the ICP with the scale brings
     it onto the creases and recovers the scale; without it, the view stays off at its
-    edges."""
+    edges; with bounds that exclude the truth, the scale stops at the bound."""
     skel = region[1]
     big = skel[100:356, 100:356]
     small = skel[130:290, 140:300].astype(np.float32)
@@ -153,13 +153,15 @@ def test_refinement_with_scale_recovers_a_scaled_view(region):
     t_true = complex(79.5, -79.5) * (1 - c_true) + (40 - 30j)
     c0, t0 = np.exp(1j * np.radians(1.0)), t_true + (1.0 - 1.0j)
     corner = 0j                                             # the view's corner: far out
-    for scale, tol in [(True, 1.0), (False, None)]:
+    for scale in [(0.9, 1.1), None, (0.97, 1.03)]:
         c, t = refine_on_creases(samples, field, c0, t0, scale=scale)
         err = abs(c * corner + t - (c_true * corner + t_true))
-        if scale:
-            assert abs(abs(c) - c_true) < 0.01 and err < tol
-        else:
+        if scale is None:
             assert abs(c) == pytest.approx(1.0) and err > 3.0
+        elif scale[0] < c_true:
+            assert abs(abs(c) - c_true) < 0.01 and err < 1.0
+        else:   # the truth is outside the bounds: the scale stops at the bound
+            assert abs(c) == pytest.approx(0.97)
 
 
 def test_ridges_fix_the_shift_that_parallel_valleys_leave_free():
@@ -252,7 +254,7 @@ def test_numba_kernels_agree_with_the_numpy_path(region, other_region, monkeypat
                         crease_evidence(samples, field, c, t, skip=skip),
                         refine_on_creases(samples, field, c, t),
                         refine_on_creases(samples, field, c, t, ridges=ridges),
-                        refine_on_creases(samples, field, c, t, ridges=ridges, scale=True),
+                        refine_on_creases(samples, field, c, t, ridges=ridges, scale=(0.9, 1.1)),
                         field.correspondences(c * samples.z + t, samples.direction, 1.5,
                                               0.35)))
         return out

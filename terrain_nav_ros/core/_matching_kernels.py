@@ -544,11 +544,13 @@ def _icp_correspondences(z, direction, distance, field_dir, label, crease_z, cre
 @njit(**_JIT)
 def crease_icp(z, direction, distance, field_dir, label, crease_z, crease_normal,
                z2, direction2, distance2, field_dir2, label2, crease_z2, crease_normal2,
-               c, t, radius, angle_tol, iterations, min_matches, with_scale=False):
+               c, t, radius, angle_tol, iterations, min_matches, with_scale=False,
+               scale_lo=1.0, scale_hi=1.0):
     """``crease_check.refine_on_creases`` in one pass per iteration: the correspondences of
     both channels (the second, e.g. the ridges, may have no samples), the 3x3 normal
     equations (accumulated, not from the (m, 3) Jacobian) and their solve (Cramer's rule);
-    ``with_scale``: the 4x4 system with the scale too (solved by LU).
+    ``with_scale``: the 4x4 system with the scale too (solved by LU), ``|c|`` kept within
+    ``[scale_lo, scale_hi]``.
     Sums in another order than numpy's: agrees to rounding."""
     n = z.size + z2.size
     p = np.empty(n, np.complex128)
@@ -568,7 +570,7 @@ def crease_icp(z, direction, distance, field_dir, label, crease_z, crease_normal
             break
         p0 = centroid / m
         if with_scale:
-            c, t, settled = _scaled_icp_step(p, q, normal, m, p0, c, t)
+            c, t, settled = _scaled_icp_step(p, q, normal, m, p0, c, t, scale_lo, scale_hi)
             if settled:
                 break
             continue
@@ -611,10 +613,11 @@ def crease_icp(z, direction, distance, field_dir, label, crease_z, crease_normal
 
 
 @njit(**_JIT)
-def _scaled_icp_step(p, q, normal, m, p0, c, t):
+def _scaled_icp_step(p, q, normal, m, p0, c, t, scale_lo, scale_hi):
     """One point-to-line step for rotation, scale and shift about ``p0``: the new (c, t) and
-    whether it settled. The scale step is bounded to 5 % (a few wrong pairings on parallel
-    creases must not shrink the view onto them)."""
+    whether it settled. The scale step is bounded to 5 % and ``|c|`` to [scale_lo,
+    scale_hi] (a few wrong pairings on parallel creases must not shrink the view onto
+    them, nor a chance registration stretch to fit)."""
     a = np.zeros((4, 4))
     b = np.zeros(4)
     j = np.empty(4)
@@ -633,6 +636,8 @@ def _scaled_icp_step(p, q, normal, m, p0, c, t):
         return c, t, True
     s = np.linalg.solve(a, b)
     ds = min(max(s[1], -0.05), 0.05)
+    size = abs(c)
+    ds = min(max((1.0 + ds) * size, scale_lo), scale_hi) / size - 1.0
     factor = (1.0 + ds) * complex(np.cos(s[0]), np.sin(s[0]))
     shift = complex(s[2], s[3])
     c, t = factor * c, factor * t + p0 * (1.0 - factor) + shift

@@ -249,9 +249,9 @@ def refine_on_creases(samples: CreaseSamples, field: CreaseField, c: complex, t:
                       radius: float = 3.0, angle_tol: float = math.radians(20.0),
                       iterations: int = 4, min_matches: int = 20,
                       ridges: tuple[CreaseSamples, CreaseField] | None = None,
-                      scale: bool = False) -> tuple[complex, complex]:
-    """Rotation and translation (and with ``scale`` the scale, by at most 5 % a step) that
-    bring A's creases onto B's (point-to-line ICP).
+                      scale: tuple[float, float] | None = None) -> tuple[complex, complex]:
+    """Rotation and translation (and with ``scale = (lo, hi)`` the scale, by at most 5 % a
+    step and within ``[lo, hi]``) that bring A's creases onto B's (point-to-line ICP).
 
     Each iteration pairs the mapped crease pixels of A with B's nearest crease pixel (within
     ``radius`` and ``angle_tol``) and solves the linearised least squares for a small
@@ -270,7 +270,8 @@ def refine_on_creases(samples: CreaseSamples, field: CreaseField, c: complex, t:
         second = channels[1] if len(channels) > 1 else (_NO_SAMPLES, field)
         return _kernels.crease_icp(*_icp_arrays(*channels[0]), *_icp_arrays(*second),
                                    complex(c), complex(t), radius, angle_tol, iterations,
-                                   min_matches, scale)
+                                   min_matches, scale is not None,
+                                   *(scale if scale is not None else (1.0, 1.0)))
     for _ in range(iterations):
         matched = [f.correspondences(c * s.z + t, s.direction + np.angle(c), radius,
                                      angle_tol) + (s,) for s, f in channels]
@@ -283,7 +284,7 @@ def refine_on_creases(samples: CreaseSamples, field: CreaseField, c: complex, t:
         # residual across the crease and its derivatives by (rotation, shift east, north)
         residual = (np.conj(normal) * (p - q)).real
         columns = [(np.conj(normal) * 1j * (p - p0)).real, normal.real, normal.imag]
-        if scale:
+        if scale is not None:
             columns.insert(1, (np.conj(normal) * (p - p0)).real)
         jac = np.column_stack(columns)
         # normal equations: a 3x3 solve is several times cheaper than an SVD of (m, 3), and
@@ -292,7 +293,10 @@ def refine_on_creases(samples: CreaseSamples, field: CreaseField, c: complex, t:
             step = np.linalg.solve(jac.T @ jac, -(jac.T @ residual))
         except np.linalg.LinAlgError:
             break   # all correspondences on parallel creases: the shift along them is free
-        ds = float(np.clip(step[1], -0.05, 0.05)) if scale else 0.0
+        ds = 0.0
+        if scale is not None:
+            ds = float(np.clip(step[1], -0.05, 0.05))
+            ds = float(np.clip((1.0 + ds) * abs(c), *scale)) / abs(c) - 1.0
         shift = complex(step[-2], step[-1])
         turn = (1.0 + ds) * np.exp(1j * step[0])
         c, t = turn * c, turn * t + p0 * (1.0 - turn) + shift

@@ -195,16 +195,17 @@ class MatchParams:
         default keeps block-vs-block searches of blocks up to ~130 px fine; a block of more
         than ~80 px in its 3x localisation region is searched coarse, 4-6x faster.
     view_search : bool
-        With crease images, a set too large for the crease search above (a camera footprint
-        in its landmark region) whose first and wider tries both stay below
+        With crease images, a localised set too large for the crease search above (a camera
+        footprint in its landmark region) whose first and wider tries both stay below
         ``rescue_below`` is searched too, at the finest level (:data:`~.crease_search.LEVELS`)
-        whose work fits ``crease_search_max_work``, over scales as well
-        (``view_search_scale``). On real images the minutiae of albedo edges (snow, forest,
-        fields) rarely repeat those of a render, so the minutiae's votes may propose nothing
-        right; the crease skeleton largely repeats.
-    view_search_scale : float
-        Relative scale error searched by that search (the prior's height above ground:
-        10 % moves the edge of a 256 px view by 13 px).
+        whose work fits ``crease_search_max_work``, over scales as well (``search_scale``).
+        On real images the minutiae of albedo edges (snow, forest, fields) rarely repeat
+        those of a render, so the minutiae's votes may propose nothing right; the crease
+        skeleton largely repeats.
+    search_scale : float
+        Relative scale error the crease searches of a localisation cover (the prior's height
+        above ground: 10 % moves the edge of a 256 px view by 13 px, more than a hit's
+        tolerance), and their ICP then fits; block comparisons search no scale.
     view_search_background : float
         That search counts hits above the reference's local crease density within this
         sigma (search px, :class:`~.crease_search.CreaseSearchReference`).
@@ -285,7 +286,7 @@ class MatchParams:
     crease_search_proposals: int = 3
     crease_search_fine_work: int = 4_000_000
     view_search: bool = True
-    view_search_scale: float = 0.1
+    search_scale: float = 0.1
     view_search_background: float = 3.0
     ridge_check: bool = True
     ridge_check_below: int = 64
@@ -1427,19 +1428,23 @@ def _refined_on_creases(a: MinutiaIndex, b: MinutiaIndex, best: _Scored, search_
     return moved
 
 
-def _search_level(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> SearchLevel:
+def _search_level(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams,
+                  scale_change: float = 0.0) -> SearchLevel:
     """The crease search's level: fine unless its work there exceeds the fine budget."""
-    fine = a.crease_search_query(p.max_rotation, FINE).work(b.crease_image.shape)
+    fine = a.crease_search_query(p.max_rotation, FINE, scale_change).work(b.crease_image.shape)
     return FINE if fine <= p.crease_search_fine_work else COARSE
 
 
-def _searches_creases(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> bool:
+def _searches_creases(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams,
+                      scale_change: float = 0.0) -> bool:
     """Whether the crease search runs: too few minutiae for the pair votes, a query small
     enough for its rotations, and a search within the work bound."""
-    return (min(a.n, b.n) < p.crease_search_below
-            and max(a.crease_image.shape) <= p.crease_search_max_side
-            and a.crease_search_query(p.max_rotation, _search_level(a, b, p)).work(
-                b.crease_image.shape) <= p.crease_search_max_work)
+    if min(a.n, b.n) >= p.crease_search_below or max(a.crease_image.shape) \
+            > p.crease_search_max_side:
+        return False
+    level = _search_level(a, b, p, scale_change)
+    return a.crease_search_query(p.max_rotation, level, scale_change).work(
+        b.crease_image.shape) <= p.crease_search_max_work
 
 
 def _view_search_level(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> SearchLevel | None:
@@ -1447,10 +1452,10 @@ def _view_search_level(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> Sear
     fits the work bound, or None."""
     for level in LEVELS:
         rotations, scales = a.crease_search_transforms(p.max_rotation, level,
-                                                       p.view_search_scale)
+                                                       p.search_scale)
         if len(rotations) * len(scales) > 4096:
             continue   # too many rasters for this level: try a coarser one
-        query = a.crease_search_query(p.max_rotation, level, p.view_search_scale)
+        query = a.crease_search_query(p.max_rotation, level, p.search_scale)
         if query.work(b.crease_image.shape) <= p.crease_search_max_work:
             return level
     return None
@@ -1464,7 +1469,7 @@ def _crease_search_registrations(a: MinutiaIndex, b: MinutiaIndex, p: MatchParam
     searched (at the fine level's rotations and scales: a coarse proposal is refined over
     them). ``level`` defaults to :func:`_search_level`'s; ``scale_change`` and
     ``background`` are the view search's (:class:`MatchParams`)."""
-    level = level or _search_level(a, b, p)
+    level = level or _search_level(a, b, p, scale_change)
     coarse = level != FINE
     fine_rotations, fine_scales = a.crease_search_transforms(p.max_rotation, FINE,
                                                              scale_change)
@@ -1479,7 +1484,8 @@ def _crease_search_registrations(a: MinutiaIndex, b: MinutiaIndex, p: MatchParam
         for radius in p.crease_rescue_radii if coarse else (3.0,):
             c, t = refine_on_creases(a.crease_samples, b.crease_field, c, t, radius=radius,
                                      angle_tol=p.crease_angle_tol, ridges=ridges,
-                                     scale=scale_change > 0)
+                                     scale=(1.0 - scale_change, 1.0 + scale_change)
+                                     if scale_change > 0 else None)
         out.append((c, t, _pair(a, b, c, t, p)))
     return out, found.log10_transforms
 
@@ -1572,7 +1578,7 @@ class Matcher:
         ra = float(np.sqrt(a.area / math.pi))
         rb = float(np.sqrt(b.area / math.pi))
         search = math.pi * (ra + rb) ** 2   # centre offsets with any overlap
-        return self._match(a, b, search)
+        return self._match(a, b, search, localising=False)
 
     def localise(self, camera, landmark, crease_camera=None,
                  crease_landmark=None) -> MatchResult:
@@ -1592,14 +1598,17 @@ class Matcher:
         """
         a = _as_index(camera, self.params, crease_camera)
         b = _as_index(landmark, self.params, crease_landmark)
-        return self._match(a, b, max(b.area, 1.0))
+        return self._match(a, b, max(b.area, 1.0), localising=True)
 
-    def _match(self, a: MinutiaIndex, b: MinutiaIndex, search_area: float) -> MatchResult:
+    def _match(self, a: MinutiaIndex, b: MinutiaIndex, search_area: float,
+               localising: bool) -> MatchResult:
         p = self.params
         base = MatchResult(Decision.NO_DECISION, n_a=a.n, n_b=b.n)
         use_creases = (p.crease_check and a.crease_image is not None
                        and b.crease_image is not None)
-        search = use_creases and _searches_creases(a, b, p)
+        # a view in its region: its scale is the prior's height above ground's, +-10 %
+        scale_change = p.search_scale if localising else 0.0
+        search = use_creases and _searches_creases(a, b, p, scale_change)
         if search:
             # the creases propose and carry the match: the rule is on their extent
             n_crease = (len(a.crease_samples), b.crease_field.n)
@@ -1635,7 +1644,7 @@ class Matcher:
             # the wider try of a set small enough for the crease search: it covers every
             # rotation and translation at the crease resolution (a sweep or a wide ICP would
             # only add chances to unrelated pairs); chosen together with the first try's
-            searched, trials = _crease_search_registrations(a, b, p)
+            searched, trials = _crease_search_registrations(a, b, p, None, scale_change)
             best, scored = _best_registration(a, b, [], search_area, p, use_creases,
                                               searched, trials, scored=scored)
             n_scored = len(scored)
@@ -1650,11 +1659,11 @@ class Matcher:
             if best is not None and use_creases:
                 best = _refined_on_creases(a, b, best, search_area, radius_a, p,
                                            radii=p.crease_rescue_radii)
-            if use_creases and p.view_search and _low(best, n_scored, p):
+            if localising and use_creases and p.view_search and _low(best, n_scored, p):
                 level = _view_search_level(a, b, p)
                 if level is not None:
                     searched, trials = _crease_search_registrations(
-                        a, b, p, level, p.view_search_scale, p.view_search_background)
+                        a, b, p, level, p.search_scale, p.view_search_background)
                     view, view_scored = _best_registration(a, b, [], search_area, p, True,
                                                            searched, trials)
                     n_scored += len(view_scored)
@@ -1723,3 +1732,4 @@ def warm_up(params: MatchParams | None = None) -> None:
     matcher.compare(full, matcher.index(*other))              # the wider try
     few = matcher.index(ms.subset(np.arange(2)), crease)
     matcher.compare(few, full)          # the crease search and the crease covariance
+    matcher.localise(few, full)         # ... over scales, and the ICP with the scale
