@@ -196,13 +196,22 @@ def _cmd_evaluate_imagery(args) -> int:
                                          baselines=baselines,
                                          controls_per_case=args.controls,
                                          false_match_rate=args.false_match_rate,
-                                         threshold=args.threshold)
+                                         threshold=_graph_threshold() if args.threshold
+                                         is None else args.threshold)
     except (ValueError, OSError, KeyError) as err:
         print(f"terrain-nav evaluate: {err}", file=sys.stderr)
         return 2
     print(summary["report"])
     print(f"wrote {out}")
     return 0
+
+
+def _graph_threshold() -> float:
+    """The matcher's ``match.threshold`` in the graph's parameters file."""
+    import yaml
+
+    doc = yaml.safe_load((REPO / "config" / "terrain_nav.yaml").read_text())
+    return float(doc["matcher"]["ros__parameters"]["match.threshold"])
 
 
 def _pair(text: str, option: str) -> tuple[float, float]:
@@ -420,7 +429,7 @@ def build_parser() -> argparse.ArgumentParser:
     im.add_argument("--no-view-search", dest="no_view_search", action="store_true",
                     help="without the matcher's crease search of large views")
     im.add_argument("--threshold", type=float,
-                    help="acceptance threshold (default the graph's, 5.0)")
+                    help="acceptance threshold (default the graph's match.threshold)")
     ev.set_defaults(func=_cmd_evaluate)
     return parser
 

@@ -408,7 +408,8 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
     cases : int
         Views per scene, size and heading condition.
     threshold : float, optional
-        Acceptance threshold; default the graph's (``config/terrain_nav.yaml``: 5.0).
+        Acceptance threshold; default :class:`~.core.matching.MatchParams`'. The command
+        passes the graph's (``match.threshold`` of ``config/terrain_nav.yaml``).
     headings : sequence of {"unknown", "known"}
     baselines : sequence of {"ncc", "orb", "sift"}
     controls_per_case : int
@@ -421,7 +422,7 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
     """
     t_all = time.perf_counter()
     params = match_params or MatchParams()
-    thr = 5.0 if threshold is None else float(threshold)
+    thr = params.threshold if threshold is None else float(threshold)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     render_landmark(scenes)
