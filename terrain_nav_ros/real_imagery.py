@@ -483,7 +483,7 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
         "seconds": time.perf_counter() - t_all,
     }
     summary["totals"] = _totals(rows, [128, 256, 512])
-    pngs = _scene_pngs(out, scenes)
+    pngs = _scene_pngs(out, scenes) + [_score_histogram(out, rows, non, thr, success_px)]
     report = _report(summary, pngs)
     (out / "report.md").write_text(report)
     (out / "results.json").write_text(json.dumps(summary, indent=1, default=_json_default))
@@ -581,6 +581,34 @@ def _scene_pngs(out: Path, scenes: list[Scene]) -> list[str]:
                                                                  np.uint8), s.landmark]))
         names.append(name)
     return names
+
+
+def _score_histogram(out: Path, rows, non: np.ndarray, thr: float, success_px: float) -> str:
+    """Scores of the views at their place (localised or not) and of the controls, with the
+    threshold: how far the two populations stand apart on real images."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .evaluation import _save
+
+    cases = [c for r in rows for c in r["cases"]]
+    right = [c["score"] for c in cases if c["err_px"] <= success_px]
+    off = [c["score"] for c in cases if not c["err_px"] <= success_px]
+    finite = [x for x in [*right, *off, *non] if np.isfinite(x)]
+    bins = np.linspace(min(finite, default=-5.0), max(max(finite, default=30.0), thr + 1), 60)
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    for values, label in ((non, "controls (non-PVA)"), (off, "views, not at their place"),
+                          (right, f"views within {success_px:g} px of their place")):
+        ax.hist(np.clip([v for v in values if np.isfinite(v)], bins[0], bins[-1]), bins,
+                histtype="step", lw=1.5, label=f"{label} ({len(values)})")
+    ax.axvline(thr, color="k", ls="--", lw=1, label=f"threshold {thr:g}")
+    ax.set_xlabel("score")
+    ax.set_ylabel("count")
+    ax.set_yscale("log")
+    ax.legend(fontsize=8)
+    return _save(fig, out / "scores.png")
 
 
 def _fmt(x, spec=".0f") -> str:

@@ -111,7 +111,7 @@ def test_study_on_real_scenes(tmp_path, shared_data):
     non = summary["non_pva"]
     # each view meets the other place's regions (and far parts of its own scene if any)
     assert non["comparisons"] >= 2 * 8 and non["accepted"] == 0
-    assert {"report.md", "results.json"} <= {p.name for p in out.iterdir()}
+    assert {"report.md", "results.json", "scores.png"} <= {p.name for p in out.iterdir()}
     saved = json.loads((out / "results.json").read_text())
     assert saved["non_pva"]["comparisons"] == non["comparisons"]
     assert "Controls (non-PVA)" in (out / "report.md").read_text()
