@@ -11,11 +11,11 @@ import os
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, OpaqueFunction
+from launch.actions import DeclareLaunchArgument, OpaqueFunction, SetEnvironmentVariable
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-from terrain_nav_ros.graph_runner import load_graph
+from terrain_nav_ros.graph_runner import DDS_PROFILE_VARIABLE, load_graph
 
 
 def graph_nodes(graph_path, use_sim_time=False, enable=()):
@@ -35,7 +35,12 @@ def _from_arguments(context):
     graph = LaunchConfiguration("graph").perform(context)
     sim = LaunchConfiguration("use_sim_time").perform(context).lower() in ("1", "true")
     enable = [n.strip() for n in LaunchConfiguration("enable").perform(context).split(",")]
-    return graph_nodes(graph, sim, [n for n in enable if n])
+    enable = [n for n in enable if n]
+    # the graph's Fast DDS profile, unless the environment names one (as the runner does)
+    env = load_graph(graph, enable).environment()
+    actions = [SetEnvironmentVariable(DDS_PROFILE_VARIABLE, env[DDS_PROFILE_VARIABLE])] \
+        if env.get(DDS_PROFILE_VARIABLE) else []
+    return actions + graph_nodes(graph, sim, enable)
 
 
 def generate_launch_description():

@@ -3,6 +3,7 @@
 The graph is described once, in a YAML file (``config/graph.yaml``)::
 
     params_files: [terrain_nav.yaml]   # ROS 2 parameters files, relative to this file
+    dds_profile: fastdds.xml           # Fast DDS XML profile for every node (optional)
     nodes:
       - name: metamap                  # node name; its block in the params files
         executable: metamap            # an entry of terrain_nav_ros.executables.NODES
@@ -61,6 +62,19 @@ class GraphSpec:
 
     nodes: list[NodeSpec]
     params_files: list[Path] = field(default_factory=list)
+    dds_profile: Path | None = None   # Fast DDS profile XML for every node (graph.yaml)
+
+    def environment(self, base=None) -> dict:
+        """The nodes' environment: ``base`` (default this process's) with the graph's Fast
+        DDS profile, unless ``base`` names one already."""
+        env = dict(os.environ if base is None else base)
+        if self.dds_profile is not None and not env.get(DDS_PROFILE_VARIABLE):
+            env[DDS_PROFILE_VARIABLE] = str(self.dds_profile)
+        return env
+
+
+# the variable rmw_fastrtps reads its XML profile from
+DDS_PROFILE_VARIABLE = "FASTRTPS_DEFAULT_PROFILES_FILE"
 
 
 def load_graph(path: str | Path, enable=()) -> GraphSpec:
@@ -106,7 +120,12 @@ def load_graph(path: str | Path, enable=()) -> GraphSpec:
     nodes = [n for n in nodes if n.enabled or n.name in enable]
     if not nodes:
         raise GraphError(f"{path}: no nodes")
-    return GraphSpec(nodes, params_paths)
+    profile = None
+    if doc.get("dds_profile"):
+        profile = (path.parent / doc["dds_profile"]).resolve()
+        if not profile.is_file():
+            raise GraphError(f"{path}: dds_profile {profile} does not exist")
+    return GraphSpec(nodes, params_paths, profile)
 
 
 def _yaml_scalar(value) -> str:
@@ -195,7 +214,7 @@ class GraphRunner:
             cmd = node_command(spec, self.spec.params_files, self.extra_parameters)
             proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                     stdin=subprocess.DEVNULL, text=True, bufsize=1,
-                                    env=os.environ.copy(), start_new_session=True)
+                                    env=self.spec.environment(), start_new_session=True)
             self.procs[spec.name] = proc
             pump = threading.Thread(target=self._pump, args=(spec.name, proc), daemon=True)
             pump.start()

@@ -210,6 +210,9 @@ def format_report(r: dict, gsd: float | None = None) -> str:
     f = r["fixes"]
     lines.append(f"camera frames answered: {f['frames']} of {f['in_bag']}  fixes: "
                  f"{f['fixes']}  no fix: {f['no_fix']}")
+    if f["in_bag"] and f["frames"] < f["in_bag"]:
+        lines.append(f"WARNING: {f['in_bag'] - f['frames']} camera frames of the bag got no "
+                     "answer (lost on the way to camera_ingest, or the graph fell behind)")
     for reason, count in f["reasons"]:
         lines.append(f"  no fix x{count}: {reason}")
     if "fix_error" in r:

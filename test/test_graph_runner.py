@@ -122,7 +122,8 @@ def _stub_launch_modules(monkeypatch):
 
     for name, attrs in {
         "launch": {"LaunchDescription": Action},
-        "launch.actions": {"DeclareLaunchArgument": Action, "OpaqueFunction": Action},
+        "launch.actions": {"DeclareLaunchArgument": Action, "OpaqueFunction": Action,
+                           "SetEnvironmentVariable": Action},
         "launch.substitutions": {"LaunchConfiguration": Action},
         "launch_ros": {},
         "launch_ros.actions": {"Node": Action},
@@ -155,3 +156,38 @@ def test_launch_file_starts_the_same_nodes_as_the_runner(tmp_path, monkeypatch):
             cmd = " ".join(node_command(node, spec.params_files))
             assert all(f"{k}:=" in cmd for k in node.parameters)
             assert all(f"{s}:={t}" in cmd for s, t in node.remappings.items())
+
+
+def test_the_graphs_dds_profile_reaches_every_node_unless_one_is_set(tmp_path, monkeypatch):
+    """config/graph.yaml names a Fast DDS profile (a shared-memory segment that holds raw
+    camera frames): the runner's and the launch file's nodes get it, unless the environment
+    names a profile already; a missing profile file is an error."""
+    from terrain_nav_ros.graph_runner import DDS_PROFILE_VARIABLE
+
+    spec = load_graph(REPO / "config" / "graph.yaml")
+    assert spec.dds_profile == (REPO / "config" / "fastdds.xml").resolve()
+    assert "<segment_size>16777216</segment_size>" in spec.dds_profile.read_text()
+    assert spec.environment({})[DDS_PROFILE_VARIABLE] == str(spec.dds_profile)
+    assert spec.environment({DDS_PROFILE_VARIABLE: "/mine.xml"})[DDS_PROFILE_VARIABLE] \
+        == "/mine.xml"
+    bad = tmp_path / "g.yaml"
+    bad.write_text("dds_profile: none.xml\nnodes:\n  - {name: a, executable: bag_player}\n")
+    with pytest.raises(GraphError, match="dds_profile"):
+        load_graph(bad)
+    _stub_launch_modules(monkeypatch)
+    monkeypatch.delenv(DDS_PROFILE_VARIABLE, raising=False)
+    spec_path = importlib.util.spec_from_file_location(
+        "terrain_nav_launch", REPO / "launch" / "terrain_nav.launch.py")
+    launch_file = importlib.util.module_from_spec(spec_path)
+    spec_path.loader.exec_module(launch_file)
+
+    class Context:
+        pass
+
+    values = {"graph": str(REPO / "config" / "graph.yaml"), "use_sim_time": "true",
+              "enable": ""}
+    monkeypatch.setattr(launch_file, "LaunchConfiguration",
+                        lambda name: types.SimpleNamespace(perform=lambda ctx: values[name]))
+    actions = launch_file._from_arguments(Context())
+    assert actions[0].args == (DDS_PROFILE_VARIABLE, str(spec.dds_profile))
+    assert [a.kwargs["name"] for a in actions[1:]] == [n.name for n in spec.nodes]

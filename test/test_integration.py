@@ -177,6 +177,20 @@ def test_flight_over_flat_terrain_says_why_there_is_no_fix(tmp_path):
     assert "no drainage" in _no_fix_reasons(result) or "minutiae" in _no_fix_reasons(result)
 
 
+def test_raw_camera_images_are_answered_like_jpeg(tmp_path):
+    """A bag of raw sensor_msgs/Image frames (rgb8, 590 KB each: what most camera drivers
+    publish) reaches camera_ingest frame by frame, as JPEG bags do: before the graph's Fast
+    DDS profile (config/fastdds.xml) 6 of 29 frames were answered."""
+    bag = tmp_path / "raw"
+    simulate(SimConfig(duration=30.0, gnss_denied_after=15.0, image_format="rgb8", seed=1),
+             bag)
+    result = run_replay(bag, tmp_path / "out", GRAPH)
+    _nodes_survived(result)
+    fixes = result["fixes"]
+    assert fixes["in_bag"] == 29 and fixes["frames"] >= fixes["in_bag"] - 1, fixes
+    assert fixes["fixes"] >= 10, fixes
+
+
 def test_flight_over_a_real_image_bounds_the_error(tmp_path, shared_data):
     """150 s over the real Landsat 7 November image of Pennsylvania's ridges, draped on its
     DEM (simulate --albedo: fields, forest and roads the landmark renders do not have; the
