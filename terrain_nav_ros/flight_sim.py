@@ -147,6 +147,9 @@ def fly(cfg: SimConfig, metamap: MetaMap):
     box = GeoReference(west, north, gsd, int((east - west) / gsd) + 1,
                        int((north - south) / gsd) + 1)
     ground = metamap.tile(box).elevation
+    if np.isnan(ground).all():
+        raise ValueError("the DEM has no heights under the route: it is all nodata (voids) "
+                         "there; give a DEM with elevations")
     if np.isnan(ground).any():
         raise ValueError(f"the route leaves the DEM (ENU box {west:.0f}..{east:.0f} E, "
                          f"{south:.0f}..{north:.0f} N); move start_east/start_north")

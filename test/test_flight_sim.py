@@ -101,3 +101,13 @@ def test_camera_frames_see_the_draped_photo(scene, tmp_path):
     for d, r in zip(draped, rendered, strict=True):
         # haze and auto exposure compress the photo's contrast, but its split stays
         assert split(d) > 20.0 and split(d) > 3.0 * split(r)
+
+
+def test_an_all_nodata_dem_is_said_as_such(tmp_path):
+    """Not "the route leaves the DEM": the DEM is there, it holds no heights."""
+    with rasterio.open(tmp_path / "void.tif", "w", driver="GTiff", width=200, height=200,
+                       count=1, dtype="float32", crs="EPSG:32632", transform=TRANSFORM,
+                       nodata=-9999.0) as ds:
+        ds.write(np.full((1, 200, 200), -9999.0, np.float32))
+    with pytest.raises(ValueError, match="no heights"):
+        simulate(SimConfig(dem=str(tmp_path / "void.tif"), duration=5.0), tmp_path / "bag")
