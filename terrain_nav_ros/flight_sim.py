@@ -354,15 +354,11 @@ def _epoch_ns(start_time: str) -> int:
     """Bag time (ns) of t = 0: ``start_time`` (ISO 8601, UTC unless stated) or EPOCH_NS."""
     if not start_time:
         return EPOCH_NS
-    import datetime as dt
+    from .core.sun import parse_utc
     try:
-        t = dt.datetime.fromisoformat(str(start_time).replace("Z", "+00:00"))
-    except ValueError:
-        raise SimInputError(f"start time {start_time!r} is not ISO 8601 "
-                            "(e.g. 2002-11-25T15:40:00Z)") from None
-    if t.tzinfo is None:
-        t = t.replace(tzinfo=dt.UTC)
-    return int(round(t.timestamp() * 1e9))
+        return int(round(parse_utc(start_time).timestamp() * 1e9))
+    except ValueError as err:
+        raise SimInputError(f"start {err}") from None
 
 
 def drape_photo(path: str, band: str, metamap: MetaMap, box: GeoReference) -> np.ndarray:

@@ -50,7 +50,7 @@ from .core.georef import GeoReference
 from .core.hillshade import extractor_input
 from .core.matching import Decision, Matcher, MatchParams, calibrate_threshold
 from .core.minutiae import FeatureExtractor, MinutiaParams
-from .core.sun import solar_position
+from .core.sun import parse_utc, solar_position
 
 __all__ = ["Scene", "load_scene", "load_scenes", "run_real_imagery_study"]
 
@@ -149,10 +149,7 @@ def _parse_sun(sun, when, lat: float, lon: float) -> tuple[float, float]:
     if when is None:
         raise ValueError("the scene's sun is needed: give --sun AZ,EL or --time ISO8601 "
                          "(the acquisition time)")
-    t = when if isinstance(when, _dt.datetime) else _dt.datetime.fromisoformat(
-        str(when).replace("Z", "+00:00"))
-    if t.tzinfo is None:
-        t = t.replace(tzinfo=_dt.UTC)
+    t = when if isinstance(when, _dt.datetime) else parse_utc(when)
     az, el = solar_position(t, lat, lon)
     if not float(el) > 0:
         raise ValueError(f"the sun is below the horizon at {t.isoformat()} "

@@ -106,7 +106,6 @@ class CreaseSearchReference:
             cv2.GaussianBlur(full, (0, 0), blur, dst=full)
             self.channels[k] = cv2.resize(full, self.shape[::-1], interpolation=cv2.INTER_AREA)
         self.channels *= 2.0 * math.pi * blur * blur
-        self.background = float(background)
         if background > 0:
             # hits above the local density of creases: where creases are dense (fields,
             # noise of the DEM), any transform scores many hits; only the excess locates
@@ -127,7 +126,6 @@ class CreaseSearchReference:
         """A reference with these channels (a turned or padded copy of this one)."""
         out = object.__new__(CreaseSearchReference)
         out.resolution = self.resolution
-        out.background = self.background
         out.full_shape = full_shape
         out.channels = channels
         out.shape = channels.shape[1:]
@@ -577,8 +575,7 @@ def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference
         # the same transform: as close in rotation, and mapping the query's centre as close
         # (its origin, a corner, moves 4 px per rotation step at the query's reach)
         if any(abs(math.remainder(np.angle(c) - np.angle(c2), 2 * math.pi)) <= step
-               and abs((c - c2) * query.centre + t - t2) <= 4.0
-               for c2, t2, _ in out):
+               and abs((c - c2) * query.centre + t - t2) <= 4.0 for c2, t2, _ in out):
             continue
         out.append((c, t, h))
         if len(out) == n_best:

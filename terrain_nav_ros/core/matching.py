@@ -41,6 +41,7 @@ results are reported in pixel coordinates.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field, fields, replace
 from enum import StrEnum
@@ -434,7 +435,7 @@ class MinutiaIndex:
                 self.crease_field, resolution=level.resolution, background=background)
         return self._crease_search.get(key)
 
-    @property
+    @functools.cached_property
     def crease_reach(self) -> float:
         """90th percentile of the crease pixels' distance from their mean (px): the lever
         arm of a rotation or scale step in the crease search."""
@@ -1447,13 +1448,18 @@ def _searches_creases(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams,
         b.crease_image.shape) <= p.crease_search_max_work
 
 
+# rotations x scales the view search rasterises at one level at most: a 256 px view's fine
+# level (~300 rotations x 11 scales of ~5000 crease pixels) would take ~0.5 GB
+_VIEW_SEARCH_MAX_TRANSFORMS = 4096
+
+
 def _view_search_level(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> SearchLevel | None:
     """The finest level at which the view search (``MatchParams.view_search``) of A in B
     fits the work bound, or None."""
     for level in LEVELS:
         rotations, scales = a.crease_search_transforms(p.max_rotation, level,
                                                        p.search_scale)
-        if len(rotations) * len(scales) > 4096:
+        if len(rotations) * len(scales) > _VIEW_SEARCH_MAX_TRANSFORMS:
             continue   # too many rasters for this level: try a coarser one
         query = a.crease_search_query(p.max_rotation, level, p.search_scale)
         if query.work(b.crease_image.shape) <= p.crease_search_max_work:

@@ -21,10 +21,22 @@ import datetime as _dt
 
 import numpy as np
 
-__all__ = ["solar_position", "sun_at", "sun_direction_enu", "sun_direction_from_time"]
+__all__ = ["parse_utc", "solar_position", "sun_at", "sun_direction_enu",
+           "sun_direction_from_time"]
 
 _J2000 = 2451545.0
 _UNIX_EPOCH_JD = 2440587.5
+
+
+def parse_utc(text) -> _dt.datetime:
+    """An aware datetime from ISO 8601 text (``2002-11-25T15:35:00Z``, an offset, or none:
+    UTC); ValueError names the text when it is not ISO 8601."""
+    try:
+        t = _dt.datetime.fromisoformat(str(text).replace("Z", "+00:00"))
+    except ValueError:
+        raise ValueError(f"time {text!r} is not ISO 8601 (e.g. 2002-11-25T15:35:00Z)") \
+            from None
+    return t if t.tzinfo else t.replace(tzinfo=_dt.UTC)
 
 
 def _julian_day(when) -> np.ndarray:
