@@ -168,6 +168,19 @@ def _cmd_evaluate(args) -> int:
     return 0
 
 
+def _match_gsd(text: str):
+    """``--match-gsd``: "native" -> None, "dem", or a positive GSD in metres."""
+    if text in ("native", "dem"):
+        return None if text == "native" else text
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not value > 0:
+        raise ValueError(f"--match-gsd must be 'native', 'dem' or > 0 m, got {text}")
+    return value
+
+
 def _cmd_evaluate_imagery(args) -> int:
     """``evaluate --image IMG --dem DEM`` / ``--scenes YAML``: the real-imagery study."""
     from .core.matching import MatchParams
@@ -192,6 +205,7 @@ def _cmd_evaluate_imagery(args) -> int:
         params = MatchParams(view_search=not args.no_view_search)
         summary = run_real_imagery_study(scenes, sizes=sizes, cases=args.cases,
                                          match_params=params,
+                                         match_gsd=_match_gsd(args.match_gsd),
                                          out_dir=out, seed=args.seed, headings=headings,
                                          baselines=baselines,
                                          controls_per_case=args.controls,
@@ -426,6 +440,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="non-PVA regions of other places per view (and one far part of its "
                          "own scene where the scene holds one)")
     im.add_argument("--baselines", default="ncc,orb", help="of ncc, orb, sift")
+    im.add_argument("--match-gsd", dest="match_gsd", default="dem",
+                    help="GSD [m] at which scenes finer than it are matched (views and "
+                         "regions area averaged, as camera_ingest resamples a camera); "
+                         "'dem' (default): each scene's DEM cell; 'native': the scene's own")
     im.add_argument("--no-view-search", dest="no_view_search", action="store_true",
                     help="without the matcher's crease search of large views")
     im.add_argument("--threshold", type=float,

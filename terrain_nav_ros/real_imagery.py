@@ -7,7 +7,10 @@ landmark render of a co-registered DEM, lit by the image's sun, the way the grap
 1. **Scene.** The image (one band, or a grey mix of the first three) and the DEM are put on
    one north-up metric grid: the DEM is reprojected onto the image's grid (both onto the
    local UTM zone first when the image is in degrees), then both are resampled to the study
-   GSD. Nodata and cloud-masked pixels (the image's nodata value) are invalid.
+   GSD. Nodata and cloud-masked pixels (the image's nodata value) are invalid. A scene
+   finer than its DEM's cell is matched at that cell (views and regions area averaged):
+   the render holds no terrain finer, and the camera's albedo detail (fields, roads, tree
+   crowns) would outnumber the drainage the two share.
 2. **Landmark.** :class:`~.core.renderer.LandmarkRenderer` renders the DEM nadir with the
    scene's sun (given, or from the acquisition time and the scene's centre).
 3. **Cases.** For each view size, views are cut from the image at random places, with a
@@ -79,6 +82,7 @@ class Scene:
     sun: tuple[float, float]
     centre_latlon: tuple[float, float]
     place: str = ""   # scenes of one place (one DEM) are never each other's controls
+    dem_cell: float = math.nan   # the DEM's own cell [m] (before resampling to ``gsd``)
     landmark: np.ndarray | None = field(default=None, repr=False)
 
     @property
@@ -138,6 +142,14 @@ def _reproject(src, src_transform, src_crs, dst_shape, dst_transform, dst_crs, r
                   src_nodata=np.nan, dst_transform=dst_transform, dst_crs=dst_crs,
                   dst_nodata=np.nan, resampling=resampling)
     return out
+
+
+def _cell_metres(transform, crs, lat: float) -> float:
+    """Side of a square of a raster cell's area, in metres."""
+    dx, dy = abs(transform.a), abs(transform.e)
+    if crs.is_geographic:
+        dx, dy = dx * 111_320.0 * math.cos(math.radians(lat)), dy * 110_574.0
+    return math.sqrt(dx * dy)
 
 
 def _parse_sun(sun, when, lat: float, lon: float) -> tuple[float, float]:
@@ -226,7 +238,8 @@ def load_scene(image, dem, *, band=None, gsd: float | None = None, sun=None, whe
     grey = np.where(valid, np.clip((img - lo) / max(hi - lo, 1e-6) * 255.0, 0, 255), 0)
     elevation = np.where(np.isfinite(z), z, np.nanmedian(z)).astype(np.float32)
     return Scene(name or image.stem, grey.astype(np.uint8), valid, elevation, gsd,
-                 _parse_sun(sun, when, lat, lon), (lat, lon), place=str(dem.resolve()))
+                 _parse_sun(sun, when, lat, lon), (lat, lon), place=str(dem.resolve()),
+                 dem_cell=_cell_metres(z_transform, z_crs, lat))
 
 
 def load_scenes(path, data_dir=None) -> list[Scene]:
@@ -302,28 +315,53 @@ def _cut_cases(scene: Scene, size: int, n: int, heading_known: bool, region_fact
     return cases
 
 
+def _decimated(grey: np.ndarray, factor: float) -> tuple[np.ndarray, np.ndarray]:
+    """``grey`` area-averaged ``factor`` times coarser, and the exact factor per axis (x, y)
+    (the pixel centres map as x = (x' + 0.5) f - 0.5)."""
+    h, w = grey.shape
+    if factor <= 1.0 + 1e-3:
+        return grey, np.ones(2)
+    shape = (max(int(round(w / factor)), 1), max(int(round(h / factor)), 1))
+    out = cv2.resize(grey, shape, interpolation=cv2.INTER_AREA)
+    return out, np.array([w / shape[0], h / shape[1]])
+
+
 class _Extractor:
     """The graph's extraction of a camera view and of a landmark region (a region's index
-    is kept: the controls meet the same regions many times)."""
+    is kept: the controls meet the same regions many times), at the matching GSD: a scene
+    finer than it is area-averaged first, as camera_ingest resamples a camera to its GSD."""
 
-    def __init__(self, params: MatchParams):
+    def __init__(self, params: MatchParams, match_gsd=None):
         ridges = params.crease_check and params.ridge_check
         self.view = FeatureExtractor(ridges=ridges)
         self.region = FeatureExtractor(minutia_params=MinutiaParams(max_minutiae=100000),
                                        ridges=ridges)
+        self.match_gsd = match_gsd
         self._regions = {}
 
-    def index(self, matcher: Matcher, grey, sun, region: bool = False):
-        f = (self.region if region else self.view)(extractor_input(grey, "shading", sun))
-        ix = matcher.index(f.minutiae, f.creases.skeleton(), f.ridges)
-        return ix.prepare_as_reference(search=True) if region else ix
+    def factor(self, scene: Scene) -> float:
+        """How many times coarser than ``scene.gsd`` the scene is matched."""
+        if self.match_gsd is None:
+            return 1.0
+        target = scene.dem_cell if self.match_gsd == "dem" else float(self.match_gsd)
+        return max(1.0, target / scene.gsd) if math.isfinite(target) else 1.0
+
+    def index(self, matcher: Matcher, grey, scene: Scene, region: bool = False):
+        """The index of ``grey`` (a view or a landmark region of ``scene``) and the factor
+        per axis of its decimation."""
+        grey, f = _decimated(grey, self.factor(scene))
+        feats = (self.region if region else self.view)(
+            extractor_input(grey, "shading", scene.sun))
+        ix = matcher.index(feats.minutiae, feats.creases.skeleton(), feats.ridges)
+        return (ix.prepare_as_reference(search=True) if region else ix), f
 
     def region_index(self, matcher: Matcher, scene: Scene, box):
-        """The index of the landmark region ``box`` (x0, y0, x1, y1) of ``scene``."""
+        """The index of the landmark region ``box`` (x0, y0, x1, y1) of ``scene`` and its
+        decimation factor per axis."""
         key = (scene.name, tuple(box), id(matcher))
         if key not in self._regions:
             x0, y0, x1, y1 = box
-            self._regions[key] = self.index(matcher, scene.landmark[y0:y1, x0:x1], scene.sun,
+            self._regions[key] = self.index(matcher, scene.landmark[y0:y1, x0:x1], scene,
                                             region=True)
         return self._regions[key]
 
@@ -342,13 +380,17 @@ def _summary(err, accepted, times, success_px, no_fix_few=None) -> dict:
 
 
 def _localise(matcher: Matcher, extractor: _Extractor, scene: Scene, case: _Case,
-              region_index, c: float) -> dict:
+              region_index) -> dict:
     t0 = time.perf_counter()
-    view = extractor.index(matcher, case.view, scene.sun)
-    r = matcher.localise(view, region_index)
+    view, f_view = extractor.index(matcher, case.view, scene)
+    ref, f_region = region_index
+    r = matcher.localise(view, ref)
     dt = time.perf_counter() - t0
-    est = r.apply(c, c) if np.isfinite(r.transform).all() else (math.nan, math.nan)
-    e = float(np.hypot(est[0] - case.truth[0], est[1] - case.truth[1]))
+    centre = 0.5 * (np.array(case.view.shape[::-1]) / f_view - 1.0)   # in matching pixels
+    est = np.array(r.apply(*centre), float) if np.isfinite(r.transform).all() \
+        else np.full(2, np.nan)
+    est = (est + 0.5) * f_region - 0.5           # matching pixels -> scene pixels
+    e = float(np.hypot(*(est - case.truth)))
     return {"score": float(r.score), "accepted": r.decision == Decision.MATCH,
             "err": e if math.isfinite(e) else math.inf, "time": dt, "reason": r.reason,
             "too_little": any(k in r.reason for k in _TOO_LITTLE), "view_index": view}
@@ -394,7 +436,8 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
                            false_match_rate: float = 1e-3, threshold: float | None = None,
                            headings=("unknown", "known"), baselines=("ncc", "orb"),
                            controls_per_case: int = 2, n_rotations: int = 36,
-                           match_params: MatchParams | None = None, log=print) -> dict:
+                           match_params: MatchParams | None = None, match_gsd="dem",
+                           log=print) -> dict:
     """Localise views of real images in landmark renders of their DEMs (module docstring).
 
     Parameters
@@ -411,6 +454,11 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
     baselines : sequence of {"ncc", "orb", "sift"}
     controls_per_case : int
         Non-PVA regions per view: from each other scene (in turn) and the same scene.
+    match_gsd : float, "dem" or None
+        GSD (m) at which views and regions are matched when a scene is finer (area
+        averaged, as camera_ingest resamples a camera to its GSD); "dem" (default): each
+        scene's DEM cell, since a render holds no terrain finer than it, while the camera's
+        albedo detail grows finer; None: each scene's own GSD.
 
     Returns
     -------
@@ -423,7 +471,7 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     render_landmark(scenes)
-    extractor = _Extractor(params)
+    extractor = _Extractor(params, match_gsd)
     rng = np.random.default_rng(seed)
     rows, non_pva, pva_scores = [], [], []
     cv_threads = cv2.getNumThreads()
@@ -459,13 +507,15 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
         if len(non) and np.isfinite(non).any() else math.nan
     summary = {
         "setup": {"scenes": [{"name": s.name, "shape": list(s.image.shape), "gsd_m": s.gsd,
+                              "dem_cell_m": s.dem_cell,
                               "sun": list(s.sun), "centre_latlon": list(s.centre_latlon),
                               "valid": float(s.valid.mean())} for s in scenes],
                   "sizes": list(sizes), "cases": cases, "seed": seed,
                   "region_factor": region_factor, "success_px": success_px,
                   "threshold": thr, "false_match_rate": false_match_rate,
                   "headings": list(headings), "baselines": list(baselines),
-                  "n_rotations": n_rotations},
+                  "n_rotations": n_rotations, "match_gsd": match_gsd,
+                  "match_gsd_m": {s.name: s.gsd * extractor.factor(s) for s in scenes}},
         "rows": rows,
         "non_pva": {"comparisons": int(len(non)),
                     "accepted": int((non >= thr).sum()),
@@ -491,7 +541,6 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
 def _study_cases(scene, scenes, si, cs, per_scene, size, heading, known, matcher, extractor,
                  thr, success_px, region_factor, controls_per_case, baselines, n_rotations,
                  rng, non_pva) -> dict:
-    c = 0.5 * (size - 1)
     rec = {"err": [], "acc": [], "time": [], "few": [], "cases": []}
     base = {m: {"err": [], "time": []} for m in baselines}
     pva_scores = []
@@ -500,7 +549,7 @@ def _study_cases(scene, scenes, si, cs, per_scene, size, heading, known, matcher
         x0, y0, x1, y1 = case.region
         region = scene.landmark[y0:y1, x0:x1]
         region_index = extractor.region_index(matcher, scene, case.region)
-        r = _localise(matcher, extractor, scene, case, region_index, c)
+        r = _localise(matcher, extractor, scene, case, region_index)
         rec["err"].append(r["err"])
         rec["acc"].append(r["score"] >= thr)
         rec["time"].append(r["time"])
@@ -522,7 +571,7 @@ def _study_cases(scene, scenes, si, cs, per_scene, size, heading, known, matcher
         controls += [(scene, reg) for reg in _far_regions(case, scene, size, region_factor,
                                                            rng, 1)]
         for other, (a0, b0, a1, b1) in controls:
-            ref = extractor.region_index(matcher, other, (a0, b0, a1, b1))
+            ref, _ = extractor.region_index(matcher, other, (a0, b0, a1, b1))
             score = float(matcher.localise(r["view_index"], ref).score)
             non_pva.append({"view_scene": scene.name, "region_scene": other.name,
                             "size": size, "heading": heading, "score": score})
@@ -625,9 +674,11 @@ def _report(summary: dict, pngs: list[str]) -> str:
              f"(NCC with {st['n_rotations']} rotations), known = +-{KNOWN_HEADING_DEG:g} deg "
              f"(matcher told +-{KNOWN_HEADING_PRIOR_DEG:g}, NCC without rotations). "
              "Baselines always answer: every answer off the truth is wrong.", "",
-             "| scene | GSD m | size px | sun az/el | valid |", "|---|---|---|---|---|"]
+             "| scene | GSD m | DEM cell m | matched at m | size px | sun az/el | valid |",
+             "|---|---|---|---|---|---|---|"]
     for s in st["scenes"]:
-        lines.append(f"| {s['name']} | {s['gsd_m']:g} | {s['shape'][1]}x{s['shape'][0]} | "
+        lines.append(f"| {s['name']} | {s['gsd_m']:g} | {s['dem_cell_m']:.0f} | "
+                     f"{st['match_gsd_m'][s['name']]:.0f} | {s['shape'][1]}x{s['shape'][0]} | "
                      f"{s['sun'][0]:.1f} / {s['sun'][1]:.1f} | {100 * s['valid']:.0f} % |")
     head = "| scene | view px | heading | cases | " + " | ".join(
         f"{m} ok / wrong / ms" for m in methods) + " | minutiae: too little drainage |"

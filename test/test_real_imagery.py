@@ -45,6 +45,8 @@ def test_a_pair_in_degrees_is_put_on_a_utm_grid(tmp_path):
     scene = load_scene(image, dem, when="2021-06-21T10:00:00Z")
     # 0.0003 deg of latitude is ~33 m: the image's cell in metres, about its own size
     assert 30.0 < scene.gsd < 36.0
+    # 0.0003 x 0.0003 deg at 45 N: 33 m by 24 m, the side of its area 28 m
+    assert 27.0 < scene.dem_cell < 30.0
     assert scene.image.dtype == np.uint8 and scene.image.shape == scene.elevation.shape
     h, w = scene.valid.shape
     assert not scene.valid[:10, :10].any() and scene.valid[h // 3:-h // 3, w // 3:-w // 3].all()
@@ -60,6 +62,8 @@ def test_a_study_gsd_resamples_both(tmp_path):
     half = load_scene(image, dem, sun=(150.0, 40.0), gsd=15.0)
     assert native.gsd == 30.0 and native.image.shape == (160, 160)
     assert half.gsd == 15.0 and half.image.shape == (320, 320)
+    # the DEM's own cell is kept: the study matches a finer scene at it
+    assert native.dem_cell == half.dem_cell == 30.0
 
 
 @pytest.mark.parametrize("kwargs, message", [
@@ -115,6 +119,21 @@ def test_study_on_real_scenes(tmp_path, shared_data):
     saved = json.loads((out / "results.json").read_text())
     assert saved["non_pva"]["comparisons"] == non["comparisons"]
     assert "Controls (non-PVA)" in (out / "report.md").read_text()
+
+
+def test_a_scene_finer_than_its_dem_is_matched_at_the_dem_cell(tmp_path, shared_data):
+    """PA November resampled to 15 m over its 30 m DEM: matched at 30 m (views and regions
+    area averaged), its 256 px views are localised, their places given in 15 m pixels."""
+    scene = load_scene(shared_data / "imagery" / "pa_ridgevalley_l7_20021125.tif",
+                       shared_data / "imagery" / "pa_ridgevalley_dem30m_utm18.tif",
+                       band=4, sun=(159.5, 26.2), gsd=15.0)
+    summary = run_real_imagery_study([scene], sizes=(256,), cases=3, out_dir=tmp_path,
+                                     headings=("known",), baselines=(), controls_per_case=0,
+                                     match_gsd="dem", log=lambda *_: None)
+    assert summary["setup"]["match_gsd_m"][scene.name] == pytest.approx(30.0, rel=0.01)
+    (row,) = summary["rows"]
+    assert row["minutiae"]["success"] >= 2 and row["minutiae"]["wrong"] == 0
+    assert "| 15 | 30 | 30 |" in summary["report"]
 
 
 def test_scenes_file_lists_every_dev_pair(shared_data):
