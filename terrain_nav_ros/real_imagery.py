@@ -18,7 +18,8 @@ landmark render of a co-registered DEM, lit by the image's sun, the way the grap
    the matcher told so, with it known) and scale (+-10 %); a view must lie on >= 95 % valid
    pixels. Each is localised in the landmark region ``region_factor`` times its side around
    its true place (clipped to the scene) with :meth:`~.core.matching.Matcher.localise`; a fix
-   within ``success_px`` of the truth is a success, one further off is wrong.
+   within ``success_px`` of the truth is a success, one further off is wrong (pixels of the
+   GSD the scene is matched at: a view finer than its DEM is localised to the DEM's cell).
 4. **Controls (non-PVA).** The same views against landmark regions that do not contain them:
    the regions of the other places' cases (a scene of the same DEM is the same place), and
    regions of the same scene at least a region
@@ -545,20 +546,24 @@ def _study_cases(scene, scenes, si, cs, per_scene, size, heading, known, matcher
     base = {m: {"err": [], "time": []} for m in baselines}
     pva_scores = []
     others = [s for s in scenes if s.place != scene.place]
+    # errors in matching pixels: a view finer than its DEM is localised to the DEM's cell
+    per_px = extractor.factor(scene)
     for k, case in enumerate(cs):
         x0, y0, x1, y1 = case.region
         region = scene.landmark[y0:y1, x0:x1]
         region_index = extractor.region_index(matcher, scene, case.region)
         r = _localise(matcher, extractor, scene, case, region_index)
+        r["err"] /= per_px
         rec["err"].append(r["err"])
         rec["acc"].append(r["score"] >= thr)
         rec["time"].append(r["time"])
         rec["few"].append(r["too_little"] and not r["score"] >= thr)
-        rec["cases"].append({"err_px": r["err"], "score": r["score"], "reason": r["reason"]})
+        rec["cases"].append({"err_px": r["err"], "err_m": r["err"] * per_px * scene.gsd,
+                             "score": r["score"], "reason": r["reason"]})
         pva_scores.append((scene.name, size, heading, r["score"], r["err"] <= success_px))
         for method in baselines:
             e, dt = _baseline(method, case, region, known, n_rotations)
-            base[method]["err"].append(e)
+            base[method]["err"].append(e / per_px)
             base[method]["time"].append(dt)
         # controls: the same view against regions that do not hold it
         controls = []
@@ -669,7 +674,7 @@ def _report(summary: dict, pngs: list[str]) -> str:
     lines = ["# Real-imagery study", "",
              f"Views cut from real images, localised in a region {st['region_factor']:g}x "
              f"their side of the landmark render of the scene's DEM at the scene's sun; "
-             f"success = centre within {st['success_px']:g} px; threshold "
+             f"success = centre within {st['success_px']:g} px of the GSD matched at; threshold "
              f"{st['threshold']:g}; scale +-10 %; heading unknown = rotation +-180 deg "
              f"(NCC with {st['n_rotations']} rotations), known = +-{KNOWN_HEADING_DEG:g} deg "
              f"(matcher told +-{KNOWN_HEADING_PRIOR_DEG:g}, NCC without rotations). "
