@@ -64,10 +64,10 @@ class FeatureExtractorNode(Node):
         self.attach_creases = declare(self, "attach_creases", True,
                                       "send the crease skeleton with the minutiae (the "
                                       "matcher's crease check)")
-        self.attach_ridges = declare(self, "attach_ridges", False,
+        self.attach_ridges = declare(self, "attach_ridges", True,
                                      "send the ridge skeleton with the minutiae (the "
                                      "matcher's ridge check of sets with few minutiae; "
-                                     "calibrate the matcher's threshold with it)")
+                                     "match.threshold is calibrated with it)")
         self.lighting = declare(self, "lighting", "shading",
                                 "extractor input: 'shading' (the image) or 'compensated' "
                                 "(terrain curvature from the shading and the image's sun)")

@@ -82,7 +82,7 @@ def test_minutiae_empty_reasons_and_parameter_validation():
     rows, cols = np.nonzero(creases)
     assert _repeated(found, SimpleNamespace(col=cols, row=rows), px=1.5) == 1.0
     assert cv.msg_to_creases(s.camera[0]) is None   # flat: no creases
-    assert cv.msg_to_ridges(s.landmark[0]) is None   # not asked for (attach_ridges)
+    assert cv.msg_to_ridges(s.landmark[0]) is not None   # attach_ridges by default
 
 
 def test_creases_stay_home_when_not_asked_for_and_ridges_come_when_asked():
