@@ -425,7 +425,8 @@ def build_parser() -> argparse.ArgumentParser:
         "real imagery", "with --image (and --dem) or --scenes: views cut from a real image "
         "localised in the landmark render of its DEM, with non-PVA controls and baselines")
     im.add_argument("--image", help="a georeferenced real image of the DEM's place")
-    im.add_argument("--band", help="its band (1-based; default: the mean of bands 1-3)")
+    im.add_argument("--band", help="its band (1-based; default: the near-infrared band "
+                    "where the file's band descriptions name one, else the mean of bands 1-3)")
     im.add_argument("--sun", metavar="AZ,EL", help="the image's sun [deg]")
     im.add_argument("--time", metavar="ISO8601",
                     help="the image's acquisition time (UTC), for its sun")

@@ -41,6 +41,7 @@ import contextlib
 import datetime as _dt
 import json
 import math
+import re
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -92,10 +93,34 @@ class Scene:
         return GeoReference(0.0, 0.0, self.gsd, w, h)
 
 
+# Band descriptions that name the near infrared: by name, or the NIR band of Landsat TM /
+# ETM+ (B4), OLI (B5) and Sentinel-2 MSI (B8, B8A) when the sensor is named with it.
+_NIR_NAMES = re.compile(r"\bnir\b|near[- ]?infra[- ]?red", re.IGNORECASE)
+_NIR_BANDS = re.compile(r"\b(?:TM|ETM\+?)\s*B0?4\b|\bOLI\s*B0?5\b|\bMSI\s*B0?8A?\b",
+                        re.IGNORECASE)
+
+
+def nir_band(descriptions) -> int | None:
+    """The 1-based band whose description names the near infrared, or None.
+
+    Under vegetation the red band is absorbed by chlorophyll and carries little of the
+    terrain's shading; the near infrared is bright and shaded like the terrain (Costa Rica's
+    forested volcano: 15 of 24 views of 128 px localised in NIR, 2 of 24 in red).
+    """
+    for pattern in (_NIR_NAMES, _NIR_BANDS):
+        for i, text in enumerate(descriptions or ()):
+            if text and pattern.search(text):
+                return i + 1
+    return None
+
+
 def _read_band(ds, band) -> np.ndarray:
-    """One band (1-based) as float32, or with ``band=None`` / "grey" the mean of the first
+    """One band (1-based) as float32; ``band=None``: the near-infrared band if the file's
+    band descriptions name one (:func:`nir_band`), else as "grey": the mean of the first
     three (the only one of a single-band file); nodata as NaN."""
-    if band in (None, "grey", "gray"):
+    if band is None:
+        band = nir_band(ds.descriptions) or "grey"
+    if band in ("grey", "gray"):
         bands = list(range(1, min(ds.count, 3) + 1))
     else:
         b = int(band)
@@ -179,7 +204,8 @@ def load_scene(image, dem, *, band=None, gsd: float | None = None, sun=None, whe
     image, dem : str or Path
         Any raster rasterio reads, each with its CRS.
     band : int, "grey" or None
-        1-based band of the image; None / "grey": the mean of the first three bands.
+        1-based band of the image; "grey": the mean of the first three bands; None: the
+        near-infrared band where the file names one, else "grey".
     gsd : float, optional
         Study GSD (m); default the image's own (its UTM cell when it is in degrees).
     sun : (azimuth, elevation), optional

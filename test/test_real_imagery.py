@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 
 from terrain_nav_ros.cli import main
-from terrain_nav_ros.real_imagery import load_scene, load_scenes, run_real_imagery_study
+from terrain_nav_ros.real_imagery import (
+    load_scene,
+    load_scenes,
+    nir_band,
+    run_real_imagery_study,
+)
 
 SCENES_YAML = "benchmarks/real_scenes.yaml"
 
@@ -64,6 +69,38 @@ def test_a_study_gsd_resamples_both(tmp_path):
     assert half.gsd == 15.0 and half.image.shape == (320, 320)
     # the DEM's own cell is kept: the study matches a finer scene at it
     assert native.dem_cell == half.dem_cell == 30.0
+
+
+@pytest.mark.parametrize("descriptions, band", [
+    (("B02 blue", "B03 green", "B04 red", "B05 nir"), 4),
+    (("TM B1 reflectance", "TM B2", "TM B3", "TM B4 reflectance x1e4"), 4),
+    (("ETM+ B1 DN", "ETM+ B4 DN"), 2),
+    (("coastal", "OLI B5"), 2),
+    (("MSI B4", "MSI B8A"), 2),
+    (("red", "Near-Infrared"), 2),
+    ((None, None, None), None),
+    (("B1", "B2", "B4"), None),       # no sensor named: B4 may be anything
+    (("red", "green", "blue"), None),
+])
+def test_the_near_infrared_band_is_found_by_its_description(descriptions, band):
+    assert nir_band(descriptions) == band
+
+
+def test_a_scene_without_a_band_takes_the_near_infrared(tmp_path):
+    image, dem = _write_pair(tmp_path, geographic=False)
+    import rasterio
+    with rasterio.open(image) as ds:
+        profile, grey = ds.profile, ds.read(1)
+    profile.update(count=2)
+    with rasterio.open(image, "w", **profile) as ds:   # band 1 "red" flat, band 2 "nir"
+        ds.write(np.full_like(grey, 50.0), 1)
+        ds.write(grey, 2)
+        ds.set_band_description(1, "B04 red")
+        ds.set_band_description(2, "B05 nir")
+    scene = load_scene(image, dem, sun=(150.0, 40.0))
+    assert scene.image.std() > 20.0   # the shaded band, not the flat one
+    flat = load_scene(image, dem, sun=(150.0, 40.0), band=1)
+    assert flat.image[flat.valid].std() < 1.0
 
 
 @pytest.mark.parametrize("kwargs, message", [
