@@ -500,7 +500,9 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
     render_landmark(scenes)
     extractor = _Extractor(params, match_gsd)
     rng = np.random.default_rng(seed)
-    rows, non_pva, pva_scores = [], [], []
+    study = _StudyRun(scenes, extractor, thr, success_px, region_factor, controls_per_case,
+                      tuple(baselines), n_rotations, rng)
+    rows, pva_scores = [], []
     cv_threads = cv2.getNumThreads()
     cv2.setNumThreads(1)   # single-thread times, comparable across methods
     try:
@@ -511,15 +513,11 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
             for size in sizes:
                 per_scene = {s.name: _cut_cases(s, size, cases, known, region_factor, rng)
                              for s in scenes}
-                for si, scene in enumerate(scenes):
-                    cs = per_scene[scene.name]
-                    if not cs:
+                for scene in scenes:
+                    if not per_scene[scene.name]:
                         log(f"  {scene.name}: no {size} px view fits ({heading} heading)")
                         continue
-                    row = _study_cases(scene, scenes, si, cs, per_scene, size, heading, known,
-                                       matcher, extractor, thr, success_px, region_factor,
-                                       controls_per_case, baselines, n_rotations, rng,
-                                       non_pva)
+                    row = _study_cases(study, scene, per_scene, size, heading, matcher)
                     pva_scores += row.pop("pva_scores")
                     rows.append(row)
                     m = row["minutiae"]
@@ -529,6 +527,7 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
                         f"{m['time_ms_median']:.0f} ms")
     finally:
         cv2.setNumThreads(cv_threads)
+    non_pva = study.non_pva
     non = np.array([x["score"] for x in non_pva], float)
     calibrated = calibrate_threshold(non, false_match_rate) \
         if len(non) and np.isfinite(non).any() else math.nan
@@ -565,13 +564,31 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
     return summary
 
 
-def _study_cases(scene, scenes, si, cs, per_scene, size, heading, known, matcher, extractor,
-                 thr, success_px, region_factor, controls_per_case, baselines, n_rotations,
-                 rng, non_pva) -> dict:
+@dataclass
+class _StudyRun:
+    """What every case of one study run shares, and the control scores it gathers."""
+
+    scenes: list
+    extractor: _Extractor
+    threshold: float
+    success_px: float
+    region_factor: float
+    controls_per_case: int
+    baselines: tuple
+    n_rotations: int
+    rng: np.random.Generator
+    non_pva: list = field(default_factory=list)
+
+
+def _study_cases(study: _StudyRun, scene: Scene, per_scene: dict, size: int, heading: str,
+                 matcher: Matcher) -> dict:
+    """Localise the cases of one scene, size and heading, with their baselines and controls
+    (appended to ``study.non_pva``): the scene's row of the report."""
+    cs, known, thr = per_scene[scene.name], heading == "known", study.threshold
+    extractor, success_px = study.extractor, study.success_px
     rec = {"err": [], "acc": [], "time": [], "few": [], "cases": []}
-    base = {m: {"err": [], "time": []} for m in baselines}
+    base = {m: {"err": [], "time": []} for m in study.baselines}
     pva_scores = []
-    others = [s for s in scenes if s.place != scene.place]
     # errors in matching pixels: a view finer than its DEM is localised to the DEM's cell
     per_px = extractor.factor(scene)
     for k, case in enumerate(cs):
@@ -587,31 +604,37 @@ def _study_cases(scene, scenes, si, cs, per_scene, size, heading, known, matcher
         rec["cases"].append({"err_px": r["err"], "err_m": r["err"] * per_px * scene.gsd,
                              "score": r["score"], "reason": r["reason"]})
         pva_scores.append((scene.name, size, heading, r["score"], r["err"] <= success_px))
-        for method in baselines:
-            e, dt = _baseline(method, case, region, known, n_rotations)
+        for method in study.baselines:
+            e, dt = _baseline(method, case, region, known, study.n_rotations)
             base[method]["err"].append(e / per_px)
             base[method]["time"].append(dt)
-        # controls: the same view against regions that do not hold it
-        controls = []
-        for j in range(controls_per_case):
-            if others:
-                other = others[(k + j) % len(others)]
-                oc = per_scene[other.name]
-                if oc:
-                    controls.append((other, oc[(k + j) % len(oc)].region))
-        controls += [(scene, reg) for reg in _far_regions(case, scene, size, region_factor,
-                                                           rng, 1)]
-        for other, (a0, b0, a1, b1) in controls:
-            ref, _ = extractor.region_index(matcher, other, (a0, b0, a1, b1))
-            score = float(matcher.localise(r["view_index"], ref).score)
-            non_pva.append({"view_scene": scene.name, "region_scene": other.name,
-                            "size": size, "heading": heading, "score": score})
+        _controls(study, scene, per_scene, case, k, size, heading, matcher, r["view_index"])
     row = {"scene": scene.name, "size": size, "heading": heading,
            "minutiae": _summary(rec["err"], rec["acc"], rec["time"], success_px, rec["few"]),
            "pva_scores": pva_scores, "cases": rec["cases"]}
     for method, b in base.items():
         row[method] = _summary(b["err"], np.isfinite(b["err"]), b["time"], success_px)
     return row
+
+
+def _controls(study: _StudyRun, scene: Scene, per_scene: dict, case: _Case, k: int,
+              size: int, heading: str, matcher: Matcher, view_index) -> None:
+    """Score the ``k``-th view of ``scene`` against regions that do not hold it: those of
+    other places' cases (in turn) and a far part of its own scene; into ``study.non_pva``."""
+    others = [s for s in study.scenes if s.place != scene.place]
+    regions = []
+    for j in range(study.controls_per_case if others else 0):
+        other = others[(k + j) % len(others)]
+        if per_scene[other.name]:
+            regions.append((other, per_scene[other.name][(k + j) % len(per_scene[other.name])]
+                            .region))
+    regions += [(scene, box) for box in _far_regions(case, scene, size, study.region_factor,
+                                                     study.rng, 1)]
+    for other, box in regions:
+        ref, _ = study.extractor.region_index(matcher, other, box)
+        study.non_pva.append({"view_scene": scene.name, "region_scene": other.name,
+                              "size": size, "heading": heading,
+                              "score": float(matcher.localise(view_index, ref).score)})
 
 
 def _non_pva_by_size(non_pva: list[dict], thr: float) -> dict:
