@@ -9,7 +9,7 @@ from scipy import ndimage as ndi
 from terrain_nav_ros.core.dem_io import Dem, DemError, open_dem, sample_dem
 from terrain_nav_ros.core.geodesy import EnuOrigin
 from terrain_nav_ros.core.georef import GeoReference
-from terrain_nav_ros.core.metamap import DemTile, MetaMap, OutsideDemError
+from terrain_nav_ros.core.metamap import DemTile, MetaMap, OutsideDemError, remap_masked
 
 
 def exact_reference(dem, origin, georef, reference_height, order=1):
@@ -186,6 +186,17 @@ def test_interpolation_modes_on_sample_dem(interpolation):
     ref = MetaMap(dem).tile_at(0.0, 0.0, 25.0, 64, 64).elevation
     assert np.abs(tile.elevation - ref).mean() < 10.0
     assert 236 - 1 <= tile.elevation.min() and tile.elevation.max() <= 1076 + 30
+
+
+@pytest.mark.parametrize("width", [1, 2, 7])
+def test_narrow_bicubic_tiles_hold_data(width):
+    # OpenCV's bicubic remap with a NaN border gave all-NaN maps under 8 px wide
+    z = np.add.outer(np.arange(40.0), 3.0 * np.arange(50.0)).astype(np.float32)
+    maps = np.dstack(np.meshgrid(np.arange(width) + 20.3, np.arange(5) + 10.6)).astype(np.float32)
+    assert remap_masked(z, maps, None, "bicubic") == pytest.approx(
+        maps[..., 1] + 3.0 * maps[..., 0], abs=0.25)  # a plane: OpenCV's cubic bends it
+    mm = MetaMap(sample_dem(), interpolation="bicubic")
+    assert mm.tile_at(0.0, 0.0, 100.0, width, 3).valid_fraction == 1.0
 
 
 def test_default_origin_is_dem_centre():

@@ -437,6 +437,14 @@ def remap_masked(z, map_x, map_y=None, interpolation: str = "bilinear") -> np.nd
     # OpenCV (4.x Python bindings) misreads strided map views: always pass contiguous maps
     map_x = np.ascontiguousarray(map_x)
     map_y = None if map_y is None else np.ascontiguousarray(map_y)
+    width = map_x.shape[1]
+    if interpolation == "bicubic" and 0 < width < 8:
+        # OpenCV's bicubic remap answers NaN everywhere for maps under 8 px wide with a NaN
+        # border value (a coarse DEM's route box in simulate): sample 8 columns, keep ours
+        def widen(m):
+            return None if m is None else np.pad(
+                m, ((0, 0), (0, 8 - width)) + ((0, 0),) * (m.ndim - 2), mode="edge")
+        return remap_masked(z, widen(map_x), widen(map_y), interpolation)[:, :width]
     holes = np.isnan(z)
     if interpolation == "nearest" or not holes.any():
         return cv2.remap(z, map_x, map_y, kind, borderMode=cv2.BORDER_CONSTANT,
