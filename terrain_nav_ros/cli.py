@@ -127,7 +127,7 @@ def _cmd_simulate(args) -> int:
         open_dem_source(cfg.dem).close()
     try:
         summary = simulate(cfg, args.output)
-    except SimInputError as err:   # --albedo or --start-time: the user's input
+    except SimInputError as err:   # --albedo, --start-time, --dem: the user's input
         raise InputError(str(err)) from err
     print(f"wrote {args.output}: {summary['duration_s']:.0f} s over {summary['dem']}, "
           f"{summary['camera_frames']} camera frames, GNSS denied after "
