@@ -1,5 +1,6 @@
 """DEM ingest: every real file type, georeferencing of known summits, voids, corrupt files."""
 
+import re
 import shutil
 
 import numpy as np
@@ -321,6 +322,27 @@ def test_truncated_asc_fails_at_once_within_the_file(tmp_path, dims, values):
     p.write_text(f"ncols {dims[1]}\nnrows {dims[0]}\nxllcorner 0\nyllcorner 0\n"
                  f"cellsize 30\n{values}")
     _assert_dem_error(p, "truncated ESRI ASCII grid: the header promises")
+
+
+@pytest.mark.parametrize("k,token", [(0, "abc"), (57, "1.2.3"), (130, "12x"), (199, "\x00\xff")])
+@pytest.mark.parametrize("chunk", [64, 1 << 22], ids=["small_chunks", "one_chunk"])
+def test_asc_value_that_is_not_a_number_is_named_with_its_place(tmp_path, monkeypatch, k,
+                                                                 token, chunk):
+    """GDAL reads 'abc' as 0 and '1.2.3' as 1.2 without a word: refused, naming where."""
+    from terrain_nav_ros.core import dem_io
+
+    monkeypatch.setattr(dem_io, "_CHUNK", chunk)  # tokens across chunk edges, the last alone
+    values = [f"{1000 + i}.5" for i in range(200)]
+    values[k] = token
+    p = tmp_path / "garbled.asc"
+    p.write_bytes(("ncols 20\nnrows 10\nxllcorner 0\nyllcorner 0\ncellsize 30\n"
+                   + "\n".join(" ".join(values[r:r + 20]) for r in range(0, 200, 20))
+                   + "\n").encode("latin-1"))
+    shown = token.encode("latin-1").decode("ascii", "backslashreplace")
+    _assert_dem_error(p, re.escape(f"value {k + 1} (row {k // 20 + 1}, column {k % 20 + 1}) "
+                                   f"is {shown!r}, not a number"))
+    p.write_text(p.read_text("latin-1").replace(token, "-9999", 1))
+    assert open_dem(p).read().shape == (10, 20)
 
 
 def test_ascii_grid_checked_whatever_its_suffix(tmp_path):

@@ -34,6 +34,7 @@ import mmap
 import os
 import re
 import threading
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -319,10 +320,11 @@ def _check_hgt(path: Path):
 
 
 def _check_ascii_grid(path: Path):
-    """Check that an ESRI ASCII grid holds the ``ncols x nrows`` values its header promises,
+    """Check that an ESRI ASCII grid holds the ``ncols x nrows`` numbers its header promises,
     before GDAL sees it: GDAL's AAIGrid driver allocates per promised row and, on a short
     file, searches for the missing values forever (100x100 with four values hung and grew
-    to 24 GB, issue 22). Any other file is left alone."""
+    to 24 GB, issue 22); and it reads a token that is not a number as 0 (``abc``) or as its
+    numeric start (``1.2.3`` as 1.2), without a word. Any other file is left alone."""
     with open(path, "rb") as f:
         header = _ascii_grid_header(f)
         if not header:
@@ -337,7 +339,8 @@ def _check_ascii_grid(path: Path):
         promised = ncols * nrows
         # every value takes a character and a separator: a short file fails without a scan
         room = path.stat().st_size - f.tell()
-        held = _count_values(f, promised) if room >= 2 * promised - 1 else None
+        held = (_count_values(f, promised, lambda k, tok: _not_a_number(path, ncols, k, tok))
+                if room >= 2 * promised - 1 else None)
     if held is None or held < promised:
         what = f"{held} values" if held is not None else f"only {room} bytes of values"
         raise DemError(f"{path}: truncated ESRI ASCII grid: the header promises {nrows} x "
@@ -358,15 +361,40 @@ def _ascii_grid_header(f) -> dict:
         header[parts[0].lower()] = parts[1]
 
 
-def _count_values(f, enough: int) -> int:
+def _count_values(f, enough: int, bad: Callable[[int, bytes], None]) -> int:
     """Whitespace-separated tokens from ``f``'s position, counted in chunks (stops at
-    ``enough``): memory stays at one chunk whatever the file's size."""
+    ``enough``): memory stays at one chunk whatever the file's size. ``bad(k, token)`` is
+    called for the first of the ``enough`` tokens that is not a number (it should raise)."""
     count, tail = 0, b""
     while count < enough and (chunk := f.read(_CHUNK)):
         tokens = (tail + chunk).split()
         tail = tokens.pop() if tokens and not chunk[-1:].isspace() else b""
+        _check_numbers(tokens[:enough - count], count, bad)
         count += len(tokens)
+    if tail and count < enough:
+        _check_numbers([tail], count, bad)
     return count + (1 if tail else 0)
+
+
+def _check_numbers(tokens: list, first: int, bad: Callable[[int, bytes], None]):
+    """Call ``bad(first + k, token)`` for the first token float() cannot read."""
+    try:
+        deque(map(float, tokens), maxlen=0)  # C-speed parse, nothing kept
+    except ValueError:
+        for k, token in enumerate(tokens):
+            try:
+                float(token)
+            except ValueError:
+                bad(first + k, token)
+                return
+
+
+def _not_a_number(path: Path, ncols: int, k: int, token: bytes):
+    """Raise: value ``k`` (0-based, row-major) of an ESRI ASCII grid is not a number."""
+    text = token[:20].decode("ascii", "backslashreplace") + ("..." if len(token) > 20 else "")
+    raise DemError(f"{path}: ESRI ASCII grid value {k + 1} (row {k // ncols + 1}, column "
+                   f"{k % ncols + 1}) is {text!r}, not a number: the file is corrupt; "
+                   "export or copy it again")
 
 
 def _open_gdal(path: Path, crs_given: bool = False) -> Dem:
