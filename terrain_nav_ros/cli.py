@@ -124,7 +124,9 @@ def _cmd_simulate(args) -> int:
         # a DEM file that cannot be read fails now, not after the set-up
         from .core.dem_sources import open_dem_source
 
-        open_dem_source(cfg.dem).close()
+        with open_dem_source(cfg.dem) as dem:
+            if dem.warning:
+                print(f"terrain-nav simulate: warning: {dem.warning}", file=sys.stderr)
     try:
         summary = simulate(cfg, args.output)
     except SimInputError as err:   # --albedo, --start-time, --dem: the user's input

@@ -97,6 +97,9 @@ class MetamapNode(Node):
         self.get_logger().info(
             f"loaded {', '.join(d.name for d in dems)}; ENU origin {o.lat:.6f}, {o.lon:.6f}; "
             f"native GSD {self.metamap.native_gsd:.1f} m")
+        for d in dems:
+            if d.warning:  # impossible heights (corrupt pixels?) read as voids
+                self.get_logger().warning(d.warning)
         self._initial_timer = self.create_timer(0.2, self._publish_initial_tile) \
             if initial else None
 

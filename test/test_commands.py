@@ -128,6 +128,13 @@ def test_simulate_says_what_the_dem_or_the_time_lacks_in_one_line(tmp_path):
     _one_line_error(terrain_nav("simulate", "-o", tmp_path / "b", "--duration", 5,
                                 "--start-time", "2024-06-21T06:00:00Z"),
                     "night; give a daytime --start-time")
+    garbage = tmp_path / "garbage.tif"
+    with rasterio.open(garbage, "w", driver="GTiff", width=64, height=64, count=1,
+                       dtype="float32", crs="EPSG:32611",
+                       transform=Affine(30, 0, 4e5, 0, -30, 3.8e6)) as ds:
+        ds.write(np.full((1, 64, 64), -1e30, np.float32))
+    _one_line_error(terrain_nav("simulate", "-o", tmp_path / "c", "--dem", garbage,
+                                "--duration", 5), "4096 of 4096 heights (100 %) are impossible")
 
 
 def test_debug_shows_the_traceback(tmp_path):

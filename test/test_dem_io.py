@@ -396,6 +396,55 @@ def test_truncated_geotiff(tmp_path, kw):
     assert str(p) in str(info.value)
 
 
+def _garbled_geotiff(path, dtype, garbage, cells=slice(None)):
+    """An uncompressed 128 x 128 GeoTIFF of plausible heights whose pixel bytes for
+    ``cells`` (row-major) are then overwritten with ``garbage``."""
+    z = np.random.default_rng(2).normal(1000, 20, (128, 128)).astype(dtype)
+    with rasterio.open(path, "w", driver="GTiff", width=128, height=128, count=1, dtype=dtype,
+                       crs="EPSG:32611", transform=Affine(30, 0, 4e5, 0, -30, 3.8e6)) as ds:
+        ds.write(z, 1)
+        offset = int(ds.get_tag_item("BLOCK_OFFSET_0_0", "TIFF", bidx=1))
+    pixels = np.memmap(path, dtype=dtype, mode="r+", offset=offset, shape=z.size)
+    pixels[cells] = garbage(pixels[cells].size)
+    pixels.flush()
+    return path, z
+
+
+def test_a_few_impossible_heights_are_voids_with_a_warning_and_filled(tmp_path):
+    """3e38 among heights of ~1000 m: read as voids (not as data that fill_voids and the
+    tile's interpolation would spread), and a warning saying where."""
+    from terrain_nav_ros.core.metamap import MetaMap
+
+    path, _ = _garbled_geotiff(tmp_path / "spots.tif", np.float32,
+                               lambda n: np.full(n, 3e38, np.float32), slice(7740, 7745))
+    dem = open_dem(path)
+    assert "5 of 16384 heights (0.0305 %) are impossible on Earth" in dem.warning
+    assert "first 3e+38 at row 60, column 60); they are read as voids" in dem.warning
+    read = dem.read()
+    assert np.isnan(read[60, 60:65]).all() and np.isfinite(read).sum() == 16384 - 5
+    filled, large = fill_voids(read)  # a small void: inpainted from its rim
+    assert not large.any() and 900 < filled[60, 60:65].min() <= filled[60, 60:65].max() < 1100
+    tile = MetaMap(dem, fill_voids=True).tile_at(0.0, 0.0, 30.0, 100, 100)
+    assert tile.valid_fraction == 1.0 and tile.elevation.max() < 1200
+    # an undeclared nodata value, -9999, is impossible too
+    path, _ = _garbled_geotiff(tmp_path / "sentinel.tif", np.int16,
+                               lambda n: np.full(n, -9999, np.int16), slice(0, 128))
+    dem = open_dem(path)
+    assert "128 of 16384 heights" in dem.warning and np.isnan(dem.read()[0]).all()
+
+
+@pytest.mark.parametrize("dtype,garbage,first", [
+    (np.float32, lambda n: np.full(n, -1e30, np.float32), "-1e+30"),
+    (np.int16, lambda n: np.random.default_rng(5).integers(-32768, 32767, n, np.int16), ""),
+], ids=["float_-1e30", "int16_random"])
+def test_mostly_impossible_heights_are_refused(tmp_path, dtype, garbage, first):
+    path, _ = _garbled_geotiff(tmp_path / "garbage.tif", dtype, garbage)
+    _assert_dem_error(path, re.escape(f"are impossible on Earth (outside -500..9000 m; "
+                                      f"first {first}"))
+    _assert_dem_error(path, "corrupt pixel data, an undeclared nodata value or heights not "
+                            "in metres")
+
+
 def test_unknown_crs(tmp_path):
     p = tmp_path / "no_crs.tif"
     with rasterio.open(p, "w", driver="GTiff", width=8, height=8, count=1, dtype="int16",

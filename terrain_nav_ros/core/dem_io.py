@@ -12,7 +12,10 @@ Pixel convention (as in :mod:`.georef`): ``Dem.transform`` is the GDAL affine tr
 pixel *corners*; integer pixel coordinates (col, row) are pixel *centres*.
 
 Heights are whatever the file stores, normally orthometric metres (SRTM: EGM96 geoid; USGS:
-NAVD88); see :mod:`.geodesy` for what that means in ENU.
+NAVD88); see :mod:`.geodesy` for what that means in ENU. A file's heights outside
+:data:`EARTH_ELEVATIONS` are impossible for the surface a camera sees (corrupt pixels, an
+undeclared nodata value such as -9999, sea floor, or heights not in metres): they are read as
+voids, with a warning in ``Dem.warning``, and a file where most are impossible is refused.
 
 Embedded default (:func:`sample_dem`): ``jacksboro_fault_dem.npz`` from matplotlib's sample
 data, a 344 x 403 int16 USGS DEM of the Jacksboro fault / Pine Mountain area (Cumberland
@@ -50,10 +53,16 @@ from scipy import ndimage as ndi
 
 __all__ = [
     "DemError", "Dem", "open_dem", "sample_dem", "mosaic", "fill_voids", "dem_files", "SRTM_VOID",
+    "EARTH_ELEVATIONS",
 ]
 
 #: SRTM void marker.
 SRTM_VOID = -32768
+#: Heights (m) the visible surface can have: the lowest dry land is the Dead Sea shore
+#: (-430 m), the highest summit Everest (8849 m).
+EARTH_ELEVATIONS = (-500.0, 9000.0)
+_SCAN_CELLS = 1 << 22  # cells open_dem reads to judge the heights (a small DEM: all of them)
+_SCAN_BAND = 1 << 18  # cells it reads at once
 _HGT_NAME = re.compile(r"^([NS])(\d{2})([EW])(\d{3})\.hgt$", re.IGNORECASE)
 _HGT_SIZES = {1201: 3.0, 3601: 1.0}  # samples per side -> arc-seconds
 _ASC_KEYS = {b"ncols", b"nrows", b"xllcorner", b"yllcorner", b"xllcenter", b"yllcenter",
@@ -88,6 +97,10 @@ class Dem:
         Storage dtype of the elevations.
     nodata : float or None
         Storage value marking missing cells (NaN nodata is always honoured).
+    valid_range : (float, float) or None
+        Heights outside it are read as voids (files: :data:`EARTH_ELEVATIONS`).
+    warning : str or None
+        What is wrong with the heights, for the caller to show (impossible ones voided).
     """
 
     name: str
@@ -100,6 +113,8 @@ class Dem:
     _read: Callable[[int, int, int, int], np.ndarray] = field(repr=False)
     crs_guessed: bool = False
     _close: Callable[[], None] | None = field(default=None, repr=False)
+    valid_range: tuple[float, float] | None = None
+    warning: str | None = None
 
     # -- construction -------------------------------------------------------------------
     @classmethod
@@ -209,6 +224,8 @@ class Dem:
             except (RasterioError, OSError) as exc:
                 raise DemError(f"{self.name}: cannot read rows {r0}:{r1}, cols {c0}:{c1} "
                                f"(truncated or corrupt data?): {exc}") from exc
+            if self.valid_range is not None:
+                _void_outside(block, self.valid_range)
             if block.shape == (nrows, ncols):  # wholly inside: already a fresh float32 array
                 return block
         out = np.full((nrows, ncols), np.nan, dtype=np.float32)
@@ -238,6 +255,12 @@ class Dem:
         self.close()
 
 
+def _void_outside(block: np.ndarray, valid_range: tuple[float, float]):
+    """Set the heights of a float block outside ``valid_range`` to NaN, in place."""
+    lo, hi = valid_range
+    block[(block < lo) | (block > hi)] = np.nan
+
+
 def _to_float(block, nodata) -> np.ndarray:
     """float32 copy of a storage block with nodata -> NaN (one copy, one compare)."""
     out = np.array(block, dtype=np.float32, copy=True)  # never hand out the source's memory
@@ -262,7 +285,10 @@ def open_dem(path, crs=None, *, validate: bool = True) -> Dem:
     crs : pyproj.CRS, str, or "local", optional
         Override the file's CRS; ``"local"`` forces unreferenced local metres.
     validate : bool
-        Read the last cell at once, so truncated files fail here rather than mid-mission.
+        Read the last cell at once, so truncated files fail here rather than mid-mission, and
+        judge the heights (all of them, or every k-th row of a DEM over 4 M cells): when
+        some are outside :data:`EARTH_ELEVATIONS` ``Dem.warning`` says so; when most are,
+        the file is refused. Either way such heights are read as voids.
 
     Returns
     -------
@@ -271,7 +297,8 @@ def open_dem(path, crs=None, *, validate: bool = True) -> Dem:
     Raises
     ------
     DemError
-        Missing file, unreadable or wrong header, truncated data, unknown CRS.
+        Missing file, unreadable or wrong header, truncated data, values that are not
+        numbers (ESRI ASCII), mostly impossible heights, unknown CRS.
 
     Notes
     -----
@@ -296,8 +323,43 @@ def open_dem(path, crs=None, *, validate: bool = True) -> Dem:
         dem.crs = None if str(crs).lower() == "local" else _parse_crs(crs, path)
         dem.crs_guessed = False
     if validate and dem.width and dem.height:
-        dem.read_window(dem.height - 1, dem.width - 1, 1, 1)
+        try:
+            dem.read_window(dem.height - 1, dem.width - 1, 1, 1)
+            dem.warning = _judge_heights(dem)
+        except DemError:
+            dem.close()
+            raise
+    dem.valid_range = EARTH_ELEVATIONS
     return dem
+
+
+def _judge_heights(dem: Dem) -> str | None:
+    """None when every height read is possible on Earth, else a warning; raises DemError when
+    most are impossible. Reads at most ``_SCAN_CELLS`` cells (every k-th row of a big DEM),
+    a band of rows at a time so memory stays small."""
+    step = -(-dem.width * dem.height // _SCAN_CELLS)
+    band = max(1, _SCAN_BAND // dem.width) if step == 1 else 1
+    lo, hi = EARTH_ELEVATIONS
+    n_bad = n = 0
+    first = None
+    for r0 in range(0, dem.height, step * band):
+        z = dem.read_window(r0, 0, min(band, dem.height - r0), dem.width)
+        bad = (z < lo) | (z > hi)  # NaN (nodata) is neither
+        n += np.count_nonzero(~np.isnan(z))
+        if bad.any():
+            n_bad += np.count_nonzero(bad)
+            if first is None:
+                r, c = np.argwhere(bad)[0]
+                first = (z[r, c], r0 + r, c)
+    if not n_bad:
+        return None
+    what = (f"{dem.name}: {n_bad} of {n} heights{' sampled' if step > 1 else ''} "
+            f"({100 * n_bad / n:.3g} %) are impossible on Earth (outside {lo:g}..{hi:g} m; "
+            f"first {first[0]:.6g} at row {first[1]}, column {first[2]})")
+    if n_bad > n / 2:
+        raise DemError(f"{what}: corrupt pixel data, an undeclared nodata value or heights "
+                       "not in metres; export or copy it again")
+    return f"{what}; they are read as voids"
 
 
 def _parse_crs(crs, path) -> CRS:
