@@ -93,12 +93,15 @@ def test_impossible_heights_in_a_dem_are_logged_as_a_warning(tmp_path):
                        dtype="float32", crs="EPSG:32611",
                        transform=Affine(30, 0, 4e5, 0, -30, 3.8e6)) as ds:
         ds.write(z, 1)
+    # its own service name: the module's metamap node still serves /metamap/get_tile
     proc = start_node("metamap", {"dem_files": [str(path)], "gsd": 30.0,
-                                  "initial_tile": False})
+                                  "initial_tile": False},
+                      "-r", "/metamap/get_tile:=/metamap_warning/get_tile")
     client = SpinningNode("metamap_warning_client")
     try:
-        response = _call(client, GetDemTile.Request(
-            center_frame=GetDemTile.Request.CENTER_ENU, width=32, height=32, gsd=30.0))
+        response = call_service(client, GetDemTile, "/metamap_warning/get_tile",
+                                GetDemTile.Request(center_frame=GetDemTile.Request.CENTER_ENU,
+                                                   width=32, height=32, gsd=30.0))
         assert response.success, response.message
         heights, _ = cv.msg_to_dem_tile(response.tile)
         assert np.nanmax(heights) < 600  # no 3e38 spread by the interpolation
