@@ -54,6 +54,7 @@ from .ros_common import (
     LATCHED_QOS,
     RELIABLE_QOS,
     SENSOR_QOS,
+    check_parameters_known,
     contained,
     declare,
     declare_settings,
@@ -119,6 +120,7 @@ class MatcherNode(Node):
         self.camera_timeout = declare(self, "camera_timeout", 5.0,
                                       "no camera minutiae for this long is a warning [s]",
                                       min_value=0.0)
+        check_parameters_known(self)  # before the matcher is built and its kernels loaded
         self.add_on_set_parameters_callback(reject_all_changes)
         self.r_body_optical = mount_rotation(*mount)
         self.matcher = Matcher(settings_from_parameters(self, "match", MatchParams()))

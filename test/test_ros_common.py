@@ -200,3 +200,25 @@ def test_a_node_given_a_misspelt_parameter_stops_with_one_line(tmp_path):
     assert ("fatal: ValueError: ekf: unknown parameter(s) time_jump_reste (did you mean "
             "time_jump_reset?)") in out
     assert "Traceback" not in out
+
+
+@pytest.mark.parametrize("executable,params,misspelt,hint,untouched", [
+    # the DEM named is never read: its absence is not what the node says
+    ("metamap", {"dem_files": ["{tmp}/no_such_dem.tif"]}, "gdsd", "gsd", None),
+    # the matcher is not built: its bad candidates setting is not what the node says
+    ("matcher", {"match.candidates": "kd"}, "match.thresold", "match.threshold", None),
+    # the bag is not created
+    ("bag_recorder", {"output": "{tmp}/bag"}, "topcis", "topics", "bag"),
+])
+def test_unknown_parameters_are_refused_before_the_node_does_any_work(
+        tmp_path, executable, params, misspelt, hint, untouched):
+    given = {k: [v.format(tmp=tmp_path) for v in v] if isinstance(v, list)
+             else v.format(tmp=tmp_path) for k, v in params.items()}
+    given[misspelt] = 1.0
+    proc = start_node(executable, given)
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 1, out
+    assert (f"fatal: ValueError: {executable}: unknown parameter(s) {misspelt} (did you "
+            f"mean {hint}?)") in out
+    assert "no such DEM" not in out and "candidates" not in out and "Traceback" not in out
+    assert untouched is None or not (tmp_path / untouched).exists()
