@@ -433,14 +433,21 @@ def test_a_few_impossible_heights_are_voids_with_a_warning_and_filled(tmp_path):
     assert "128 of 16384 heights" in dem.warning and np.isnan(dem.read()[0]).all()
 
 
+def _random_bytes_as(dtype):
+    return lambda n: np.random.default_rng(5).integers(0, 256, n * np.dtype(dtype).itemsize,
+                                                        np.uint8).view(dtype)
+
+
 @pytest.mark.parametrize("dtype,garbage,first", [
-    (np.float32, lambda n: np.full(n, -1e30, np.float32), "-1e+30"),
-    (np.int16, lambda n: np.random.default_rng(5).integers(-32768, 32767, n, np.int16), ""),
-], ids=["float_-1e30", "int16_random"])
+    (np.float32, lambda n: np.full(n, -1e30, np.float32), "first -1e+30"),
+    # random float32 bytes: ~45 % huge, ~42 % nonzero below 1e-6
+    (np.float32, _random_bytes_as(np.float32), "first"),
+    (np.int16, _random_bytes_as(np.int16), "first"),  # ~85 % outside -500..9000
+], ids=["float_-1e30", "float_random_bytes", "int16_random_bytes"])
 def test_mostly_impossible_heights_are_refused(tmp_path, dtype, garbage, first):
     path, _ = _garbled_geotiff(tmp_path / "garbage.tif", dtype, garbage)
-    _assert_dem_error(path, re.escape(f"are impossible on Earth (outside -500..9000 m; "
-                                      f"first {first}"))
+    _assert_dem_error(path, re.escape("are impossible on Earth (outside -500..9000 m, or "
+                                      f"nonzero within 1e-06 m of 0; {first}"))
     _assert_dem_error(path, "corrupt pixel data, an undeclared nodata value or heights not "
                             "in metres")
 

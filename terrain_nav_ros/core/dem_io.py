@@ -14,7 +14,8 @@ pixel *corners*; integer pixel coordinates (col, row) are pixel *centres*.
 Heights are whatever the file stores, normally orthometric metres (SRTM: EGM96 geoid; USGS:
 NAVD88); see :mod:`.geodesy` for what that means in ENU. A file's heights outside
 :data:`EARTH_ELEVATIONS` are impossible for the surface a camera sees (corrupt pixels, an
-undeclared nodata value such as -9999, sea floor, or heights not in metres): they are read as
+undeclared nodata value such as -9999, sea floor, or heights not in metres), and so are
+nonzero ones within :data:`TINY_HEIGHT` of 0 (random bytes read as floats): they are read as
 voids, with a warning in ``Dem.warning``, and a file where most are impossible is refused.
 
 Embedded default (:func:`sample_dem`): ``jacksboro_fault_dem.npz`` from matplotlib's sample
@@ -53,7 +54,7 @@ from scipy import ndimage as ndi
 
 __all__ = [
     "DemError", "Dem", "open_dem", "sample_dem", "mosaic", "fill_voids", "dem_files", "SRTM_VOID",
-    "EARTH_ELEVATIONS",
+    "EARTH_ELEVATIONS", "TINY_HEIGHT",
 ]
 
 #: SRTM void marker.
@@ -61,6 +62,9 @@ SRTM_VOID = -32768
 #: Heights (m) the visible surface can have: the lowest dry land is the Dead Sea shore
 #: (-430 m), the highest summit Everest (8849 m).
 EARTH_ELEVATIONS = (-500.0, 9000.0)
+#: Heights nearer 0 than this, but not 0, are impossible too: no survey resolves them, and
+#: random bytes read as float32 are mostly such tiny numbers (or huge ones).
+TINY_HEIGHT = 1e-6
 _SCAN_CELLS = 1 << 22  # cells open_dem reads to judge the heights (a small DEM: all of them)
 _SCAN_BAND = 1 << 18  # cells it reads at once
 _HGT_NAME = re.compile(r"^([NS])(\d{2})([EW])(\d{3})\.hgt$", re.IGNORECASE)
@@ -98,7 +102,8 @@ class Dem:
     nodata : float or None
         Storage value marking missing cells (NaN nodata is always honoured).
     valid_range : (float, float) or None
-        Heights outside it are read as voids (files: :data:`EARTH_ELEVATIONS`).
+        Heights outside it, or nonzero below :data:`TINY_HEIGHT`, are read as voids (files:
+        :data:`EARTH_ELEVATIONS`).
     warning : str or None
         What is wrong with the heights, for the caller to show (impossible ones voided).
     """
@@ -225,7 +230,7 @@ class Dem:
                 raise DemError(f"{self.name}: cannot read rows {r0}:{r1}, cols {c0}:{c1} "
                                f"(truncated or corrupt data?): {exc}") from exc
             if self.valid_range is not None:
-                _void_outside(block, self.valid_range)
+                block[_impossible(block, self.valid_range)] = np.nan
             if block.shape == (nrows, ncols):  # wholly inside: already a fresh float32 array
                 return block
         out = np.full((nrows, ncols), np.nan, dtype=np.float32)
@@ -255,10 +260,11 @@ class Dem:
         self.close()
 
 
-def _void_outside(block: np.ndarray, valid_range: tuple[float, float]):
-    """Set the heights of a float block outside ``valid_range`` to NaN, in place."""
+def _impossible(z: np.ndarray, valid_range: tuple[float, float]) -> np.ndarray:
+    """Where heights are outside ``valid_range`` or nonzero below :data:`TINY_HEIGHT` (NaN,
+    nodata, is neither)."""
     lo, hi = valid_range
-    block[(block < lo) | (block > hi)] = np.nan
+    return (z < lo) | (z > hi) | ((np.abs(z) < TINY_HEIGHT) & (z != 0))
 
 
 def _to_float(block, nodata) -> np.ndarray:
@@ -344,7 +350,7 @@ def _judge_heights(dem: Dem) -> str | None:
     first = None
     for r0 in range(0, dem.height, step * band):
         z = dem.read_window(r0, 0, min(band, dem.height - r0), dem.width)
-        bad = (z < lo) | (z > hi)  # NaN (nodata) is neither
+        bad = _impossible(z, EARTH_ELEVATIONS)
         n += np.count_nonzero(~np.isnan(z))
         if bad.any():
             n_bad += np.count_nonzero(bad)
@@ -354,8 +360,9 @@ def _judge_heights(dem: Dem) -> str | None:
     if not n_bad:
         return None
     what = (f"{dem.name}: {n_bad} of {n} heights{' sampled' if step > 1 else ''} "
-            f"({100 * n_bad / n:.3g} %) are impossible on Earth (outside {lo:g}..{hi:g} m; "
-            f"first {first[0]:.6g} at row {first[1]}, column {first[2]})")
+            f"({100 * n_bad / n:.3g} %) are impossible on Earth (outside {lo:g}..{hi:g} m, "
+            f"or nonzero within {TINY_HEIGHT:g} m of 0; first {first[0]:.6g} at row "
+            f"{first[1]}, column {first[2]})")
     if n_bad > n / 2:
         raise DemError(f"{what}: corrupt pixel data, an undeclared nodata value or heights "
                        "not in metres; export or copy it again")
