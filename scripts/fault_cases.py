@@ -12,7 +12,7 @@ it to the real ``terrain-nav`` command, node executable or EKF core and judges t
 
 Usage::
 
-    .venv/bin/python scripts/fault_cases.py            # every case (~1 min on 2 cores)
+    .venv/bin/python scripts/fault_cases.py            # every case (~3 min on 2 cores)
     .venv/bin/python scripts/fault_cases.py --ci       # the subset ./tn test runs
     .venv/bin/python scripts/fault_cases.py -k bag     # cases whose name holds "bag"
 
@@ -97,6 +97,57 @@ def geotiff(path: Path) -> Path:
     return path
 
 
+def relief_geotiff(path: Path, garbage=None, cells=slice(None)) -> Path:
+    """An uncompressed 128 x 128 float32 GeoTIFF of gentle relief (UTM 11N, 30 m), its pixel
+    bytes for ``cells`` (row-major) then overwritten with ``garbage(n)``."""
+    import numpy as np
+    import rasterio
+    from affine import Affine
+
+    rows, cols = np.mgrid[0:128, 0:128]
+    z = (1000 + 80 * np.sin(cols / 9.0) * np.cos(rows / 13.0)).astype(np.float32)
+    with rasterio.open(path, "w", driver="GTiff", width=128, height=128, count=1,
+                       dtype="float32", crs="EPSG:32611",
+                       transform=Affine(30, 0, 4e5, 0, -30, 3.8e6)) as ds:
+        ds.write(z, 1)
+        offset = int(ds.get_tag_item("BLOCK_OFFSET_0_0", "TIFF", bidx=1))
+    if garbage is not None:
+        pixels = np.memmap(path, dtype=np.float32, mode="r+", offset=offset, shape=z.size)
+        raw = pixels.view(np.uint8) if garbage == "random bytes" else pixels
+        raw[cells] = (np.random.default_rng(5).integers(0, 256, raw[cells].size, np.uint8)
+                      if garbage == "random bytes" else garbage)
+        pixels.flush()
+    return path
+
+
+def antimeridian_geotiff(path: Path) -> Path:
+    """A 1 x 1 degree GeoTIFF in EPSG:4326 over longitudes 179.5..180.5 (30", relief)."""
+    import numpy as np
+    import rasterio
+    from affine import Affine
+
+    rows, cols = np.mgrid[0:120, 0:120]
+    z = (800 + 300 * np.sin(cols / 7.0) * np.cos(rows / 11.0)).astype(np.float32)
+    with rasterio.open(path, "w", driver="GTiff", width=120, height=120, count=1,
+                       dtype="float32", crs="EPSG:4326",
+                       transform=Affine(1 / 120, 0, 179.5, 0, -1 / 120, 45.5)) as ds:
+        ds.write(z, 1)
+    return path
+
+
+def nodata_geotiff(path: Path) -> Path:
+    """A 64 x 64 GeoTIFF (UTM 11N) holding nothing but its nodata value."""
+    import numpy as np
+    import rasterio
+    from affine import Affine
+
+    with rasterio.open(path, "w", driver="GTiff", width=64, height=64, count=1, dtype="int16",
+                       crs="EPSG:32611", transform=Affine(30, 0, 4e5, 0, -30, 3.8e6),
+                       nodata=-9999) as ds:
+        ds.write(np.full((64, 64), -9999, np.int16), 1)
+    return path
+
+
 def corrupt_header(path: Path) -> Path:
     data = bytearray(path.read_bytes())
     data[8:200] = bytes((i * 37) % 256 for i in range(192))
@@ -145,6 +196,14 @@ def _simulate_dem(make: Callable[[Path], Path], *words) -> Callable:
                                          "--dem", make(tmp)), 2, words, timeout=30)
 
 
+def _simulate_ok(make: Callable[[Path], Path], extra: tuple, stream: str, *words) -> Callable:
+    """simulate must succeed, ``words`` in ``stream`` (a warning on stderr, or stdout's
+    'wrote')."""
+    return lambda tmp: judge(terrain_nav("simulate", "-o", tmp / "out", "--duration", 5,
+                                         "--dem", make(tmp), *extra), 0, words, timeout=120,
+                             stream=stream, one_line=False)
+
+
 def _bag_info(change, *words) -> Callable:
     return lambda tmp: judge(terrain_nav("bag", "info", damaged_copy(
         make_bag(tmp / "whole"), tmp / "bag", change)), 1, ("DAMAGED", *words),
@@ -156,12 +215,12 @@ def _replay(make_bag_dir: Callable[[Path], Path], extra: tuple, *words) -> Calla
                                          tmp / "replay", *extra), 2, words)
 
 
-def _node_params(yaml_text: str, *words) -> Callable:
+def _node_params(yaml_text: str, *words, node: str = "ekf") -> Callable:
     def run(tmp: Path):
         params = tmp / "params.yaml"
-        params.write_text(yaml_text)
+        params.write_text(f"{node}:\n  ros__parameters:\n{yaml_text}")
         # the node may log its start before it checks its parameters: not one line
-        return judge([BIN / "ekf", "--ros-args", "--params-file", params], 1, words,
+        return judge([BIN / node, "--ros-args", "--params-file", params], 1, words,
                      one_line=False)
     return run
 
@@ -214,6 +273,23 @@ def cases() -> list[Case]:
             lambda t: _write(t / "empty.tif", b""), "not a readable DEM")),
         Case("DEM file missing", "dem", _simulate_dem(
             lambda t: t / "nope.tif", "no such DEM file")),
+        Case("ESRI ASCII grid with a value that is not a number", "dem", _simulate_dem(
+            lambda t: _write(t / "garbled.asc", asc(c=4, r=3) + "1 2 3 4\n5 abc 7 8\n9 1 2 3\n"),
+            "value 6 (row 2, column 2) is 'abc', not a number"), ci=True),
+        Case("GeoTIFF pixels overwritten with -1e30", "dem", _simulate_dem(
+            lambda t: relief_geotiff(t / "garbage.tif", -1e30),
+            "16384 of 16384 heights (100 %) are impossible on Earth")),
+        Case("GeoTIFF pixels overwritten with random bytes", "dem", _simulate_dem(
+            lambda t: relief_geotiff(t / "random.tif", "random bytes"),
+            "are impossible on Earth")),
+        Case("GeoTIFF with a few 3e38 pixels", "dem", _simulate_ok(
+            lambda t: relief_geotiff(t / "spots.tif", 3e38, slice(650, 654)), (), "stderr",
+            "warning", "4 of 16384 heights", "read as voids")),
+        Case("DEM all nodata under the route", "dem", _simulate_dem(
+            lambda t: nodata_geotiff(t / "void.tif"), "no heights under the route")),
+        Case("DEM across the antimeridian (179.5..180.5)", "dem", _simulate_ok(
+            lambda t: antimeridian_geotiff(t / "am.tif"),
+            ("--start-time", "2024-06-21T00:00:00Z"), "stdout", "wrote")),
         Case("bag cut to 50 %", "bag", _bag_info(cut_half, "cut short"), ci=True),
         Case("bag with corrupted bytes", "bag", _bag_info(corrupt_chunk, "corrupt data")),
         Case("bag without metadata.yaml", "bag", _bag_info(None, "metadata.yaml")),
@@ -242,11 +318,19 @@ def cases() -> list[Case]:
         Case("graph --config missing", "options", lambda tmp: judge(terrain_nav(
             "graph", "--config", tmp / "nope.yaml"), 2, ("cannot read graph file",))),
         Case("misspelt parameter (time_jump_reste)", "parameters", _node_params(
-            "ekf:\n  ros__parameters:\n    time_jump_reste: 2.0\n",
+            "    time_jump_reste: 2.0\n",
             "unknown parameter(s) time_jump_reste (did you mean time_jump_reset?)")),
         Case("NaN parameter (gravity: .nan)", "parameters", _node_params(
-            "ekf:\n  ros__parameters:\n    gravity: .nan\n", "gravity out of range"),
-             ci=True),
+            "    gravity: .nan\n", "gravity out of range"), ci=True),
+        Case("matcher: misspelt match.thresold", "parameters", _node_params(
+            "    match.thresold: 9.0\n", "unknown parameter(s) match.thresold (did you mean "
+            "match.threshold?)", node="matcher")),
+        Case("matcher: match.search_scale 0.7", "parameters", _node_params(
+            "    match.search_scale: 0.7\n", "match.search_scale out of range",
+            node="matcher")),
+        Case("matcher: match.candidates kd", "parameters", _node_params(
+            "    match.candidates: kd\n", "MatchParams.candidates must be one of",
+            node="matcher")),
         Case("IMU stamp 5 s in the past, GNSS gone", "ekf", _ekf_stamp(-5.0)),
         Case("IMU stamp 1 h ahead, GNSS gone", "ekf", _ekf_stamp(3600.0), ci=True),
     ]

@@ -18,7 +18,7 @@ from rosgraph_msgs.msg import Clock
 
 from . import bags
 from .conversions import ns_to_stamp
-from .ros_common import declare, message_class, run
+from .ros_common import check_parameters_known, declare, message_class, run
 
 
 def parse_remaps(entries: list[str]) -> dict[str, str]:
@@ -53,6 +53,7 @@ class BagPlayer(Node):
                                    "pause before the first message [s]", min_value=0.0)
         self.exit_when_done = declare(self, "exit_when_done", True,
                                       "shut the process down after the last message")
+        check_parameters_known(self)  # before anything is played
         if not self.bag:
             raise ValueError("parameter 'bag' is required")
         self.topics = [t for t in topics if t]

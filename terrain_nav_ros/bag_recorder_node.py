@@ -11,7 +11,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from . import bags
-from .ros_common import declare, message_class, run
+from .ros_common import check_parameters_known, declare, message_class, run
 
 HIDDEN_TOPICS = ("/rosout", "/parameter_events")
 
@@ -27,6 +27,7 @@ class BagRecorder(Node):
         self.exclude = [t for t in declare(self, "exclude", [""], "topics never recorded") if t]
         period = declare(self, "discovery_period", 0.25, "how often to look for new topics [s]",
                          min_value=0.01)
+        check_parameters_known(self)  # before the bag is created
         if not self.output:
             raise ValueError("parameter 'output' is required")
         self.writer = bags.BagWriter(self.output)

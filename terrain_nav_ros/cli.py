@@ -124,10 +124,12 @@ def _cmd_simulate(args) -> int:
         # a DEM file that cannot be read fails now, not after the set-up
         from .core.dem_sources import open_dem_source
 
-        open_dem_source(cfg.dem).close()
+        with open_dem_source(cfg.dem) as dem:
+            if dem.warning:
+                print(f"terrain-nav simulate: warning: {dem.warning}", file=sys.stderr)
     try:
         summary = simulate(cfg, args.output)
-    except SimInputError as err:   # --albedo or --start-time: the user's input
+    except SimInputError as err:   # --albedo, --start-time, --dem: the user's input
         raise InputError(str(err)) from err
     print(f"wrote {args.output}: {summary['duration_s']:.0f} s over {summary['dem']}, "
           f"{summary['camera_frames']} camera frames, GNSS denied after "

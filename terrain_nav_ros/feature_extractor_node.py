@@ -42,6 +42,7 @@ from .ros_common import (
     DIAG_OK,
     LATCHED_QOS,
     RELIABLE_QOS,
+    check_parameters_known,
     contained,
     declare,
     declare_settings,
@@ -75,6 +76,7 @@ class FeatureExtractorNode(Node):
         diagnostics_period = declare(self, "diagnostics_period", 1.0,
                                      "period of /feature_extractor/diagnostics, wall clock [s]",
                                      min_value=0.01)
+        check_parameters_known(self)  # before the extractor is built and its kernels loaded
         self.images = Counter()               # per stream
         self.without_minutiae = Counter()     # per stream and reason kind
         self.extract_ms = {"camera": [], "landmark": []}   # since the last report

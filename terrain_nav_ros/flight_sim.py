@@ -148,10 +148,10 @@ def fly(cfg: SimConfig, metamap: MetaMap):
                        int((north - south) / gsd) + 1)
     ground = metamap.tile(box).elevation
     if np.isnan(ground).all():
-        raise ValueError("the DEM has no heights under the route: it is all nodata (voids) "
+        raise SimInputError("the DEM has no heights under the route: it is all nodata (voids) "
                          "there; give a DEM with elevations")
     if np.isnan(ground).any():
-        raise ValueError(f"the route leaves the DEM (ENU box {west:.0f}..{east:.0f} E, "
+        raise SimInputError(f"the route leaves the DEM (ENU box {west:.0f}..{east:.0f} E, "
                          f"{south:.0f}..{north:.0f} N); move start_east/start_north")
     pos[:, 2] += float(np.nanmax(ground)) + cfg.agl
     return (type(truth)(truth.t, pos, vel, truth.quaternion, truth.gyro, truth.accel),
@@ -347,7 +347,8 @@ def simulate(cfg: SimConfig, output: str | Path) -> dict:
 
 class SimInputError(ValueError):
     """Bad simulator input: an albedo image that cannot be draped (unreadable, no CRS, no
-    such band, elsewhere) or a start time that is not ISO 8601."""
+    such band, elsewhere), a start time that is not ISO 8601 or falls at night there, or a
+    route the DEM does not cover with heights."""
 
 
 def _epoch_ns(start_time: str) -> int:
@@ -418,7 +419,8 @@ def _solar(origin: EnuOrigin, t_ns: int) -> tuple[float, float]:
 
     az, el = sun_at(t_ns * 1e-9, origin.lat, origin.lon)
     if el < 5.0:
-        raise ValueError(f"the sun is {el:.1f} deg high at the flight's time: night")
+        raise SimInputError(f"the sun is {el:.1f} deg high at the flight's time there: "
+                            "night; give a daytime --start-time")
     return az, el
 
 

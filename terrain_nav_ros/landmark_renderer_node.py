@@ -28,7 +28,14 @@ from .core.renderer import (
     create_headless_context,
 )
 from .core.sun import sun_at, sun_separation
-from .ros_common import LATCHED_QOS, contained, declare, reject_all_changes, run
+from .ros_common import (
+    LATCHED_QOS,
+    check_parameters_known,
+    contained,
+    declare,
+    reject_all_changes,
+    run,
+)
 
 
 class LandmarkRendererNode(Node):
@@ -58,6 +65,7 @@ class LandmarkRendererNode(Node):
                                    "how often the sun's motion is checked [s]", min_value=0.01)
         if self.sun_policy not in ("fixed", "stamp"):
             raise ValueError(f"sun_policy must be 'fixed' or 'stamp', not {self.sun_policy!r}")
+        check_parameters_known(self)  # before the OpenGL context is made
         self.add_on_set_parameters_callback(reject_all_changes)
         self.renderer = LandmarkRenderer(create_headless_context(), max_steps=max_steps,
                                          albedo=albedo, shadows=self.shadows)

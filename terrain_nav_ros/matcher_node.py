@@ -54,6 +54,7 @@ from .ros_common import (
     LATCHED_QOS,
     RELIABLE_QOS,
     SENSOR_QOS,
+    check_parameters_known,
     contained,
     declare,
     declare_settings,
@@ -64,17 +65,6 @@ from .ros_common import (
     settings_from_parameters,
 )
 
-# Values MatchParams cannot work with, refused by rclpy when declared (issue 22). MatchParams
-# validates nothing itself (the study sets threshold=-1e9 to collect every score), so the
-# node's bounds live here; NaN is refused for every float field by declare_settings.
-_POSITIVE = ("pos_tol", "angle_tol", "edge_length_tol", "edge_angle_tol", "rot_bin", "trans_bin",
-             "crease_radius", "crease_angle_tol", "crease_spacing")
-_AT_LEAST_ONE = ("k_query", "k_ref", "n_hypotheses", "n_rotation_peaks", "ransac_iterations")
-MATCH_RANGES = {"threshold": (0.0, None), "max_rotation": (0.0, math.pi),
-                "min_support_ratio": (0.0, 1.0),
-                **{name: (1e-9, None) for name in _POSITIVE},
-                **{name: (1, None) for name in _AT_LEAST_ONE}}
-
 # Variance (rad^2) given to roll and pitch when only the heading is measured: 10 deg.
 UNOBSERVED_TILT_VAR = math.radians(10.0) ** 2
 
@@ -84,7 +74,9 @@ class MatcherNode(Node):
 
     def __init__(self, **node_kwargs):
         super().__init__("matcher", **node_kwargs)
-        declare_settings(self, "match", MatchParams(), MATCH_RANGES)
+        # the core's ranges, as a matcher publishing fixes needs them: rclpy refuses a value
+        # outside (and NaN) as it is declared; combinations fail in settings_from_parameters
+        declare_settings(self, "match", MatchParams(), MatchParams.FIX_RANGES)
         self.landmark_sigma = declare(self, "landmark_sigma", 5.0,
                                       "horizontal georeferencing error of the DEM [m]",
                                       min_value=0.0)
@@ -128,6 +120,7 @@ class MatcherNode(Node):
         self.camera_timeout = declare(self, "camera_timeout", 5.0,
                                       "no camera minutiae for this long is a warning [s]",
                                       min_value=0.0)
+        check_parameters_known(self)  # before the matcher is built and its kernels loaded
         self.add_on_set_parameters_callback(reject_all_changes)
         self.r_body_optical = mount_rotation(*mount)
         self.matcher = Matcher(settings_from_parameters(self, "match", MatchParams()))

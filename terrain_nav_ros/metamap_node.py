@@ -29,7 +29,15 @@ from .core.dem_sources import open_dem_source
 from .core.geodesy import EnuOrigin
 from .core.metamap import MetaMap
 from .core.tile_policy import TilePolicy
-from .ros_common import LATCHED_QOS, RELIABLE_QOS, contained, declare, reject_all_changes, run
+from .ros_common import (
+    LATCHED_QOS,
+    RELIABLE_QOS,
+    check_parameters_known,
+    contained,
+    declare,
+    reject_all_changes,
+    run,
+)
 
 # GDAL's default block cache (5% of RAM) would dominate the node's memory on tiled GeoTIFFs.
 os.environ.setdefault("GDAL_CACHEMAX", "64")
@@ -79,6 +87,7 @@ class MetamapNode(Node):
         initial = declare(self, "initial_tile", True,
                           "publish a tile around the ENU origin at start-up, before any "
                           "odometry (lets the EKF learn the origin from it)")
+        check_parameters_known(self)  # before the DEMs are read
         self.add_on_set_parameters_callback(reject_all_changes)
 
         named = [f for f in files if f.startswith(("synthetic", "jacksboro", "matplotlib:"))]
@@ -97,6 +106,9 @@ class MetamapNode(Node):
         self.get_logger().info(
             f"loaded {', '.join(d.name for d in dems)}; ENU origin {o.lat:.6f}, {o.lon:.6f}; "
             f"native GSD {self.metamap.native_gsd:.1f} m")
+        for d in dems:
+            if d.warning:  # impossible heights (corrupt pixels?) read as voids
+                self.get_logger().warning(d.warning)
         self._initial_timer = self.create_timer(0.2, self._publish_initial_tile) \
             if initial else None
 

@@ -124,7 +124,9 @@ def declare_settings(node: Node, prefix: str, settings, ranges=None) -> None:
 def check_parameters_known(node: Node) -> None:
     """Raise ValueError naming every parameter given to ``node`` (params file, ``-p``) that
     it never declared: rclpy ignores those, so a misspelt ``match.thresold`` ran with the
-    default threshold (issue 22). Call once every parameter is declared."""
+    default threshold (issue 22). A node calls it as soon as it has declared its
+    parameters, before any work (reading DEMs, loading kernels, creating a bag); :func:`run`
+    calls it again once the node is built, for nodes that do not."""
     # rclpy keeps what it was given only here (no public accessor)
     given = getattr(node, "_parameter_overrides", {})
     unknown = sorted(name for name in given if not node.has_parameter(name))

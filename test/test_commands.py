@@ -113,6 +113,30 @@ def test_simulate_refuses_bad_options_and_a_truncated_dem(tmp_path):
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
 
 
+def test_simulate_says_what_the_dem_or_the_time_lacks_in_one_line(tmp_path):
+    import numpy as np
+    import rasterio
+    from affine import Affine
+
+    void = tmp_path / "void.tif"
+    with rasterio.open(void, "w", driver="GTiff", width=64, height=64, count=1, dtype="int16",
+                       crs="EPSG:32611", transform=Affine(30, 0, 4e5, 0, -30, 3.8e6),
+                       nodata=-9999) as ds:
+        ds.write(np.full((1, 64, 64), -9999, np.int16))
+    _one_line_error(terrain_nav("simulate", "-o", tmp_path / "a", "--dem", void,
+                                "--duration", 5), "no heights under the route")
+    _one_line_error(terrain_nav("simulate", "-o", tmp_path / "b", "--duration", 5,
+                                "--start-time", "2024-06-21T06:00:00Z"),
+                    "night; give a daytime --start-time")
+    garbage = tmp_path / "garbage.tif"
+    with rasterio.open(garbage, "w", driver="GTiff", width=64, height=64, count=1,
+                       dtype="float32", crs="EPSG:32611",
+                       transform=Affine(30, 0, 4e5, 0, -30, 3.8e6)) as ds:
+        ds.write(np.full((1, 64, 64), -1e30, np.float32))
+    _one_line_error(terrain_nav("simulate", "-o", tmp_path / "c", "--dem", garbage,
+                                "--duration", 5), "4096 of 4096 heights (100 %) are impossible")
+
+
 def test_debug_shows_the_traceback(tmp_path):
     proc = terrain_nav("replay", "--bag", tmp_path, "--debug")
     assert proc.returncode == 2 and "Traceback" in proc.stderr

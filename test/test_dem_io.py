@@ -1,5 +1,6 @@
 """DEM ingest: every real file type, georeferencing of known summits, voids, corrupt files."""
 
+import re
 import shutil
 
 import numpy as np
@@ -323,6 +324,27 @@ def test_truncated_asc_fails_at_once_within_the_file(tmp_path, dims, values):
     _assert_dem_error(p, "truncated ESRI ASCII grid: the header promises")
 
 
+@pytest.mark.parametrize("k,token", [(0, "abc"), (57, "1.2.3"), (130, "12x"), (199, "\x00\xff")])
+@pytest.mark.parametrize("chunk", [64, 1 << 22], ids=["small_chunks", "one_chunk"])
+def test_asc_value_that_is_not_a_number_is_named_with_its_place(tmp_path, monkeypatch, k,
+                                                                 token, chunk):
+    """GDAL reads 'abc' as 0 and '1.2.3' as 1.2 without a word: refused, naming where."""
+    from terrain_nav_ros.core import dem_io
+
+    monkeypatch.setattr(dem_io, "_CHUNK", chunk)  # tokens across chunk edges, the last alone
+    values = [f"{1000 + i}.5" for i in range(200)]
+    values[k] = token
+    p = tmp_path / "garbled.asc"
+    p.write_bytes(("ncols 20\nnrows 10\nxllcorner 0\nyllcorner 0\ncellsize 30\n"
+                   + "\n".join(" ".join(values[r:r + 20]) for r in range(0, 200, 20))
+                   + "\n").encode("latin-1"))
+    shown = token.encode("latin-1").decode("ascii", "backslashreplace")
+    _assert_dem_error(p, re.escape(f"value {k + 1} (row {k // 20 + 1}, column {k % 20 + 1}) "
+                                   f"is {shown!r}, not a number"))
+    p.write_text(p.read_text("latin-1").replace(token, "-9999", 1))
+    assert open_dem(p).read().shape == (10, 20)
+
+
 def test_ascii_grid_checked_whatever_its_suffix(tmp_path):
     p = tmp_path / "grid.txt"
     p.write_text(ASC_HEADER + "1 2 3 4\n5 6\n")
@@ -372,6 +394,62 @@ def test_truncated_geotiff(tmp_path, kw):
     with pytest.raises(DemError) as info:
         open_dem(p)
     assert str(p) in str(info.value)
+
+
+def _garbled_geotiff(path, dtype, garbage, cells=slice(None)):
+    """An uncompressed 128 x 128 GeoTIFF of plausible heights whose pixel bytes for
+    ``cells`` (row-major) are then overwritten with ``garbage``."""
+    z = np.random.default_rng(2).normal(1000, 20, (128, 128)).astype(dtype)
+    with rasterio.open(path, "w", driver="GTiff", width=128, height=128, count=1, dtype=dtype,
+                       crs="EPSG:32611", transform=Affine(30, 0, 4e5, 0, -30, 3.8e6)) as ds:
+        ds.write(z, 1)
+        offset = int(ds.get_tag_item("BLOCK_OFFSET_0_0", "TIFF", bidx=1))
+    pixels = np.memmap(path, dtype=dtype, mode="r+", offset=offset, shape=z.size)
+    pixels[cells] = garbage(pixels[cells].size)
+    pixels.flush()
+    return path, z
+
+
+def test_a_few_impossible_heights_are_voids_with_a_warning_and_filled(tmp_path):
+    """3e38 among heights of ~1000 m: read as voids (not as data that fill_voids and the
+    tile's interpolation would spread), and a warning saying where."""
+    from terrain_nav_ros.core.metamap import MetaMap
+
+    path, _ = _garbled_geotiff(tmp_path / "spots.tif", np.float32,
+                               lambda n: np.full(n, 3e38, np.float32), slice(7740, 7745))
+    dem = open_dem(path)
+    assert "5 of 16384 heights (0.0305 %) are impossible on Earth" in dem.warning
+    assert "first 3e+38 at row 60, column 60); they are read as voids" in dem.warning
+    read = dem.read()
+    assert np.isnan(read[60, 60:65]).all() and np.isfinite(read).sum() == 16384 - 5
+    filled, large = fill_voids(read)  # a small void: inpainted from its rim
+    assert not large.any() and 900 < filled[60, 60:65].min() <= filled[60, 60:65].max() < 1100
+    tile = MetaMap(dem, fill_voids=True).tile_at(0.0, 0.0, 30.0, 100, 100)
+    assert tile.valid_fraction == 1.0 and tile.elevation.max() < 1200
+    # an undeclared nodata value, -9999, is impossible too
+    path, _ = _garbled_geotiff(tmp_path / "sentinel.tif", np.int16,
+                               lambda n: np.full(n, -9999, np.int16), slice(0, 128))
+    dem = open_dem(path)
+    assert "128 of 16384 heights" in dem.warning and np.isnan(dem.read()[0]).all()
+
+
+def _random_bytes_as(dtype):
+    return lambda n: np.random.default_rng(5).integers(0, 256, n * np.dtype(dtype).itemsize,
+                                                        np.uint8).view(dtype)
+
+
+@pytest.mark.parametrize("dtype,garbage,first", [
+    (np.float32, lambda n: np.full(n, -1e30, np.float32), "first -1e+30"),
+    # random float32 bytes: ~45 % huge, ~42 % nonzero below 1e-6
+    (np.float32, _random_bytes_as(np.float32), "first"),
+    (np.int16, _random_bytes_as(np.int16), "first"),  # ~85 % outside -500..9000
+], ids=["float_-1e30", "float_random_bytes", "int16_random_bytes"])
+def test_mostly_impossible_heights_are_refused(tmp_path, dtype, garbage, first):
+    path, _ = _garbled_geotiff(tmp_path / "garbage.tif", dtype, garbage)
+    _assert_dem_error(path, re.escape("are impossible on Earth (outside -500..9000 m, or "
+                                      f"nonzero within 1e-06 m of 0; {first}"))
+    _assert_dem_error(path, "corrupt pixel data, an undeclared nodata value or heights not "
+                            "in metres")
 
 
 def test_unknown_crs(tmp_path):

@@ -10,6 +10,8 @@ from terrain_nav_ros.core.geodesy import (
     EnuOrigin,
     LocalEnuTransform,
     as_crs,
+    longitude_period,
+    wrap_longitude,
 )
 
 # WGS84 ellipsoid, for an independent closed-form ECEF/ENU reference
@@ -144,6 +146,25 @@ def test_crs_enu_heights_and_grid_convergence():
     # orthometric height H sits at ellipsoidal H + N: ENU up at the origin is H + N - alt
     _, _, u = t.to_enu(x0, y0, height=1035.0)
     assert float(u) == pytest.approx(0.0, abs=1e-3)
+
+
+@pytest.mark.parametrize("lon0", [180.0, -180.0, 179.95, -179.95])
+def test_longitudes_continue_across_the_antimeridian(lon0):
+    # PROJ answers in [-180, 180): from_enu keeps them within half a turn of the origin's,
+    # so a line across the antimeridian has monotonic longitudes
+    t = CrsEnuTransform("EPSG:4326", EnuOrigin(45.0, lon0))
+    x, y = t.from_enu(np.linspace(-20_000.0, 20_000.0, 41), 0.0)
+    assert np.all(np.diff(x) > 0) and np.abs(x - lon0).max() < 0.3
+    assert t.to_enu(x, y)[0] == pytest.approx(np.linspace(-20_000.0, 20_000.0, 41), abs=1e-6)
+    assert t.period == 360.0 and t.x_origin == pytest.approx(lon0 if lon0 > -180 else -180.0)
+    assert CrsEnuTransform("EPSG:32660", EnuOrigin(45.0, lon0)).period is None
+
+
+def test_wrap_longitude():
+    assert wrap_longitude([-179.5, 179.5, 540.0, np.inf], 180.0) == pytest.approx(
+        [180.5, 179.5, 180.0, np.inf])
+    assert wrap_longitude(-250.0, 0.0, 400.0) == pytest.approx(150.0)  # grads
+    assert longitude_period("EPSG:4807") == pytest.approx(400.0)  # NTF (Paris), grads
 
 
 def test_local_transform():

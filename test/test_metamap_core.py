@@ -9,7 +9,7 @@ from scipy import ndimage as ndi
 from terrain_nav_ros.core.dem_io import Dem, DemError, open_dem, sample_dem
 from terrain_nav_ros.core.geodesy import EnuOrigin
 from terrain_nav_ros.core.georef import GeoReference
-from terrain_nav_ros.core.metamap import DemTile, MetaMap, OutsideDemError
+from terrain_nav_ros.core.metamap import DemTile, MetaMap, OutsideDemError, remap_masked
 
 
 def exact_reference(dem, origin, georef, reference_height, order=1):
@@ -188,6 +188,17 @@ def test_interpolation_modes_on_sample_dem(interpolation):
     assert 236 - 1 <= tile.elevation.min() and tile.elevation.max() <= 1076 + 30
 
 
+@pytest.mark.parametrize("width", [1, 2, 7])
+def test_narrow_bicubic_tiles_hold_data(width):
+    # OpenCV's bicubic remap with a NaN border gave all-NaN maps under 8 px wide
+    z = np.add.outer(np.arange(40.0), 3.0 * np.arange(50.0)).astype(np.float32)
+    maps = np.dstack(np.meshgrid(np.arange(width) + 20.3, np.arange(5) + 10.6)).astype(np.float32)
+    assert remap_masked(z, maps, None, "bicubic") == pytest.approx(
+        maps[..., 1] + 3.0 * maps[..., 0], abs=0.25)  # a plane: OpenCV's cubic bends it
+    mm = MetaMap(sample_dem(), interpolation="bicubic")
+    assert mm.tile_at(0.0, 0.0, 100.0, width, 3).valid_fraction == 1.0
+
+
 def test_default_origin_is_dem_centre():
     dem = sample_dem()
     mm = MetaMap(dem)
@@ -221,3 +232,48 @@ def test_bad_arguments():
     local = Dem.from_array(np.zeros((4, 4)), (0, 1, 0, 4, 0, -1))
     with pytest.raises(DemError, match="mix"):
         MetaMap([dem, local])
+
+
+def _terrain(lon, lat):
+    """A surface continuous across the antimeridian, sloping ~87 m per degree of longitude
+    there: a DEM misplaced by a cell is off by metres."""
+    return (1000.0 + 5000.0 * np.sin(np.radians(lon)) + 300.0 * (lat - 45.0)).astype(np.float32)
+
+
+def _lonlat_geotiff(path, left, right, cell, south=44.5, north=45.5):
+    """A GeoTIFF in EPSG:4326 over [left, right] x [south, north] holding :func:`_terrain`."""
+    import rasterio
+
+    width, height = round((right - left) / cell), round((north - south) / cell)
+    lon = left + (np.arange(width) + 0.5) * cell
+    lat = north - (np.arange(height) + 0.5) * cell
+    with rasterio.open(path, "w", driver="GTiff", width=width, height=height, count=1,
+                       dtype="float32", crs="EPSG:4326",
+                       transform=Affine(cell, 0, left, 0, -cell, north)) as ds:
+        ds.write(_terrain(lon[None, :], lat[:, None]), 1)
+    return open_dem(path)
+
+
+@pytest.mark.parametrize("lon0,spans,cell", [
+    (180.0, [(179.5, 180.5)], 1 / 120),  # one DEM, longitudes past 180
+    (-180.0, [(-180.5, -179.5)], 1 / 120),  # one DEM, longitudes before -180
+    (179.95, [(179.0, 180.0), (-180.0, -179.0)], 1 / 120),  # a tile either side
+    (-179.95, [(-180.0, -179.0), (179.0, 180.0)], 1 / 120),
+    (-179.97, [(-180.0, 180.0)], 0.25),  # a global DEM, its two edges meeting at the mission
+])
+def test_dem_across_the_antimeridian(tmp_path, lon0, spans, cell):
+    dems = [_lonlat_geotiff(tmp_path / f"{i}.tif", *s, cell) for i, s in enumerate(spans)]
+    origin = EnuOrigin(45.0, lon0)
+    mm = MetaMap(dems, origin)
+    assert len(mm.layers) == 1  # tiles either side of 180 (or a DEM's two ends) meet
+    georef = GeoReference.centred(0.0, 0.0, 100.0, 120, 100)  # 12 km across the antimeridian
+    tile = mm.tile(georef)
+    assert tile.valid_fraction == 1.0
+    cols, rows = np.meshgrid(np.arange(120), np.arange(100))
+    e, n = georef.pixel_to_enu(cols, rows)
+    lat, lon, _ = origin.enu_to_geodetic(e, n, origin.surface_up(e, n))
+    assert lon.min() < -179.9 and lon.max() > 179.9  # the tile does straddle it
+    # bilinear samples of a smooth surface: OpenCV's 1/32-cell positions, and for the
+    # 0.25 deg DEM the surface's curvature between posts
+    tol = 0.05 if cell < 0.01 else 0.5
+    assert np.abs(tile.elevation - _terrain(lon, lat)).max() < tol

@@ -79,3 +79,35 @@ def test_odometry_triggers_a_latched_tile_around_the_aircraft(metamap_process):
     # Footprint 1000 m + 3 sigma (30 m) around now and 5 s ahead (150 m east).
     assert west <= 500 - 1030 and east >= 650 + 1030 and south <= 800 - 1030
     assert np.isfinite(heights).mean() > 0.99
+
+
+def test_impossible_heights_in_a_dem_are_logged_as_a_warning(tmp_path):
+    """A GeoTIFF with a few corrupt pixels (3e38): the node serves it, voids them, says so."""
+    import rasterio
+    from affine import Affine
+
+    z = np.full((64, 64), 500.0, np.float32)
+    z[10, 10:13] = 3e38
+    path = tmp_path / "spots.tif"
+    with rasterio.open(path, "w", driver="GTiff", width=64, height=64, count=1,
+                       dtype="float32", crs="EPSG:32611",
+                       transform=Affine(30, 0, 4e5, 0, -30, 3.8e6)) as ds:
+        ds.write(z, 1)
+    # its own service name: the module's metamap node still serves /metamap/get_tile
+    proc = start_node("metamap", {"dem_files": [str(path)], "gsd": 30.0,
+                                  "initial_tile": False},
+                      "-r", "/metamap/get_tile:=/metamap_warning/get_tile")
+    client = SpinningNode("metamap_warning_client")
+    try:
+        response = call_service(client, GetDemTile, "/metamap_warning/get_tile",
+                                GetDemTile.Request(center_frame=GetDemTile.Request.CENTER_ENU,
+                                                   width=32, height=32, gsd=30.0))
+        assert response.success, response.message
+        heights, _ = cv.msg_to_dem_tile(response.tile)
+        assert np.nanmax(heights) < 600  # no 3e38 spread by the interpolation
+    finally:
+        client.close()
+        log = stop(proc)
+    assert proc.returncode == 0, log
+    warning = next(line for line in log.splitlines() if "impossible on Earth" in line)
+    assert "WARN" in warning and "3 of 4096 heights" in warning and str(path) in warning

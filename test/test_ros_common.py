@@ -16,7 +16,6 @@ from ros_helpers import start_node, wait_until
 from terrain_nav_ros.core.creases import CreaseParams
 from terrain_nav_ros.core.matching import MatchParams
 from terrain_nav_ros.core.minutiae import MinutiaParams
-from terrain_nav_ros.matcher_node import MATCH_RANGES
 from terrain_nav_ros.ros_common import (
     check_parameters_known,
     contained,
@@ -157,13 +156,13 @@ def test_unknown_parameters_are_an_error_naming_them():
     try:
         node = _settings_node(context, **{"match.thresold": 4.0, "match.threshold": 4.0,
                                           "zzz": 1})
-        declare_settings(node, "match", MatchParams(), MATCH_RANGES)
+        declare_settings(node, "match", MatchParams(), MatchParams.FIX_RANGES)
         with pytest.raises(ValueError, match=r"settings: unknown parameter\(s\) "
                            r"match.thresold \(did you mean match.threshold\?\), zzz: fix"):
             check_parameters_known(node)
         node.destroy_node()
         node = _settings_node(context, **{"match.threshold": 4.0})
-        declare_settings(node, "match", MatchParams(), MATCH_RANGES)
+        declare_settings(node, "match", MatchParams(), MatchParams.FIX_RANGES)
         check_parameters_known(node)
         node.destroy_node()
     finally:
@@ -175,6 +174,8 @@ def test_unknown_parameters_are_an_error_naming_them():
     ("match", MatchParams(), "threshold", -1.0),
     ("match", MatchParams(), "pos_tol", 0.0),
     ("match", MatchParams(), "k_query", 0),
+    ("match", MatchParams(), "search_scale", 0.7),  # newer fields: ranges from the core
+    ("match", MatchParams(), "crease_search_proposals", 0),
     ("crease", CreaseParams(), "sigma", math.inf),
 ])
 def test_nan_and_out_of_range_settings_are_refused(prefix, settings, name, value):
@@ -182,7 +183,7 @@ def test_nan_and_out_of_range_settings_are_refused(prefix, settings, name, value
     rclpy.init(context=context)
     try:
         node = _settings_node(context, **{f"{prefix}.{name}": value})
-        ranges = MATCH_RANGES if prefix == "match" else None
+        ranges = MatchParams.FIX_RANGES if prefix == "match" else None
         with pytest.raises(InvalidParameterValueException, match=f"{prefix}.{name}"):
             declare_settings(node, prefix, settings, ranges)
         node.destroy_node()
@@ -199,3 +200,25 @@ def test_a_node_given_a_misspelt_parameter_stops_with_one_line(tmp_path):
     assert ("fatal: ValueError: ekf: unknown parameter(s) time_jump_reste (did you mean "
             "time_jump_reset?)") in out
     assert "Traceback" not in out
+
+
+@pytest.mark.parametrize("executable,params,misspelt,hint,untouched", [
+    # the DEM named is never read: its absence is not what the node says
+    ("metamap", {"dem_files": ["{tmp}/no_such_dem.tif"]}, "gdsd", "gsd", None),
+    # the matcher is not built: its bad candidates setting is not what the node says
+    ("matcher", {"match.candidates": "kd"}, "match.thresold", "match.threshold", None),
+    # the bag is not created
+    ("bag_recorder", {"output": "{tmp}/bag"}, "topcis", "topics", "bag"),
+])
+def test_unknown_parameters_are_refused_before_the_node_does_any_work(
+        tmp_path, executable, params, misspelt, hint, untouched):
+    given = {k: [v.format(tmp=tmp_path) for v in v] if isinstance(v, list)
+             else v.format(tmp=tmp_path) for k, v in params.items()}
+    given[misspelt] = 1.0
+    proc = start_node(executable, given)
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 1, out
+    assert (f"fatal: ValueError: {executable}: unknown parameter(s) {misspelt} (did you "
+            f"mean {hint}?)") in out
+    assert "no such DEM" not in out and "candidates" not in out and "Traceback" not in out
+    assert untouched is None or not (tmp_path / untouched).exists()

@@ -12,7 +12,11 @@ Pixel convention (as in :mod:`.georef`): ``Dem.transform`` is the GDAL affine tr
 pixel *corners*; integer pixel coordinates (col, row) are pixel *centres*.
 
 Heights are whatever the file stores, normally orthometric metres (SRTM: EGM96 geoid; USGS:
-NAVD88); see :mod:`.geodesy` for what that means in ENU.
+NAVD88); see :mod:`.geodesy` for what that means in ENU. A file's heights outside
+:data:`EARTH_ELEVATIONS` are impossible for the surface a camera sees (corrupt pixels, an
+undeclared nodata value such as -9999, sea floor, or heights not in metres), and so are
+nonzero ones within :data:`TINY_HEIGHT` of 0 (random bytes read as floats): they are read as
+voids, with a warning in ``Dem.warning``, and a file where most are impossible is refused.
 
 Embedded default (:func:`sample_dem`): ``jacksboro_fault_dem.npz`` from matplotlib's sample
 data, a 344 x 403 int16 USGS DEM of the Jacksboro fault / Pine Mountain area (Cumberland
@@ -34,6 +38,7 @@ import mmap
 import os
 import re
 import threading
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,10 +54,19 @@ from scipy import ndimage as ndi
 
 __all__ = [
     "DemError", "Dem", "open_dem", "sample_dem", "mosaic", "fill_voids", "dem_files", "SRTM_VOID",
+    "EARTH_ELEVATIONS", "TINY_HEIGHT",
 ]
 
 #: SRTM void marker.
 SRTM_VOID = -32768
+#: Heights (m) the visible surface can have: the lowest dry land is the Dead Sea shore
+#: (-430 m), the highest summit Everest (8849 m).
+EARTH_ELEVATIONS = (-500.0, 9000.0)
+#: Heights nearer 0 than this, but not 0, are impossible too: no survey resolves them, and
+#: random bytes read as float32 are mostly such tiny numbers (or huge ones).
+TINY_HEIGHT = 1e-6
+_SCAN_CELLS = 1 << 22  # cells open_dem reads to judge the heights (a small DEM: all of them)
+_SCAN_BAND = 1 << 18  # cells it reads at once
 _HGT_NAME = re.compile(r"^([NS])(\d{2})([EW])(\d{3})\.hgt$", re.IGNORECASE)
 _HGT_SIZES = {1201: 3.0, 3601: 1.0}  # samples per side -> arc-seconds
 _ASC_KEYS = {b"ncols", b"nrows", b"xllcorner", b"yllcorner", b"xllcenter", b"yllcenter",
@@ -87,6 +101,11 @@ class Dem:
         Storage dtype of the elevations.
     nodata : float or None
         Storage value marking missing cells (NaN nodata is always honoured).
+    valid_range : (float, float) or None
+        Heights outside it, or nonzero below :data:`TINY_HEIGHT`, are read as voids (files:
+        :data:`EARTH_ELEVATIONS`).
+    warning : str or None
+        What is wrong with the heights, for the caller to show (impossible ones voided).
     """
 
     name: str
@@ -99,6 +118,8 @@ class Dem:
     _read: Callable[[int, int, int, int], np.ndarray] = field(repr=False)
     crs_guessed: bool = False
     _close: Callable[[], None] | None = field(default=None, repr=False)
+    valid_range: tuple[float, float] | None = None
+    warning: str | None = None
 
     # -- construction -------------------------------------------------------------------
     @classmethod
@@ -208,6 +229,8 @@ class Dem:
             except (RasterioError, OSError) as exc:
                 raise DemError(f"{self.name}: cannot read rows {r0}:{r1}, cols {c0}:{c1} "
                                f"(truncated or corrupt data?): {exc}") from exc
+            if self.valid_range is not None:
+                block[_impossible(block, self.valid_range)] = np.nan
             if block.shape == (nrows, ncols):  # wholly inside: already a fresh float32 array
                 return block
         out = np.full((nrows, ncols), np.nan, dtype=np.float32)
@@ -237,6 +260,13 @@ class Dem:
         self.close()
 
 
+def _impossible(z: np.ndarray, valid_range: tuple[float, float]) -> np.ndarray:
+    """Where heights are outside ``valid_range`` or nonzero below :data:`TINY_HEIGHT` (NaN,
+    nodata, is neither)."""
+    lo, hi = valid_range
+    return (z < lo) | (z > hi) | ((np.abs(z) < TINY_HEIGHT) & (z != 0))
+
+
 def _to_float(block, nodata) -> np.ndarray:
     """float32 copy of a storage block with nodata -> NaN (one copy, one compare)."""
     out = np.array(block, dtype=np.float32, copy=True)  # never hand out the source's memory
@@ -261,7 +291,10 @@ def open_dem(path, crs=None, *, validate: bool = True) -> Dem:
     crs : pyproj.CRS, str, or "local", optional
         Override the file's CRS; ``"local"`` forces unreferenced local metres.
     validate : bool
-        Read the last cell at once, so truncated files fail here rather than mid-mission.
+        Read the last cell at once, so truncated files fail here rather than mid-mission, and
+        judge the heights (all of them, or every k-th row of a DEM over 4 M cells): when
+        some are outside :data:`EARTH_ELEVATIONS` ``Dem.warning`` says so; when most are,
+        the file is refused. Either way such heights are read as voids.
 
     Returns
     -------
@@ -270,7 +303,8 @@ def open_dem(path, crs=None, *, validate: bool = True) -> Dem:
     Raises
     ------
     DemError
-        Missing file, unreadable or wrong header, truncated data, unknown CRS.
+        Missing file, unreadable or wrong header, truncated data, values that are not
+        numbers (ESRI ASCII), mostly impossible heights, unknown CRS.
 
     Notes
     -----
@@ -295,8 +329,44 @@ def open_dem(path, crs=None, *, validate: bool = True) -> Dem:
         dem.crs = None if str(crs).lower() == "local" else _parse_crs(crs, path)
         dem.crs_guessed = False
     if validate and dem.width and dem.height:
-        dem.read_window(dem.height - 1, dem.width - 1, 1, 1)
+        try:
+            dem.read_window(dem.height - 1, dem.width - 1, 1, 1)
+            dem.warning = _judge_heights(dem)
+        except DemError:
+            dem.close()
+            raise
+    dem.valid_range = EARTH_ELEVATIONS
     return dem
+
+
+def _judge_heights(dem: Dem) -> str | None:
+    """None when every height read is possible on Earth, else a warning; raises DemError when
+    most are impossible. Reads at most ``_SCAN_CELLS`` cells (every k-th row of a big DEM),
+    a band of rows at a time so memory stays small."""
+    step = -(-dem.width * dem.height // _SCAN_CELLS)
+    band = max(1, _SCAN_BAND // dem.width) if step == 1 else 1
+    lo, hi = EARTH_ELEVATIONS
+    n_bad = n = 0
+    first = None
+    for r0 in range(0, dem.height, step * band):
+        z = dem.read_window(r0, 0, min(band, dem.height - r0), dem.width)
+        bad = _impossible(z, EARTH_ELEVATIONS)
+        n += np.count_nonzero(~np.isnan(z))
+        if bad.any():
+            n_bad += np.count_nonzero(bad)
+            if first is None:
+                r, c = np.argwhere(bad)[0]
+                first = (z[r, c], r0 + r, c)
+    if not n_bad:
+        return None
+    what = (f"{dem.name}: {n_bad} of {n} heights{' sampled' if step > 1 else ''} "
+            f"({100 * n_bad / n:.3g} %) are impossible on Earth (outside {lo:g}..{hi:g} m, "
+            f"or nonzero within {TINY_HEIGHT:g} m of 0; first {first[0]:.6g} at row "
+            f"{first[1]}, column {first[2]})")
+    if n_bad > n / 2:
+        raise DemError(f"{what}: corrupt pixel data, an undeclared nodata value or heights "
+                       "not in metres; export or copy it again")
+    return f"{what}; they are read as voids"
 
 
 def _parse_crs(crs, path) -> CRS:
@@ -319,10 +389,11 @@ def _check_hgt(path: Path):
 
 
 def _check_ascii_grid(path: Path):
-    """Check that an ESRI ASCII grid holds the ``ncols x nrows`` values its header promises,
+    """Check that an ESRI ASCII grid holds the ``ncols x nrows`` numbers its header promises,
     before GDAL sees it: GDAL's AAIGrid driver allocates per promised row and, on a short
     file, searches for the missing values forever (100x100 with four values hung and grew
-    to 24 GB, issue 22). Any other file is left alone."""
+    to 24 GB, issue 22); and it reads a token that is not a number as 0 (``abc``) or as its
+    numeric start (``1.2.3`` as 1.2), without a word. Any other file is left alone."""
     with open(path, "rb") as f:
         header = _ascii_grid_header(f)
         if not header:
@@ -337,7 +408,8 @@ def _check_ascii_grid(path: Path):
         promised = ncols * nrows
         # every value takes a character and a separator: a short file fails without a scan
         room = path.stat().st_size - f.tell()
-        held = _count_values(f, promised) if room >= 2 * promised - 1 else None
+        held = (_count_values(f, promised, lambda k, tok: _not_a_number(path, ncols, k, tok))
+                if room >= 2 * promised - 1 else None)
     if held is None or held < promised:
         what = f"{held} values" if held is not None else f"only {room} bytes of values"
         raise DemError(f"{path}: truncated ESRI ASCII grid: the header promises {nrows} x "
@@ -358,15 +430,40 @@ def _ascii_grid_header(f) -> dict:
         header[parts[0].lower()] = parts[1]
 
 
-def _count_values(f, enough: int) -> int:
+def _count_values(f, enough: int, bad: Callable[[int, bytes], None]) -> int:
     """Whitespace-separated tokens from ``f``'s position, counted in chunks (stops at
-    ``enough``): memory stays at one chunk whatever the file's size."""
+    ``enough``): memory stays at one chunk whatever the file's size. ``bad(k, token)`` is
+    called for the first of the ``enough`` tokens that is not a number (it should raise)."""
     count, tail = 0, b""
     while count < enough and (chunk := f.read(_CHUNK)):
         tokens = (tail + chunk).split()
         tail = tokens.pop() if tokens and not chunk[-1:].isspace() else b""
+        _check_numbers(tokens[:enough - count], count, bad)
         count += len(tokens)
+    if tail and count < enough:
+        _check_numbers([tail], count, bad)
     return count + (1 if tail else 0)
+
+
+def _check_numbers(tokens: list, first: int, bad: Callable[[int, bytes], None]):
+    """Call ``bad(first + k, token)`` for the first token float() cannot read."""
+    try:
+        deque(map(float, tokens), maxlen=0)  # C-speed parse, nothing kept
+    except ValueError:
+        for k, token in enumerate(tokens):
+            try:
+                float(token)
+            except ValueError:
+                bad(first + k, token)
+                return
+
+
+def _not_a_number(path: Path, ncols: int, k: int, token: bytes):
+    """Raise: value ``k`` (0-based, row-major) of an ESRI ASCII grid is not a number."""
+    text = token[:20].decode("ascii", "backslashreplace") + ("..." if len(token) > 20 else "")
+    raise DemError(f"{path}: ESRI ASCII grid value {k + 1} (row {k // ncols + 1}, column "
+                   f"{k % ncols + 1}) is {text!r}, not a number: the file is corrupt; "
+                   "export or copy it again")
 
 
 def _open_gdal(path: Path, crs_given: bool = False) -> Dem:

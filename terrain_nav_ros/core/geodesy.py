@@ -144,11 +144,35 @@ def as_crs(crs) -> CRS:
         raise ValueError(f"unknown CRS {crs!r}: {exc}") from exc
 
 
+def longitude_period(crs) -> float | None:
+    """One full turn in the x (longitude) unit of a geographic CRS (360 for degrees), or None
+    for a projected CRS, whose x does not wrap."""
+    crs = as_crs(crs)
+    if not crs.is_geographic:
+        return None
+    east = [a for a in crs.axis_info if a.direction.lower() == "east"]
+    return 2.0 * np.pi / east[0].unit_conversion_factor if east else None
+
+
+def wrap_longitude(x, centre: float, period: float = 360.0):
+    """Longitudes ``x`` wrapped into ``[centre - period / 2, centre + period / 2)``; non-finite
+    values (points a CRS cannot represent) are kept as they are."""
+    x = np.asarray(x, dtype=float)
+    with np.errstate(invalid="ignore"):
+        wrapped = np.mod(x - centre + 0.5 * period, period) + (centre - 0.5 * period)
+    return np.where(np.isfinite(x), wrapped, x)
+
+
 class CrsEnuTransform:
     """Vectorised transforms between a DEM's horizontal CRS and the mission ENU frame.
 
     ``to_enu`` and ``from_enu`` go DEM CRS (x, y) <-> WGS84 geodetic (pyproj's best available
     datum transformation, ``always_xy``) <-> ENU (exact, via ECEF).
+
+    In a geographic CRS, ``from_enu`` gives longitudes within half a turn of the origin's
+    (``x_origin``), not PROJ's [-180, 180): across the antimeridian they continue past 180
+    (or -180) instead of jumping by 360, so a DEM placed in the same branch
+    (:meth:`wrap_x`) is sampled without a seam.
 
     Parameters
     ----------
@@ -165,6 +189,20 @@ class CrsEnuTransform:
             self._to_geo = Transformer.from_crs(self.crs, WGS84_3D, always_xy=True)
         except ProjError as exc:
             raise ValueError(f"no transformation from {self.crs.name} to WGS84: {exc}") from exc
+        #: length of a full turn in x (None: x does not wrap) and the origin's x
+        self.period = longitude_period(self.crs)
+        self.x_origin = None
+        if self.period is not None:
+            x, _, _ = self._to_geo.transform(origin.lon, origin.lat, origin.alt,
+                                             direction="INVERSE", errcheck=False)
+            self.x_origin = float(x)
+
+    def wrap_x(self, x):
+        """x (longitude) wrapped to within half a turn of the origin's; unchanged when the
+        CRS is projected."""
+        if self.period is None:
+            return np.asarray(x, dtype=float)
+        return wrap_longitude(x, self.x_origin, self.period)
 
     def __repr__(self):
         return f"CrsEnuTransform({self.crs.to_string()!r}, {self.origin!r})"
@@ -202,7 +240,8 @@ class CrsEnuTransform:
         Returns
         -------
         x, y : ndarray
-            DEM-CRS coordinates; ``inf`` where the CRS cannot represent the point.
+            DEM-CRS coordinates; ``inf`` where the CRS cannot represent the point. Longitudes
+            are within half a turn of the origin's (see the class notes).
         """
         east, north = np.broadcast_arrays(
             np.asarray(east, dtype=float), np.asarray(north, dtype=float))
@@ -210,7 +249,7 @@ class CrsEnuTransform:
         up = self.origin.surface_up(east, north, h)
         lat, lon, hh = self.origin.enu_to_geodetic(east, north, up)
         x, y, _ = self._to_geo.transform(lon, lat, hh, direction="INVERSE", errcheck=False)
-        return np.asarray(x), np.asarray(y)
+        return self.wrap_x(x), np.asarray(y)
 
 
 class LocalEnuTransform:

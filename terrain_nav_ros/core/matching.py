@@ -246,6 +246,13 @@ class MatchParams:
         :func:`calibrate_threshold`.
     seed : int
         RANSAC random seed (results are deterministic).
+
+    Raises
+    ------
+    ValueError
+        On construction, naming the setting: a number outside its ``RANGES`` entry (NaN
+        and infinities included), a string not among its ``CHOICES``, ``edge_min`` not below
+        ``edge_max``, or a ``crease_rescue_radii`` that is not positive.
     """
 
     pos_tol: float = 5.0
@@ -296,6 +303,65 @@ class MatchParams:
     crease_rescue_radii: tuple[float, ...] = (12.0, 8.0, 5.0, 3.0)
     threshold: float = 3.0
     seed: int = 0
+
+    # (min, max) of every numeric setting, None = open: checked on construction, and the
+    # matcher node's parameter ranges (issue 22). ``threshold`` is open here: a study sets
+    # -1e9 to collect every score; FIX_RANGES is what a matcher publishing fixes accepts.
+    POSITIVE = 1e-9  # the least "> 0" value: rclpy's ranges are closed
+    RANGES = {
+        **dict.fromkeys(("pos_tol", "angle_tol", "edge_length_tol", "edge_angle_tol",
+                         "edge_max", "rot_bin", "trans_bin", "crease_radius",
+                         "crease_angle_tol", "crease_spacing"), (POSITIVE, None)),
+        **dict.fromkeys(("k_query", "k_ref", "n_hypotheses", "n_rotation_peaks",
+                         "ransac_iterations", "k_roots", "crease_search_max_side",
+                         "crease_search_max_work", "crease_search_proposals"), (1, None)),
+        **dict.fromkeys(("edge_min", "roots_above", "min_minutiae", "min_minutiae_creases",
+                         "pos_floor", "angle_floor", "crease_exclude_radius",
+                         "crease_search_below", "crease_search_fine_work",
+                         "view_search_background", "ridge_check_below", "min_crease_pixels",
+                         "seed"), (0, None)),
+        "max_rotation": (0.0, math.pi), "min_support_ratio": (0.0, 1.0),
+        "max_scale_change": (0.0, 0.9), "search_scale": (0.0, 0.5),
+        "threshold": (None, None), "rescue_below": (None, None),
+    }
+    # a negative threshold would accept matches likelier to be chance than not
+    FIX_RANGES = {**RANGES, "threshold": (0.0, None)}
+    CHOICES = {"candidates": ("auto", "hash", "roots"),
+               "descriptor": ("shape_context", "mcc", "both")}
+
+    def __post_init__(self):
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.name in self.CHOICES:
+                self._require(value in self.CHOICES[f.name], f.name,
+                              f"one of {self.CHOICES[f.name]}", value)
+            elif f.name in self.RANGES:
+                self._check_number(f.name, value, isinstance(f.default, int))
+        self._require(self.edge_min < self.edge_max, "edge_min", "below edge_max",
+                      self.edge_min)
+        radii = self.crease_rescue_radii
+        self._require(all(math.isfinite(r) and r > 0 for r in radii), "crease_rescue_radii",
+                      "positive radii (px)", radii)
+
+    def _check_number(self, name: str, value, integral: bool):
+        """ValueError unless ``value`` is a number (an int for int settings) in its range,
+        finite (``rescue_below`` may be -inf: no wider try, or inf: always one)."""
+        lo, hi = self.RANGES[name]
+        kinds = (int, np.integer) if integral else (int, float, np.integer, np.floating)
+        self._require(isinstance(value, kinds) and not isinstance(value, bool), name,
+                      "an int" if integral else "a number", value)
+        finite = math.isfinite(value) or (name == "rescue_below" and not math.isnan(value))
+        if finite and (lo is None or value >= lo) and (hi is None or value <= hi):
+            return
+        what = ("finite" if lo is None and hi is None else f"<= {hi:g}" if lo is None
+                else f"in [{lo:g}, {hi:g}]" if hi is not None
+                else "> 0" if lo == self.POSITIVE else f">= {lo:g}")
+        self._require(False, name, what, value)
+
+    @staticmethod
+    def _require(ok: bool, name: str, what: str, value):
+        if not ok:
+            raise ValueError(f"MatchParams.{name} must be {what}, got {value!r}")
 
     @property
     def crease_tolerances(self) -> dict:

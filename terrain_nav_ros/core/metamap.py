@@ -19,6 +19,12 @@ How a tile is sampled, per DEM:
 3. Several DEMs: aligned tiles of one CRS become one :func:`~.dem_io.mosaic` (no seams); the
    rest fill the remaining NaN cells in the order given.
 
+Longitudes: geographic DEMs are placed within half a turn of the origin's longitude, where the
+ENU -> CRS transform puts its samples (:meth:`~.geodesy.CrsEnuTransform.wrap_x`), so a DEM
+across the antimeridian (179.5..180.5, -180.5..-179.5 or tiles either side) is sampled as one
+continuous grid; a DEM reaching more than half a turn from the origin (a global one) is also
+placed one turn over, so it covers both sides of the antimeridian too.
+
 Horizontal placement: a tile pixel (e, n) is taken at the ENU point on the surface of constant
 ellipsoidal height ``reference_height`` (default: the origin's), not on the tangent plane. For
 terrain at another height the true ENU position differs by ``dh * d / R`` (0.16 m per 100 m of
@@ -34,10 +40,11 @@ for 3-D work in the ``map`` frame.
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
+from affine import Affine
 from scipy import ndimage as ndi
 
 from .dem_io import Dem, DemError, fill_voids, mosaic
@@ -199,7 +206,7 @@ class MetaMap:
             self.local_origin = tuple(map(float, local_origin))
         else:
             self.local_origin = None
-        merged = _merge_aligned(dems)
+        merged = _merge_aligned([p for d in dems for p in self._in_origin_branch(d)])
         # small DEMs are void-filled once, whole (consistent across tiles, and no per-tile
         # cost); big ones window by window
         self._window_fill = []
@@ -229,6 +236,24 @@ class MetaMap:
             return CrsEnuTransform(dem.crs, self.origin)
         except ValueError as exc:
             raise DemError(f"{dem.name}: {exc}") from exc
+
+    def _in_origin_branch(self, dem: Dem) -> list[Dem]:
+        """``dem`` with its longitudes in the branch :meth:`CrsEnuTransform.from_enu` samples
+        (within half a turn of the origin), so a DEM across the antimeridian, or tiles either
+        side of it, are one continuous grid; plus a copy one turn over for the part of a DEM
+        (a global one) that reaches past half a turn from the origin."""
+        t = None if dem.local_metres else self._transform_for(dem)
+        if t is None or t.period is None:
+            return [dem]
+        left, _, right, _ = dem.bounds
+        centre = 0.5 * (left + right)
+        shift = t.period * round(float(t.wrap_x(centre) - centre) / t.period)
+        out = [_shifted(dem, shift)]
+        if left + shift < t.x_origin - 0.5 * t.period:
+            out.append(_shifted(dem, shift + t.period))
+        if right + shift > t.x_origin + 0.5 * t.period:
+            out.append(_shifted(dem, shift - t.period))
+        return out
 
     # -- coverage ---------------------------------------------------------------------
     @property
@@ -412,6 +437,14 @@ def remap_masked(z, map_x, map_y=None, interpolation: str = "bilinear") -> np.nd
     # OpenCV (4.x Python bindings) misreads strided map views: always pass contiguous maps
     map_x = np.ascontiguousarray(map_x)
     map_y = None if map_y is None else np.ascontiguousarray(map_y)
+    width = map_x.shape[1]
+    if interpolation == "bicubic" and 0 < width < 8:
+        # OpenCV's bicubic remap answers NaN everywhere for maps under 8 px wide with a NaN
+        # border value (a coarse DEM's route box in simulate): sample 8 columns, keep ours
+        def widen(m):
+            return None if m is None else np.pad(
+                m, ((0, 0), (0, 8 - width)) + ((0, 0),) * (m.ndim - 2), mode="edge")
+        return remap_masked(z, widen(map_x), widen(map_y), interpolation)[:, :width]
     holes = np.isnan(z)
     if interpolation == "nearest" or not holes.any():
         return cv2.remap(z, map_x, map_y, kind, borderMode=cv2.BORDER_CONSTANT,
@@ -431,6 +464,13 @@ def remap_masked(z, map_x, map_y=None, interpolation: str = "bilinear") -> np.nd
         cubic = cv2.remap(z0, map_x, map_y, cv2.INTER_CUBIC, **args)
         out = np.where(ok, cubic, out)
     return out
+
+
+def _shifted(dem: Dem, dx: float) -> Dem:
+    """``dem`` (same pixels, no copy) with its x coordinates moved by ``dx``."""
+    if dx == 0:
+        return dem
+    return replace(dem, transform=Affine.translation(dx, 0.0) @ dem.transform)
 
 
 def _merge_aligned(dems: list[Dem]) -> list[Dem]:
