@@ -7,7 +7,7 @@ import pytest
 import rasterio
 from affine import Affine
 
-from terrain_nav_ros.core.dem_io import (
+from terrain_nav_ros.core.terrain.dem_io import (
     Dem,
     DemError,
     dem_files,
@@ -16,7 +16,7 @@ from terrain_nav_ros.core.dem_io import (
     open_dem,
     sample_dem,
 )
-from terrain_nav_ros.core.geodesy import EnuOrigin
+from terrain_nav_ros.core.terrain.geodesy import EnuOrigin
 
 # file, EPSG (None: local metres), guessed, shape, storage dtype, nodata, (min, max) elevation
 REAL_DEMS = [

@@ -9,7 +9,8 @@ from synthetic_minutiae import (
     transform_set,
 )
 
-from terrain_nav_ros.core.descriptors import (
+from terrain_nav_ros.core.features.minutia_set import MinutiaSet
+from terrain_nav_ros.core.matching.descriptors import (
     EdgeHash,
     crease_descriptor,
     cylinder_code,
@@ -17,15 +18,14 @@ from terrain_nav_ros.core.descriptors import (
     shape_context,
     wrap_angle,
 )
-from terrain_nav_ros.core.georef import GeoReference
-from terrain_nav_ros.core.matching import (
+from terrain_nav_ros.core.matching.matcher import (
     Decision,
     Matcher,
     calibrate_threshold,
     compare,
     localise,
 )
-from terrain_nav_ros.core.minutia_set import MinutiaSet
+from terrain_nav_ros.core.terrain.georef import GeoReference
 
 BLOCK = 256
 
@@ -258,7 +258,7 @@ def test_index_must_match_the_matcher_settings(block):
 
 
 def test_fit_similarity_exact_and_degenerate():
-    from terrain_nav_ros.core.matching import fit_similarity
+    from terrain_nav_ros.core.matching.matcher import fit_similarity
 
     rng = np.random.default_rng(0)
     za = rng.normal(size=20) + 1j * rng.normal(size=20)
@@ -273,7 +273,7 @@ def test_fit_similarity_exact_and_degenerate():
 
 
 def test_significance_null_is_the_compound_poisson_tail():
-    from terrain_nav_ros.core.matching import compound_log10_sf
+    from terrain_nav_ros.core.matching.matcher import compound_log10_sf
 
     # chance pairings: Poisson(lam) of them, each adding -ln(u) - ln(v), u, v uniform
     rng = np.random.default_rng(0)
@@ -290,8 +290,8 @@ def test_significance_null_is_the_compound_poisson_tail():
 
 
 def test_compound_tail_kernel_agrees_with_the_numpy_path(monkeypatch):
-    from terrain_nav_ros.core import _matching_kernels
-    from terrain_nav_ros.core.matching import compound_log10_sf
+    from terrain_nav_ros.core.matching import _matching_kernels
+    from terrain_nav_ros.core.matching.matcher import compound_log10_sf
 
     if not _matching_kernels.HAVE_NUMBA:
         pytest.skip("numba not installed: the numpy path is the only one")
@@ -305,7 +305,7 @@ def test_compound_tail_kernel_agrees_with_the_numpy_path(monkeypatch):
 
 
 def test_closer_pairings_are_more_significant():
-    from terrain_nav_ros.core.matching import MatchParams, significance
+    from terrain_nav_ros.core.matching.matcher import MatchParams, significance
 
     p = MatchParams()
     args = (60, 60, 190.0 ** 2, 4 * 190.0 ** 2, 60.0, p)
@@ -322,7 +322,7 @@ def test_closer_pairings_are_more_significant():
 def test_heading_prior_searches_only_the_votes_inside_it(block):
     from dataclasses import fields
 
-    from terrain_nav_ros.core import matching as mt
+    from terrain_nav_ros.core.matching import matcher as mt
 
     b, _, _ = _rotated_copy(block, 6.0, seed=4, pos_sigma=1.5, angle_sigma=np.radians(10),
                             missing=0.3, spurious=0.3)
@@ -342,7 +342,7 @@ def test_heading_prior_searches_only_the_votes_inside_it(block):
 def test_numba_kernels_give_the_numpy_results(region, block, monkeypatch):
     """The optional numba kernels must not change a decision, pairing or transform, nor a
     score beyond rounding (the compound tail sums in another order)."""
-    from terrain_nav_ros.core import _matching_kernels
+    from terrain_nav_ros.core.matching import _matching_kernels
 
     if not _matching_kernels.HAVE_NUMBA:
         pytest.skip("numba not installed: the numpy path is the only one")
@@ -370,8 +370,8 @@ def test_scoring_and_ransac_kernels_agree_with_the_numpy_path(region, block, mon
     """The fused minutiae terms of a registration's score, the RANSAC inlier counts and the
     crease samples around minutiae, against the numpy path, on registrations near and far
     from the truth (partial overlaps, few and many pairings, a turned and shrunk frame)."""
-    from terrain_nav_ros.core import _matching_kernels
-    from terrain_nav_ros.core import matching as mt
+    from terrain_nav_ros.core.matching import _matching_kernels
+    from terrain_nav_ros.core.matching import matcher as mt
 
     if not _matching_kernels.HAVE_NUMBA:
         pytest.skip("numba not installed: the numpy path is the only one")
@@ -430,7 +430,7 @@ def test_rotation_sweep_finds_the_rotation_the_histogram_buries(block):
     joint translation cell and finds it."""
     from dataclasses import fields
 
-    from terrain_nav_ros.core import matching as mt
+    from terrain_nav_ros.core.matching import matcher as mt
 
     b, _, m = _rotated_copy(block, 30.0, seed=2, pos_sigma=1.0)
     p = mt.MatchParams()
@@ -459,7 +459,7 @@ def test_rotation_sweep_finds_the_rotation_the_histogram_buries(block):
     assert not found(mt._hypotheses(votes, ia, ib, p))
     assert found(mt._hypotheses(votes, ia, ib, p, sweep=True))
     # the numpy path ranks the same rotations
-    from terrain_nav_ros.core import _matching_kernels
+    from terrain_nav_ros.core.matching import _matching_kernels
 
     cells = (np.arange(72) + 0.5) * (2 * np.pi / 72) - np.pi
     fast = mt._rotation_support(votes, ia, ib, p, cells)
@@ -473,8 +473,8 @@ def test_rotation_sweep_finds_the_rotation_the_histogram_buries(block):
 
 
 def test_warm_up_loads_every_kernel():
-    from terrain_nav_ros.core import _matching_kernels
-    from terrain_nav_ros.core.matching import warm_up
+    from terrain_nav_ros.core.matching import _matching_kernels
+    from terrain_nav_ros.core.matching.matcher import warm_up
 
     warm_up()
     if _matching_kernels.HAVE_NUMBA:
