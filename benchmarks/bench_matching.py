@@ -46,11 +46,8 @@ from synthetic_minutiae import (  # noqa: E402
 
 from terrain_nav_ros.core.matching import _matching_kernels as _kernels  # noqa: E402
 from terrain_nav_ros.core.matching.baselines import gradient_magnitude, ncc_locate  # noqa: E402
-from terrain_nav_ros.core.matching.matcher import (  # noqa: E402
-    Decision,
-    Matcher,
-    calibrate_threshold,
-)
+from terrain_nav_ros.core.matching.matcher import Decision, Matcher  # noqa: E402
+from terrain_nav_ros.core.matching.significance import calibrate_threshold  # noqa: E402
 
 cv2.setNumThreads(1)
 

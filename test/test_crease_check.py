@@ -288,7 +288,7 @@ def test_coarse_to_fine_icp_pulls_in_what_the_fine_one_cannot(region):
     """A registration 5 degrees and ~13 px off (a few wrong minutiae pairings) is beyond
     the 3 px ICP; the matcher's wider try (``MatchParams.crease_rescue_radii``) brings it
     onto the creases."""
-    from terrain_nav_ros.core.matching.matcher import MatchParams
+    from terrain_nav_ros.core.matching.params import MatchParams
 
     skel = region[1]
     samples = CreaseSamples.from_image(skel[150:278, 160:288])

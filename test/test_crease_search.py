@@ -252,8 +252,11 @@ def test_a_large_search_runs_coarse_and_registers_as_the_fine_one(region):
     the coarse level (an eighth of the work) and the coarse-to-fine ICP pulls its proposals
     onto the creases, as exactly as the fine search's; both count the fine level's
     transforms. Against its own block the search stays fine."""
+    from terrain_nav_ros.core.matching.crease_proposals import (
+        _crease_search_registrations,
+        _search_level,
+    )
     from terrain_nav_ros.core.matching.crease_search import COARSE, FINE
-    from terrain_nav_ros.core.matching.matcher import _crease_search_registrations, _search_level
 
     ms, skel = region
     view_ms, view_skel, truth = _turned_view(ms, skel, 330, 90, -17.0, (4.0, 2.0))
@@ -293,7 +296,8 @@ def test_moving_a_searched_registration_keeps_its_search_penalty(region):
     for the search (a regression: the moved copy used to drop the penalty)."""
     from dataclasses import replace
 
-    from terrain_nav_ros.core.matching.matcher import _pair, _refined_on_creases, _scored
+    from terrain_nav_ros.core.matching.registration import _pair
+    from terrain_nav_ros.core.matching.scoring import _refined_on_creases, _scored
 
     ms, skel = region
     view_ms, view_skel, truth = _turned_view(ms, skel, 330, 90, 10.0, (2.0, 1.0))

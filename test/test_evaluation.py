@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from terrain_nav_ros.core.matching.baselines import keypoint_locate, ncc_locate
-from terrain_nav_ros.core.matching.matcher import calibrate_threshold
+from terrain_nav_ros.core.matching.significance import calibrate_threshold
 from terrain_nav_ros.core.render.camera_effects import CameraEffects
 from terrain_nav_ros.tools.evaluation import (
     CameraModel,
@@ -160,7 +160,7 @@ def test_wider_try_recovers_the_blocks_a_changed_sun_hides(tmp_path, shared_data
     pytest.importorskip("moderngl")
     from dataclasses import replace
 
-    from terrain_nav_ros.core.matching.matcher import MatchParams
+    from terrain_nav_ros.core.matching.params import MatchParams
     from terrain_nav_ros.core.render.renderer import EGLUnavailableError
 
     def changed_sun(params):

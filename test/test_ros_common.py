@@ -15,7 +15,7 @@ from ros_helpers import start_node, wait_until
 
 from terrain_nav_ros.core.features.creases import CreaseParams
 from terrain_nav_ros.core.features.minutiae import MinutiaParams
-from terrain_nav_ros.core.matching.matcher import MatchParams
+from terrain_nav_ros.core.matching.params import MatchParams
 from terrain_nav_ros.nodes.matcher_node import MATCH_RANGES
 from terrain_nav_ros.nodes.ros_common import (
     check_parameters_known,

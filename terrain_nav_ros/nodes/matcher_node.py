@@ -34,7 +34,8 @@ from terrain_nav_msgs.msg import DemTile, MinutiaArray, PvaFix
 
 from ..core.camera.camera_mount import mount_rotation
 from ..core.camera.ground_projection import CameraIntrinsics, CameraPose, ground_to_image
-from ..core.matching.matcher import Matcher, MatchParams, warm_up
+from ..core.matching.matcher import Matcher, warm_up
+from ..core.matching.params import MatchParams
 from ..core.matching.pva_fix import (
     PvaFixEstimate,
     checked_pnp,

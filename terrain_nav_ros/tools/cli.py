@@ -136,7 +136,7 @@ def _cmd_simulate(args) -> int:
 
 
 def _cmd_evaluate(args) -> int:
-    from ..core.matching.matcher import MatchParams
+    from ..core.matching.params import MatchParams
     from .evaluation import run_evaluation
 
     if args.image or args.scenes:
@@ -183,7 +183,7 @@ def _match_gsd(text: str):
 
 def _cmd_evaluate_imagery(args) -> int:
     """``evaluate --image IMG --dem DEM`` / ``--scenes YAML``: the real-imagery study."""
-    from ..core.matching.matcher import MatchParams
+    from ..core.matching.params import MatchParams
     from .real_imagery import load_scene, load_scenes, run_real_imagery_study
 
     out = Path(args.out) if args.out else REPO / "out" / f"evaluate-imagery-{_now()}"

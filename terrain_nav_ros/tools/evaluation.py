@@ -62,7 +62,9 @@ from ..core.matching.baselines import (
     keypoint_locate,
     ncc_locate,
 )
-from ..core.matching.matcher import Decision, Matcher, MatchParams, calibrate_threshold
+from ..core.matching.matcher import Decision, Matcher
+from ..core.matching.params import MatchParams
+from ..core.matching.significance import calibrate_threshold
 from ..core.render.camera_effects import CameraEffects, apply_camera_effects
 from ..core.terrain.dem_io import Dem, open_dem, sample_dem
 from ..core.terrain.georef import GeoReference

@@ -51,7 +51,9 @@ import numpy as np
 from ..core.features.hillshade import extractor_input
 from ..core.features.minutiae import FeatureExtractor, MinutiaParams
 from ..core.matching.baselines import keypoint_locate, ncc_locate
-from ..core.matching.matcher import Decision, Matcher, MatchParams, calibrate_threshold
+from ..core.matching.matcher import Decision, Matcher
+from ..core.matching.params import MatchParams
+from ..core.matching.significance import calibrate_threshold
 from ..core.render.sun import parse_utc, solar_position
 from ..core.terrain.georef import GeoReference
 

@@ -1,3 +1,13 @@
-"""Matching: minutia matching (parameters, index, proposals, registration, significance and
-the ``Matcher`` front end), descriptors, crease check and search, baselines, the PVA fix and
-the numba kernels. Imports terrain and features."""
+"""Matching: minutiae-based terrain matching and localisation (dissertation chapter 4) and
+what works with it. Imports terrain and features.
+
+The matcher, split by role along its pipeline (:mod:`.matcher` describes the whole):
+:mod:`.params` (settings, Table 4.1), :mod:`.index` (a set prepared for matching),
+:mod:`.proposals` (candidate votes), :mod:`.consensus` (Hough hypotheses),
+:mod:`.registration` (RANSAC, least squares, pairing, covariance), :mod:`.significance` (the
+score and its threshold), :mod:`.scoring` (a registration scored, with the crease check),
+:mod:`.crease_proposals` (the crease search's registrations) and :mod:`.matcher` (the
+``Matcher`` front end). Beside it: :mod:`.descriptors`, :mod:`.crease_check`,
+:mod:`.crease_search`, :mod:`.baselines` (the study's baselines), :mod:`.pva_fix` (a match
+as a position fix) and the numba kernels.
+"""
