@@ -344,8 +344,8 @@ def test_camera_attitude_is_moved_to_the_body():
     from scipy.spatial.transform import Rotation
 
     from terrain_nav_ros.core.camera.camera_mount import camera_rotation, mount_rotation
+    from terrain_nav_ros.core.estimation.ekf_inputs import body_attitude
     from terrain_nav_ros.core.estimation.strapdown import quat_from_euler
-    from terrain_nav_ros.nodes.ekf_node import body_attitude
 
     mount = mount_rotation(0.02, -0.03, 0.01)
     optical_to_body = Rotation.from_matrix(mount).inv()

@@ -3,7 +3,10 @@
 A thin adapter around :class:`terrain_nav_ros.core.estimation.ekf.TerrainEkf` (error-state strapdown
 EKF with position, velocity, attitude, gyro and accelerometer biases; chi-square gating; delayed
 fixes). Every stamp comes from the messages, so the node behaves the same live, from a bag played at
-any rate, and with ``use_sim_time``.
+any rate, and with ``use_sim_time``. What the node decides is ROS-free beside the filter: the
+inputs (fix pose and covariance, GNSS and baro refusals, the baro offset, the ENU origin
+handshake) in :mod:`terrain_nav_ros.core.estimation.ekf_inputs`, the diagnostics' content and
+the throttled refusal logs in :mod:`terrain_nav_ros.core.estimation.ekf_health`.
 
 Topics
 ------
@@ -100,13 +103,30 @@ from terrain_nav_msgs.srv import GetDemTile
 from ..core.camera.camera_mount import mount_rotation
 from ..core.estimation.baro import SEA_LEVEL_PRESSURE, altitude_sigma, pressure_to_altitude
 from ..core.estimation.ekf import EkfParams, Outcome, Reason, TerrainEkf
+from ..core.estimation.ekf_health import (
+    SOURCES,
+    HealthLimits,
+    NewRecords,
+    RefusalLog,
+    filter_health,
+    filter_values,
+    gated_records,
+    source_report,
+)
+from ..core.estimation.ekf_inputs import (
+    BaroOffset,
+    FixFrame,
+    OriginHandshake,
+    baro_refusal,
+    fix_covariance,
+    gnss_covariance,
+    gnss_refusal,
+)
 from ..core.estimation.strapdown import quat_from_euler, quat_to_matrix
 from ..core.terrain.geodesy import EnuOrigin
 from . import conversions as cv
 from .ros_common import (
-    DIAG_ERROR,
     DIAG_OK,
-    DIAG_WARN,
     EVENTS_EXECUTOR,
     LATCHED_QOS,
     RELIABLE_QOS,
@@ -157,25 +177,13 @@ EKF_PARAMETERS = {
 }
 assert set(EKF_PARAMETERS) == {f.name for f in fields(EkfParams)}, "map every EkfParams field"
 
-# A request sent just as the metamap appears can be lost (the client sees the service before
-# the service has matched the client, ros2/rclcpp#625): one unanswered this long is sent again.
+# An origin request unanswered this long is sent again (core.estimation.ekf_inputs).
 _ORIGIN_RESEND_S = 5.0
 # Reasons that are normal operation, not worth a warning.
 _QUIET = {Reason.OK, Reason.INITIALIZED, Reason.QUEUED, Reason.WAITING_FOR_INIT,
           Reason.IMU_GAP, Reason.POSITION_RESET, Reason.COMPARED_ONLY, Reason.NOT_INITIALIZED,
           Reason.GATED}   # gate rejections are logged from the diagnostics records (queued
                           # fixes are gated later, when the IMU reaches their stamp)
-
-
-def body_attitude(q_enu_optical, optical_to_body: Rotation) -> np.ndarray:
-    """Body -> ENU quaternion ``[x, y, z, w]`` from the camera optical frame's attitude.
-
-    ``optical_to_body`` is the inverse of the body -> optical mount rotation
-    (:func:`~terrain_nav_ros.core.camera.camera_mount.mount_rotation`), so that
-    ``R_enu_body = R_enu_optical @ R_body_optical^T``. An attitude error expressed as a small
-    rotation about the ENU axes is the same for both frames, so the covariance carries over.
-    """
-    return (Rotation.from_quat(q_enu_optical) * optical_to_body).as_quat()
 
 
 class EkfNode(Node):
@@ -233,28 +241,27 @@ class EkfNode(Node):
                            "init_mode=pose: ENU velocity [m/s]")
         init_rpy = declare(self, "initial_rpy", [0.0, 0.0, 0.0],
                            "init_mode=pose: roll, pitch, yaw (ENU, yaw CCW from east) [rad]")
-        self.fix_warn_s = declare(self, "diag_fix_timeout_warn", 30.0,
-                                  "WARN after this long without an accepted fix/GNSS "
-                                  "(filter time) [s]", min_value=0.0)
-        self.fix_error_s = declare(self, "diag_fix_timeout_error", 120.0,
-                                   "ERROR after this long without an accepted fix [s]",
-                                   min_value=0.0)
-        self.sigma_warn = declare(self, "diag_position_sigma_warn", 50.0,
-                                  "WARN above this position sigma [m]", min_value=0.0)
-        self.sigma_error = declare(self, "diag_position_sigma_error", 200.0,
-                                   "ERROR above this position sigma [m]", min_value=0.0)
-        self.imu_timeout = declare(self, "diag_imu_timeout", 1.0,
-                                   "ERROR when no IMU arrived for this long (wall) [s]",
-                                   min_value=0.0)
-        self.log_throttle = declare(self, "log_throttle", 5.0,
-                                    "minimum time between two logs of one reason [s]",
-                                    min_value=0.0)
+        self.health_limits = HealthLimits(
+            fix_warn=declare(self, "diag_fix_timeout_warn", 30.0,
+                             "WARN after this long without an accepted fix/GNSS "
+                             "(filter time) [s]", min_value=0.0),
+            fix_error=declare(self, "diag_fix_timeout_error", 120.0,
+                              "ERROR after this long without an accepted fix [s]",
+                              min_value=0.0),
+            sigma_warn=declare(self, "diag_position_sigma_warn", 50.0,
+                               "WARN above this position sigma [m]", min_value=0.0),
+            sigma_error=declare(self, "diag_position_sigma_error", 200.0,
+                                "ERROR above this position sigma [m]", min_value=0.0),
+            imu_timeout=declare(self, "diag_imu_timeout", 1.0,
+                                "ERROR when no IMU arrived for this long (wall) [s]",
+                                min_value=0.0))
+        log_throttle = declare(self, "log_throttle", 5.0,
+                               "minimum time between two logs of one reason [s]",
+                               min_value=0.0)
         # rclpy's default executor costs more CPU per IMU message than the filter (issue 7).
         declare_executor(self, EVENTS_EXECUTOR)
         self.add_on_set_parameters_callback(reject_all_changes)
-        if self.fix_pose_frame not in ("camera_optical", "base_link"):
-            raise ValueError("fix_pose_frame must be camera_optical or base_link, not "
-                             f"{self.fix_pose_frame!r}")
+        FixFrame.checked_pose_frame(self.fix_pose_frame)
         for name, vec in (("initial_position", init_pos), ("initial_velocity", init_vel),
                           ("initial_rpy", init_rpy), ("camera_mount_rpy", mount_rpy),
                           ("camera_lever_arm", self.lever_arm),
@@ -263,24 +270,25 @@ class EkfNode(Node):
                 raise ValueError(f"{name} needs 3 finite values, got {list(vec)}")
 
         # Camera optical -> body: R_enu_body = R_enu_optical @ R_body_optical^T.
-        self._optical_to_body = Rotation.from_matrix(mount_rotation(*mount_rpy)).inv()
+        self.fix_frame = FixFrame(self.fix_pose_frame,
+                                  Rotation.from_matrix(mount_rotation(*mount_rpy)).inv(),
+                                  self.lever_arm)
         self.ekf = TerrainEkf(self.params)
         if self.params.init_mode == "pose":
             self.ekf.set_initial_pose(np.array(init_pos, float), np.array(init_vel, float),
                                       quat_from_euler(*init_rpy))
-        self.origin = None
+        self._origin = OriginHandshake(
+            EnuOrigin(lat, lon, alt) if math.isfinite(lat) and math.isfinite(lon) else None,
+            resend_after=_ORIGIN_RESEND_S)
         self._tile_sub = self._origin_client = self._origin_timer = None
-        self._origin_future, self._origin_asked = None, 0.0
+        self._origin_future = None
         steady = Clock(clock_type=ClockType.STEADY_TIME)
-        if math.isfinite(lat) and math.isfinite(lon):
-            self.origin = EnuOrigin(lat, lon, alt)
-        else:
+        if self.origin is None:
             self._tile_sub = self.create_subscription(DemTile, "/metamap/tile", self.on_tile,
                                                       LATCHED_QOS)
             self._origin_client = self.create_client(GetDemTile, "/metamap/get_tile")
             self._origin_timer = self.create_timer(1.0, self._ask_origin, clock=steady)
-        self.baro_offset = self.baro_offset_param if math.isfinite(self.baro_offset_param) \
-            else None
+        self.baro = BaroOffset(self.baro_offset_param, self.baro_offset_max_sigma)
 
         # 0.1 ms slack: epoch stamps as float seconds carry ~0.2 us of rounding, and a 20 ms
         # period over 10 ms samples must not turn into every third sample.
@@ -296,9 +304,8 @@ class EkfNode(Node):
         self._started_wall = time.monotonic()
         self.rejections = Counter()        # refused by the node before reaching the core
         self.no_fix_count = 0
-        self._last_log = {}
-        self._suppressed = Counter()
-        self._last_record = None
+        self._refusal_log = RefusalLog(log_throttle)
+        self._new_records = NewRecords()
         self._stamps_reported = 0
         self._init_stamp = None
 
@@ -325,16 +332,21 @@ class EkfNode(Node):
                                f"fuse_gnss={self.params.fuse_gnss}")
 
     # ------------------------------------------------------------------ logging
+    @property
+    def origin(self) -> EnuOrigin | None:
+        """The mission's ENU origin (None until the metamap gave it)."""
+        return self._origin.origin
+
+    @property
+    def baro_offset(self) -> float | None:
+        """ENU up minus pressure altitude (None until learnt)."""
+        return self.baro.value
+
     def _log_refusal(self, key: str, text: str, level: str = "warning"):
         """Log at most once per ``log_throttle`` s per key, saying how many were skipped."""
-        now = time.monotonic()
-        last = self._last_log.get(key)
-        if last is not None and now - last < self.log_throttle:
-            self._suppressed[key] += 1
+        text = self._refusal_log.text(key, text, time.monotonic())
+        if text is None:
             return
-        skipped = self._suppressed.pop(key, 0)
-        self._last_log[key] = now
-        text += f" ({skipped} more since the last report)" if skipped else ""
         # rclpy fixes the severity per call site: one call per severity.
         if level == "info":
             self.get_logger().info(text)
@@ -359,7 +371,8 @@ class EkfNode(Node):
                 self._log_refusal("not_initialized",
                                   f"not initialised after {waited:.0f} s of IMU: waiting for "
                                   f"{self.ekf.waiting_for()}",
-                                  "warning" if waited > self.fix_warn_s else "info")
+                                  "warning" if waited > self.health_limits.fix_warn
+                                  else "info")
             return
         self._log_refusal(f"{source}:{out.reason.value}",
                           f"{source} refused: {out.reason.value}")
@@ -371,7 +384,9 @@ class EkfNode(Node):
 
     def _ask_origin(self):
         """While the origin is unknown, ask the metamap for a 1-px tile (it carries it)."""
-        if self.origin is not None:
+        pending = self._origin_future is not None and not self._origin_future.done()
+        action = self._origin.request(time.monotonic(), pending)
+        if action == "done":
             self._origin_timer.cancel()
             self.destroy_timer(self._origin_timer)
             self.destroy_client(self._origin_client)
@@ -379,15 +394,15 @@ class EkfNode(Node):
                 self.destroy_subscription(self._tile_sub)
             self._tile_sub = self._origin_client = self._origin_timer = None
             return
-        if self._origin_future is not None and not self._origin_future.done():
-            if time.monotonic() - self._origin_asked < _ORIGIN_RESEND_S:
-                return
+        if action == "wait":
+            return
+        if action == "resend":
             self._origin_client.remove_pending_request(self._origin_future)
         if not self._origin_client.service_is_ready():
             return
         request = GetDemTile.Request(center_frame=GetDemTile.Request.CENTER_ENU,
                                      center_x=0.0, center_y=0.0, width=1, height=1, gsd=1.0)
-        self._origin_asked = time.monotonic()
+        self._origin.sent(time.monotonic())
         self._origin_future = self._origin_client.call_async(request)
         self._origin_future.add_done_callback(self._on_origin_response)
 
@@ -405,7 +420,7 @@ class EkfNode(Node):
             return
         lat, lon, alt = cv.enu_origin_of(georef)
         try:
-            self.origin = EnuOrigin(lat, lon, alt)
+            self._origin.adopt(lat, lon, alt)
         except ValueError as err:
             self._log_refusal("tile_origin", f"{source}: no usable ENU origin: {err}")
             return
@@ -450,8 +465,7 @@ class EkfNode(Node):
             f"{self.params.init_mode}")
         self._last_odom = self._last_navsat = -math.inf
         self._prev_imu_t = self._imu_span = None
-        if not math.isfinite(self.baro_offset_param):
-            self.baro_offset = None
+        self.baro.forget()
 
     def on_pva_fix(self, msg: PvaFix):
         if msg.status == PvaFix.STATUS_NO_FIX:
@@ -471,95 +485,47 @@ class EkfNode(Node):
             return
         q_body = None
         if with_attitude:
-            q_body = self._body_quaternion(fix.quaternion)
+            q_body = self.fix_frame.body_quaternion(fix.quaternion)
             if q_body is None:
                 self._refuse("fix", Reason.BAD_QUATERNION.value)
                 return
-        position = self._body_position(fix.position, q_body)
-        # Core order: [position, velocity?, attitude?]; cross terms with velocity unknown.
-        blocks = [fix.covariance[:3, :3]]
-        if fix.velocity is not None:
-            blocks.append(fix.velocity_covariance)
-        if with_attitude:
-            blocks.append(fix.covariance[3:, 3:])
-        n = 3 * len(blocks)
-        cov = np.zeros((n, n))
-        for i, b in enumerate(blocks):
-            cov[3 * i:3 * i + 3, 3 * i:3 * i + 3] = b
-        if with_attitude:
-            cov[:3, -3:] = fix.covariance[:3, 3:]
-            cov[-3:, :3] = fix.covariance[3:, :3]
+        position = self.fix_frame.body_position(fix.position, q_body, self.ekf.q)
+        cov = fix_covariance(fix.covariance,
+                             fix.velocity_covariance if fix.velocity is not None else None,
+                             with_attitude)
         out = self.ekf.process_fix(fix.stamp, position, cov, velocity=fix.velocity,
                                    quaternion=q_body, source="fix")
         self._report("fix", out, fix.stamp)
 
-    def _body_quaternion(self, q_fix) -> np.ndarray | None:
-        """Body attitude from the fix orientation (None if not a unit quaternion)."""
-        norm = float(np.linalg.norm(q_fix))
-        if not abs(norm - 1.0) < 0.01:
-            return None
-        q = np.asarray(q_fix, float) / norm
-        if self.fix_pose_frame == "base_link":
-            return q
-        return body_attitude(q, self._optical_to_body)
-
-    def _body_position(self, p_fix, q_body) -> np.ndarray:
-        """base_link position from the fixed point (camera centre minus the lever arm)."""
-        if self.fix_pose_frame == "base_link" or not self.lever_arm.any():
-            return np.asarray(p_fix, float)
-        q = q_body if q_body is not None else self.ekf.q
-        return np.asarray(p_fix, float) - quat_to_matrix(q) @ self.lever_arm
-
     def on_baro(self, msg: FluidPressure):
         stamp, pressure, variance = cv.fluid_pressure_to_sample(msg)
-        if not (math.isfinite(pressure) and math.isfinite(variance) and pressure > 0
-                and variance >= 0 and math.isfinite(stamp)):
-            self._refuse("baro", "bad_pressure", f" {pressure} Pa (variance {variance})")
+        refused = baro_refusal(stamp, pressure, variance)
+        if refused is not None:
+            self._refuse("baro", "bad_pressure", refused)
             return
         altitude = float(pressure_to_altitude(pressure, self.sea_level_pressure))
-        if self.baro_offset is None and not self._learn_baro_offset(stamp, altitude):
-            return
+        if self.baro.value is None:
+            if not self.baro.learn(stamp, altitude, self.ekf):
+                self.rejections["baro:waiting_for_offset"] += 1
+                return
+            self.get_logger().info(
+                f"baro offset learnt: ENU up = pressure altitude {self.baro.value:+.1f} m "
+                f"(vertical sigma {math.sqrt(self.ekf.state.covariance[2, 2]):.1f} m)")
         sigma = altitude_sigma(math.sqrt(variance), pressure) if variance > 0 else 0.0
         out = self.ekf.process_baro(stamp, altitude + self.baro_offset,
                                     max(sigma, self.baro_sigma) ** 2)
         self._report("baro", out)
-
-    def _learn_baro_offset(self, stamp: float, altitude: float) -> bool:
-        """Set the baro offset from the estimate once its height is known well enough."""
-        ekf = self.ekf
-        if not ekf.initialized or abs(stamp - ekf.t) > 0.1:
-            self.rejections["baro:waiting_for_offset"] += 1
-            return False
-        if math.sqrt(ekf.state.covariance[2, 2]) > self.baro_offset_max_sigma:
-            self.rejections["baro:waiting_for_offset"] += 1
-            return False
-        s = ekf.state
-        self.baro_offset = float(s.position[2] + s.velocity[2] * (stamp - s.stamp)) - altitude
-        self.get_logger().info(f"baro offset learnt: ENU up = pressure altitude "
-                               f"{self.baro_offset:+.1f} m (vertical sigma "
-                               f"{math.sqrt(s.covariance[2, 2]):.1f} m)")
-        return True
 
     def on_gnss(self, msg: NavSatFix):
         stamp, status, lla, cov, cov_type = cv.navsatfix_to_arrays(msg)
         if status < NavSatStatus.STATUS_FIX:
             self._refuse("gnss", "no_fix_status")
             return
-        if not (np.isfinite(lla).all() and math.isfinite(stamp)):
-            self._refuse("gnss", Reason.NON_FINITE.value)
+        refused = gnss_refusal(stamp, lla, self.origin is not None)
+        if refused is not None:
+            self._refuse("gnss", *refused)
             return
-        if abs(lla[0]) > 90.0 or abs(lla[1]) > 360.0:
-            self._refuse("gnss", "latitude_longitude_out_of_range", f" {lla[:2]}")
-            return
-        if self.origin is None:
-            self._refuse("gnss", "no_enu_origin_yet")
-            return
-        if cov_type == NavSatFix.COVARIANCE_TYPE_UNKNOWN:
-            cov = np.diag(np.square(self.gnss_fallback_sigma))
-        elif cov_type == NavSatFix.COVARIANCE_TYPE_DIAGONAL_KNOWN:
-            cov = np.diag(np.diag(cov))
-        # NavSatFix covariance is ENU at the receiver; at mission distances (tens of km) its
-        # axes differ from the map's by < 0.5 deg, which is ignored.
+        cov = gnss_covariance(cov, cov_type, self.gnss_fallback_sigma)
         enu = np.array(self.origin.geodetic_to_enu(*lla), float)
         out = self.ekf.process_gnss(stamp, enu, cov)
         self._report("gnss", out, stamp)
@@ -592,93 +558,27 @@ class EkfNode(Node):
     def diagnostics(self) -> list:
         """The filter's health and each measurement source's updates since the last report."""
         d = self.ekf.diagnostics
-        now = time.monotonic()
-        level, problems = DIAG_OK, []
-
-        def worse(lvl, text):
-            nonlocal level
-            level = max(level, lvl)
-            problems.append(text)
-
-        since_imu = now - (self._last_imu_wall or self._started_wall)
-        if since_imu > self.imu_timeout:
-            worse(DIAG_ERROR, f"no IMU for {since_imu:.1f} s")
-        if not d.initialized:
-            worse(DIAG_WARN, f"not initialised: waiting for {self.ekf.waiting_for()}")
-        ages = [a for a in (d.time_since("fix"), d.time_since("gnss")) if a is not None]
-        since_fix = min(ages) if ages else None
-        if d.initialized:
-            if since_fix is None:
-                worse(DIAG_WARN, "no fix accepted yet")
-            elif since_fix > self.fix_error_s:
-                worse(DIAG_ERROR, f"no accepted fix for {since_fix:.0f} s")
-            elif since_fix > self.fix_warn_s:
-                worse(DIAG_WARN, f"no accepted fix for {since_fix:.0f} s")
-            if d.position_sigma > self.sigma_error:
-                worse(DIAG_ERROR, f"position sigma {d.position_sigma:.0f} m")
-            elif d.position_sigma > self.sigma_warn:
-                worse(DIAG_WARN, f"position sigma {d.position_sigma:.0f} m")
-
+        since_imu = time.monotonic() - (self._last_imu_wall or self._started_wall)
         refused_now = d.imu_stamps_refused - self._stamps_reported
         self._stamps_reported = d.imu_stamps_refused
-        if refused_now:
-            worse(DIAG_WARN, f"{refused_now} IMU stamp(s) far from the expected period refused")
         new = self._new_records(d.records)
-        gated = [r for r in new if not r.accepted and r.nis > r.gate
-                 and (r.source != "gnss" or self.params.fuse_gnss)]
-        if gated:
-            worse(DIAG_WARN, f"{len(gated)} measurement(s) rejected by the gate")
-            for r in gated:
-                self._log_refusal(f"{r.source}:{Reason.GATED.value}",
-                                  f"{r.source} at {r.stamp:.3f} s rejected by the "
-                                  f"chi-square gate: NIS {r.nis:.1f} > {r.gate:.1f}")
-        rejections = Counter(d.input_rejections)
-        rejections.update(self.rejections)
-        values = {
-            "initialized": d.initialized, "init_mode": self.params.init_mode,
-            "filter_time": "nan" if d.stamp is None else f"{d.stamp:.3f}",
-            "time_since_last_fix": float("nan") if since_fix is None else since_fix,
-            "position_sigma_m": d.position_sigma, "covariance_trace": d.covariance_trace,
-            "resets": d.resets, "reinitialisations": d.reinitialisations,
-            "imu_stamps_refused": d.imu_stamps_refused,
-            "position_resets": d.position_resets, "imu_gaps": d.imu_gaps,
-            "imu_received": self._imu_count, "imu_rate_hz": 1.0 / self._imu_dt,
-            "no_fix_messages": self.no_fix_count,
-            "baro_offset_m": float("nan") if self.baro_offset is None else self.baro_offset,
-            "enu_origin": "unknown" if self.origin is None else
-            f"{self.origin.lat:.7f},{self.origin.lon:.7f},{self.origin.alt:.2f}",
-        }
-        values.update({f"rejected_input/{k}": v for k, v in sorted(rejections.items())})
-        statuses = [cv.diagnostic_status(
-            "ekf: filter", level, "; ".join(problems) or "ok", values, "terrain_nav")]
-        for source in ("fix", "baro", "gnss"):
-            recs = [r for r in d.records if r.source == source]
-            mine = [r for r in new if r.source == source]
-            last = recs[-1] if recs else None
-            statuses.append(cv.diagnostic_status(
-                f"ekf: {source}", DIAG_OK, f"{len(mine)} update(s) since the last report", {
-                    "accepted": d.accepted[source], "rejected": d.rejected[source],
-                    "last_nis": last.nis if last else float("nan"),
-                    "gate": last.gate if last else float("nan"),
-                    "dof": last.dim if last else 0,
-                    "mean_nis": float(np.mean([r.nis for r in recs])) if recs
-                    else float("nan"),
-                    "nis": " ".join(f"{r.nis:.3g}{'' if r.accepted else '!'}"
-                                    for r in mine),
-                    "last_accepted_stamp": f"{d.last_accepted.get(source, math.nan):.3f}",
-                }, "terrain_nav"))
+        gated = gated_records(new, self.params.fuse_gnss)
+        health = filter_health(d, since_imu, self.ekf.waiting_for(), self.health_limits,
+                               refused_now, len(gated))
+        for r in gated:
+            self._log_refusal(f"{r.source}:{Reason.GATED.value}",
+                              f"{r.source} at {r.stamp:.3f} s rejected by the "
+                              f"chi-square gate: NIS {r.nis:.1f} > {r.gate:.1f}")
+        values = filter_values(d, self.params.init_mode, self._imu_count, self._imu_dt,
+                               self.no_fix_count, self.baro.value, self.origin,
+                               self.rejections)
+        statuses = [cv.diagnostic_status("ekf: filter", health.level, health.message, values,
+                                         "terrain_nav")]
+        for source in SOURCES:
+            message, source_values = source_report(d, source, new)
+            statuses.append(cv.diagnostic_status(f"ekf: {source}", DIAG_OK, message,
+                                                 source_values, "terrain_nav"))
         return statuses
-
-    def _new_records(self, records) -> list:
-        """Records appended since the previous diagnostics (by identity)."""
-        new = []
-        for r in reversed(records):
-            if r is self._last_record:
-                break
-            new.append(r)
-        if records:
-            self._last_record = records[-1]
-        return new[::-1]
 
 
 def main(args=None):
