@@ -17,13 +17,16 @@ registration's rotation is the prior's heading error, so with ``publish_heading`
 is measured too (``STATUS_POSITION_ATTITUDE``, roll and pitch with a 10-degree sigma that
 leaves the filter's own untouched); otherwise only the position (``STATUS_POSITION``, rotation
 covariance -1).
+
+What the node decides around the matcher is ROS-free in
+:mod:`terrain_nav_ros.core.matching.fix_stream`: the landmark set a camera set is matched in,
+the fix's tilt allowance, attitude and velocity, and the diagnostics' tallies.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from collections import Counter, deque
 
 import numpy as np
 from rclpy.node import Node
@@ -34,6 +37,13 @@ from terrain_nav_msgs.msg import DemTile, MinutiaArray, PvaFix
 
 from ..core.camera.camera_mount import mount_rotation
 from ..core.camera.ground_projection import CameraIntrinsics, CameraPose, ground_to_image
+from ..core.matching.fix_stream import (
+    AnswerTally,
+    FixVelocity,
+    LandmarkSets,
+    add_prior_tilt,
+    fix_attitude,
+)
 from ..core.matching.matcher import Matcher, warm_up
 from ..core.matching.params import MatchParams
 from ..core.matching.pva_fix import (
@@ -43,15 +53,10 @@ from ..core.matching.pva_fix import (
     fix_from_ground_match,
     fix_from_pnp,
     inflate_covariance,
-    reason_kind,
-    velocity_from_fixes,
 )
 from ..core.terrain.geodesy import EnuOrigin
 from . import conversions as cv
 from .ros_common import (
-    DIAG_ERROR,
-    DIAG_OK,
-    DIAG_WARN,
     LATCHED_QOS,
     RELIABLE_QOS,
     SENSOR_QOS,
@@ -76,9 +81,6 @@ MATCH_RANGES = {"threshold": (0.0, None), "max_rotation": (0.0, math.pi),
                 **{name: (1e-9, None) for name in _POSITIVE},
                 **{name: (1, None) for name in _AT_LEAST_ONE}}
 
-# Variance (rad^2) given to roll and pitch when only the heading is measured: 10 deg.
-UNOBSERVED_TILT_VAR = math.radians(10.0) ** 2
-
 
 class MatcherNode(Node):
     """Localises camera minutiae in landmark minutiae and publishes fixes."""
@@ -101,9 +103,9 @@ class MatcherNode(Node):
             self, "pnp_gate_sigma", 3.0,
             "a PnP pose farther than this from the ground match of the same registration, in "
             "sigma of both, is dropped for the ground match [sigma]", min_value=0.0)
-        self.velocity_gap = declare(self, "velocity_max_gap", 5.0,
-                                    "largest time between two fixes that give a velocity [s]",
-                                    min_value=0.0)
+        velocity_gap = declare(self, "velocity_max_gap", 5.0,
+                               "largest time between two fixes that give a velocity [s]",
+                               min_value=0.0)
         self.method = declare(self, "method", "pnp",
                               "pnp: camera pose by PnP over the paired minutiae's DEM points "
                               "(needs CameraInfo and the DEM tile; falls back to ground); "
@@ -116,9 +118,8 @@ class MatcherNode(Node):
         self.heading_floor = math.radians(declare(
             self, "heading_sigma_floor", 0.5, "smallest heading sigma reported [deg]",
             min_value=0.0))
-        self.max_landmarks = declare(self, "max_landmarks", 4,
-                                     "landmark sets kept for pairing", min_value=1,
-                                     max_value=64)
+        max_landmarks = declare(self, "max_landmarks", 4, "landmark sets kept for pairing",
+                                min_value=1, max_value=64)
         mount = [math.radians(v) for v in declare(
             self, "mount_rpy", [0.0, 0.0, 0.0],
             "camera tilt from the nadir mount, roll/pitch/yaw about body FLU [deg]")]
@@ -132,14 +133,10 @@ class MatcherNode(Node):
         self.add_on_set_parameters_callback(reject_all_changes)
         self.r_body_optical = mount_rotation(*mount)
         self.matcher = Matcher(settings_from_parameters(self, "match", MatchParams()))
-        self.landmarks: deque = deque(maxlen=self.max_landmarks)
-        self.last_fix: tuple[float, np.ndarray, np.ndarray] | None = None
-        self.counts = {"fix": 0, "no_fix": 0}
-        self.no_fix_kinds: Counter = Counter()
-        self.answer_ms: list[float] = []        # time per camera set since the last report
+        self.landmarks = LandmarkSets(max_landmarks)
+        self.velocity = FixVelocity(velocity_gap)
+        self.tally = AnswerTally()
         self.last_camera_wall: float | None = None
-        self.last_fix_wall: float | None = None
-        self.last_match = (math.nan, 0)          # score and pairings of the last fix
         self.pub = self.create_publisher(PvaFix, "/nav/pva_fix", RELIABLE_QOS)
         self.create_subscription(MinutiaArray, "/landmark/minutiae", self.on_landmark,
                                  LATCHED_QOS)
@@ -153,6 +150,11 @@ class MatcherNode(Node):
         self._started_wall = time.monotonic()
         publish_diagnostics(self, "/matcher/diagnostics", diagnostics_period,
                             self.diagnostics)
+
+    @property
+    def counts(self) -> dict:
+        """Fixes and no-fixes published so far."""
+        return {"fix": self.tally.fixes, "no_fix": self.tally.no_fixes}
 
     @contained
     def on_tile(self, msg: DemTile) -> None:
@@ -181,23 +183,16 @@ class MatcherNode(Node):
         index = None
         if len(minutiae):
             index = self.matcher.index(minutiae, creases, ridges).prepare_as_reference()
-        self.landmarks.append((minutiae, index, cv.enu_origin_of(msg.georef)))
+        self.landmarks.add(minutiae, index, cv.enu_origin_of(msg.georef))
         self.get_logger().info(f"landmark set with {len(minutiae)} minutiae "
                                f"({minutiae.reason or 'ok'})")
-
-    def _landmark_for(self, east: float, north: float):
-        """Newest landmark set whose region holds the point."""
-        for minutiae, index, origin in reversed(self.landmarks):
-            if minutiae.georef.contains(east, north):
-                return minutiae, index, origin
-        return None
 
     @contained
     def on_camera(self, msg: MinutiaArray) -> None:
         start = self.last_camera_wall = time.monotonic()
         try:
             self._answer(msg)
-            self.answer_ms.append(1e3 * (time.monotonic() - start))
+            self.tally.answered(1e3 * (time.monotonic() - start))
         except Exception as err:
             # every frame gets an answer: the filter and the recorded bag see this one fail
             self.publish_no_fix(msg.header.stamp,
@@ -222,7 +217,7 @@ class MatcherNode(Node):
             self.publish_no_fix(msg.header.stamp, "camera minutiae carry no projection pose")
             return
         position, rotation, plane = projection
-        landmark = self._landmark_for(*camera.georef.centre)
+        landmark = self.landmarks.holding(*camera.georef.centre)
         if landmark is None:
             self.publish_no_fix(msg.header.stamp, "no landmark covers the camera footprint")
             return
@@ -235,9 +230,7 @@ class MatcherNode(Node):
             self.matcher.index(camera, camera_creases, camera_ridges), land_index)
         fix = fix_from_ground_match(result, camera.georef, land_minutiae.georef, position,
                                     rotation, plane, landmark_sigma=self.landmark_sigma)
-        if fix.valid:
-            agl = position[2] - plane
-            fix.covariance[:2, :2] += np.eye(2) * (agl * self.tilt_sigma) ** 2
+        add_prior_tilt(fix, position[2] - plane, self.tilt_sigma)
         if result.matched and self.method == "pnp":
             fix = checked_pnp(self.pnp_fix(result, camera, land_minutiae, position, rotation),
                               fix, self.pnp_gate)
@@ -278,23 +271,12 @@ class MatcherNode(Node):
             out.num_landmark_minutiae = fix.num_landmark_minutiae
         out.pose.covariance = cv.array_to_covariance(-np.eye(6))
         self.pub.publish(out)
-        self.counts["no_fix"] += 1
-        self.no_fix_kinds[reason_kind(reason)] += 1
+        self.tally.no_fix(reason)
         self.get_logger().info(f"no fix: {reason}", throttle_duration_sec=2.0)
 
     def publish_fix(self, stamp, stamp_s: float, fix: PvaFixEstimate, origin) -> None:
         inflate_covariance(fix, self.covariance_scale)
-        r_enu_body = fix.rotation @ self.r_body_optical.T
-        if fix.status == PvaFix.STATUS_POSITION and self.use_heading and fix.yaw_variance >= 0:
-            # The ground image was rotated by the prior's heading error: turn the prior
-            # attitude about Up by the registration's rotation. Roll and pitch are not seen
-            # by a nadir ground match: give them a variance that leaves the filter's alone.
-            r_enu_body = Rotation.from_rotvec([0.0, 0.0, fix.yaw_correction]).as_matrix() \
-                @ r_enu_body
-            fix.covariance[3:, 3:] = np.diag([UNOBSERVED_TILT_VAR, UNOBSERVED_TILT_VAR,
-                                              fix.yaw_variance + self.heading_floor ** 2])
-            fix.covariance[:3, 3:] = fix.covariance[3:, :3] = 0.0
-            fix.status = PvaFix.STATUS_POSITION_ATTITUDE
+        r_enu_body = fix_attitude(fix, self.r_body_optical, self.use_heading, self.heading_floor)
         quaternion = Rotation.from_matrix(r_enu_body).as_quat()
         out = PvaFix(header=cv.make_header(stamp, self.frame_id), status=fix.status,
                      reason=fix.reason, similarity=float(fix.similarity),
@@ -304,18 +286,13 @@ class MatcherNode(Node):
                      pose=cv.pose_with_covariance(fix.position, quaternion, fix.covariance))
         lat, lon, alt = EnuOrigin(*origin).enu_to_geodetic(*fix.position)
         out.latitude, out.longitude, out.altitude = float(lat), float(lon), float(alt)
-        if self.last_fix is not None and 0 < stamp_s - self.last_fix[0] <= self.velocity_gap:
-            velocity, cov = velocity_from_fixes(self.last_fix[1], self.last_fix[2],
-                                                self.last_fix[0], fix.position,
-                                                fix.covariance, stamp_s)
+        velocity = self.velocity.update(stamp_s, fix.position, fix.covariance)
+        if velocity is not None:
             out.velocity_valid = True
-            out.velocity.x, out.velocity.y, out.velocity.z = map(float, velocity)
-            out.velocity_covariance = cov.ravel()
-        self.last_fix = (stamp_s, fix.position.copy(), fix.covariance.copy())
+            out.velocity.x, out.velocity.y, out.velocity.z = map(float, velocity[0])
+            out.velocity_covariance = velocity[1].ravel()
         self.pub.publish(out)
-        self.counts["fix"] += 1
-        self.last_fix_wall = time.monotonic()
-        self.last_match = (float(fix.similarity), fix.num_pairings)
+        self.tally.fix(fix.similarity, fix.num_pairings, time.monotonic())
         sigma = math.sqrt(max(fix.covariance[0, 0] + fix.covariance[1, 1], 0.0))
         self.get_logger().info(
             f"fix ({fix.position[0]:.0f}, {fix.position[1]:.0f}) m +- {sigma:.0f} m, "
@@ -326,34 +303,10 @@ class MatcherNode(Node):
         last report; a warning when camera minutiae stop coming or no landmark set is held,
         an error when matching failed since the last report."""
         now = time.monotonic()
-        level, problems = DIAG_OK, []
         failures, new = new_failures(self)
-        if new:
-            level = DIAG_ERROR
-            problems.append(f"{new} message(s) failed in a callback: see the log")
-        since_camera = now - (self.last_camera_wall or self._started_wall)
-        if since_camera > self.camera_timeout:
-            level = max(level, DIAG_WARN)
-            problems.append(f"no camera minutiae for {since_camera:.0f} s")
-        if not any(index is not None for _, index, _ in self.landmarks):
-            level = max(level, DIAG_WARN)
-            problems.append("no landmark set with minutiae")
-        times, self.answer_ms = self.answer_ms, []
-        values = {
-            "fixes": self.counts["fix"], "no_fixes": self.counts["no_fix"],
-            "camera_sets_since_last_report": len(times),
-            "answer_ms_median": float(np.median(times)) if times else math.nan,
-            "answer_ms_max": max(times, default=math.nan),
-            "time_since_last_fix": (math.nan if self.last_fix_wall is None
-                                    else now - self.last_fix_wall),
-            "last_fix_similarity": self.last_match[0],
-            "last_fix_pairings": self.last_match[1],
-            "landmark_sets": len(self.landmarks),
-            "failures": failures,
-        }
-        values.update({f"no_fix: {kind}": n for kind, n in self.no_fix_kinds.most_common()})
-        message = "; ".join(problems) or (f"{len(times)} camera set(s) answered since the "
-                                          "last report")
+        level, message, values = self.tally.report(
+            now, now - (self.last_camera_wall or self._started_wall), self.camera_timeout,
+            self.landmarks.any_with_minutiae, failures, new, len(self.landmarks))
         return [cv.diagnostic_status("matcher", level, message, values, "terrain_nav")]
 
 
