@@ -9,5 +9,6 @@ score and its threshold), :mod:`.scoring` (a registration scored, with the creas
 :mod:`.crease_proposals` (the crease search's registrations) and :mod:`.matcher` (the
 ``Matcher`` front end). Beside it: :mod:`.descriptors`, :mod:`.crease_check`,
 :mod:`.crease_search`, :mod:`.baselines` (the study's baselines), :mod:`.pva_fix` (a match
-as a position fix) and the numba kernels.
+as a position fix), :mod:`.fix_stream` (what the ``matcher`` node decides around them) and
+the numba kernels.
 """
