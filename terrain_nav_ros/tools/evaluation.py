@@ -21,9 +21,9 @@
 4. **PVA / non-PVA.** Every camera block is compared
    (:meth:`~.core.matching.matcher.Matcher.compare`) with every landmark block: the diagonal are PVA
    matches (same place), the rest non-PVA. The threshold is calibrated
-   (:func:`~.core.matching.matcher.calibrate_threshold`) for the stated false-match rate on a random
-   half of the non-PVA scores and applied to the other half (and the other way round); PVA misses
-   are counted at that threshold.
+   (:func:`~.core.matching.significance.calibrate_threshold`) for the stated false-match rate on a
+   random half of the non-PVA scores and applied to the other half (and the other way round); PVA
+   misses are counted at that threshold.
 5. **Fix error.** For PVA matches the registration maps the camera block's centre into the
    landmark block; its distance to the true position is the fix error (px and m). The
    navigation use is measured too: each camera block is localised

@@ -23,8 +23,8 @@ landmark render of a co-registered DEM, lit by the image's sun, the way the grap
    the regions of the other places' cases (a scene of the same DEM is the same place), and
    regions of the same scene at least a region
    apart where the scene is large enough. Their scores calibrate the threshold for the stated
-   false-match rate (:func:`~.core.matching.matcher.calibrate_threshold`), and the accepted ones are
-   counted at the threshold used.
+   false-match rate (:func:`~.core.matching.significance.calibrate_threshold`), and the accepted
+   ones are counted at the threshold used.
 5. **Baselines** on the same cases: gradient NCC (without rotation search with the heading
    known, with 36 rotations without it) and ORB (SIFT with ``--sift``) with RANSAC; they
    always answer, so every answer off the truth is wrong.
@@ -450,7 +450,7 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
     cases : int
         Views per scene, size and heading condition.
     threshold : float, optional
-        Acceptance threshold; default :class:`~.core.matching.matcher.MatchParams`'. The command
+        Acceptance threshold; default :class:`~.core.matching.params.MatchParams`'. The command
         passes the graph's (``match.threshold`` of ``config/terrain_nav.yaml``).
     headings : sequence of {"unknown", "known"}
     baselines : sequence of {"ncc", "orb", "sift"}

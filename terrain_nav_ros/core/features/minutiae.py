@@ -689,7 +689,7 @@ class FeatureExtractor:
         Also return the ridge skeleton (:attr:`Features.ridges`), thresholded from the same
         creaseness as the valleys: the ridge lines between the valleys are a second,
         independent check of a registration for a matcher (see
-        :attr:`~.matching.matcher.MatchParams.ridge_check`); they give no minutiae.
+        :attr:`~.matching.params.MatchParams.ridge_check`); they give no minutiae.
     """
 
     def __init__(self, crease_params: CreaseParams | None = None,
