@@ -1,8 +1,8 @@
 """Benchmark of the EKF core: cost per IMU prediction and per measurement update.
 
 Runs a simulated 200 Hz IMU (survey flight, ScanEagle-class MEMS defaults) through
-:class:`terrain_nav_ros.core.ekf.TerrainEkf` and reports wall time per call and the share of
-one core a 200 Hz IMU plus 0.5 Hz fixes and 10 Hz baro would use (target <= 10 %).
+:class:`terrain_nav_ros.core.estimation.ekf.TerrainEkf` and reports wall time per call and the
+share of one core a 200 Hz IMU plus 0.5 Hz fixes and 10 Hz baro would use (target <= 10 %).
 
 Usage::
 
@@ -18,9 +18,9 @@ import time
 
 import numpy as np
 
-from terrain_nav_ros.core.ekf import EkfParams, TerrainEkf
-from terrain_nav_ros.core.imu_sim import ImuErrorModel, simulate_fixes, simulate_imu
-from terrain_nav_ros.core.trajectory_sim import simulate_trajectory, survey_flight
+from terrain_nav_ros.core.estimation.ekf import EkfParams, TerrainEkf
+from terrain_nav_ros.core.sim.imu_sim import ImuErrorModel, simulate_fixes, simulate_imu
+from terrain_nav_ros.core.sim.trajectory_sim import simulate_trajectory, survey_flight
 
 
 def _timed(fn, args_list):

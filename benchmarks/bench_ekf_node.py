@@ -29,13 +29,16 @@ os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 
 from ros_helpers import SpinningNode, stop, wait_until  # noqa: E402
 
-from terrain_nav_ros import conversions as cv  # noqa: E402
-from terrain_nav_ros.core.baro import altitude_to_pressure  # noqa: E402
-from terrain_nav_ros.core.ekf_params import EkfParams  # noqa: E402
-from terrain_nav_ros.core.imu_sim import ImuErrorModel, simulate_imu  # noqa: E402
-from terrain_nav_ros.core.strapdown import quat_to_euler  # noqa: E402
-from terrain_nav_ros.core.trajectory_sim import simulate_trajectory, turning_flight  # noqa: E402
-from terrain_nav_ros.graph_runner import load_graph, node_command  # noqa: E402
+from terrain_nav_ros.core.estimation.baro import altitude_to_pressure  # noqa: E402
+from terrain_nav_ros.core.estimation.ekf_params import EkfParams  # noqa: E402
+from terrain_nav_ros.core.estimation.strapdown import quat_to_euler  # noqa: E402
+from terrain_nav_ros.core.sim.imu_sim import ImuErrorModel, simulate_imu  # noqa: E402
+from terrain_nav_ros.core.sim.trajectory_sim import (  # noqa: E402
+    simulate_trajectory,
+    turning_flight,
+)
+from terrain_nav_ros.nodes import conversions as cv  # noqa: E402
+from terrain_nav_ros.tools.graph_runner import load_graph, node_command  # noqa: E402
 
 GRAPH = REPO / "config" / "graph.yaml"
 
@@ -47,7 +50,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import FluidPressure, Imu, NavSatFix
 from terrain_nav_msgs.msg import PvaFix
-from terrain_nav_ros.ros_common import spin
+from terrain_nav_ros.nodes.ros_common import spin
 rclpy.init(args=sys.argv)
 node = rclpy.create_node("ekf")
 best_effort = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
@@ -86,7 +89,7 @@ def measure(proc, seconds: float, rate: float) -> tuple[float, int, int | None]:
     from sensor_msgs.msg import FluidPressure, Imu
 
     from terrain_nav_msgs.msg import PvaFix
-    from terrain_nav_ros.ros_common import RELIABLE_QOS
+    from terrain_nav_ros.nodes.ros_common import RELIABLE_QOS
 
     rng = np.random.default_rng(1)
     truth = simulate_trajectory(turning_flight(seconds + 2), rate_hz=rate)

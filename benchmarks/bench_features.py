@@ -54,11 +54,15 @@ from scipy.spatial import cKDTree  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from terrain_nav_ros.core import _crease_kernels as _kernels  # noqa: E402
-from terrain_nav_ros.core.creases import CreaseParams, crease_contrast  # noqa: E402
-from terrain_nav_ros.core.georef import GeoReference  # noqa: E402
-from terrain_nav_ros.core.hillshade import LIGHTINGS, extractor_input, hillshade  # noqa: E402
-from terrain_nav_ros.core.minutiae import FeatureExtractor, MinutiaParams  # noqa: E402
+from terrain_nav_ros.core.features import _crease_kernels as _kernels  # noqa: E402
+from terrain_nav_ros.core.features.creases import CreaseParams, crease_contrast  # noqa: E402
+from terrain_nav_ros.core.features.hillshade import (  # noqa: E402
+    LIGHTINGS,
+    extractor_input,
+    hillshade,
+)
+from terrain_nav_ros.core.features.minutiae import FeatureExtractor, MinutiaParams  # noqa: E402
+from terrain_nav_ros.core.terrain.georef import GeoReference  # noqa: E402
 
 cv2.setNumThreads(1)
 
@@ -422,7 +426,7 @@ def configs():
 
     ``lighting`` as the nodes' parameter (:data:`LIGHTINGS`): ``"compensated"`` makes the
     extractor see the terrain curvature estimated from the shaded image with the known sun
-    (:func:`~terrain_nav_ros.core.hillshade.shading_curvature`).
+    (:func:`~terrain_nav_ros.core.features.hillshade.shading_curvature`).
     """
     mp = MinutiaParams(max_minutiae=0)
     default = CreaseParams()

@@ -44,13 +44,10 @@ from synthetic_minutiae import (  # noqa: E402
     transform_set,
 )
 
-from terrain_nav_ros.core import _matching_kernels as _kernels  # noqa: E402
-from terrain_nav_ros.core.baselines import gradient_magnitude, ncc_locate  # noqa: E402
-from terrain_nav_ros.core.matching import (  # noqa: E402
-    Decision,
-    Matcher,
-    calibrate_threshold,
-)
+from terrain_nav_ros.core.matching import _matching_kernels as _kernels  # noqa: E402
+from terrain_nav_ros.core.matching.baselines import gradient_magnitude, ncc_locate  # noqa: E402
+from terrain_nav_ros.core.matching.matcher import Decision, Matcher  # noqa: E402
+from terrain_nav_ros.core.matching.significance import calibrate_threshold  # noqa: E402
 
 cv2.setNumThreads(1)
 
@@ -362,7 +359,7 @@ def bench_accuracy(matcher, n_terrains, rate, noise):
 
 def _real_study(matcher, z, factor, size, rng):
     """Blocks of a real DEM vs "camera" versions (rotated, shifted, 1 m height noise)."""
-    from terrain_nav_ros.core.minutiae import extract_features  # the real extractor
+    from terrain_nav_ros.core.features.minutiae import extract_features  # the real extractor
 
     if factor != 1:
         z = cv2.resize(z, None, fx=factor, fy=factor, interpolation=cv2.INTER_CUBIC)
@@ -399,7 +396,7 @@ def _real_study(matcher, z, factor, size, rng):
 def bench_real(matcher, data_dir, rate):
     """PVA / non-PVA on the real DEMs, with the project's feature extractor in the loop."""
     try:
-        from terrain_nav_ros.core.dem_io import open_dem
+        from terrain_nav_ros.core.terrain.dem_io import open_dem
     except ImportError as exc:
         print(f"\nreal DEMs: skipped ({exc})")
         return

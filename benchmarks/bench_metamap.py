@@ -29,8 +29,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from terrain_nav_ros.core.dem_io import open_dem, sample_dem  # noqa: E402
-from terrain_nav_ros.core.interpolation import decimate, refine  # noqa: E402
+from terrain_nav_ros.core.terrain.dem_io import open_dem, sample_dem  # noqa: E402
+from terrain_nav_ros.core.terrain.interpolation import decimate, refine  # noqa: E402
 
 TILE = 10812
 CELL_DEG = 1.0 / 10800  # 1/3 arc-second
@@ -115,9 +115,9 @@ def _serve(label: str, path: str, repeats: int, interpolation: str, seed: int, e
 
     os.environ.update(env)  # before GDAL's block cache is first used
 
-    from terrain_nav_ros.core.dem_io import Dem
-    from terrain_nav_ros.core.geodesy import EnuOrigin
-    from terrain_nav_ros.core.metamap import MetaMap
+    from terrain_nav_ros.core.terrain.dem_io import Dem
+    from terrain_nav_ros.core.terrain.geodesy import EnuOrigin
+    from terrain_nav_ros.core.terrain.metamap import MetaMap
 
     proc = psutil.Process()
     rss0 = proc.memory_info().rss

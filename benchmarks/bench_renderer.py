@@ -19,9 +19,8 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from terrain_nav_ros.core.georef import GeoReference
-from terrain_nav_ros.core.raycast_reference import ReferenceRaycaster
-from terrain_nav_ros.core.renderer import (
+from terrain_nav_ros.core.render.raycast_reference import ReferenceRaycaster
+from terrain_nav_ros.core.render.renderer import (
     LandmarkRenderer,
     PinholeCamera,
     RendererError,
@@ -30,6 +29,7 @@ from terrain_nav_ros.core.renderer import (
     create_headless_context,
     distance_map_shape,
 )
+from terrain_nav_ros.core.terrain.georef import GeoReference
 
 DATA = Path(os.environ.get("TERRAIN_NAV_DATA",
                            Path(__file__).resolve().parents[2] / "shared" / "data")) / "dem"

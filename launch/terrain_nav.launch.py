@@ -15,7 +15,7 @@ from launch.actions import DeclareLaunchArgument, OpaqueFunction, SetEnvironment
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-from terrain_nav_ros.graph_runner import DDS_PROFILE_VARIABLE, load_graph
+from terrain_nav_ros.tools.graph_runner import DDS_PROFILE_VARIABLE, load_graph
 
 
 def graph_nodes(graph_path, use_sim_time=False, enable=()):

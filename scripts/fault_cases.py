@@ -41,7 +41,7 @@ def make_bag(path: Path, n: int = 3000) -> Path:
     """A small zstd bag on /imu/data with several chunks (std_msgs/String payloads)."""
     from rosbags.typesys.stores.ros2_jazzy import std_msgs__msg__String as String
 
-    from terrain_nav_ros import bags
+    from terrain_nav_ros.tools import bags
 
     with bags.BagWriter(path, compress=True) as writer:
         for i in range(n):
@@ -229,9 +229,9 @@ def _ekf_stamp(offset: float) -> Callable:
     def run(_tmp: Path):
         import numpy as np
 
-        from terrain_nav_ros.core.ekf import EkfParams, TerrainEkf
-        from terrain_nav_ros.core.imu_sim import ImuErrorModel, simulate_imu
-        from terrain_nav_ros.core.trajectory_sim import simulate_trajectory, straight_flight
+        from terrain_nav_ros.core.estimation.ekf import EkfParams, TerrainEkf
+        from terrain_nav_ros.core.sim.imu_sim import ImuErrorModel, simulate_imu
+        from terrain_nav_ros.core.sim.trajectory_sim import simulate_trajectory, straight_flight
 
         params = EkfParams(init_mode="gnss")
         truth = simulate_trajectory(straight_flight(8.0), rate_hz=100.0)

@@ -7,18 +7,18 @@ and by ``launch/terrain_nav.launch.py``'s test. This module must stay import-fre
 """
 
 NODES = {
-    "bag_player": "terrain_nav_ros.bag_player_node:main",
-    "bag_recorder": "terrain_nav_ros.bag_recorder_node:main",
-    "camera_ingest": "terrain_nav_ros.camera_ingest_node:main",
-    "feature_extractor": "terrain_nav_ros.feature_extractor_node:main",
-    "metamap": "terrain_nav_ros.metamap_node:main",
-    "landmark_renderer": "terrain_nav_ros.landmark_renderer_node:main",
-    "matcher": "terrain_nav_ros.matcher_node:main",
-    "ekf": "terrain_nav_ros.ekf_node:main",
-    "autopilot_bridge": "terrain_nav_ros.autopilot_bridge_node:main",
+    "bag_player": "terrain_nav_ros.nodes.bag_player_node:main",
+    "bag_recorder": "terrain_nav_ros.nodes.bag_recorder_node:main",
+    "camera_ingest": "terrain_nav_ros.nodes.camera_ingest_node:main",
+    "feature_extractor": "terrain_nav_ros.nodes.feature_extractor_node:main",
+    "metamap": "terrain_nav_ros.nodes.metamap_node:main",
+    "landmark_renderer": "terrain_nav_ros.nodes.landmark_renderer_node:main",
+    "matcher": "terrain_nav_ros.nodes.matcher_node:main",
+    "ekf": "terrain_nav_ros.nodes.ekf_node:main",
+    "autopilot_bridge": "terrain_nav_ros.nodes.autopilot_bridge_node:main",
 }
 
 # Command-line tools that are not nodes.
 TOOLS = {
-    "terrain-nav": "terrain_nav_ros.cli:main",
+    "terrain-nav": "terrain_nav_ros.tools.cli:main",
 }

@@ -8,8 +8,8 @@ import numpy as np
 from std_msgs.msg import Header
 
 from terrain_nav_msgs.msg import Minutia, MinutiaArray, PvaFix
-from terrain_nav_ros import conversions as cv
-from terrain_nav_ros.core.georef import GeoReference as CoreGeoReference
+from terrain_nav_ros.core.terrain.georef import GeoReference as CoreGeoReference
+from terrain_nav_ros.nodes import conversions as cv
 
 
 def samples() -> dict:

@@ -13,9 +13,9 @@ import numpy as np
 from scipy import ndimage
 from skimage.morphology import skeletonize
 
-from terrain_nav_ros.core.georef import GeoReference
-from terrain_nav_ros.core.minutia_set import BIFURCATION, ENDING, MinutiaSet
-from terrain_nav_ros.core.synthetic_terrain import fractal_surface
+from terrain_nav_ros.core.features.minutia_set import BIFURCATION, ENDING, MinutiaSet
+from terrain_nav_ros.core.terrain.georef import GeoReference
+from terrain_nav_ros.core.terrain.synthetic_terrain import fractal_surface
 
 
 def valley_skeleton(surface: np.ndarray, sigma: float = 3.0, fraction: float = 0.15,

@@ -22,14 +22,14 @@ import numpy as np
 import pytest
 from ros_helpers import SpinningNode, start_node, stop, wait_until
 
-from terrain_nav_ros import conversions as cv
-from terrain_nav_ros.core.autopilot_frames import (
+from terrain_nav_ros.core.estimation.autopilot_frames import (
     body_to_world_covariance,
     covariance_enu_to_ned,
     quaternion_enu_flu_to_ned_frd,
 )
-from terrain_nav_ros.core.geodesy import EnuOrigin
-from terrain_nav_ros.core.strapdown import quat_from_euler, quat_to_matrix
+from terrain_nav_ros.core.estimation.strapdown import quat_from_euler, quat_to_matrix
+from terrain_nav_ros.core.terrain.geodesy import EnuOrigin
+from terrain_nav_ros.nodes import conversions as cv
 
 T0_NS = 1_700_000_000_000_000_000
 ODOM_HZ = 50.0
@@ -74,7 +74,7 @@ class Ekf:
         from nav_msgs.msg import Odometry
         from sensor_msgs.msg import NavSatFix
 
-        from terrain_nav_ros.ros_common import RELIABLE_QOS
+        from terrain_nav_ros.nodes.ros_common import RELIABLE_QOS
 
         self.state = None        # None = no diagnostics; else (level, initialized, resets)
         self.odom = node.create_publisher(Odometry, "/nav/odometry", RELIABLE_QOS)
@@ -105,8 +105,8 @@ def bridges():
     from nav_msgs.msg import Odometry
     from px4_msgs.msg import SensorGps, VehicleOdometry
 
-    from terrain_nav_ros.autopilot_bridge_node import PX4_QOS
-    from terrain_nav_ros.ros_common import RELIABLE_QOS
+    from terrain_nav_ros.nodes.autopilot_bridge_node import PX4_QOS
+    from terrain_nav_ros.nodes.ros_common import RELIABLE_QOS
 
     procs = {
         "px4": start_node("autopilot_bridge", {

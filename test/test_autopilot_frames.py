@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from terrain_nav_ros.core.autopilot_frames import (
+from terrain_nav_ros.core.estimation.autopilot_frames import (
     RateLimiter,
     ResetCounter,
     body_to_world_covariance,
@@ -23,7 +23,7 @@ from terrain_nav_ros.core.autopilot_frames import (
     quaternion_ned_frd_to_enu_flu,
     rotate_covariance,
 )
-from terrain_nav_ros.core.strapdown import quat_from_euler
+from terrain_nav_ros.core.estimation.strapdown import quat_from_euler
 
 S = 2 ** -0.5
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from ros_helpers import SpinningNode, start_node, stop, wait_until
 
-from terrain_nav_ros import bags
+from terrain_nav_ros.tools import bags
 
 N = 20
 PERIOD = 0.05

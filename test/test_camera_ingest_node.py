@@ -10,10 +10,10 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
 
 from terrain_nav_msgs.msg import DemTile, GeoImage
-from terrain_nav_ros import conversions as cv
-from terrain_nav_ros.core.georef import GeoReference
-from terrain_nav_ros.core.sun import sun_at
-from terrain_nav_ros.ros_common import LATCHED_QOS
+from terrain_nav_ros.core.render.sun import sun_at
+from terrain_nav_ros.core.terrain.georef import GeoReference
+from terrain_nav_ros.nodes import conversions as cv
+from terrain_nav_ros.nodes.ros_common import LATCHED_QOS
 
 F, W, H = 500.0, 400, 300
 CAMERA = np.array([1000.0, 2000.0, 1100.0])  # 1000 m above a flat terrain at 100 m

@@ -5,9 +5,9 @@ import pytest
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
-from terrain_nav_ros import conversions as cv
-from terrain_nav_ros.core.georef import GeoReference
-from terrain_nav_ros.core.minutia_set import BIFURCATION, ENDING, MinutiaSet
+from terrain_nav_ros.core.features.minutia_set import BIFURCATION, ENDING, MinutiaSet
+from terrain_nav_ros.core.terrain.georef import GeoReference
+from terrain_nav_ros.nodes import conversions as cv
 
 RNG = np.random.default_rng(7)
 

@@ -8,8 +8,8 @@ CORE = Path(__file__).resolve().parents[1] / "terrain_nav_ros" / "core"
 
 
 def test_importing_every_core_module_loads_no_ros():
-    modules = sorted(f"terrain_nav_ros.core.{p.stem}" for p in CORE.glob("*.py")
-                     if p.stem != "__init__")
+    modules = sorted(".".join(p.relative_to(CORE.parents[1]).with_suffix("").parts)
+                     for p in CORE.rglob("*.py") if p.stem != "__init__")
     code = (
         "import importlib, sys\n"
         f"for name in {modules!r}: importlib.import_module(name)\n"

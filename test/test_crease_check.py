@@ -8,14 +8,14 @@ import pytest
 from skimage.morphology import skeletonize
 from synthetic_minutiae import crop_set
 
-from terrain_nav_ros.core.crease_check import (
+from terrain_nav_ros.core.matching.crease_check import (
     CreaseField,
     CreaseSamples,
     crease_directions,
     crease_evidence,
     refine_on_creases,
 )
-from terrain_nav_ros.core.matching import Decision, Matcher
+from terrain_nav_ros.core.matching.matcher import Decision, Matcher
 
 
 def test_directions_follow_a_straight_crease():
@@ -234,7 +234,7 @@ def test_field_nearest_crease_pixel_agrees_with_an_exact_transform(region):
 def test_numba_kernels_agree_with_the_numpy_path(region, other_region, monkeypatch):
     """The fused crease kernels count the same hits and move the transform as the numpy
     path does (the ICP's sums run in another order: equal to rounding)."""
-    from terrain_nav_ros.core import _matching_kernels
+    from terrain_nav_ros.core.matching import _matching_kernels
 
     if not _matching_kernels.HAVE_NUMBA:
         pytest.skip("numba not installed: the numpy path is the only one")
@@ -275,7 +275,7 @@ def test_numba_kernels_agree_with_the_numpy_path(region, other_region, monkeypat
 def test_the_kernels_axial_remainder_is_numpys_bit_for_bit():
     """The crease look-ups' remainder by pi, branches instead of fmod, rounds as np.mod
     does: at random direction differences, at the branch edges and beyond them."""
-    from terrain_nav_ros.core import _matching_kernels
+    from terrain_nav_ros.core.matching import _matching_kernels
 
     x = np.random.default_rng(0).uniform(-2.5 * np.pi, 3.5 * np.pi, 200_000)
     edges = np.array([k * np.pi for k in (-3, -2, -1, 0, 1, 2, 3)] + [-0.0, 1e-300, -1e-300])
@@ -288,7 +288,7 @@ def test_coarse_to_fine_icp_pulls_in_what_the_fine_one_cannot(region):
     """A registration 5 degrees and ~13 px off (a few wrong minutiae pairings) is beyond
     the 3 px ICP; the matcher's wider try (``MatchParams.crease_rescue_radii``) brings it
     onto the creases."""
-    from terrain_nav_ros.core.matching import MatchParams
+    from terrain_nav_ros.core.matching.params import MatchParams
 
     skel = region[1]
     samples = CreaseSamples.from_image(skel[150:278, 160:288])

@@ -9,16 +9,16 @@ import pytest
 from skimage.morphology import skeletonize
 from synthetic_minutiae import crop_set, rigid_transform, transform_set
 
-from terrain_nav_ros.core.crease_check import CreaseField, CreaseSamples, crease_covariance
-from terrain_nav_ros.core.crease_search import (
+from terrain_nav_ros.core.features.minutia_set import MinutiaSet
+from terrain_nav_ros.core.matching.crease_check import CreaseField, CreaseSamples, crease_covariance
+from terrain_nav_ros.core.matching.crease_search import (
     CreaseSearchQuery,
     CreaseSearchReference,
     search_rotations,
     search_scales,
     search_transforms,
 )
-from terrain_nav_ros.core.matching import Decision, Matcher
-from terrain_nav_ros.core.minutia_set import MinutiaSet
+from terrain_nav_ros.core.matching.matcher import Decision, Matcher
 
 SIZE = 64
 
@@ -84,7 +84,7 @@ def test_search_finds_a_turned_and_shifted_view(region, rotation_deg):
 def test_search_kernels_agree_with_the_numpy_path(region, monkeypatch):
     """The fused channel product and footprint counts give the numpy path's proposals and
     counts of transforms (the product's sums may round differently: equal to ~1e-6)."""
-    from terrain_nav_ros.core import _matching_kernels
+    from terrain_nav_ros.core.matching import _matching_kernels
 
     if not _matching_kernels.HAVE_NUMBA:
         pytest.skip("numba not installed: the numpy path is the only one")
@@ -252,8 +252,11 @@ def test_a_large_search_runs_coarse_and_registers_as_the_fine_one(region):
     the coarse level (an eighth of the work) and the coarse-to-fine ICP pulls its proposals
     onto the creases, as exactly as the fine search's; both count the fine level's
     transforms. Against its own block the search stays fine."""
-    from terrain_nav_ros.core.crease_search import COARSE, FINE
-    from terrain_nav_ros.core.matching import _crease_search_registrations, _search_level
+    from terrain_nav_ros.core.matching.crease_proposals import (
+        _crease_search_registrations,
+        _search_level,
+    )
+    from terrain_nav_ros.core.matching.crease_search import COARSE, FINE
 
     ms, skel = region
     view_ms, view_skel, truth = _turned_view(ms, skel, 330, 90, -17.0, (4.0, 2.0))
@@ -293,7 +296,8 @@ def test_moving_a_searched_registration_keeps_its_search_penalty(region):
     for the search (a regression: the moved copy used to drop the penalty)."""
     from dataclasses import replace
 
-    from terrain_nav_ros.core.matching import _pair, _refined_on_creases, _scored
+    from terrain_nav_ros.core.matching.registration import _pair
+    from terrain_nav_ros.core.matching.scoring import _refined_on_creases, _scored
 
     ms, skel = region
     view_ms, view_skel, truth = _turned_view(ms, skel, 330, 90, 10.0, (2.0, 1.0))

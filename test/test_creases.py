@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from terrain_nav_ros.core.creases import (
+from terrain_nav_ros.core.features.creases import (
     CreaseDetector,
     CreaseParams,
     crease_contrast,
@@ -156,7 +156,7 @@ def test_prepare_input_dem_and_nodata():
 
 
 def test_strip_processing_is_exact():
-    from terrain_nav_ros.core.creases import (
+    from terrain_nav_ros.core.features.creases import (
         _diffusion_in_strips,
         _Workspace,
         diffusion_step,
@@ -177,8 +177,8 @@ def test_strip_processing_is_exact():
 
 
 def test_fused_kernels_match_the_reference():
-    from terrain_nav_ros.core import _crease_kernels
-    from terrain_nav_ros.core.creases import _diffusion_fused, _diffusion_in_strips
+    from terrain_nav_ros.core.features import _crease_kernels
+    from terrain_nav_ros.core.features.creases import _diffusion_fused, _diffusion_in_strips
 
     if not _crease_kernels.HAVE_NUMBA:
         pytest.skip("numba not installed: the reference path is the only one")
@@ -191,7 +191,7 @@ def test_fused_kernels_match_the_reference():
 
 
 def test_fused_mlsec_and_contrast_match_the_reference(monkeypatch):
-    from terrain_nav_ros.core import _crease_kernels, creases
+    from terrain_nav_ros.core.features import _crease_kernels, creases
 
     if not _crease_kernels.HAVE_NUMBA:
         pytest.skip("numba not installed: the reference path is the only one")
@@ -206,7 +206,7 @@ def test_fused_mlsec_and_contrast_match_the_reference(monkeypatch):
 
 def _with_and_without_numba(monkeypatch, run):
     """``run()`` with the numba kernels (when installed) and on the numpy/OpenCV path."""
-    from terrain_nav_ros.core import _crease_kernels
+    from terrain_nav_ros.core.features import _crease_kernels
 
     out = [run()]
     if _crease_kernels.HAVE_NUMBA:
@@ -216,7 +216,7 @@ def _with_and_without_numba(monkeypatch, run):
 
 
 def test_mask_drops_small_and_unseeded_components_and_fills_small_holes(monkeypatch):
-    from terrain_nav_ros.core.creases import crease_mask
+    from terrain_nav_ros.core.features.creases import crease_mask
 
     p = CreaseParams(threshold=0.5, threshold_low=0.2, min_area=20)
     score = np.zeros((40, 60), np.float32)
@@ -242,7 +242,7 @@ def test_mask_drops_small_and_unseeded_components_and_fills_small_holes(monkeypa
 
 
 def test_fused_mask_matches_the_reference(monkeypatch):
-    from terrain_nav_ros.core.creases import crease_mask
+    from terrain_nav_ros.core.features.creases import crease_mask
 
     rng = np.random.default_rng(9)
     img = (line_image(120, row=40.2) + line_image(120, row=90.7, width=5.0, bright=True)
@@ -261,7 +261,7 @@ def test_fused_mask_matches_the_reference(monkeypatch):
 
 @pytest.mark.parametrize("size", [1, 2, 7, 1000, 65535])
 def test_fast_median_is_numpys(size):
-    from terrain_nav_ros.core.creases import _median
+    from terrain_nav_ros.core.features.creases import _median
 
     values = np.random.default_rng(size).normal(size=size).astype(np.float32)
     assert _median(values) == np.median(values)

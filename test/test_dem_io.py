@@ -8,7 +8,7 @@ import pytest
 import rasterio
 from affine import Affine
 
-from terrain_nav_ros.core.dem_io import (
+from terrain_nav_ros.core.terrain.dem_io import (
     Dem,
     DemError,
     dem_files,
@@ -17,7 +17,7 @@ from terrain_nav_ros.core.dem_io import (
     open_dem,
     sample_dem,
 )
-from terrain_nav_ros.core.geodesy import EnuOrigin
+from terrain_nav_ros.core.terrain.geodesy import EnuOrigin
 
 # file, EPSG (None: local metres), guessed, shape, storage dtype, nodata, (min, max) elevation
 REAL_DEMS = [
@@ -329,7 +329,7 @@ def test_truncated_asc_fails_at_once_within_the_file(tmp_path, dims, values):
 def test_asc_value_that_is_not_a_number_is_named_with_its_place(tmp_path, monkeypatch, k,
                                                                  token, chunk):
     """GDAL reads 'abc' as 0 and '1.2.3' as 1.2 without a word: refused, naming where."""
-    from terrain_nav_ros.core import dem_io
+    from terrain_nav_ros.core.terrain import dem_io
 
     monkeypatch.setattr(dem_io, "_CHUNK", chunk)  # tokens across chunk edges, the last alone
     values = [f"{1000 + i}.5" for i in range(200)]
@@ -413,7 +413,7 @@ def _garbled_geotiff(path, dtype, garbage, cells=slice(None)):
 def test_a_few_impossible_heights_are_voids_with_a_warning_and_filled(tmp_path):
     """3e38 among heights of ~1000 m: read as voids (not as data that fill_voids and the
     tile's interpolation would spread), and a warning saying where."""
-    from terrain_nav_ros.core.metamap import MetaMap
+    from terrain_nav_ros.core.terrain.metamap import MetaMap
 
     path, _ = _garbled_geotiff(tmp_path / "spots.tif", np.float32,
                                lambda n: np.full(n, 3e38, np.float32), slice(7740, 7745))

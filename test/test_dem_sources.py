@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from terrain_nav_ros.core.dem_io import DemError
-from terrain_nav_ros.core.dem_sources import open_dem_source, parse_synthetic
+from terrain_nav_ros.core.terrain.dem_io import DemError
+from terrain_nav_ros.core.terrain.dem_sources import open_dem_source, parse_synthetic
 
 
 def test_names_resolve_to_dems():

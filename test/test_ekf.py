@@ -10,21 +10,21 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from terrain_nav_ros.core.ekf import EkfParams, Reason, TerrainEkf
-from terrain_nav_ros.core.imu_sim import (
-    ImuErrorModel,
-    simulate_baro,
-    simulate_fixes,
-    simulate_imu,
-)
-from terrain_nav_ros.core.strapdown import (
+from terrain_nav_ros.core.estimation.ekf import EkfParams, Reason, TerrainEkf
+from terrain_nav_ros.core.estimation.strapdown import (
     StrapdownStep,
     attitude_error,
     quat_exp,
     quat_multiply,
     quat_to_euler,
 )
-from terrain_nav_ros.core.trajectory_sim import (
+from terrain_nav_ros.core.sim.imu_sim import (
+    ImuErrorModel,
+    simulate_baro,
+    simulate_fixes,
+    simulate_imu,
+)
+from terrain_nav_ros.core.sim.trajectory_sim import (
     Segment,
     climbing_flight,
     simulate_trajectory,
@@ -580,7 +580,7 @@ def test_gnss_compare_only():
 
 def test_process_noise_closed_form():
     """The filter's cached Q(dt) equals the documented closed form for any IMU period."""
-    from terrain_nav_ros.core.strapdown import process_noise
+    from terrain_nav_ros.core.estimation.strapdown import process_noise
 
     p = EkfParams()
     ekf = TerrainEkf(p)

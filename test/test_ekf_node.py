@@ -20,14 +20,14 @@ import numpy as np
 import pytest
 from ros_helpers import SpinningNode, call_service, start_node, stop, wait_until
 
-from terrain_nav_ros import conversions as cv
-from terrain_nav_ros.core.baro import altitude_to_pressure
-from terrain_nav_ros.core.ekf_params import EkfParams
-from terrain_nav_ros.core.geodesy import EnuOrigin
-from terrain_nav_ros.core.georef import GeoReference
-from terrain_nav_ros.core.imu_sim import ImuErrorModel, simulate_imu
-from terrain_nav_ros.core.strapdown import attitude_error, quat_to_matrix
-from terrain_nav_ros.core.trajectory_sim import Segment, simulate_trajectory
+from terrain_nav_ros.core.estimation.baro import altitude_to_pressure
+from terrain_nav_ros.core.estimation.ekf_params import EkfParams
+from terrain_nav_ros.core.estimation.strapdown import attitude_error, quat_to_matrix
+from terrain_nav_ros.core.sim.imu_sim import ImuErrorModel, simulate_imu
+from terrain_nav_ros.core.sim.trajectory_sim import Segment, simulate_trajectory
+from terrain_nav_ros.core.terrain.geodesy import EnuOrigin
+from terrain_nav_ros.core.terrain.georef import GeoReference
+from terrain_nav_ros.nodes import conversions as cv
 
 RATE = 100.0
 SPEEDUP = 5.0
@@ -90,7 +90,7 @@ class Recorder:
         from sensor_msgs.msg import NavSatFix
         from tf2_msgs.msg import TFMessage
 
-        from terrain_nav_ros.ros_common import RELIABLE_QOS
+        from terrain_nav_ros.nodes.ros_common import RELIABLE_QOS
 
         self.odom, self.tf, self.navsat, self.diag = [], [], [], []
         node.create_subscription(Odometry, "/nav/odometry", self.odom.append, 1000)
@@ -110,7 +110,7 @@ def flight():
     from sensor_msgs.msg import FluidPressure, Imu, NavSatFix
 
     from terrain_nav_msgs.msg import DemTile, PvaFix
-    from terrain_nav_ros.ros_common import LATCHED_QOS
+    from terrain_nav_ros.nodes.ros_common import LATCHED_QOS
 
     params = EkfParams()
     rng = np.random.default_rng(7)
@@ -343,9 +343,9 @@ def test_camera_attitude_is_moved_to_the_body():
     attitude the camera was rendered with (flight simulator / camera_ingest geometry)."""
     from scipy.spatial.transform import Rotation
 
-    from terrain_nav_ros.core.camera_mount import camera_rotation, mount_rotation
-    from terrain_nav_ros.core.strapdown import quat_from_euler
-    from terrain_nav_ros.ekf_node import body_attitude
+    from terrain_nav_ros.core.camera.camera_mount import camera_rotation, mount_rotation
+    from terrain_nav_ros.core.estimation.ekf_inputs import body_attitude
+    from terrain_nav_ros.core.estimation.strapdown import quat_from_euler
 
     mount = mount_rotation(0.02, -0.03, 0.01)
     optical_to_body = Rotation.from_matrix(mount).inv()
@@ -361,8 +361,8 @@ def test_origin_from_the_metamap_service_without_tiles():
     asks /metamap/get_tile for the metamap's ENU origin."""
     from diagnostic_msgs.msg import DiagnosticArray
 
-    from terrain_nav_ros.core.dem_io import sample_dem
-    from terrain_nav_ros.core.metamap import MetaMap
+    from terrain_nav_ros.core.terrain.dem_io import sample_dem
+    from terrain_nav_ros.core.terrain.metamap import MetaMap
 
     metamap = start_node("metamap", {"interpolation": "bilinear"},
                          "-r", "/metamap/tile:=/metamap/tile_unused")

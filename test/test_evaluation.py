@@ -9,10 +9,15 @@ import json
 import numpy as np
 import pytest
 
-from terrain_nav_ros.core.baselines import keypoint_locate, ncc_locate
-from terrain_nav_ros.core.camera_effects import CameraEffects
-from terrain_nav_ros.core.matching import calibrate_threshold
-from terrain_nav_ros.evaluation import CameraModel, parse_gsd, run_evaluation, score_bins_table
+from terrain_nav_ros.core.matching.baselines import keypoint_locate, ncc_locate
+from terrain_nav_ros.core.matching.significance import calibrate_threshold
+from terrain_nav_ros.core.render.camera_effects import CameraEffects
+from terrain_nav_ros.tools.evaluation import (
+    CameraModel,
+    parse_gsd,
+    run_evaluation,
+    score_bins_table,
+)
 
 # clean camera views (albedo change and offset only): the study must then be easy
 _CLEAN = CameraModel(max_rotation_deg=3.0, max_scale_change=0.0, max_offset_px=5.0,
@@ -25,7 +30,7 @@ _CLEAN = CameraModel(max_rotation_deg=3.0, max_scale_change=0.0, max_offset_px=5
 @pytest.fixture(scope="module")
 def study(tmp_path_factory):
     pytest.importorskip("moderngl")
-    from terrain_nav_ros.core.renderer import EGLUnavailableError
+    from terrain_nav_ros.core.render.renderer import EGLUnavailableError
 
     out = tmp_path_factory.mktemp("evaluate")
     try:
@@ -126,7 +131,7 @@ def test_rejects_non_square_block_count(tmp_path):
 def test_compensated_lighting_recognises_blocks_under_a_changed_sun(tmp_path):
     """Sun 315/45 landmark vs 135/30 camera: shading creases move, curvature does not."""
     pytest.importorskip("moderngl")
-    from terrain_nav_ros.core.renderer import EGLUnavailableError
+    from terrain_nav_ros.core.render.renderer import EGLUnavailableError
 
     try:
         summary = run_evaluation(None, "x2", 9, tmp_path, block_size=128, seed=1,
@@ -155,8 +160,8 @@ def test_wider_try_recovers_the_blocks_a_changed_sun_hides(tmp_path, shared_data
     pytest.importorskip("moderngl")
     from dataclasses import replace
 
-    from terrain_nav_ros.core.matching import MatchParams
-    from terrain_nav_ros.core.renderer import EGLUnavailableError
+    from terrain_nav_ros.core.matching.params import MatchParams
+    from terrain_nav_ros.core.render.renderer import EGLUnavailableError
 
     def changed_sun(params):
         summary = run_evaluation(shared_data / "dem" / "gredos_25m_epsg23030.tif", "x2", 9,
@@ -182,7 +187,7 @@ def test_cli_heading_prior_limits_the_rotation_search(tmp_path, capsys):
     study's camera blocks turn by up to 10), and the report says so (and that
     `--no-ridges` turned the ridge check off)."""
     pytest.importorskip("moderngl")
-    from terrain_nav_ros import cli
+    from terrain_nav_ros.tools import cli
 
     assert cli.main(["evaluate", "--heading-prior", "0", "--out", str(tmp_path)]) == 2
     assert "--heading-prior" in capsys.readouterr().err
@@ -204,7 +209,7 @@ def test_comparisons_in_several_processes_give_the_same_study(tmp_path):
     """`--jobs 2` forks the N x N comparisons: every score, pairing count and PVA fix is the
     one-process study's. Either way the comparisons log their progress."""
     pytest.importorskip("moderngl")
-    from terrain_nav_ros.core.renderer import EGLUnavailableError
+    from terrain_nav_ros.core.render.renderer import EGLUnavailableError
 
     logs = {1: [], 2: []}
     kwargs = dict(block_size=128, quick=True, seed=1, camera=_CLEAN, baselines=False)

@@ -12,10 +12,10 @@ from std_msgs.msg import Header
 from synthetic_minutiae import fractal_surface
 
 from terrain_nav_msgs.msg import GeoImage, MinutiaArray
-from terrain_nav_ros import conversions as cv
-from terrain_nav_ros.core.georef import GeoReference
-from terrain_nav_ros.core.hillshade import hillshade
-from terrain_nav_ros.ros_common import LATCHED_QOS
+from terrain_nav_ros.core.features.hillshade import hillshade
+from terrain_nav_ros.core.terrain.georef import GeoReference
+from terrain_nav_ros.nodes import conversions as cv
+from terrain_nav_ros.nodes.ros_common import LATCHED_QOS
 
 DEM = fractal_surface((256, 256), beta=3.2, rng=3) * 150.0
 GEOREF = GeoReference.centred(0.0, 0.0, 5.0, 256, 256)

@@ -5,10 +5,16 @@ import pytest
 import rasterio
 from affine import Affine
 
-from terrain_nav_ros import bags
-from terrain_nav_ros.core.georef import GeoReference
-from terrain_nav_ros.core.synthetic_terrain import synthetic_dem
-from terrain_nav_ros.flight_sim import SimConfig, _epoch_ns, _open_metamap, drape_photo, simulate
+from terrain_nav_ros.core.terrain.georef import GeoReference
+from terrain_nav_ros.core.terrain.synthetic_terrain import synthetic_dem
+from terrain_nav_ros.tools import bags
+from terrain_nav_ros.tools.flight_sim import (
+    SimConfig,
+    _epoch_ns,
+    _open_metamap,
+    drape_photo,
+    simulate,
+)
 
 # UTM 32N, north-up 30 m cells (rasterio's from_origin warns inside affine)
 TRANSFORM = Affine(30.0, 0.0, 500000.0, 0.0, -30.0, 5000000.0)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from pyproj import Transformer
 
-from terrain_nav_ros.core.geodesy import (
+from terrain_nav_ros.core.terrain.geodesy import (
     EARTH_RADIUS,
     CrsEnuTransform,
     EnuOrigin,

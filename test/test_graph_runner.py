@@ -16,8 +16,8 @@ import pytest
 import yaml
 from ros_helpers import wait_until
 
-from terrain_nav_ros import bags
-from terrain_nav_ros.graph_runner import GraphError, GraphRunner, load_graph, node_command
+from terrain_nav_ros.tools import bags
+from terrain_nav_ros.tools.graph_runner import GraphError, GraphRunner, load_graph, node_command
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -162,7 +162,7 @@ def test_the_graphs_dds_profile_reaches_every_node_unless_one_is_set(tmp_path, m
     """config/graph.yaml names a Fast DDS profile (a shared-memory segment that holds raw
     camera frames): the runner's and the launch file's nodes get it, unless the environment
     names a profile already; a missing profile file is an error."""
-    from terrain_nav_ros.graph_runner import DDS_PROFILE_VARIABLE
+    from terrain_nav_ros.tools.graph_runner import DDS_PROFILE_VARIABLE
 
     spec = load_graph(REPO / "config" / "graph.yaml")
     assert spec.dds_profile == (REPO / "config" / "fastdds.xml").resolve()

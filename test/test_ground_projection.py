@@ -4,8 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from terrain_nav_ros.core.georef import GeoReference
-from terrain_nav_ros.core.ground_projection import (
+from terrain_nav_ros.core.camera.ground_projection import (
     CameraIntrinsics,
     CameraPose,
     check_view,
@@ -18,6 +17,7 @@ from terrain_nav_ros.core.ground_projection import (
     nadir_rotation,
     project_to_ground,
 )
+from terrain_nav_ros.core.terrain.georef import GeoReference
 
 PLANE = 100.0          # mean terrain height (m)
 ALT = 300.0            # camera height above the plane (m)

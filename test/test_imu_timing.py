@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from terrain_nav_ros.core.imu_timing import ImuTiming, ImuTimingGuard
+from terrain_nav_ros.core.estimation.imu_timing import ImuTiming, ImuTimingGuard
 
 PASS, SUSPECT, JUMP = ImuTiming.PASS, ImuTiming.SUSPECT, ImuTiming.JUMP
 

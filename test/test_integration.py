@@ -14,9 +14,9 @@ import pytest
 import rasterio
 from affine import Affine
 
-from terrain_nav_ros import bags
-from terrain_nav_ros.flight_sim import SimConfig, simulate
-from terrain_nav_ros.replay import run_replay
+from terrain_nav_ros.tools import bags
+from terrain_nav_ros.tools.flight_sim import SimConfig, simulate
+from terrain_nav_ros.tools.replay import run_replay
 
 REPO = Path(__file__).resolve().parents[1]
 SHORT_BAG = REPO / "bags" / "jacksboro_short"
@@ -70,7 +70,7 @@ def test_recorded_outputs_are_readable_by_rosbags_and_mcap(nominal):
 def test_autopilot_bridge_output_in_the_replay(nominal):
     """The recorded PX4 odometry: 30 Hz of estimate time, NED/FRD of the ekf's odometry at
     the same stamp, its variances rotated, the reset counter what the bridge counted."""
-    from terrain_nav_ros.core.autopilot_frames import (
+    from terrain_nav_ros.core.estimation.autopilot_frames import (
         covariance_enu_to_ned,
         enu_to_ned,
         quaternion_enu_flu_to_ned_frd,

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from terrain_nav_ros.core.dem_io import open_dem, sample_dem
-from terrain_nav_ros.core.interpolation import (
+from terrain_nav_ros.core.terrain.dem_io import open_dem, sample_dem
+from terrain_nav_ros.core.terrain.interpolation import (
     METHODS,
     decimate,
     idw,

@@ -9,9 +9,9 @@ from ros_helpers import SpinningNode, call_service, start_node, stop, wait_until
 from std_msgs.msg import Header
 
 from terrain_nav_msgs.msg import DemTile, GeoImage
-from terrain_nav_ros import conversions as cv
-from terrain_nav_ros.core.georef import GeoReference
-from terrain_nav_ros.ros_common import LATCHED_QOS
+from terrain_nav_ros.core.terrain.georef import GeoReference
+from terrain_nav_ros.nodes import conversions as cv
+from terrain_nav_ros.nodes.ros_common import LATCHED_QOS
 
 
 def _peak_tile():
@@ -82,7 +82,7 @@ def test_landmark_is_rendered_again_when_the_sun_has_moved():
     again with the sun of now (which has moved ~10 deg) at the next check."""
     import time
 
-    from terrain_nav_ros.core.sun import sun_at, sun_separation
+    from terrain_nav_ros.core.render.sun import sun_at, sun_separation
 
     now = time.time()
     # a place where it is about noon now, so that the sun is high then and now

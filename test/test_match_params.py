@@ -8,7 +8,8 @@ import re
 
 import pytest
 
-from terrain_nav_ros.core.matching import Matcher, MatchParams
+from terrain_nav_ros.core.matching.matcher import Matcher
+from terrain_nav_ros.core.matching.params import MatchParams
 
 
 def test_defaults_and_the_studies_settings_are_valid():

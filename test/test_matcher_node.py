@@ -10,11 +10,11 @@ from std_msgs.msg import Header
 from synthetic_minutiae import terrain_minutiae
 
 from terrain_nav_msgs.msg import MinutiaArray, PvaFix
-from terrain_nav_ros import conversions as cv
-from terrain_nav_ros.core.camera_mount import camera_rotation
-from terrain_nav_ros.core.georef import GeoReference
-from terrain_nav_ros.core.minutia_set import MinutiaSet
-from terrain_nav_ros.ros_common import LATCHED_QOS
+from terrain_nav_ros.core.camera.camera_mount import camera_rotation
+from terrain_nav_ros.core.features.minutia_set import MinutiaSet
+from terrain_nav_ros.core.terrain.georef import GeoReference
+from terrain_nav_ros.nodes import conversions as cv
+from terrain_nav_ros.nodes.ros_common import LATCHED_QOS
 
 GSD = 10.0
 TRUE_XY = np.array([300.0, -200.0])
@@ -160,7 +160,7 @@ def test_a_failure_inside_matching_is_an_explicit_no_fix(monkeypatch):
     reason. The node in this process, its callbacks called directly."""
     import rclpy
 
-    from terrain_nav_ros.matcher_node import MatcherNode
+    from terrain_nav_ros.nodes.matcher_node import MatcherNode
 
     landmark, camera, prior = _sets()
     header = cv.make_header(5_000_000_000, "map")

@@ -9,7 +9,8 @@ from synthetic_minutiae import (
     transform_set,
 )
 
-from terrain_nav_ros.core.descriptors import (
+from terrain_nav_ros.core.features.minutia_set import MinutiaSet
+from terrain_nav_ros.core.matching.descriptors import (
     EdgeHash,
     crease_descriptor,
     cylinder_code,
@@ -17,15 +18,9 @@ from terrain_nav_ros.core.descriptors import (
     shape_context,
     wrap_angle,
 )
-from terrain_nav_ros.core.georef import GeoReference
-from terrain_nav_ros.core.matching import (
-    Decision,
-    Matcher,
-    calibrate_threshold,
-    compare,
-    localise,
-)
-from terrain_nav_ros.core.minutia_set import MinutiaSet
+from terrain_nav_ros.core.matching.matcher import Decision, Matcher, compare, localise
+from terrain_nav_ros.core.matching.significance import calibrate_threshold
+from terrain_nav_ros.core.terrain.georef import GeoReference
 
 BLOCK = 256
 
@@ -258,7 +253,7 @@ def test_index_must_match_the_matcher_settings(block):
 
 
 def test_fit_similarity_exact_and_degenerate():
-    from terrain_nav_ros.core.matching import fit_similarity
+    from terrain_nav_ros.core.matching.registration import fit_similarity
 
     rng = np.random.default_rng(0)
     za = rng.normal(size=20) + 1j * rng.normal(size=20)
@@ -273,7 +268,7 @@ def test_fit_similarity_exact_and_degenerate():
 
 
 def test_significance_null_is_the_compound_poisson_tail():
-    from terrain_nav_ros.core.matching import compound_log10_sf
+    from terrain_nav_ros.core.matching.significance import compound_log10_sf
 
     # chance pairings: Poisson(lam) of them, each adding -ln(u) - ln(v), u, v uniform
     rng = np.random.default_rng(0)
@@ -290,8 +285,8 @@ def test_significance_null_is_the_compound_poisson_tail():
 
 
 def test_compound_tail_kernel_agrees_with_the_numpy_path(monkeypatch):
-    from terrain_nav_ros.core import _matching_kernels
-    from terrain_nav_ros.core.matching import compound_log10_sf
+    from terrain_nav_ros.core.matching import _matching_kernels
+    from terrain_nav_ros.core.matching.significance import compound_log10_sf
 
     if not _matching_kernels.HAVE_NUMBA:
         pytest.skip("numba not installed: the numpy path is the only one")
@@ -305,7 +300,8 @@ def test_compound_tail_kernel_agrees_with_the_numpy_path(monkeypatch):
 
 
 def test_closer_pairings_are_more_significant():
-    from terrain_nav_ros.core.matching import MatchParams, significance
+    from terrain_nav_ros.core.matching.params import MatchParams
+    from terrain_nav_ros.core.matching.significance import significance
 
     p = MatchParams()
     args = (60, 60, 190.0 ** 2, 4 * 190.0 ** 2, 60.0, p)
@@ -322,18 +318,21 @@ def test_closer_pairings_are_more_significant():
 def test_heading_prior_searches_only_the_votes_inside_it(block):
     from dataclasses import fields
 
-    from terrain_nav_ros.core import matching as mt
+    from terrain_nav_ros.core.matching.consensus import _hypotheses
+    from terrain_nav_ros.core.matching.index import MinutiaIndex
+    from terrain_nav_ros.core.matching.params import MatchParams
+    from terrain_nav_ros.core.matching.proposals import _hash_votes, _Votes
 
     b, _, _ = _rotated_copy(block, 6.0, seed=4, pos_sigma=1.5, angle_sigma=np.radians(10),
                             missing=0.3, spurious=0.3)
-    prior = mt.MatchParams(max_rotation=np.radians(20))
-    ia, ib = mt.MinutiaIndex(block, prior), mt.MinutiaIndex(b, prior)
-    votes = mt._hash_votes(ia, ib, prior)
+    prior = MatchParams(max_rotation=np.radians(20))
+    ia, ib = MinutiaIndex(block, prior), MinutiaIndex(b, prior)
+    votes = _hash_votes(ia, ib, prior)
     keep = np.abs(wrap_angle(votes.theta)) <= prior.max_rotation + prior.rot_bin
     assert 0 < keep.sum() < len(keep)
-    inside = mt._Votes(*(getattr(votes, f.name)[keep] for f in fields(votes)))
-    with_prior = mt._hypotheses(votes, ia, ib, prior)
-    searched = mt._hypotheses(inside, ia, ib, mt.MatchParams())
+    inside = _Votes(*(getattr(votes, f.name)[keep] for f in fields(votes)))
+    with_prior = _hypotheses(votes, ia, ib, prior)
+    searched = _hypotheses(inside, ia, ib, MatchParams())
     assert len(with_prior) == len(searched) > 0
     for h, g in zip(with_prior, searched, strict=True):
         assert abs(h.c - g.c) < 1e-12 and abs(h.t - g.t) < 1e-9 and h.support == g.support
@@ -342,7 +341,7 @@ def test_heading_prior_searches_only_the_votes_inside_it(block):
 def test_numba_kernels_give_the_numpy_results(region, block, monkeypatch):
     """The optional numba kernels must not change a decision, pairing or transform, nor a
     score beyond rounding (the compound tail sums in another order)."""
-    from terrain_nav_ros.core import _matching_kernels
+    from terrain_nav_ros.core.matching import _matching_kernels
 
     if not _matching_kernels.HAVE_NUMBA:
         pytest.skip("numba not installed: the numpy path is the only one")
@@ -370,22 +369,25 @@ def test_scoring_and_ransac_kernels_agree_with_the_numpy_path(region, block, mon
     """The fused minutiae terms of a registration's score, the RANSAC inlier counts and the
     crease samples around minutiae, against the numpy path, on registrations near and far
     from the truth (partial overlaps, few and many pairings, a turned and shrunk frame)."""
-    from terrain_nav_ros.core import _matching_kernels
-    from terrain_nav_ros.core import matching as mt
+    from terrain_nav_ros.core.matching import _matching_kernels
+    from terrain_nav_ros.core.matching.index import MinutiaIndex
+    from terrain_nav_ros.core.matching.params import MatchParams
+    from terrain_nav_ros.core.matching.registration import _pair, _ransac
+    from terrain_nav_ros.core.matching.scoring import _scored
 
     if not _matching_kernels.HAVE_NUMBA:
         pytest.skip("numba not installed: the numpy path is the only one")
     pva, _, _ = _rotated_copy(block, 35.0, 3)
-    p = mt.MatchParams()
-    a = mt.MinutiaIndex(block, p, region[1][128:128 + BLOCK, 128:128 + BLOCK])
-    b = mt.MinutiaIndex(pva, p)
+    p = MatchParams()
+    a = MinutiaIndex(block, p, region[1][128:128 + BLOCK, 128:128 + BLOCK])
+    b = MinutiaIndex(pva, p)
     truth = complex(np.exp(1j * np.radians(-35.0)))
     rng = np.random.default_rng(7)
     cases = []
     for k in range(40):
         c = truth * np.exp(1j * rng.normal(0, 0.05 * (k % 4))) * (1 + 0.02 * (k == 3))
         t = complex(*rng.normal(0, 40, 2))
-        pairs = mt._pair(a, b, c, t, p)
+        pairs = _pair(a, b, c, t, p)
         if len(pairs) < 2:
             pairs = np.column_stack([rng.choice(a.n, 5, replace=False),
                                      rng.choice(b.n, 5, replace=False)])
@@ -400,9 +402,9 @@ def test_scoring_and_ransac_kernels_agree_with_the_numpy_path(region, block, mon
     ransac_in = [(za, zb, dang, c, t) for c, t, _ in cases[:10]]
 
     def run():
-        scored = [mt._scored(a, b, c, t, pairs, 4e5, a.radius, p, False)
+        scored = [_scored(a, b, c, t, pairs, 4e5, a.radius, p, False)
                   for c, t, pairs in cases]
-        ransac = [mt._ransac(za, zb, dang, p, np.random.default_rng(1), c, t)
+        ransac = [_ransac(za, zb, dang, p, np.random.default_rng(1), c, t)
                   for za, zb, dang, c, t in ransac_in]
         around = [a.crease_samples_around(pairs[:, 0]) for _, _, pairs in cases]
         return scored, ransac, around
@@ -430,12 +432,15 @@ def test_rotation_sweep_finds_the_rotation_the_histogram_buries(block):
     joint translation cell and finds it."""
     from dataclasses import fields
 
-    from terrain_nav_ros.core import matching as mt
+    from terrain_nav_ros.core.matching.consensus import _hypotheses, _rotation_support
+    from terrain_nav_ros.core.matching.index import MinutiaIndex
+    from terrain_nav_ros.core.matching.params import MatchParams
+    from terrain_nav_ros.core.matching.proposals import _hash_votes, _Votes
 
     b, _, m = _rotated_copy(block, 30.0, seed=2, pos_sigma=1.0)
-    p = mt.MatchParams()
-    ia, ib = mt.MinutiaIndex(block, p), mt.MinutiaIndex(b, p)
-    votes = mt._hash_votes(ia, ib, p)
+    p = MatchParams()
+    ia, ib = MinutiaIndex(block, p), MinutiaIndex(b, p)
+    votes = _hash_votes(ia, ib, p)
     # three times as many unrelated edge pairs whose directions agree near -60 degrees
     rng = np.random.default_rng(0)
     n = 3 * len(votes.ia)
@@ -445,7 +450,7 @@ def test_rotation_sweep_finds_the_rotation_the_histogram_buries(block):
                "ib": kb[:, 0], "jb": ib.edges.j[kb[:, 0], kb[:, 1]],
                "theta": rng.normal(np.radians(-60.0), np.radians(8.0), n),
                "weight": rng.choice(votes.weight, n)}
-    votes = mt._Votes(*(np.concatenate([getattr(votes, f.name),
+    votes = _Votes(*(np.concatenate([getattr(votes, f.name),
                                         clutter[f.name].astype(getattr(votes, f.name).dtype)])
                         for f in fields(votes)))
     col, row = ia.centroid.real, -ia.centroid.imag
@@ -456,25 +461,25 @@ def test_rotation_sweep_finds_the_rotation_the_histogram_buries(block):
         return any(abs(h.c * ia.centroid + h.t - truth) < 5.0
                    and abs(np.angle(h.c / turn)) < np.radians(5.0) for h in hyps)
 
-    assert not found(mt._hypotheses(votes, ia, ib, p))
-    assert found(mt._hypotheses(votes, ia, ib, p, sweep=True))
+    assert not found(_hypotheses(votes, ia, ib, p))
+    assert found(_hypotheses(votes, ia, ib, p, sweep=True))
     # the numpy path ranks the same rotations
-    from terrain_nav_ros.core import _matching_kernels
+    from terrain_nav_ros.core.matching import _matching_kernels
 
     cells = (np.arange(72) + 0.5) * (2 * np.pi / 72) - np.pi
-    fast = mt._rotation_support(votes, ia, ib, p, cells)
+    fast = _rotation_support(votes, ia, ib, p, cells)
     if _matching_kernels.HAVE_NUMBA:
         _matching_kernels.HAVE_NUMBA = False
         try:
-            slow = mt._rotation_support(votes, ia, ib, p, cells)
+            slow = _rotation_support(votes, ia, ib, p, cells)
         finally:
             _matching_kernels.HAVE_NUMBA = True
         np.testing.assert_allclose(fast, slow, rtol=1e-6)
 
 
 def test_warm_up_loads_every_kernel():
-    from terrain_nav_ros.core import _matching_kernels
-    from terrain_nav_ros.core.matching import warm_up
+    from terrain_nav_ros.core.matching import _matching_kernels
+    from terrain_nav_ros.core.matching.matcher import warm_up
 
     warm_up()
     if _matching_kernels.HAVE_NUMBA:

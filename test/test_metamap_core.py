@@ -6,15 +6,15 @@ from affine import Affine
 from pyproj import Transformer
 from scipy import ndimage as ndi
 
-from terrain_nav_ros.core.dem_io import Dem, DemError, open_dem, sample_dem
-from terrain_nav_ros.core.geodesy import EnuOrigin
-from terrain_nav_ros.core.georef import GeoReference
-from terrain_nav_ros.core.metamap import DemTile, MetaMap, OutsideDemError, remap_masked
+from terrain_nav_ros.core.terrain.dem_io import Dem, DemError, open_dem, sample_dem
+from terrain_nav_ros.core.terrain.geodesy import EnuOrigin
+from terrain_nav_ros.core.terrain.georef import GeoReference
+from terrain_nav_ros.core.terrain.metamap import DemTile, MetaMap, OutsideDemError, remap_masked
 
 
 def exact_reference(dem, origin, georef, reference_height, order=1):
     """Per-pixel exact ENU -> DEM CRS, then bilinear (order 1) or cubic spline on the whole DEM."""
-    from terrain_nav_ros.core.geodesy import CrsEnuTransform
+    from terrain_nav_ros.core.terrain.geodesy import CrsEnuTransform
 
     t = CrsEnuTransform(dem.crs, origin)
     cols, rows = np.meshgrid(np.arange(georef.width), np.arange(georef.height))

@@ -7,10 +7,10 @@ from ros_helpers import SpinningNode, call_service, start_node, stop, wait_until
 
 from terrain_nav_msgs.msg import DemTile
 from terrain_nav_msgs.srv import GetDemTile
-from terrain_nav_ros import conversions as cv
-from terrain_nav_ros.core.dem_io import sample_dem
-from terrain_nav_ros.core.metamap import MetaMap
-from terrain_nav_ros.ros_common import LATCHED_QOS
+from terrain_nav_ros.core.terrain.dem_io import sample_dem
+from terrain_nav_ros.core.terrain.metamap import MetaMap
+from terrain_nav_ros.nodes import conversions as cv
+from terrain_nav_ros.nodes.ros_common import LATCHED_QOS
 
 
 @pytest.fixture(scope="module")

@@ -3,11 +3,10 @@
 import numpy as np
 import pytest
 
-from terrain_nav_ros.core.creases import CreaseParams
-from terrain_nav_ros.core.georef import GeoReference
-from terrain_nav_ros.core.hillshade import hillshade
-from terrain_nav_ros.core.minutia_set import BIFURCATION, ENDING
-from terrain_nav_ros.core.minutiae import (
+from terrain_nav_ros.core.features.creases import CreaseParams
+from terrain_nav_ros.core.features.hillshade import hillshade
+from terrain_nav_ros.core.features.minutia_set import BIFURCATION, ENDING
+from terrain_nav_ros.core.features.minutiae import (
     FeatureExtractor,
     MinutiaParams,
     crossing_number,
@@ -16,6 +15,7 @@ from terrain_nav_ros.core.minutiae import (
     normalised_coordinates,
     orientation_field,
 )
+from terrain_nav_ros.core.terrain.georef import GeoReference
 
 N = 256
 Y_SEGMENTS = [((128, 128), (128, 216)), ((128, 128), (48, 48)), ((128, 128), (208, 48))]
@@ -155,7 +155,7 @@ def _feature_arrays(f):
 
 
 def test_reused_extractor_never_overwrites_earlier_results():
-    from terrain_nav_ros.core.minutiae import FeatureExtractor
+    from terrain_nav_ros.core.features.minutiae import FeatureExtractor
 
     ext = FeatureExtractor(CreaseParams(polarity="both"))
     first = ext(valley_image(Y_SEGMENTS))
@@ -173,7 +173,7 @@ def test_reused_extractor_never_overwrites_earlier_results():
 def test_one_extractor_in_several_threads_at_once():
     from concurrent.futures import ThreadPoolExecutor
 
-    from terrain_nav_ros.core.minutiae import FeatureExtractor
+    from terrain_nav_ros.core.features.minutiae import FeatureExtractor
 
     images = [valley_image(Y_SEGMENTS), valley_image([((40, 128), (216, 128))])] * 3
     ext = FeatureExtractor()
@@ -326,7 +326,7 @@ def test_dem_with_voids_keeps_clear_of_them(shared_data):
 
 
 def test_hillshade_lambert():
-    from terrain_nav_ros.core.hillshade import sun_vector
+    from terrain_nav_ros.core.features.hillshade import sun_vector
 
     flat = np.zeros((16, 16))
     assert np.allclose(hillshade(flat, 315, 45), np.sin(np.deg2rad(45)), atol=1e-6)
@@ -339,8 +339,8 @@ def test_hillshade_lambert():
 
 
 def test_fused_orientation_matches_the_reference(monkeypatch):
-    from terrain_nav_ros.core import _crease_kernels
-    from terrain_nav_ros.core.minutiae import doubled_angle_field
+    from terrain_nav_ros.core.features import _crease_kernels
+    from terrain_nav_ros.core.features.minutiae import doubled_angle_field
 
     if not _crease_kernels.HAVE_NUMBA:
         pytest.skip("numba not installed: the reference path is the only one")
@@ -353,8 +353,8 @@ def test_fused_orientation_matches_the_reference(monkeypatch):
 
 
 def test_warm_up_compiles_every_kernel():
-    from terrain_nav_ros.core import _crease_kernels
-    from terrain_nav_ros.core.minutiae import warm_up
+    from terrain_nav_ros.core.features import _crease_kernels
+    from terrain_nav_ros.core.features.minutiae import warm_up
 
     warm_up()
     if _crease_kernels.HAVE_NUMBA:
@@ -364,8 +364,8 @@ def test_warm_up_compiles_every_kernel():
 
 
 def test_fused_walker_matches_the_reference(monkeypatch):
-    from terrain_nav_ros.core import _crease_kernels
-    from terrain_nav_ros.core import minutiae as M
+    from terrain_nav_ros.core.features import _crease_kernels
+    from terrain_nav_ros.core.features import minutiae as M
 
     if not _crease_kernels.HAVE_NUMBA:
         pytest.skip("numba not installed: the reference path is the only one")

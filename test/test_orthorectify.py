@@ -3,14 +3,14 @@ mean-plane homography would misplace it by height x distance / flying height."""
 
 import numpy as np
 
-from terrain_nav_ros.core.georef import GeoReference
-from terrain_nav_ros.core.ground_projection import (
+from terrain_nav_ros.core.camera.ground_projection import (
     CameraIntrinsics,
     CameraPose,
     look_at_rotation,
     project_to_ground,
 )
-from terrain_nav_ros.core.orthorectify import heights_on, orthorectify
+from terrain_nav_ros.core.camera.orthorectify import heights_on, orthorectify
+from terrain_nav_ros.core.terrain.georef import GeoReference
 
 INTR = CameraIntrinsics(400.0, 400.0, 319.5, 239.5, 640, 480)
 POSE = CameraPose([0.0, 0.0, 3000.0], look_at_rotation([0.15, 0.0, -1.0]))  # tilted ~8.5 deg

@@ -3,7 +3,7 @@
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from terrain_nav_ros.core.pose_buffer import PoseBuffer, StampedPose
+from terrain_nav_ros.core.camera.pose_buffer import PoseBuffer, StampedPose
 
 
 def _pose(t, yaw_deg):

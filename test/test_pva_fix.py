@@ -6,10 +6,9 @@ import pytest
 from scipy import ndimage
 from synthetic_minutiae import terrain_minutiae, transform_set
 
-from terrain_nav_ros.core.georef import GeoReference
-from terrain_nav_ros.core.matching import Decision, MatchResult, localise
-from terrain_nav_ros.core.minutia_set import MinutiaSet
-from terrain_nav_ros.core.pva_fix import (
+from terrain_nav_ros.core.features.minutia_set import MinutiaSet
+from terrain_nav_ros.core.matching.matcher import Decision, MatchResult, localise
+from terrain_nav_ros.core.matching.pva_fix import (
     STATUS_NO_FIX,
     STATUS_POSITION,
     STATUS_POSITION_ATTITUDE,
@@ -20,6 +19,7 @@ from terrain_nav_ros.core.pva_fix import (
     inflate_covariance,
     velocity_from_fixes,
 )
+from terrain_nav_ros.core.terrain.georef import GeoReference
 
 
 def _look_at(forward, up):
@@ -155,7 +155,7 @@ def test_inflate_covariance_scales_what_was_measured():
 
 
 def _estimate(east, north, sigma):
-    from terrain_nav_ros.core.pva_fix import STATUS_POSITION, PvaFixEstimate
+    from terrain_nav_ros.core.matching.pva_fix import STATUS_POSITION, PvaFixEstimate
 
     cov = np.zeros((6, 6))
     cov[:2, :2] = np.eye(2) * sigma ** 2
@@ -167,7 +167,7 @@ def test_a_pnp_pose_far_from_the_ground_match_is_dropped():
     """PnP and the ground match estimate one position: within their joint uncertainty the
     PnP pose stands; a kilometre off with a few hundred metres claimed, the ground match
     is used, and the reason says so."""
-    from terrain_nav_ros.core.pva_fix import checked_pnp, horizontal_disagreement
+    from terrain_nav_ros.core.matching.pva_fix import checked_pnp, horizontal_disagreement
 
     ground = _estimate(0.0, 0.0, 30.0)
     near = _estimate(120.0, -90.0, 150.0)
@@ -178,7 +178,7 @@ def test_a_pnp_pose_far_from_the_ground_match_is_dropped():
     used = checked_pnp(far, ground, gate=3.0)
     assert used is ground and "ground match used" in used.reason and "1616 m" in used.reason
     # no PnP, or a PnP no-fix: the ground match; no ground match: the PnP
-    from terrain_nav_ros.core.pva_fix import STATUS_NO_FIX, PvaFixEstimate
+    from terrain_nav_ros.core.matching.pva_fix import STATUS_NO_FIX, PvaFixEstimate
 
     assert checked_pnp(None, ground, 3.0) is ground
     assert checked_pnp(PvaFixEstimate(STATUS_NO_FIX, "x"), ground, 3.0) is ground

@@ -1,12 +1,12 @@
-"""The real-imagery study (terrain_nav_ros.real_imagery, ``evaluate --image/--scenes``)."""
+"""The real-imagery study (terrain_nav_ros.tools.real_imagery, ``evaluate --image/--scenes``)."""
 
 import json
 
 import numpy as np
 import pytest
 
-from terrain_nav_ros.cli import main
-from terrain_nav_ros.real_imagery import (
+from terrain_nav_ros.tools.cli import main
+from terrain_nav_ros.tools.real_imagery import (
     load_scene,
     load_scenes,
     nir_band,
@@ -22,8 +22,8 @@ def _write_pair(tmp_path, *, geographic: bool, nodata_hole: bool = False):
     import rasterio
     from affine import Affine
 
-    from terrain_nav_ros.core.hillshade import hillshade
-    from terrain_nav_ros.core.synthetic_terrain import synthetic_dem
+    from terrain_nav_ros.core.features.hillshade import hillshade
+    from terrain_nav_ros.core.terrain.synthetic_terrain import synthetic_dem
 
     z = synthetic_dem(160, gsd=30.0, seed=3).astype(np.float32)
     image = (hillshade(z, 160.0, 40.0, gsd=30.0) * 200.0 + 20.0).astype(np.float32)

@@ -5,9 +5,8 @@ import datetime as dt
 import numpy as np
 import pytest
 
-from terrain_nav_ros.core.georef import GeoReference
-from terrain_nav_ros.core.raycast_reference import ReferenceRaycaster
-from terrain_nav_ros.core.renderer import (
+from terrain_nav_ros.core.render.raycast_reference import ReferenceRaycaster
+from terrain_nav_ros.core.render.renderer import (
     EGLUnavailableError,
     InvalidTerrainError,
     LandmarkRenderer,
@@ -20,7 +19,8 @@ from terrain_nav_ros.core.renderer import (
     build_distance_map,
     create_headless_context,
 )
-from terrain_nav_ros.core.sun import solar_position, sun_direction_enu
+from terrain_nav_ros.core.render.sun import solar_position, sun_direction_enu
+from terrain_nav_ros.core.terrain.georef import GeoReference
 
 
 # ----------------------------------------------------------------------------- fixtures

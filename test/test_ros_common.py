@@ -13,10 +13,10 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from ros_helpers import start_node, wait_until
 
-from terrain_nav_ros.core.creases import CreaseParams
-from terrain_nav_ros.core.matching import MatchParams
-from terrain_nav_ros.core.minutiae import MinutiaParams
-from terrain_nav_ros.ros_common import (
+from terrain_nav_ros.core.features.creases import CreaseParams
+from terrain_nav_ros.core.features.minutiae import MinutiaParams
+from terrain_nav_ros.core.matching.params import MatchParams
+from terrain_nav_ros.nodes.ros_common import (
     check_parameters_known,
     contained,
     declare_executor,

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from terrain_nav_ros.core.georef import GeoReference
-from terrain_nav_ros.core.hillshade import extractor_input, hillshade, shading_curvature
-from terrain_nav_ros.core.minutiae import MinutiaParams, extract_minutiae
+from terrain_nav_ros.core.features.hillshade import extractor_input, hillshade, shading_curvature
+from terrain_nav_ros.core.features.minutiae import MinutiaParams, extract_minutiae
+from terrain_nav_ros.core.terrain.georef import GeoReference
 
 
 def smooth_v(n=96, axis=1, depth=0.3):

@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from terrain_nav_ros.core.minutiae import extract_minutiae
-from terrain_nav_ros.core.synthetic_terrain import (
+from terrain_nav_ros.core.features.minutiae import extract_minutiae
+from terrain_nav_ros.core.terrain.synthetic_terrain import (
     d8_receivers,
     fill_depressions,
     synthetic_dem,

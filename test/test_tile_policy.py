@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from terrain_nav_ros.core.tile_policy import TilePolicy
+from terrain_nav_ros.core.terrain.tile_policy import TilePolicy
 
 
 def test_first_update_cuts_a_tile_covering_now_and_ahead():

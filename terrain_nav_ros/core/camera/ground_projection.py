@@ -1,0 +1,406 @@
+"""Camera frame -> north-up ground image (the core of the ``camera_ingest`` node).
+
+Model:
+
+* Pinhole intrinsics ``K`` plus the OpenCV lens model (``plumb_bob``/``rational_polynomial``
+  coefficients k1, k2, p1, p2[, k3[, k4, k5, k6]]), as in ``sensor_msgs/CameraInfo``.
+* Camera pose in the mission's local ENU frame: optical centre ``position`` (m) and rotation
+  ``R`` taking camera-optical vectors to ENU (REP 103 ``*_optical`` frame: z forward along the
+  optical axis, x right, y down in the image).
+* Terrain approximated by the horizontal plane ``z = plane_height`` (the mean terrain height
+  under the view). Then ground -> image is the homography ``K R^T [e1, e2, h e3 - C]``; with
+  the output raster's pixel -> ENU affine map it becomes one 3x3 matrix from output pixels to
+  undistorted image pixels.
+
+:func:`project_to_ground` resamples the frame once: ``cv2.warpPerspective`` when there is no
+lens distortion, otherwise ``cv2.remap`` through the homography followed by the OpenCV
+distortion model (the same as ``cv2.undistort`` then warping, without resampling twice).
+Output pixels whose ray points above the horizon or misses the frame are invalid in the mask.
+Views that cannot be projected at all come back with a ``reason``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..terrain.georef import GeoReference
+
+__all__ = [
+    "CameraIntrinsics",
+    "CameraPose",
+    "GroundImage",
+    "look_at_rotation",
+    "nadir_rotation",
+    "check_view",
+    "mean_height_near",
+    "image_to_ground",
+    "ground_to_image",
+    "ground_homography",
+    "footprint_georef",
+    "project_to_ground",
+    "grey_frame",
+]
+
+_MIN_DEPTH = 1e-6  # m; ground points closer to the camera plane are behind it
+
+
+@dataclass(frozen=True)
+class CameraIntrinsics:
+    """Pinhole intrinsics and OpenCV distortion of one camera.
+
+    Parameters
+    ----------
+    fx, fy, cx, cy : float
+        Focal lengths and principal point (px).
+    width, height : int
+        Image size (px).
+    dist : tuple of float
+        OpenCV distortion coefficients (k1, k2, p1, p2[, k3[, k4, k5, k6]]); empty or all zero
+        for an ideal pinhole.
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    dist: tuple = ()
+
+    def __post_init__(self):
+        object.__setattr__(self, "dist", tuple(float(d) for d in self.dist))
+
+    @classmethod
+    def from_matrix(cls, K, width: int, height: int, dist=()) -> CameraIntrinsics:
+        """From a 3x3 camera matrix (e.g. ``CameraInfo.k`` reshaped)."""
+        K = np.asarray(K, float).reshape(3, 3)
+        return cls(K[0, 0], K[1, 1], K[0, 2], K[1, 2], int(width), int(height), tuple(dist))
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """The 3x3 camera matrix K."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def dist_coeffs(self) -> np.ndarray:
+        """Distortion coefficients padded to OpenCV's length (5 or 8)."""
+        d = list(self.dist)
+        n = 5 if len(d) <= 5 else 8
+        return np.array(d + [0.0] * (n - len(d)), float)
+
+    @property
+    def distorted(self) -> bool:
+        return any(d != 0.0 for d in self.dist)
+
+    def problem(self) -> str:
+        """Why these intrinsics cannot be used ("" when they can)."""
+        vals = (self.fx, self.fy, self.cx, self.cy)
+        if not all(np.isfinite(v) for v in vals + self.dist):
+            return "camera intrinsics are not finite"
+        if self.fx <= 0 or self.fy <= 0:
+            return "camera intrinsics are zero or negative (no CameraInfo calibration)"
+        if self.width <= 0 or self.height <= 0:
+            return "camera image size is zero"
+        if len(self.dist) not in (0, 4, 5, 8):
+            return f"unsupported distortion model with {len(self.dist)} coefficients"
+        return ""
+
+
+@dataclass(frozen=True)
+class CameraPose:
+    """Camera optical centre and orientation in local ENU.
+
+    Parameters
+    ----------
+    position : (3,) array
+        Optical centre (east, north, up) in metres.
+    rotation : (3, 3) array
+        Rotation from the camera optical frame (x right, y down, z forward) to ENU.
+    """
+
+    position: np.ndarray
+    rotation: np.ndarray
+
+    def __post_init__(self):
+        object.__setattr__(self, "position", np.asarray(self.position, float).reshape(3))
+        object.__setattr__(self, "rotation", np.asarray(self.rotation, float).reshape(3, 3))
+
+    def problem(self) -> str:
+        """Why this pose cannot be used ("" when it can)."""
+        if not (np.isfinite(self.position).all() and np.isfinite(self.rotation).all()):
+            return "camera pose is not finite"
+        R = self.rotation
+        if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+            return "camera attitude is not a rotation matrix"
+        return ""
+
+
+def look_at_rotation(forward, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera-optical -> ENU rotation for an optical axis ``forward`` (ENU).
+
+    The image's "up" (-y) is the projection of ``up`` on the image plane, so a nadir view
+    with ``up=(0, 1, 0)`` has North at the top of the image and East to the right.
+    """
+    z = np.asarray(forward, float)
+    z = z / np.linalg.norm(z)
+    up = np.asarray(up, float)
+    y = -(up - (up @ z) * z)
+    n = np.linalg.norm(y)
+    if n < 1e-9:
+        raise ValueError("look_at_rotation: up is parallel to forward")
+    y /= n
+    x = np.cross(y, z)
+    return np.column_stack([x, y, z])
+
+
+def nadir_rotation(heading_deg: float = 0.0) -> np.ndarray:
+    """Straight-down camera whose image top points to ``heading_deg`` (clockwise from North)."""
+    h = np.deg2rad(heading_deg)
+    return look_at_rotation((0.0, 0.0, -1.0), (np.sin(h), np.cos(h), 0.0))
+
+
+def _ground_rays(u, v, intr: CameraIntrinsics, pose: CameraPose):
+    """ENU ray directions through (distorted) pixels."""
+    pts = np.column_stack([np.ravel(u), np.ravel(v)]).astype(np.float64)[:, None, :]
+    if intr.distorted:
+        norm = cv2.undistortPoints(pts, intr.matrix, intr.dist_coeffs)[:, 0, :]
+    else:
+        norm = np.column_stack([(pts[:, 0, 0] - intr.cx) / intr.fx,
+                                (pts[:, 0, 1] - intr.cy) / intr.fy])
+    d_cam = np.column_stack([norm, np.ones(len(norm))])
+    return d_cam @ pose.rotation.T
+
+
+def image_to_ground(u, v, intr: CameraIntrinsics, pose: CameraPose, plane_height: float):
+    """Intersect the rays through pixels (u, v) with the plane ``z = plane_height``.
+
+    Returns
+    -------
+    east, north : arrays
+        NaN where the ray does not reach the plane (at or above the horizon).
+    """
+    d = _ground_rays(u, v, intr, pose)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (plane_height - pose.position[2]) / d[:, 2]
+    ok = np.isfinite(t) & (t > 0)
+    east = np.where(ok, pose.position[0] + t * d[:, 0], np.nan)
+    north = np.where(ok, pose.position[1] + t * d[:, 1], np.nan)
+    shape = np.shape(u)
+    return east.reshape(shape), north.reshape(shape)
+
+
+def ground_to_image(east, north, plane_height, intr: CameraIntrinsics, pose: CameraPose):
+    """Project ENU points (on the plane, or with their own heights) to distorted pixels.
+
+    Returns
+    -------
+    u, v : arrays
+        Pixel coordinates; NaN for points behind the camera.
+    """
+    east, north = np.broadcast_arrays(np.asarray(east, float), np.asarray(north, float))
+    up = np.broadcast_to(np.asarray(plane_height, float), east.shape)
+    X = np.column_stack([east.ravel(), north.ravel(), up.ravel()]) - pose.position
+    cam = X @ pose.rotation  # rows: R^T (X - C)
+    front = cam[:, 2] > _MIN_DEPTH
+    uv = cv2.projectPoints(cam[:, None, :], np.zeros(3), np.zeros(3), intr.matrix,
+                           intr.dist_coeffs)[0][:, 0, :]
+    uv[~front] = np.nan
+    return uv[:, 0].reshape(east.shape), uv[:, 1].reshape(east.shape)
+
+
+def ground_homography(intr: CameraIntrinsics, pose: CameraPose, plane_height: float,
+                      georef: GeoReference) -> np.ndarray:
+    """3x3 map from output raster pixels (col, row, 1) to undistorted image pixels."""
+    C = pose.position
+    Rt = pose.rotation.T
+    plane = np.column_stack([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0],
+                             np.array([0.0, 0.0, plane_height]) - C])
+    g = georef.gsd
+    pix_to_enu = np.array([[g, 0.0, georef.origin_east + 0.5 * g],
+                           [0.0, -g, georef.origin_north - 0.5 * g],
+                           [0.0, 0.0, 1.0]])
+    return intr.matrix @ Rt @ plane @ pix_to_enu
+
+
+def check_view(intr: CameraIntrinsics, pose: CameraPose, plane_height: float) -> str:
+    """Why this view cannot be projected on the ground plane ("" when it can)."""
+    reason = intr.problem() or pose.problem()
+    if reason:
+        return reason
+    if pose.position[2] <= plane_height:
+        return (f"camera at {pose.position[2]:.1f} m is not above the ground plane at "
+                f"{plane_height:.1f} m")
+    # The view reaches the ground iff some image corner/edge ray points below the horizon.
+    w, h = intr.width, intr.height
+    u = np.r_[np.linspace(0, w - 1, 9), np.full(9, w - 1), np.linspace(0, w - 1, 9),
+              np.zeros(9), (w - 1) / 2]
+    v = np.r_[np.zeros(9), np.linspace(0, h - 1, 9), np.full(9, h - 1),
+              np.linspace(0, h - 1, 9), (h - 1) / 2]
+    if not (_ground_rays(u, v, intr, pose)[:, 2] < 0).any():
+        return "camera is pointing at or above the horizon: no ground in view"
+    return ""
+
+
+def mean_height_near(heights: np.ndarray, georef: GeoReference, east: float, north: float,
+                     radius: float) -> tuple[float | None, str]:
+    """Mean DEM height within ``radius`` of (east, north): ``(height, "")``, or
+    ``(None, why)`` when the tile does not reach there or holds only nodata there (an
+    all-nodata DEM read "no DEM tile under the aircraft yet", issue 22)."""
+    c0, r0 = georef.enu_to_pixel(east - radius, north + radius)
+    c1, r1 = georef.enu_to_pixel(east + radius, north - radius)
+    c0, r0 = max(int(c0), 0), max(int(r0), 0)
+    c1, r1 = min(int(c1) + 1, georef.width), min(int(r1) + 1, georef.height)
+    if c1 <= c0 or r1 <= r0:
+        return None, "the DEM tile does not reach the aircraft yet"
+    window = heights[r0:r1, c0:c1]
+    if not np.isfinite(window).any():
+        return None, "the DEM has no heights under the aircraft (nodata or voids)"
+    return float(np.nanmean(window)), ""
+
+
+def footprint_georef(intr: CameraIntrinsics, pose: CameraPose, plane_height: float,
+                     gsd: float, max_range: float | None = None) -> GeoReference | None:
+    """North-up raster at ``gsd`` covering the ground seen by the camera.
+
+    Rays above (or close to) the horizon are cut at ``max_range`` metres of horizontal
+    distance (default: 20 times the height above the plane). None if nothing is in view.
+    """
+    if check_view(intr, pose, plane_height):
+        return None
+    height = pose.position[2] - plane_height
+    max_range = 20.0 * height if max_range is None else float(max_range)
+    w, h = intr.width, intr.height
+    s = np.linspace(0.0, 1.0, 33)
+    u = np.r_[s * (w - 1), np.full_like(s, w - 1), s * (w - 1), np.zeros_like(s)]
+    v = np.r_[np.zeros_like(s), s * (h - 1), np.full_like(s, h - 1), s * (h - 1)]
+    d = _ground_rays(u, v, intr, pose)
+    horiz = np.hypot(d[:, 0], d[:, 1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(d[:, 2] < 0, -height / d[:, 2], np.inf)
+    t = np.minimum(t, max_range / np.maximum(horiz, 1e-12))
+    e = pose.position[0] + t * d[:, 0]
+    n = pose.position[1] + t * d[:, 1]
+    west, east = np.floor(e.min() / gsd) * gsd, np.ceil(e.max() / gsd) * gsd
+    south, north = np.floor(n.min() / gsd) * gsd, np.ceil(n.max() / gsd) * gsd
+    return GeoReference(west, north, gsd, int(round((east - west) / gsd)),
+                        int(round((north - south) / gsd)))
+
+
+@dataclass
+class GroundImage:
+    """A frame resampled onto a north-up ground raster.
+
+    ``image`` is None and ``reason`` says why when the view could not be projected;
+    ``valid`` is False where the output pixel is not seen by the camera.
+    """
+
+    image: np.ndarray | None
+    valid: np.ndarray | None
+    georef: GeoReference
+    reason: str = ""
+
+
+def grey_frame(image, intr: CameraIntrinsics, bgr: bool) -> tuple[np.ndarray, str]:
+    """The frame as one grey channel, and why it does not fit ``intr`` ("" when it does)."""
+    img = _to_grey(image, bgr)
+    if img.shape != (intr.height, intr.width):
+        return img, (f"image size {img.shape[::-1]} differs from CameraInfo "
+                     f"{intr.width}x{intr.height}")
+    return img, ""
+
+
+def _to_grey(image: np.ndarray, bgr: bool) -> np.ndarray:
+    img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[..., 0]
+    if img.dtype not in (np.uint8, np.uint16, np.float32):
+        img = img.astype(np.float32)  # what OpenCV's colour conversion and warps accept
+    if img.ndim == 3 and img.shape[2] in (3, 4):
+        code = (cv2.COLOR_BGR2GRAY, cv2.COLOR_BGRA2GRAY) if bgr else (cv2.COLOR_RGB2GRAY,
+                                                                      cv2.COLOR_RGBA2GRAY)
+        img = cv2.cvtColor(np.ascontiguousarray(img), code[img.shape[2] == 4])
+    if img.ndim != 2:
+        raise ValueError(f"expected a grey or colour image, got shape {img.shape}")
+    return img
+
+
+def project_to_ground(image, intr: CameraIntrinsics, pose: CameraPose, plane_height: float,
+                      georef: GeoReference, interpolation: int = cv2.INTER_LINEAR,
+                      bgr: bool = False, max_range: float | None = None) -> GroundImage:
+    """Resample a camera frame onto the ground raster ``georef``.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3/4) array
+        Raw (distorted) frame; colour is converted to grey (``bgr`` selects the channel
+        order). uint8/uint16 stay as they are, other types become float32.
+    intr, pose : CameraIntrinsics, CameraPose
+    plane_height : float
+        Height (m, ENU up) of the mean terrain plane.
+    georef : GeoReference
+        Output raster (north-up, at the landmark GSD).
+    interpolation : int
+        OpenCV interpolation flag.
+    max_range : float, optional
+        Output pixels farther than this horizontal distance (m) from the camera are invalid
+        (grazing rays have meaningless resolution).
+
+    Returns
+    -------
+    GroundImage
+    """
+    img, reason = grey_frame(image, intr, bgr)
+    reason = check_view(intr, pose, plane_height) or reason
+    if reason:
+        return GroundImage(None, None, georef, reason)
+    H = ground_homography(intr, pose, plane_height, georef)
+    rows, cols = georef.shape
+    # Depth of each output pixel's ground point along the optical axis: affine in (col, row).
+    r3 = pose.rotation[:, 2]  # optical axis in ENU
+    east, north = georef.pixel_to_enu(np.arange(cols), np.arange(rows))
+    depth = (r3[0] * (east[None, :] - pose.position[0])
+             + r3[1] * (north[:, None] - pose.position[1])
+             + r3[2] * (plane_height - pose.position[2]))
+    valid = depth > _MIN_DEPTH
+    if max_range is not None:
+        valid &= np.hypot(east[None, :] - pose.position[0],
+                          north[:, None] - pose.position[1]) <= max_range
+    if not intr.distorted:
+        out = cv2.warpPerspective(img, H, (cols, rows), flags=interpolation |
+                                  cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT)
+        cc, rr = np.meshgrid(np.arange(cols, dtype=np.float64), np.arange(rows,
+                                                                         dtype=np.float64))
+        den = H[2, 0] * cc + H[2, 1] * rr + H[2, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = (H[0, 0] * cc + H[0, 1] * rr + H[0, 2]) / den
+            v = (H[1, 0] * cc + H[1, 1] * rr + H[1, 2]) / den
+    else:
+        cc, rr = np.meshgrid(np.arange(cols, dtype=np.float64), np.arange(rows,
+                                                                         dtype=np.float64))
+        pts = np.stack([cc, rr, np.ones_like(cc)], axis=-1) @ H.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xn = (pts[..., 0] / pts[..., 2] - intr.cx) / intr.fx
+            yn = (pts[..., 1] / pts[..., 2] - intr.cy) / intr.fy
+        # The polynomial lens model folds back far outside the frame: only distort rays
+        # within a margin of the undistorted field of view.
+        lim_x = 1.5 * max(intr.cx, intr.width - intr.cx) / intr.fx
+        lim_y = 1.5 * max(intr.cy, intr.height - intr.cy) / intr.fy
+        valid &= (np.abs(xn) <= lim_x) & (np.abs(yn) <= lim_y)
+        xn = np.where(valid, xn, 0.0)
+        yn = np.where(valid, yn, 0.0)
+        obj = np.stack([xn.ravel(), yn.ravel(), np.ones(xn.size)], axis=-1)[:, None, :]
+        uv = cv2.projectPoints(obj, np.zeros(3), np.zeros(3), intr.matrix,
+                               intr.dist_coeffs)[0][:, 0, :]
+        u = uv[:, 0].reshape(rows, cols)
+        v = uv[:, 1].reshape(rows, cols)
+        out = cv2.remap(img, u.astype(np.float32), v.astype(np.float32), interpolation,
+                        borderMode=cv2.BORDER_CONSTANT)
+    # Interpolated from frame pixels only (no constant border mixed in).
+    valid &= (u >= 0) & (u <= intr.width - 1) & (v >= 0) & (v <= intr.height - 1)
+    if not valid.any():
+        return GroundImage(None, None, georef, "camera view does not reach the output raster")
+    out[~valid] = 0
+    return GroundImage(out, valid, georef)

@@ -1,0 +1,894 @@
+"""Error-state EKF fusing IMU dead reckoning with intermittent terrain fixes (ROS-free).
+
+Built on :class:`filterpy.kalman.ExtendedKalmanFilter`: its ``x``, ``P`` and ``update`` are
+used as they are; prediction is this module's strapdown (filterpy's linear predict does not
+apply to an INS).
+
+State
+-----
+``kf.x`` (15 x 1) and ``kf.P`` (15 x 15) follow this order:
+
+======  ==============  ===================================================================
+index   symbol          meaning
+======  ==============  ===================================================================
+0:3     p               position, ENU map frame (m)
+3:6     v               velocity, ENU (m/s)
+6:9     dtheta          attitude error, small rotation about the ENU axes (rad); always 0
+                        between updates: it is folded into the nominal quaternion
+9:12    b_g             gyro bias, body FLU (rad/s)
+12:15   b_a             accelerometer bias, body FLU (m/s^2)
+======  ==============  ===================================================================
+
+The nominal attitude is the unit quaternion ``q`` (``[x, y, z, w]``, body -> ENU) kept beside
+``kf.x``; the true attitude is ``Exp(dtheta) * q``. Position, velocity and biases are additive,
+so for them ``kf.x`` is the estimate itself; only the attitude needs the error-state
+treatment (inject after each update, then reset ``dtheta`` and rotate ``P`` accordingly).
+
+Timing
+------
+Every IMU sample is integrated over ``(t_prev, t]`` (zero-order hold of the sample stamped
+``t``). Each measurement is applied at its own stamp by splitting the IMU interval that
+contains it, whether it arrives before the IMU reaches that stamp (it is queued), on time, or
+late (the filter rewinds to the history entry before the stamp and re-propagates the stored
+IMU samples, re-applying the later measurements). All three orders therefore give the same
+estimate. Measurements older than the history are stale.
+
+IMU stamps are screened first (:class:`~terrain_nav_ros.core.estimation.imu_timing.ImuTimingGuard`):
+a sample stamped more than ``time_jump_reset`` from the previous one, in either direction, is
+refused (``STAMP_OFF_PERIOD``) unless ``time_jump_confirm`` consecutive samples continue from it,
+which is a real time jump. A jump ahead of at most ``max_imu_outage`` is an IMU outage: integrated
+across as a gap (``IMU_GAP``). Any other (bag loop, simulator restart) resets the filter
+(``TIME_JUMP_RESET``), which starts the new timeline with those samples and re-initialises per
+``init_mode``; with ``gnss``/``fix``, when no measurement of that source
+has come ``reinit_timeout`` s into the new timeline, it starts again from the last good state
+with the initial covariance added (``REINITIALIZED``) rather than wait for a source that may
+be gone.
+
+Every public ``process_*`` method returns an :class:`Outcome` with a :class:`Reason`; bad input
+never raises and never stops the filter.
+
+Mapping for the ROS node (kept out of this module)
+--------------------------------------------------
+* ``sensor_msgs/Imu`` in ``base_link`` (FLU) -> ``process_imu(stamp, angular_velocity,
+  linear_acceleration)``; rotate first if the IMU frame differs.
+* ``PvaFix`` -> ``process_fix(stamp, position, covariance, velocity=..., quaternion=...)`` with
+  the covariance ordered ``[position, velocity?, attitude?]``.
+* ``NavSatFix`` -> ENU through the mission's pyproj transformer -> ``process_gnss``.
+* Barometric altitude minus the map origin height -> ``process_baro``.
+* Output: :attr:`TerrainEkf.state` (``NavState``; ``pose_covariance()`` gives the 6x6 ROS
+  Pose layout) and :attr:`TerrainEkf.diagnostics` (``EkfDiagnostics``).
+"""
+
+from __future__ import annotations
+
+import bisect
+import itertools
+import math
+from collections import Counter, deque
+from dataclasses import dataclass, field
+from enum import StrEnum
+from functools import lru_cache
+
+import numpy as np
+from filterpy.kalman import ExtendedKalmanFilter
+from scipy.stats import chi2
+
+from .ekf_params import EkfParams
+from .imu_timing import ImuTiming, ImuTimingGuard
+from .strapdown import (
+    DIM_ERR,
+    IDX_BA,
+    IDX_BG,
+    IDX_P,
+    IDX_TH,
+    IDX_V,
+    StrapdownStep,
+    attitude_error,
+    quat_exp,
+    quat_from_euler,
+    quat_multiply,
+    quat_normalize,
+    skew,
+)
+
+__all__ = ["EkfDiagnostics", "EkfParams", "NavState", "Outcome", "Reason", "TerrainEkf",
+           "UpdateRecord"]
+
+
+class Reason(StrEnum):
+    """Why an input was accepted, deferred or rejected."""
+
+    OK = "ok"
+    INITIALIZED = "initialized"
+    QUEUED = "queued_until_imu_reaches_stamp"
+    WAITING_FOR_INIT = "stored_for_initialisation"
+    IMU_GAP = "imu_gap_integrated"
+    POSITION_RESET = "position_reset_after_consecutive_rejections"
+    NOT_INITIALIZED = "not_initialized"
+    NON_FINITE = "non_finite_value"
+    BAD_SHAPE = "bad_shape"
+    BAD_COVARIANCE = "covariance_not_positive_definite"
+    BAD_QUATERNION = "quaternion_not_unit"
+    DUPLICATE = "duplicate_stamp"
+    OUT_OF_ORDER = "out_of_order"
+    STALE = "older_than_history"
+    TOO_FAR_AHEAD = "too_far_in_future"
+    GATED = "chi_square_gate"
+    COMPARED_ONLY = "compared_not_fused"
+    TIME_JUMP_RESET = "time_jump_reset"
+    STAMP_OFF_PERIOD = "stamp_far_from_expected_period"
+    REINITIALIZED = "reinitialised_from_last_good_state"
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """Result of feeding one input to the filter.
+
+    Attributes
+    ----------
+    accepted : bool
+        True if the input changed the estimate. For ``QUEUED`` it means "taken": the gate
+        decision is made when the IMU reaches the stamp and shows up in the diagnostics.
+    reason : Reason
+    nis : float or None
+        Normalised innovation squared of a measurement update.
+    gate : float or None
+        Chi-square threshold the NIS was compared with.
+    """
+
+    accepted: bool
+    reason: Reason
+    nis: float | None = None
+    gate: float | None = None
+
+
+@dataclass(frozen=True)
+class UpdateRecord:
+    """One measurement evaluation, for the NIS diagnostic."""
+
+    stamp: float
+    source: str
+    dim: int
+    nis: float
+    gate: float
+    accepted: bool
+
+
+@dataclass(frozen=True)
+class NavState:
+    """Snapshot of the estimate at ``stamp``.
+
+    Attributes
+    ----------
+    stamp : float
+        Time (s) of the newest IMU sample integrated.
+    position, velocity : ndarray, (3,)
+        ENU (m, m/s).
+    quaternion : ndarray, (4,)
+        Body -> ENU ``[x, y, z, w]``.
+    gyro_bias, accel_bias : ndarray, (3,)
+        Body frame (rad/s, m/s^2).
+    covariance : ndarray, (15, 15)
+        Error-state covariance in the documented state order.
+    """
+
+    stamp: float
+    position: np.ndarray
+    velocity: np.ndarray
+    quaternion: np.ndarray
+    gyro_bias: np.ndarray
+    accel_bias: np.ndarray
+    covariance: np.ndarray
+
+    def pose_covariance(self) -> np.ndarray:
+        """6x6 covariance of (position, attitude about ENU axes), the ROS Pose layout."""
+        idx = np.r_[0:3, 6:9]
+        return self.covariance[np.ix_(idx, idx)]
+
+
+@dataclass
+class EkfDiagnostics:
+    """Filter health, for the node's diagnostic topic.
+
+    Attributes
+    ----------
+    initialized : bool
+    stamp : float or None
+        Filter time (s).
+    records : deque of UpdateRecord
+        Most recent measurement evaluations (NIS, gate, decision).
+    accepted, rejected : Counter
+        Measurements accepted / rejected by the chi-square gate, per source.
+    input_rejections : Counter
+        Inputs refused before any update, per ``"<source>:<reason>"``.
+    resets : int
+        Time-jump resets (confirmed jumps, either direction).
+    reinitialisations : int
+        Restarts from the last good state after a reset (no init source came).
+    imu_stamps_refused : int
+        IMU samples refused when they came because their stamp was far from the expected
+        period (those that a confirmed jump then proves right are integrated after all).
+    position_resets : int
+        Position resets after consecutive rejections.
+    imu_gaps : int
+        IMU intervals longer than ``max_imu_dt``.
+    last_accepted : dict
+        Stamp of the last accepted measurement per source.
+    covariance_trace : float
+        Trace of the full error covariance (mixed units, for trend only).
+    position_sigma : float
+        sqrt of the trace of the position covariance (m).
+    """
+
+    initialized: bool = False
+    stamp: float | None = None
+    records: deque = field(default_factory=deque)
+    accepted: Counter = field(default_factory=Counter)
+    rejected: Counter = field(default_factory=Counter)
+    input_rejections: Counter = field(default_factory=Counter)
+    resets: int = 0
+    reinitialisations: int = 0
+    imu_stamps_refused: int = 0
+    position_resets: int = 0
+    imu_gaps: int = 0
+    last_accepted: dict = field(default_factory=dict)
+    covariance_trace: float = float("nan")
+    position_sigma: float = float("nan")
+
+    def time_since(self, source: str = "fix") -> float | None:
+        """Seconds since the last accepted measurement of ``source`` (None if never)."""
+        if self.stamp is None or source not in self.last_accepted:
+            return None
+        return self.stamp - self.last_accepted[source]
+
+    @property
+    def time_since_last_fix(self) -> float | None:
+        """Seconds since the last accepted terrain fix (None if never)."""
+        return self.time_since("fix")
+
+    def last_nis(self, source: str) -> float | None:
+        """NIS of the most recent evaluation of ``source``."""
+        for rec in reversed(self.records):
+            if rec.source == source:
+                return rec.nis
+        return None
+
+
+@lru_cache(maxsize=64)
+def _gate(probability: float, dof: int) -> float:
+    """Chi-square threshold (inf when gating is disabled)."""
+    return float("inf") if probability >= 1.0 else float(chi2.ppf(probability, dof))
+
+
+@dataclass(eq=False)
+class _Measurement:
+    """A validated measurement in the log (kept for re-application while in the history)."""
+
+    stamp: float
+    seq: int
+    source: str
+    z: np.ndarray            # (m,) measured values; attitude rows hold the quaternion's log later
+    R: np.ndarray            # (m, m)
+    rows: np.ndarray         # state index measured by each row
+    attitude: np.ndarray | None = None   # measured quaternion, attitude rows are rows[-3:]
+    outcome: Outcome | None = None
+    reset: bool = False      # apply as a position reset instead of a gated update
+
+    @property
+    def key(self):
+        return (self.stamp, self.seq)
+
+
+@dataclass(frozen=True)
+class _Entry:
+    """History entry: state at ``t`` after the IMU sample stamped ``t`` and all measurements
+    stamped <= t that were known."""
+
+    t: float
+    gyro: np.ndarray
+    accel: np.ndarray
+    x: np.ndarray
+    q: np.ndarray
+    P: np.ndarray
+
+
+class TerrainEkf:
+    """Error-state strapdown EKF with gated, delay-tolerant measurement updates.
+
+    Parameters
+    ----------
+    params : EkfParams, optional
+        Settings; defaults to ``EkfParams()``.
+
+    Examples
+    --------
+    >>> ekf = TerrainEkf(EkfParams(init_mode="pose"))
+    >>> ekf.set_initial_pose([0, 0, 500], [30, 0, 0], [0, 0, 0, 1])
+    >>> ekf.process_imu(0.0, [0, 0, 0], [0, 0, 9.80665]).reason
+    <Reason.INITIALIZED: 'initialized'>
+    """
+
+    def __init__(self, params: EkfParams | None = None):
+        self.params = params or EkfParams()
+        p = self.params
+        self.kf = ExtendedKalmanFilter(dim_x=DIM_ERR, dim_z=3)
+        self._step = StrapdownStep(p.gravity)
+        self._tmp = np.empty((DIM_ERR, DIM_ERR))
+        self._Q = np.zeros((DIM_ERR, DIM_ERR))
+        self._q_dt = None
+        # Q = dt * Q1 + dt^2 * Q2 + dt^3 * Q3, so a jittering IMU period costs three axpys.
+        i3 = np.arange(3)
+        self._Q1, self._Q2, self._Q3 = (np.zeros((DIM_ERR, DIM_ERR)) for _ in range(3))
+        qa = p.accel_noise_density**2
+        self._Q1[i3 + 3, i3 + 3] = qa
+        self._Q1[i3 + 6, i3 + 6] = p.gyro_noise_density**2
+        self._Q1[i3 + 9, i3 + 9] = p.gyro_bias_random_walk**2
+        self._Q1[i3 + 12, i3 + 12] = p.accel_bias_random_walk**2
+        self._Q2[i3, i3 + 3] = self._Q2[i3 + 3, i3] = qa / 2.0
+        self._Q3[i3, i3] = qa / 3.0
+        self._seq = itertools.count()
+        self._initial_pose = None
+        # Outlives resets: it decides what a reset is.
+        self._timing = ImuTimingGuard(p.time_jump_reset, p.max_imu_dt, p.time_jump_confirm)
+        self._diag = EkfDiagnostics(records=deque(maxlen=p.nis_history_length))
+        self._clear()
+
+    # ------------------------------------------------------------------ state access
+    def _clear(self):
+        """Forget the estimate, history and logs (not the diagnostics counters)."""
+        self.initialized = False
+        self.t = None
+        self.q = np.array([0.0, 0.0, 0.0, 1.0])
+        self.kf.x = np.zeros((DIM_ERR, 1))
+        self.kf.P = np.eye(DIM_ERR)
+        self._x = self.kf.x[:, 0]
+        self._history: deque[_Entry] = deque()
+        self._log: list[_Measurement] = []
+        self._pre_init_imu: deque = deque()
+        self._init_candidate = None
+        self._consecutive = Counter()
+        self._reset_armed: set[str] = set()
+        self._last_good: NavState | None = None   # set after a time jump, for re-init
+        self._init_source_seen = False
+        self._reinit_after = math.inf
+        self._diag.initialized = False
+        self._diag.stamp = None
+
+    @property
+    def state(self) -> NavState:
+        """Current estimate (copies)."""
+        x = self._x
+        return NavState(self.t, x[IDX_P].copy(), x[IDX_V].copy(), self.q.copy(),
+                        x[IDX_BG].copy(), x[IDX_BA].copy(), self.kf.P.copy())
+
+    @property
+    def diagnostics(self) -> EkfDiagnostics:
+        """Filter health (the live object, refreshed on access)."""
+        self._refresh_diagnostics()
+        return self._diag
+
+    def _refresh_diagnostics(self):
+        d = self._diag
+        d.initialized, d.stamp = self.initialized, self.t
+        d.imu_stamps_refused = self._timing.refused
+        P = self.kf.P
+        d.covariance_trace = float(np.trace(P))
+        d.position_sigma = float(np.sqrt(np.trace(P[IDX_P, IDX_P])))
+
+    # ------------------------------------------------------------------ initialisation
+    def default_covariance(self) -> np.ndarray:
+        """Initial 15x15 covariance from the ``init_*_sigma`` parameters."""
+        p = self.params
+        sig = np.r_[[p.init_position_sigma] * 3, [p.init_velocity_sigma] * 3,
+                    [p.init_roll_pitch_sigma] * 2, p.init_yaw_sigma,
+                    [p.init_gyro_bias_sigma] * 3, [p.init_accel_bias_sigma] * 3]
+        return np.diag(sig**2)
+
+    def initialize(self, stamp: float, position, velocity, quaternion, covariance=None,
+                   gyro_bias=None, accel_bias=None) -> Outcome:
+        """Start (or restart) the filter from a full state at ``stamp``.
+
+        Parameters
+        ----------
+        stamp : float
+            Time (s) the state refers to.
+        position, velocity : array_like, (3,)
+            ENU (m, m/s).
+        quaternion : array_like, (4,)
+            Body -> ENU ``[x, y, z, w]``.
+        covariance : array_like, (15, 15), optional
+            Error covariance in the state order; default :meth:`default_covariance`.
+        gyro_bias, accel_bias : array_like, (3,), optional
+            Initial bias estimates (default zero).
+
+        Returns
+        -------
+        Outcome
+        """
+        vals = [np.asarray(v, dtype=float) for v in (position, velocity, quaternion)]
+        if [v.shape for v in vals] != [(3,), (3,), (4,)]:
+            return self._refuse("init", Reason.BAD_SHAPE)
+        if not all(np.all(np.isfinite(v)) for v in vals) or not np.isfinite(stamp):
+            return self._refuse("init", Reason.NON_FINITE)
+        q = _unit_quaternion(vals[2])
+        if q is None:
+            return self._refuse("init", Reason.BAD_QUATERNION)
+        P = self.default_covariance() if covariance is None else np.array(covariance, float)
+        if P.shape != (DIM_ERR, DIM_ERR) or not _is_pd(P):
+            return self._refuse("init", Reason.BAD_COVARIANCE)
+        pre_init = [s for s in self._pre_init_imu if s[0] > stamp]
+        self._clear()
+        x = np.zeros(DIM_ERR)
+        x[IDX_P], x[IDX_V] = vals[0], vals[1]
+        if gyro_bias is not None:
+            x[IDX_BG] = gyro_bias
+        if accel_bias is not None:
+            x[IDX_BA] = accel_bias
+        self.kf.x = x.reshape(-1, 1).copy()
+        self._x = self.kf.x[:, 0]
+        self.kf.P = 0.5 * (P + P.T)
+        self.q = q
+        self.t = float(stamp)
+        self.initialized = True
+        self._store(None, None)
+        for t, gyro, accel in pre_init:   # IMU that arrived while waiting for a fix
+            self._integrate(t, gyro, accel)   # screened by the timing guard already
+        return Outcome(True, Reason.INITIALIZED)
+
+    def set_initial_pose(self, position, velocity, quaternion, stamp: float | None = None,
+                         covariance=None) -> Outcome:
+        """Initial state for ``init_mode="pose"``, applied now or at the first IMU sample.
+
+        The pose is remembered and re-applied after a time-jump reset (bag loop).
+        """
+        self._initial_pose = (position, velocity, quaternion, covariance)
+        if stamp is None:
+            return Outcome(True, Reason.WAITING_FOR_INIT)
+        return self.initialize(stamp, position, velocity, quaternion, covariance)
+
+    def _init_from_measurement(self, meas: _Measurement) -> Outcome:
+        """Initialise from GNSS or fixes: at once when they carry velocity and attitude,
+        otherwise from two fixes ``init_min_fix_interval`` apart (velocity by difference,
+        yaw from course, level roll/pitch)."""
+        p = self.params
+        self._init_source_seen = True
+        pos, pcov = meas.z[:3], meas.R[:3, :3]
+        has_v = 3 in meas.rows
+        if has_v:
+            v, vcov = meas.z[3:6], meas.R[3:6, 3:6]
+        else:
+            first = self._init_candidate
+            if first is None or meas.stamp - first.stamp < p.init_min_fix_interval:
+                if first is None or meas.stamp < first.stamp:
+                    self._init_candidate = meas
+                return Outcome(True, Reason.WAITING_FOR_INIT)
+            dt = meas.stamp - first.stamp
+            v = (pos - first.z[:3]) / dt
+            vcov = (pcov + first.R[:3, :3]) / dt**2
+        P = self.default_covariance()
+        P[IDX_P, IDX_P] = pcov
+        P[IDX_V, IDX_V] = vcov
+        q = meas.attitude
+        if q is not None:
+            P[IDX_TH, IDX_TH] = meas.R[-3:, -3:]
+        else:
+            # Level, nose along the course. Course is not heading (wind, sideslip), so the
+            # yaw sigma is at least init_yaw_sigma.
+            speed_h = max(float(np.hypot(v[0], v[1])), 1e-3)
+            q = quat_from_euler(0.0, -np.arctan2(v[2], speed_h), np.arctan2(v[1], v[0]))
+            sig_course = np.sqrt(np.trace(vcov[:2, :2]) / 2.0) / speed_h
+            P[8, 8] = max(p.init_yaw_sigma, min(sig_course, np.pi)) ** 2
+        out = self.initialize(meas.stamp, pos, v, q, P)
+        if out.accepted:
+            self._diag.last_accepted[meas.source] = meas.stamp
+            self._diag.accepted[meas.source] += 1
+        return out
+
+    def waiting_for(self) -> str:
+        """What the filter waits for to initialise ("" once initialised), for diagnostics:
+        a bag whose GNSS ends before the second fix otherwise left only "not initialised"."""
+        if self.initialized:
+            return ""
+        p = self.params
+        if p.init_mode == "pose":
+            return "an initial pose and an IMU sample"
+        first = self._init_candidate
+        if first is None:
+            return f"a first {p.init_mode} measurement"
+        return (f"a second {p.init_mode} measurement {p.init_min_fix_interval:g} s or more "
+                f"after the one at {first.stamp:.3f} s (or one with velocity)")
+
+    def reset(self):
+        """Forget the estimate (keeps counters); re-initialises per ``init_mode``."""
+        self._clear()
+        self._diag.resets += 1
+
+    def _time_jump(self) -> Outcome:
+        """Bridge an IMU outage, or reset on any other confirmed jump and start the new
+        timeline with its samples."""
+        pending = self._timing.take_pending()
+        if self.initialized and 0 < pending[0][0] - self.t <= self.params.max_imu_outage:
+            for sample in pending:   # the first one integrates across the outage
+                self._integrate(*sample)
+            return Outcome(True, Reason.IMU_GAP)
+        last = self.state if self.initialized else None
+        self.reset()
+        self._last_good = last
+        self._reinit_after = pending[0][0] + self.params.reinit_timeout
+        for sample in pending:
+            self._integrate(*sample)
+        return Outcome(False, Reason.TIME_JUMP_RESET)
+
+    def _reinitialize(self, stamp: float) -> Outcome:
+        """Start again from the last good state with the initial covariance added: the
+        time across the jump is unknown, so the state is a guess that fixes must correct."""
+        s = self._last_good
+        P = s.covariance + self.default_covariance()
+        out = self.initialize(stamp, s.position, s.velocity, s.quaternion, 0.5 * (P + P.T),
+                              s.gyro_bias, s.accel_bias)
+        if not out.accepted:
+            return out
+        self._diag.reinitialisations += 1
+        return Outcome(True, Reason.REINITIALIZED)
+
+    # ------------------------------------------------------------------ IMU
+    def process_imu(self, stamp: float, gyro, accel) -> Outcome:
+        """Integrate one IMU sample.
+
+        Parameters
+        ----------
+        stamp : float
+            Sample time (s).
+        gyro : array_like, (3,)
+            Angular rate, body FLU (rad/s), bias not removed.
+        accel : array_like, (3,)
+            Specific force, body FLU (m/s^2), gravity not removed (level at rest reads
+            ``+g`` on z).
+
+        Returns
+        -------
+        Outcome
+            ``OK``/``IMU_GAP`` when integrated; ``INITIALIZED`` when a stored initial pose
+            started the filter; rejections: ``NON_FINITE``, ``BAD_SHAPE``, ``DUPLICATE``,
+            ``OUT_OF_ORDER``, ``NOT_INITIALIZED``, ``STAMP_OFF_PERIOD``;
+            ``TIME_JUMP_RESET`` after a reset, ``REINITIALIZED`` when it restarted from the
+            last good state.
+        """
+        # Plain floats: cheaper than numpy for 3-vectors at IMU rate.
+        try:
+            gyro = tuple(float(v) for v in np.ravel(gyro))
+            accel = tuple(float(v) for v in np.ravel(accel))
+            stamp = float(stamp)
+        except (TypeError, ValueError):
+            return self._refuse("imu", Reason.BAD_SHAPE)
+        if len(gyro) != 3 or len(accel) != 3:
+            return self._refuse("imu", Reason.BAD_SHAPE)
+        if not math.isfinite(stamp + sum(gyro) + sum(accel)):
+            return self._refuse("imu", Reason.NON_FINITE)
+        timing = self._timing.check(stamp, (stamp, gyro, accel))
+        if timing == ImuTiming.SUSPECT:
+            return self._refuse("imu", Reason.STAMP_OFF_PERIOD)
+        if timing == ImuTiming.JUMP:
+            return self._time_jump()
+        return self._integrate(stamp, gyro, accel)
+
+    def _integrate(self, stamp: float, gyro, accel) -> Outcome:
+        """A sample whose stamp passed the timing screen: integrate, buffer or refuse."""
+        if not self.initialized:
+            return self._imu_before_init(stamp, gyro, accel)
+        if stamp == self.t:
+            return self._refuse("imu", Reason.DUPLICATE)
+        if stamp < self.t:
+            return self._refuse("imu", Reason.OUT_OF_ORDER)
+        gap = stamp - self.t > self.params.max_imu_dt
+        self._advance(stamp, gyro, accel)
+        if gap:
+            self._diag.imu_gaps += 1
+            return Outcome(True, Reason.IMU_GAP)
+        return Outcome(True, Reason.OK)
+
+    def _imu_before_init(self, stamp, gyro, accel) -> Outcome:
+        if self.params.init_mode == "pose" and self._initial_pose is not None:
+            return self.initialize(stamp, *self._initial_pose)
+        if (self._last_good is not None and not self._init_source_seen
+                and stamp >= self._reinit_after):
+            return self._reinitialize(stamp)
+        buf = self._pre_init_imu
+        if buf and stamp <= buf[-1][0]:
+            return self._refuse("imu", Reason.OUT_OF_ORDER)
+        buf.append((stamp, gyro, accel))
+        while buf and buf[0][0] < stamp - self.params.history_length:
+            buf.popleft()
+        return self._refuse("imu", Reason.NOT_INITIALIZED)
+
+    def _predict(self, t_new: float, gyro, accel):
+        """Strapdown mean plus covariance ``P = F P F^T + Q`` over ``(self.t, t_new]``."""
+        dt = t_new - self.t
+        F = self._step.step(self._x, self.q, gyro, accel, dt)
+        P = self.kf.P
+        np.dot(F, P, out=self._tmp)
+        np.dot(self._tmp, F.T, out=P)
+        P += self._process_noise(dt)
+        self.t = t_new
+
+    def _process_noise(self, dt: float) -> np.ndarray:
+        if dt != self._q_dt:
+            Q = self._Q
+            np.multiply(self._Q1, dt, out=Q)
+            Q += self._Q2 * dt**2
+            Q += self._Q3 * dt**3
+            self._q_dt = dt
+        return self._Q
+
+    def _advance(self, t_new: float, gyro, accel):
+        """Integrate one IMU sample, applying logged measurements stamped in (t, t_new]."""
+        log = self._log
+        if log and log[-1].stamp > self.t:
+            i = bisect.bisect_right(log, self.t, key=lambda m: m.stamp)
+            for meas in log[i:]:
+                if meas.stamp > t_new:
+                    break
+                if meas.stamp > self.t:
+                    self._predict(meas.stamp, gyro, accel)
+                self._evaluate(meas)
+        if t_new > self.t:   # not already there because a measurement sat at t_new
+            self._predict(t_new, gyro, accel)
+        self._store(gyro, accel)
+
+    def _store(self, gyro, accel):
+        """Append the current state to the history and drop what fell out of it."""
+        hist = self._history
+        hist.append(_Entry(self.t, gyro, accel, self._x.copy(), self.q.copy(),
+                           self.kf.P.copy()))
+        horizon = self.t - self.params.history_length
+        while len(hist) > 1 and hist[1].t <= horizon:
+            hist.popleft()
+        while self._log and self._log[0].stamp < hist[0].t:
+            self._log.pop(0)
+
+    # ------------------------------------------------------------------ measurements
+    def process_fix(self, stamp: float, position, covariance, velocity=None, quaternion=None,
+                    source: str = "fix") -> Outcome:
+        """Position fix (optionally with velocity and/or attitude), e.g. a terrain PvaFix.
+
+        Parameters
+        ----------
+        stamp : float
+            Time the fix refers to (s); may be older than the newest IMU sample.
+        position : array_like, (3,)
+            ENU position (m).
+        covariance : array_like, (m, m)
+            Covariance of ``[position, velocity?, attitude?]`` in that order: 3x3, 6x6
+            (position + velocity or position + attitude) or 9x9. Attitude covariance is of
+            the small rotation about the ENU axes (rad^2), as in ROS PoseWithCovariance.
+        velocity : array_like, (3,), optional
+            ENU velocity (m/s).
+        quaternion : array_like, (4,), optional
+            Body -> ENU attitude ``[x, y, z, w]``.
+        source : str
+            Counter / gate key: ``"fix"`` (terrain) or ``"gnss"``.
+
+        Returns
+        -------
+        Outcome
+        """
+        parts = [np.asarray(position, dtype=float)]
+        rows = [np.arange(0, 3)]
+        if velocity is not None:
+            parts.append(np.asarray(velocity, dtype=float))
+            rows.append(np.arange(3, 6))
+        att = None
+        if quaternion is not None:
+            att = np.asarray(quaternion, dtype=float)
+            if att.shape != (4,):
+                return self._refuse(source, Reason.BAD_SHAPE)
+            if not np.isfinite(att).all():
+                return self._refuse(source, Reason.NON_FINITE)
+            att = _unit_quaternion(att)
+            if att is None:
+                return self._refuse(source, Reason.BAD_QUATERNION)
+            parts.append(np.zeros(3))
+            rows.append(np.arange(6, 9))
+        if any(p.shape != (3,) for p in parts):
+            return self._refuse(source, Reason.BAD_SHAPE)
+        return self._submit(stamp, source, np.concatenate(parts), covariance,
+                            np.concatenate(rows), att)
+
+    def process_gnss(self, stamp: float, position, covariance) -> Outcome:
+        """GNSS position already converted to the ENU map frame (m), with its 3x3 covariance
+        (NavSatFix's ``position_covariance`` is ENU).
+
+        With ``fuse_gnss=False`` GNSS only initialises the filter (``init_mode="gnss"``) and
+        is otherwise compared with the estimate: its NIS is recorded (reason
+        ``COMPARED_ONLY``) but the state is not updated, so a GPS-denied run can be scored
+        against GNSS while it is still available.
+        """
+        return self.process_fix(stamp, position, covariance, source="gnss")
+
+    def process_baro(self, stamp: float, altitude: float, variance: float) -> Outcome:
+        """Barometric altitude as ENU up (m, already referred to the map origin height),
+        with its variance (m^2)."""
+        return self._submit(stamp, "baro", np.atleast_1d(np.asarray(altitude, dtype=float)),
+                            np.atleast_2d(np.asarray(variance, dtype=float)), np.array([2]),
+                            None)
+
+    def _submit(self, stamp, source, z, covariance, rows, attitude) -> Outcome:
+        """Validate, log and apply (now, queued or in the past) one measurement."""
+        m = len(z)
+        R = np.asarray(covariance, dtype=float)
+        if R.shape != (m, m):
+            return self._refuse(source, Reason.BAD_SHAPE)
+        if not (np.isfinite(z).all() and np.isfinite(R).all() and np.isfinite(stamp)):
+            return self._refuse(source, Reason.NON_FINITE)
+        if not _is_pd(R):
+            return self._refuse(source, Reason.BAD_COVARIANCE)
+        meas = _Measurement(float(stamp), next(self._seq), source, z.copy(), 0.5 * (R + R.T),
+                            rows, attitude)
+        if not self.initialized:
+            if source == self.params.init_mode:
+                return self._init_from_measurement(meas)
+            return self._refuse(source, Reason.NOT_INITIALIZED)
+        if any(o.stamp == meas.stamp and o.source == source for o in self._log):
+            return self._refuse(source, Reason.DUPLICATE)
+        if meas.stamp - self.t > self.params.max_future:
+            return self._refuse(source, Reason.TOO_FAR_AHEAD)
+        if meas.stamp < self._history[0].t:
+            return self._refuse(source, Reason.STALE)
+        if source in self._reset_armed:   # divergence recovery armed by _record
+            meas.reset = True
+            self._reset_armed.discard(source)
+        bisect.insort(self._log, meas, key=lambda o: o.key)
+        if meas.stamp > self.t:
+            return Outcome(True, Reason.QUEUED)
+        self._apply_in_past(meas)
+        return meas.outcome
+
+    def _apply_in_past(self, meas: _Measurement):
+        """Rewind to the last history entry at or before the stamp, apply, re-propagate."""
+        hist = self._history
+        replay = []
+        while hist[-1].t > meas.stamp:
+            replay.append(hist.pop())
+        e = hist[-1]
+        self._x[:] = e.x
+        self.q[:] = e.q
+        self.kf.P = e.P.copy()
+        self.t = e.t
+        if meas.stamp == e.t:
+            # Entry already holds the measurements stamped at e.t: apply this one and
+            # overwrite the entry so a later rewind to e.t includes it.
+            self._evaluate(meas)
+            hist.pop()
+            self._history.append(_Entry(e.t, e.gyro, e.accel, self._x.copy(), self.q.copy(),
+                                        self.kf.P.copy()))
+        for entry in reversed(replay):
+            self._advance(entry.t, entry.gyro, entry.accel)
+
+    def _evaluate(self, meas: _Measurement):
+        """Gate and apply a measurement at the current filter time; record the outcome."""
+        if meas.reset:
+            outcome = self._position_reset(meas)
+        else:
+            outcome = self._update(meas)
+        self._record(meas, outcome)
+
+    def _innovation(self, meas: _Measurement):
+        z = meas.z.copy()
+        if meas.attitude is not None:
+            # Attitude rows measure dtheta: the rotation from the nominal to the measured
+            # attitude, about the ENU axes.
+            z[-3:] = attitude_error(meas.attitude, self.q)
+        H = np.zeros((len(z), DIM_ERR))
+        H[np.arange(len(z)), meas.rows] = 1.0
+        return z, H
+
+    def _update(self, meas: _Measurement) -> Outcome:
+        z, H = self._innovation(meas)
+        P = self.kf.P
+        y = z - self._x[meas.rows]
+        S = P[np.ix_(meas.rows, meas.rows)] + meas.R
+        try:
+            L = np.linalg.cholesky(S)
+        except np.linalg.LinAlgError:
+            return Outcome(False, Reason.BAD_COVARIANCE)
+        w = np.linalg.solve(L, y)
+        nis = float(w @ w)
+        gate = _gate(self.params.gate_probability(meas.source), len(z))
+        if meas.source == "gnss" and not self.params.fuse_gnss:
+            return Outcome(False, Reason.COMPARED_ONLY, nis, gate)
+        if nis > gate:
+            return Outcome(False, Reason.GATED, nis, gate)
+        self.kf.update(z.reshape(-1, 1), HJacobian=lambda _x: H, Hx=lambda x: H @ x, R=meas.R)
+        self._x = self.kf.x[:, 0]
+        self._inject_attitude()
+        return Outcome(True, Reason.OK, nis, gate)
+
+    def _inject_attitude(self):
+        """Fold dtheta into the quaternion, zero it and rotate P with the reset Jacobian."""
+        dth = self._x[IDX_TH].copy()
+        if not dth.any():
+            return
+        self.q = quat_normalize(quat_multiply(quat_exp(dth), self.q))
+        self._x[IDX_TH] = 0.0
+        G = np.eye(DIM_ERR)
+        G[IDX_TH, IDX_TH] -= 0.5 * skew(dth)
+        P = G @ self.kf.P @ G.T
+        self.kf.P = 0.5 * (P + P.T)
+
+    def _position_reset(self, meas: _Measurement) -> Outcome:
+        """Replace the position by the measurement's, decorrelated from the rest: recovery
+        when the filter has diverged. Velocity and attitude stay with the IMU: a terrain
+        fix's velocity is a difference of two fixes (tens of m/s of noise at 1 s) and its
+        tilt is unobserved, so adopting them outright can throw the filter further off."""
+        z, _ = self._innovation(meas)
+        keep = meas.rows < 3
+        r = meas.rows[keep]
+        P = self.kf.P
+        P[r, :] = 0.0
+        P[:, r] = 0.0
+        P[np.ix_(r, r)] = meas.R[np.ix_(keep, keep)]
+        self._x[r] = z[keep]
+        return Outcome(True, Reason.POSITION_RESET)
+
+    def _record(self, meas: _Measurement, outcome: Outcome):
+        """Count an evaluation once; on re-application only fix up a changed decision."""
+        d = self._diag
+        first = meas.outcome is None
+        if outcome.reason == Reason.COMPARED_ONLY:
+            if first:
+                d.records.append(UpdateRecord(meas.stamp, meas.source, len(meas.z),
+                                              outcome.nis, outcome.gate, False))
+            meas.outcome = outcome
+            return
+        if first or meas.outcome.accepted != outcome.accepted:
+            if not first:
+                (d.accepted if meas.outcome.accepted else d.rejected)[meas.source] -= 1
+            (d.accepted if outcome.accepted else d.rejected)[meas.source] += 1
+        if first and outcome.nis is not None:
+            d.records.append(UpdateRecord(meas.stamp, meas.source, len(meas.z), outcome.nis,
+                                          outcome.gate, outcome.accepted))
+        if outcome.accepted:
+            d.last_accepted[meas.source] = max(meas.stamp,
+                                               d.last_accepted.get(meas.source, -np.inf))
+        if first:
+            if outcome.reason == Reason.POSITION_RESET:
+                d.position_resets += 1
+            if outcome.accepted:
+                self._consecutive[meas.source] = 0
+            else:
+                self._consecutive[meas.source] += 1
+                n = self.params.reset_after_rejections
+                if n and self._consecutive[meas.source] >= n:
+                    self._arm_reset(meas.source)
+        meas.outcome = outcome
+
+    def _arm_reset(self, source: str):
+        """Turn the next measurement of ``source`` to arrive into a position reset."""
+        self._consecutive[source] = 0
+        self._reset_armed.add(source)
+
+    def _refuse(self, source: str, reason: Reason) -> Outcome:
+        self._diag.input_rejections[f"{source}:{reason.value}"] += 1
+        return Outcome(False, reason)
+
+
+def _is_pd(R: np.ndarray) -> bool:
+    """True for a finite, symmetric (to rounding), positive-definite matrix."""
+    if not np.isfinite(R).all():
+        return False
+    scale = max(float(np.abs(R).max()), 1e-300)
+    if np.abs(R - R.T).max() > 1e-9 * scale:
+        return False
+    try:
+        np.linalg.cholesky(R)
+    except np.linalg.LinAlgError:
+        return False
+    return True
+
+
+def _unit_quaternion(q: np.ndarray) -> np.ndarray | None:
+    """Normalised copy of a quaternion whose norm is within 1 % of one, else None."""
+    n = float(np.linalg.norm(q))
+    if not abs(n - 1.0) < 0.01:
+        return None
+    return quat_normalize(q)

@@ -1,0 +1,202 @@
+"""The ``ekf`` node's health report and refusal logs, without ROS.
+
+What :mod:`terrain_nav_ros.nodes.ekf_node` publishes on ``/nav/ekf/diagnostics`` and logs,
+computed from the filter's :class:`~.ekf.EkfDiagnostics`: the filter's level (OK, WARN,
+ERROR) with the problems that set it (:func:`filter_health`), its key-value report
+(:func:`filter_values`), one report per measurement source with the NIS of the updates since
+the previous report (:func:`source_report`, :class:`NewRecords`), and throttled refusal logs
+(:class:`RefusalLog`). The levels are ``diagnostic_msgs/DiagnosticStatus``'s.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .ekf import EkfDiagnostics
+
+OK, WARN, ERROR = 0, 1, 2
+SOURCES = ("fix", "baro", "gnss")
+
+
+@dataclass(frozen=True)
+class HealthLimits:
+    """When the filter's report turns WARN or ERROR.
+
+    Attributes
+    ----------
+    fix_warn, fix_error : float
+        Filter time without an accepted fix or GNSS (s).
+    sigma_warn, sigma_error : float
+        Position sigma (m).
+    imu_timeout : float
+        Wall time without an IMU sample before ERROR (s).
+    """
+
+    fix_warn: float = 30.0
+    fix_error: float = 120.0
+    sigma_warn: float = 50.0
+    sigma_error: float = 200.0
+    imu_timeout: float = 1.0
+
+
+@dataclass
+class Health:
+    """A level and the problems that set it."""
+
+    level: int = OK
+    problems: list[str] = field(default_factory=list)
+
+    def worse(self, level: int, text: str):
+        """Raise the level to at least ``level`` and note why."""
+        self.level = max(self.level, level)
+        self.problems.append(text)
+
+    @property
+    def message(self) -> str:
+        """The problems, or "ok"."""
+        return "; ".join(self.problems) or "ok"
+
+
+def time_since_fix(d: EkfDiagnostics) -> float | None:
+    """Filter time since the last accepted fix or GNSS (None if never)."""
+    ages = [a for a in (d.time_since("fix"), d.time_since("gnss")) if a is not None]
+    return min(ages) if ages else None
+
+
+def filter_health(d: EkfDiagnostics, since_imu: float, waiting_for: str,
+                  limits: HealthLimits, refused_stamps: int = 0,
+                  gated: int = 0) -> Health:
+    """The filter's level and problems.
+
+    Parameters
+    ----------
+    d : EkfDiagnostics
+    since_imu : float
+        Wall time since the last IMU sample (or since start-up) (s).
+    waiting_for : str
+        What an uninitialised filter waits for (:meth:`~.ekf.TerrainEkf.waiting_for`).
+    limits : HealthLimits
+    refused_stamps : int
+        IMU stamps refused since the previous report.
+    gated : int
+        Measurements the chi-square gate rejected since the previous report.
+    """
+    health = Health()
+    if since_imu > limits.imu_timeout:
+        health.worse(ERROR, f"no IMU for {since_imu:.1f} s")
+    if not d.initialized:
+        health.worse(WARN, f"not initialised: waiting for {waiting_for}")
+    since_fix = time_since_fix(d)
+    if d.initialized:
+        if since_fix is None:
+            health.worse(WARN, "no fix accepted yet")
+        elif since_fix > limits.fix_error:
+            health.worse(ERROR, f"no accepted fix for {since_fix:.0f} s")
+        elif since_fix > limits.fix_warn:
+            health.worse(WARN, f"no accepted fix for {since_fix:.0f} s")
+        if d.position_sigma > limits.sigma_error:
+            health.worse(ERROR, f"position sigma {d.position_sigma:.0f} m")
+        elif d.position_sigma > limits.sigma_warn:
+            health.worse(WARN, f"position sigma {d.position_sigma:.0f} m")
+    if refused_stamps:
+        health.worse(WARN, f"{refused_stamps} IMU stamp(s) far from the expected period refused")
+    if gated:
+        health.worse(WARN, f"{gated} measurement(s) rejected by the gate")
+    return health
+
+
+def gated_records(records, fuse_gnss: bool) -> list:
+    """The records the chi-square gate rejected (GNSS only when it is fused)."""
+    return [r for r in records if not r.accepted and r.nis > r.gate
+            and (r.source != "gnss" or fuse_gnss)]
+
+
+def filter_values(d: EkfDiagnostics, init_mode: str, imu_received: int, imu_dt: float,
+                  no_fix_messages: int, baro_offset: float | None, origin,
+                  node_rejections: Counter) -> dict:
+    """The filter report's key-value pairs (``rejected_input/<source>:<reason>`` counts the
+    core's and the node's refusals together)."""
+    since_fix = time_since_fix(d)
+    rejections = Counter(d.input_rejections)
+    rejections.update(node_rejections)
+    values = {
+        "initialized": d.initialized, "init_mode": init_mode,
+        "filter_time": "nan" if d.stamp is None else f"{d.stamp:.3f}",
+        "time_since_last_fix": float("nan") if since_fix is None else since_fix,
+        "position_sigma_m": d.position_sigma, "covariance_trace": d.covariance_trace,
+        "resets": d.resets, "reinitialisations": d.reinitialisations,
+        "imu_stamps_refused": d.imu_stamps_refused,
+        "position_resets": d.position_resets, "imu_gaps": d.imu_gaps,
+        "imu_received": imu_received, "imu_rate_hz": 1.0 / imu_dt,
+        "no_fix_messages": no_fix_messages,
+        "baro_offset_m": float("nan") if baro_offset is None else baro_offset,
+        "enu_origin": "unknown" if origin is None else
+        f"{origin.lat:.7f},{origin.lon:.7f},{origin.alt:.2f}",
+    }
+    values.update({f"rejected_input/{k}": v for k, v in sorted(rejections.items())})
+    return values
+
+
+def source_report(d: EkfDiagnostics, source: str, new) -> tuple[str, dict]:
+    """One measurement source's message and key-value pairs: its counts, last and mean NIS
+    over the records kept, and the NIS of the records ``new`` since the previous report
+    (``!`` marks a rejected one)."""
+    recs = [r for r in d.records if r.source == source]
+    mine = [r for r in new if r.source == source]
+    last = recs[-1] if recs else None
+    return f"{len(mine)} update(s) since the last report", {
+        "accepted": d.accepted[source], "rejected": d.rejected[source],
+        "last_nis": last.nis if last else float("nan"),
+        "gate": last.gate if last else float("nan"),
+        "dof": last.dim if last else 0,
+        "mean_nis": float(np.mean([r.nis for r in recs])) if recs else float("nan"),
+        "nis": " ".join(f"{r.nis:.3g}{'' if r.accepted else '!'}" for r in mine),
+        "last_accepted_stamp": f"{d.last_accepted.get(source, math.nan):.3f}",
+    }
+
+
+class NewRecords:
+    """The filter's NIS records appended since the previous call (by identity: the record
+    list is a bounded deque)."""
+
+    def __init__(self):
+        self._last = None
+
+    def __call__(self, records) -> list:
+        new = []
+        for r in reversed(records):
+            if r is self._last:
+                break
+            new.append(r)
+        if records:
+            self._last = records[-1]
+        return new[::-1]
+
+
+class RefusalLog:
+    """Refusal logs at most once per ``period`` s per key, saying how many were skipped.
+
+    Parameters
+    ----------
+    period : float
+        Minimum time between two logs of one key (s).
+    """
+
+    def __init__(self, period: float):
+        self.period = period
+        self._last: dict[str, float] = {}
+        self._suppressed: Counter = Counter()
+
+    def text(self, key: str, text: str, now: float) -> str | None:
+        """The line to log for ``key`` at ``now``, or None while it is throttled."""
+        last = self._last.get(key)
+        if last is not None and now - last < self.period:
+            self._suppressed[key] += 1
+            return None
+        skipped = self._suppressed.pop(key, 0)
+        self._last[key] = now
+        return text + (f" ({skipped} more since the last report)" if skipped else "")

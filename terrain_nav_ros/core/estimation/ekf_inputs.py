@@ -1,0 +1,225 @@
+"""What the ``ekf`` node decides about its inputs before they reach the filter, without ROS.
+
+The node (:mod:`terrain_nav_ros.nodes.ekf_node`) converts messages to arrays and calls these;
+:class:`~.ekf.TerrainEkf` then fuses the result (dissertation chapter 4's fix fused with the
+strapdown solution of chapter 2's INS model).
+
+* Terrain fixes: the pose of the camera optical frame or of ``base_link``
+  (:class:`FixFrame`), and the covariance in the core's block order
+  (:func:`fix_covariance`).
+* GNSS: which fixes are refused (:func:`gnss_refusal`) and the covariance a fix without one
+  gets (:func:`gnss_covariance`).
+* Barometer: which samples are refused (:func:`baro_refusal`) and the offset from pressure
+  altitude to ENU up, set or learnt once (:class:`BaroOffset`).
+* The ENU origin: adopted from the first metamap georeference, asked for again when a request
+  goes unanswered (:class:`OriginHandshake`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..terrain.geodesy import EnuOrigin
+from .ekf import Reason
+from .strapdown import quat_to_matrix
+
+# sensor_msgs/NavSatFix position_covariance_type values the node treats specially
+COVARIANCE_TYPE_UNKNOWN = 0
+COVARIANCE_TYPE_DIAGONAL_KNOWN = 2
+FIX_POSE_FRAMES = ("camera_optical", "base_link")
+
+
+def body_attitude(q_enu_optical, optical_to_body: Rotation) -> np.ndarray:
+    """Body -> ENU quaternion ``[x, y, z, w]`` from the camera optical frame's attitude.
+
+    ``optical_to_body`` is the inverse of the body -> optical mount rotation
+    (:func:`~terrain_nav_ros.core.camera.camera_mount.mount_rotation`), so that
+    ``R_enu_body = R_enu_optical @ R_body_optical^T``. An attitude error expressed as a small
+    rotation about the ENU axes is the same for both frames, so the covariance carries over.
+    """
+    return (Rotation.from_quat(q_enu_optical) * optical_to_body).as_quat()
+
+
+class FixFrame:
+    """What a terrain fix's pose is of, and how to get ``base_link``'s from it.
+
+    Parameters
+    ----------
+    pose_frame : {"camera_optical", "base_link"}
+        The frame whose pose the fix gives.
+    optical_to_body : scipy.spatial.transform.Rotation
+        Camera optical -> body rotation (the inverse of the mount rotation).
+    lever_arm : array_like, shape (3,)
+        Camera optical centre in ``base_link`` (m).
+    """
+
+    def __init__(self, pose_frame: str, optical_to_body: Rotation, lever_arm):
+        self.pose_frame = self.checked_pose_frame(pose_frame)
+        self.optical_to_body = optical_to_body
+        self.lever_arm = np.asarray(lever_arm, float)
+
+    @staticmethod
+    def checked_pose_frame(pose_frame: str) -> str:
+        """``pose_frame`` if it is one of :data:`FIX_POSE_FRAMES`; else ValueError."""
+        if pose_frame not in FIX_POSE_FRAMES:
+            raise ValueError("fix_pose_frame must be camera_optical or base_link, not "
+                             f"{pose_frame!r}")
+        return pose_frame
+
+    def body_quaternion(self, q_fix) -> np.ndarray | None:
+        """Body attitude from the fix orientation (None if not a unit quaternion)."""
+        norm = float(np.linalg.norm(q_fix))
+        if not abs(norm - 1.0) < 0.01:
+            return None
+        q = np.asarray(q_fix, float) / norm
+        if self.pose_frame == "base_link":
+            return q
+        return body_attitude(q, self.optical_to_body)
+
+    def body_position(self, p_fix, q_body, q_estimate) -> np.ndarray:
+        """``base_link`` position from the fixed point (camera centre minus the lever arm,
+        turned by the fix's body attitude ``q_body`` or, without one, the estimate's)."""
+        if self.pose_frame == "base_link" or not self.lever_arm.any():
+            return np.asarray(p_fix, float)
+        q = q_body if q_body is not None else q_estimate
+        return np.asarray(p_fix, float) - quat_to_matrix(q) @ self.lever_arm
+
+
+def fix_covariance(covariance, velocity_covariance=None,
+                   with_attitude: bool = False) -> np.ndarray:
+    """A fix's covariance in the core's order ``[position, velocity?, attitude?]``.
+
+    Parameters
+    ----------
+    covariance : ndarray, shape (6, 6)
+        Pose covariance (position, then rotation about the ENU axes).
+    velocity_covariance : ndarray, shape (3, 3), optional
+        When the fix has a velocity; its cross terms with the pose are unknown (zero).
+    with_attitude : bool
+        Whether the fix's attitude is used.
+    """
+    covariance = np.asarray(covariance, float)
+    blocks = [covariance[:3, :3]]
+    if velocity_covariance is not None:
+        blocks.append(np.asarray(velocity_covariance, float))
+    if with_attitude:
+        blocks.append(covariance[3:, 3:])
+    n = 3 * len(blocks)
+    cov = np.zeros((n, n))
+    for i, b in enumerate(blocks):
+        cov[3 * i:3 * i + 3, 3 * i:3 * i + 3] = b
+    if with_attitude:
+        cov[:3, -3:] = covariance[:3, 3:]
+        cov[-3:, :3] = covariance[3:, :3]
+    return cov
+
+
+def gnss_refusal(stamp: float, lla, has_origin: bool) -> tuple[str, str] | None:
+    """Why a GNSS fix (with a fix status) is refused, as ``(reason, detail)``, or None."""
+    if not (np.isfinite(lla).all() and math.isfinite(stamp)):
+        return Reason.NON_FINITE.value, ""
+    if abs(lla[0]) > 90.0 or abs(lla[1]) > 360.0:
+        return "latitude_longitude_out_of_range", f" {lla[:2]}"
+    if not has_origin:
+        return "no_enu_origin_yet", ""
+    return None
+
+
+def gnss_covariance(covariance, covariance_type: int, fallback_sigma) -> np.ndarray:
+    """The ENU covariance to fuse a GNSS fix with: ``fallback_sigma`` squared when the fix
+    gives none, the diagonal when only that is known, else the fix's own.
+
+    NavSatFix covariance is ENU at the receiver; at mission distances (tens of km) its axes
+    differ from the map's by < 0.5 deg, which is ignored.
+    """
+    if covariance_type == COVARIANCE_TYPE_UNKNOWN:
+        return np.diag(np.square(fallback_sigma))
+    if covariance_type == COVARIANCE_TYPE_DIAGONAL_KNOWN:
+        return np.diag(np.diag(covariance))
+    return covariance
+
+
+def baro_refusal(stamp: float, pressure: float, variance: float) -> str | None:
+    """Why a pressure sample is refused (the detail of ``bad_pressure``), or None."""
+    if not (math.isfinite(pressure) and math.isfinite(variance) and pressure > 0
+            and variance >= 0 and math.isfinite(stamp)):
+        return f" {pressure} Pa (variance {variance})"
+    return None
+
+
+class BaroOffset:
+    """ENU up minus pressure altitude: set, or learnt once from the filter's own height.
+
+    The core has no baro-bias state, so the offset is constant: ``fixed`` when finite, else
+    learnt at the first sample after the filter's vertical sigma fell below ``max_sigma``
+    (from GNSS, the initial pose or fixes), and forgotten after a time-jump reset.
+
+    Parameters
+    ----------
+    fixed : float
+        The offset (m); NaN to learn it.
+    max_sigma : float
+        Learn once the filter's vertical sigma is below this (m).
+    """
+
+    def __init__(self, fixed: float, max_sigma: float):
+        self.fixed = fixed
+        self.max_sigma = max_sigma
+        self.value = fixed if math.isfinite(fixed) else None
+
+    def learn(self, stamp: float, altitude: float, ekf) -> bool:
+        """Set the offset from ``ekf``'s estimate (a :class:`~.ekf.TerrainEkf`) at a baro
+        sample of pressure altitude ``altitude`` if its height is known well enough and its
+        time is the sample's; returns whether the offset is known now."""
+        if self.value is not None:
+            return True
+        if not ekf.initialized or abs(stamp - ekf.t) > 0.1:
+            return False
+        if math.sqrt(ekf.state.covariance[2, 2]) > self.max_sigma:
+            return False
+        s = ekf.state
+        self.value = float(s.position[2] + s.velocity[2] * (stamp - s.stamp)) - altitude
+        return True
+
+    def forget(self):
+        """After a filter reset: learn again (a set offset stays)."""
+        if not math.isfinite(self.fixed):
+            self.value = None
+
+
+class OriginHandshake:
+    """The ENU origin from the metamap: the first georeference wins; a request for it that
+    goes unanswered ``resend_after`` s is sent again.
+
+    A request sent just as the metamap appears can be lost (the client sees the service
+    before the service has matched the client, ros2/rclcpp#625).
+    """
+
+    def __init__(self, origin: EnuOrigin | None = None, resend_after: float = 5.0):
+        self.origin = origin
+        self.resend_after = resend_after
+        self.asked_at = -math.inf
+
+    def adopt(self, lat: float, lon: float, alt: float) -> bool:
+        """Take this origin unless one is known; raises ValueError for an unusable one.
+        Returns whether it was adopted."""
+        if self.origin is not None:
+            return False
+        self.origin = EnuOrigin(lat, lon, alt)
+        return True
+
+    def request(self, now: float, pending: bool) -> str:
+        """What to do about the request now: "done" (origin known), "wait" (an answer may
+        still come), "resend" (the pending one is lost: drop it and ask again) or "send"."""
+        if self.origin is not None:
+            return "done"
+        if pending:
+            return "wait" if now - self.asked_at < self.resend_after else "resend"
+        return "send"
+
+    def sent(self, now: float):
+        """A request went out at ``now``."""
+        self.asked_at = now

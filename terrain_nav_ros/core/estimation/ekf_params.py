@@ -1,0 +1,166 @@
+"""Parameters of the terrain-navigation EKF, with units and defaults.
+
+The names are the ROS parameter names the ``ekf`` node declares (``config/ekf.yaml``), so the
+node can map them one to one with ``EkfParams(**{name: node.get_parameter(name).value ...})``.
+
+IMU defaults: ScanEagle-class tactical/industrial MEMS IMU
+----------------------------------------------------------
+The numbers are representative of the MEMS units flown in ScanEagle-class small UAS
+autopilots (e.g. Analog Devices ADIS1646x/1648x, VectorNav VN-100/VN-300 class), rounded
+up rather than down so a real unit of that class is not over-trusted:
+
+=============================  =====================  ============================================
+gyro_noise_density             1.7e-4 rad/s/sqrt(Hz)  0.01 deg/s/sqrt(Hz) = 0.6 deg/sqrt(h) ARW
+accel_noise_density            1.0e-3 m/s^2/sqrt(Hz)  ~100 micro-g/sqrt(Hz) = 0.06 m/s/sqrt(h) VRW
+gyro_bias_random_walk          5.0e-6 rad/s^2/sqrt(Hz)  bias wanders ~ 25 deg/h (1 sigma) per hour
+accel_bias_random_walk         1.0e-4 m/s^3/sqrt(Hz)  bias wanders ~ 0.6 mg (1 sigma) per hour
+init_gyro_bias_sigma           2.5e-4 rad/s           ~50 deg/h residual turn-on bias after the
+                                                      usual pre-launch gyro zeroing on the ground
+init_accel_bias_sigma          2.0e-2 m/s^2           ~2 mg turn-on bias
+=============================  =====================  ============================================
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+
+@dataclass
+class EkfParams:
+    """Settings of :class:`terrain_nav_ros.core.estimation.ekf.TerrainEkf` (SI units throughout).
+
+    Attributes
+    ----------
+    gravity : float
+        Magnitude of gravity (m/s^2); acts along -z of the ENU map frame. Default 9.80665.
+    gyro_noise_density : float
+        Gyro white noise (angle random walk), rad/s/sqrt(Hz). Default 1.7e-4.
+    accel_noise_density : float
+        Accelerometer white noise (velocity random walk), m/s^2/sqrt(Hz). Default 1.0e-3.
+    gyro_bias_random_walk : float
+        Gyro bias random walk, rad/s^2/sqrt(Hz). Default 5.0e-6.
+    accel_bias_random_walk : float
+        Accelerometer bias random walk, m/s^3/sqrt(Hz). Default 1.0e-4.
+    init_position_sigma : float
+        1-sigma position uncertainty when initialising from a pose without covariance (m).
+        Default 10.0.
+    init_velocity_sigma : float
+        1-sigma velocity uncertainty at initialisation (m/s). Default 2.0.
+    init_roll_pitch_sigma : float
+        1-sigma roll/pitch uncertainty at initialisation (rad). Default 0.0087 (0.5 deg),
+        what accelerometer levelling or a hand-over from the autopilot's AHRS gives.
+    init_yaw_sigma : float
+        1-sigma yaw uncertainty at initialisation (rad). Default 0.035 (2 deg), a hand-over
+        from GNSS-aided heading. Larger initial attitude errors make any EKF of this kind
+        overconfident in yaw (it linearises at a tilted/rotated estimate, which invents yaw
+        information in straight flight): with 2 / 5 deg the Monte Carlo NEES grew to ~18 for
+        15 states; with 0.5 / 2 deg it stays at 15. Use larger values when that is the truth
+        (the filter still converges in turns), but expect an optimistic yaw sigma.
+    init_gyro_bias_sigma : float
+        1-sigma gyro turn-on bias left after pre-launch zeroing (rad/s). Default 2.5e-4.
+    init_accel_bias_sigma : float
+        1-sigma accelerometer turn-on bias (m/s^2). Default 2.0e-2.
+    init_mode : str
+        How the filter starts: ``"pose"`` (a pose given with ``set_initial_pose``, re-used
+        after a time-jump reset), ``"gnss"`` (first GNSS fixes), ``"fix"`` (first terrain
+        fixes). Default ``"fix"``.
+    init_min_fix_interval : float
+        When initialising from fixes that carry no velocity, the second fix used to derive
+        velocity and course must be at least this much later than the first (s). Default 10.0.
+    fix_gate_probability : float
+        Chi-square gate probability for terrain fixes (dof = measurement dimension); >= 1
+        disables gating. Default 0.999.
+    baro_gate_probability : float
+        Same for barometric altitude. Default 0.999.
+    gnss_gate_probability : float
+        Same for GNSS position. Default 0.999.
+    fuse_gnss : bool
+        If False, GNSS is used to initialise and is compared with the estimate (NIS
+        recorded) but never updates it. Default True.
+    reset_after_rejections : int
+        After this many consecutive gated-out measurements from one source, the position is
+        reset to the next one of that source (recovers from divergence); 0 disables.
+        Default 10.
+    history_length : float
+        Length of the state / IMU history used for delayed measurements (s). Measurements
+        older than the history are rejected as stale. Default 3.0.
+    max_future : float
+        A measurement stamped up to this far ahead of the newest IMU sample is queued and
+        applied when the IMU reaches its stamp; further ahead it is rejected (s). Default 0.5.
+    time_jump_reset : float
+        An IMU stamp this far from the previous one, back or ahead, is refused as a glitch
+        unless ``time_jump_confirm`` samples continue from it (bag loop, simulator restart),
+        which resets the filter; smaller backward steps are rejected as out of order (s).
+        Default 1.0.
+    time_jump_confirm : int
+        Consecutive samples, each within ``max_imu_dt`` of the previous, that confirm a time
+        jump. Default 5 (50 ms at 100 Hz): one or a few bad stamps never reset the filter.
+    max_imu_outage : float
+        A confirmed jump ahead of up to this long is an IMU outage, not a new timeline: the
+        filter integrates across it as a gap (as it does for any gap shorter than
+        ``time_jump_reset``) instead of resetting (s). Default 10.0.
+    reinit_timeout : float
+        After a reset with ``init_mode`` gnss or fix, when no measurement of that source came
+        within this time of the new timeline, the filter restarts from its last good state
+        with the initial covariance added, instead of waiting for a source that may be gone
+        (GNSS denied) (s). Default 2.0.
+    max_imu_dt : float
+        IMU intervals longer than this are integrated but flagged as a gap (s). Default 0.1.
+    nis_history_length : int
+        Number of per-update NIS records kept in the diagnostics. Default 200.
+    """
+
+    gravity: float = 9.80665
+    gyro_noise_density: float = 1.7e-4
+    accel_noise_density: float = 1.0e-3
+    gyro_bias_random_walk: float = 5.0e-6
+    accel_bias_random_walk: float = 1.0e-4
+    init_position_sigma: float = 10.0
+    init_velocity_sigma: float = 2.0
+    init_roll_pitch_sigma: float = float(np.deg2rad(0.5))
+    init_yaw_sigma: float = float(np.deg2rad(2.0))
+    init_gyro_bias_sigma: float = 2.5e-4
+    init_accel_bias_sigma: float = 2.0e-2
+    init_mode: str = "fix"
+    init_min_fix_interval: float = 10.0
+    fix_gate_probability: float = 0.999
+    baro_gate_probability: float = 0.999
+    gnss_gate_probability: float = 0.999
+    fuse_gnss: bool = True
+    reset_after_rejections: int = 10
+    history_length: float = 3.0
+    max_future: float = 0.5
+    time_jump_reset: float = 1.0
+    time_jump_confirm: int = 5
+    max_imu_outage: float = 10.0
+    reinit_timeout: float = 2.0
+    max_imu_dt: float = 0.1
+    nis_history_length: int = 200
+
+    def __post_init__(self):
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, (int, float)) and not np.isfinite(value):
+                raise ValueError(f"EkfParams.{f.name} must be finite, got {value}")
+        positive = ("gravity", "gyro_noise_density", "accel_noise_density",
+                    "init_position_sigma", "init_velocity_sigma", "init_roll_pitch_sigma",
+                    "init_yaw_sigma", "history_length", "time_jump_reset", "max_imu_dt")
+        for name in positive:
+            if getattr(self, name) <= 0:
+                raise ValueError(f"EkfParams.{name} must be > 0, got {getattr(self, name)}")
+        for name in ("fix_gate_probability", "baro_gate_probability", "gnss_gate_probability"):
+            if not 0.0 < getattr(self, name):
+                raise ValueError(f"EkfParams.{name} must be in (0, 1], got {getattr(self, name)}")
+        if self.time_jump_confirm < 1 or self.reinit_timeout < 0 or self.max_imu_outage < 0:
+            raise ValueError("EkfParams.time_jump_confirm must be >= 1, reinit_timeout and "
+                             f"max_imu_outage >= 0, got {self.time_jump_confirm}, "
+                             f"{self.reinit_timeout}, {self.max_imu_outage}")
+        if self.init_mode not in ("pose", "gnss", "fix"):
+            raise ValueError("EkfParams.init_mode must be pose, gnss or fix, "
+                             f"not {self.init_mode!r}")
+
+    def gate_probability(self, source: str) -> float:
+        """Gate probability configured for a measurement source (fix, baro, gnss)."""
+        return getattr(self, f"{source}_gate_probability", self.fix_gate_probability)

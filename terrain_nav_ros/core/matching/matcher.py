@@ -1,0 +1,398 @@
+"""Minutiae-based terrain matching and localisation (dissertation chapter 4).
+
+Pipeline (same for block-vs-block :func:`compare` and camera-in-region :func:`localise`):
+
+1. **Candidates.** Edge correspondences (a pair of minutiae in A matched to a pair in B whose
+   length and two relative angles agree; see :mod:`.descriptors`). Two generators:
+   ``"hash"`` looks every edge of A up in a hash of B's edges (complete, best for blocks);
+   ``"roots"`` first picks, for each minutia of A, the ``k_roots`` minutiae of B with the most
+   similar shape context descriptor and compares only their local edges (the
+   reference-pair selection of dissertation 4.2.2; bounded cost for a large landmark region).
+   Every candidate is a minimal sample: two point correspondences fix a similarity transform.
+   Its vote is weighted by the descriptor similarity of both correspondences.
+2. **Consensus.** Hough voting of the candidate rotations, then of the translations at each
+   rotation peak; the strongest (rotation, translation) cells give hypotheses with their
+   supporting correspondences.
+3. **Registration.** Vectorised 2-point RANSAC over each hypothesis' correspondences, least
+   squares (complex Procrustes) on the inliers, then guided pairing over all minutiae and a
+   final least-squares fit on the pairings, with a covariance from the residuals.
+4. **Pairings** are one-to-one minutiae that agree within ``pos_tol`` px and ``angle_tol`` after
+   the transform.
+5. **Score** (see :func:`~.significance.significance`): ``-log10`` of the chance of pairings this
+   many and this close (position and direction residuals) between unrelated minutiae, given the
+   densities in the overlap, the tolerances and the size of the searched transform space.
+   One threshold then means one false-match rate at any minutia count and any search area,
+   which ``pairings`` or ``pairings**2/(n1*n2)`` do not give (both are inflated for small
+   sets). :func:`~.significance.calibrate_threshold` sets the threshold from non-PVA scores.
+6. **Crease check** (when both sets come with their crease skeletons,
+   :mod:`.crease_check`): every registered hypothesis is refined and scored, the agreement of
+   the crease pixels outside the paired minutiae's surroundings is added to its score (a
+   binomial tail against the local chance of agreement), and the best total wins.
+7. **Crease search** (:mod:`.crease_search`): when the smaller set has too few minutiae for
+   their pair votes to propose the transform (a ~60 px block: 3-9 minutiae, 0-2 of them
+   repeating), a brute-force FFT search over rotations and translations of the crease
+   skeletons proposes more registrations, refined and scored by the crease check like the
+   others. A search too large for the fine level (a block in its localisation region) runs
+   at the coarse one, its proposals pulled onto the creases by the coarse-to-fine ICP.
+
+All internal geometry is in the math frame ``z = col - 1j*row`` (see :mod:`.descriptors`);
+results are reported in pixel coordinates.
+
+This module is the front end (:class:`Matcher`, :func:`compare`, :func:`localise`) and the
+choice among registrations; the steps live beside it: the settings in :mod:`.params`, the
+prepared sets in :mod:`.index`, step 1 in :mod:`.proposals`, 2 in :mod:`.consensus`, 3 and 4
+in :mod:`.registration`, 5 in :mod:`.significance` and :mod:`.scoring` (with 6), 7 in
+:mod:`.crease_proposals`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from enum import StrEnum
+
+import cv2
+import numpy as np
+
+from ..features.minutia_set import MinutiaSet
+from .consensus import _hypotheses
+from .crease_check import CreaseEvidence, crease_covariance
+from .crease_proposals import _crease_search_registrations, _searches_creases, _view_search_level
+from .index import MinutiaIndex, _as_index, _generator
+from .params import MatchParams
+from .proposals import _hash_votes, _root_votes
+from .registration import _covariance, _pixel_transform, _refine, _register
+from .scoring import _refined_on_creases, _Scored, _scored
+from .significance import _best_possible_score, _log10_transforms
+
+
+class Decision(StrEnum):
+    """Outcome of a comparison."""
+
+    MATCH = "match"
+    NO_MATCH = "no_match"
+    NO_DECISION = "no_decision"
+
+
+@dataclass
+class MatchResult:
+    """Outcome of :func:`compare` or :func:`localise`.
+
+    Attributes
+    ----------
+    decision : Decision
+    score : float
+        Significance score (see :func:`~.significance.significance`); -inf when nothing was
+        registered.
+    n_pairings : int
+    pairings : ndarray, shape (m, 2)
+        Index in A and index in B of each pairing.
+    transform : ndarray, shape (2, 3)
+        Pixel transform A -> B: ``[col', row'] = transform @ [col, row, 1]``; the form is
+        ``[[a, b, tx], [-b, a, ty]]`` with ``a = s cos(theta)``, ``b = s sin(theta)``.
+    rotation : float
+        theta (rad), CCW in the north-up map (minutia angles grow by theta).
+    scale : float
+    scale_estimated : bool
+        Whether the scale was fitted (else it is 1 by construction).
+    covariance : ndarray, shape (4, 4)
+        Covariance of (a, b, tx, ty) from the fit residuals.
+    rms : float
+        RMS pairing residual (px).
+    n_a, n_b : int
+        Minutiae in each set.
+    n_overlap : tuple of int
+        Minutiae of A inside B's footprint and of B inside A's, after the transform.
+    expected_chance : float
+        Pairings expected by chance at this transform (Poisson mean).
+    pairing_ratio : float
+        ``n_pairings**2 / (n_overlap_a * n_overlap_b)``, the classical normalised count.
+    creases : CreaseEvidence or None
+        Agreement of the crease skeletons at the transform (its ``score`` is included in
+        ``score``), when both sets came with crease images and the crease check is on.
+    ridges : CreaseEvidence or None
+        The same for the ridge skeletons, when the ridge check applied.
+    reason : str
+        Why the decision is "no decision" or "no match", for logs and messages.
+    """
+
+    decision: Decision
+    score: float = -np.inf
+    n_pairings: int = 0
+    pairings: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.intp))
+    transform: np.ndarray = field(default_factory=lambda: np.full((2, 3), np.nan))
+    rotation: float = np.nan
+    scale: float = np.nan
+    scale_estimated: bool = False
+    covariance: np.ndarray = field(default_factory=lambda: np.full((4, 4), np.nan))
+    rms: float = np.nan
+    n_a: int = 0
+    n_b: int = 0
+    n_overlap: tuple[int, int] = (0, 0)
+    expected_chance: float = np.nan
+    pairing_ratio: float = 0.0
+    creases: CreaseEvidence | None = None
+    ridges: CreaseEvidence | None = None
+    reason: str = ""
+
+    @property
+    def matched(self) -> bool:
+        """True when the decision is a match."""
+        return self.decision == Decision.MATCH
+
+    def apply(self, col, row) -> tuple[np.ndarray, np.ndarray]:
+        """Map pixel coordinates of A into B."""
+        col = np.asarray(col, float)
+        row = np.asarray(row, float)
+        m = self.transform
+        return m[0, 0] * col + m[0, 1] * row + m[0, 2], m[1, 0] * col + m[1, 1] * row + m[1, 2]
+
+    def point_covariance(self, col: float, row: float) -> np.ndarray:
+        """2x2 covariance (px^2) of the image in B of pixel (col, row) of A."""
+        j = np.array([[col, row, 1.0, 0.0], [row, -col, 0.0, 1.0]])
+        return j @ self.covariance @ j.T
+
+
+def _low(best: _Scored | None, n_scored: int, p: MatchParams) -> bool:
+    """Whether a try is not clear enough, on the evidence the wider tries were tuned for
+    (the ridges add to chance registrations too)."""
+    return best is None or (best.score - (best.ridges.score if best.ridges else 0.0)
+                            - math.log10(max(n_scored, 1))) < p.rescue_below
+
+
+def _registrations(hyps, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, rng):
+    """Registrations (c, t, pairings) of the hypotheses that come near the strongest, with
+    at least two pairings."""
+    registered = []
+    for h in hyps:
+        if h.support < p.min_support_ratio * hyps[0].support:
+            break   # a clear winner: weak cells cannot beat it
+        registered.append(_register(h, a, b, p, rng))
+    return [r for r in registered if len(r[2]) >= 2]
+
+
+def _best_registration(a: MinutiaIndex, b: MinutiaIndex, registered, search_area: float,
+                       p: MatchParams, use_creases: bool, searched=(),
+                       search_trials: float = 0.0, scored=()) -> tuple[_Scored | None, list]:
+    """The best registration, refined, and the scored ones it was chosen from (``scored``,
+    already scored, among them): (None, []) without any."""
+    if not use_creases:
+        if not registered:
+            return None, []
+        # the first registration with the most pairings (hypotheses come strongest first)
+        r = max(registered, key=lambda r: len(r[2]))
+        best = _scored(a, b, *_refine(a, b, *r, p), search_area, a.radius, p, False)
+        return best, [best]
+    # every registration refined and scored with its crease agreement (the searched ones
+    # are already on B's creases: a refit to their few minutiae pairings would undo that);
+    # the search over them is paid for like any other (Bonferroni)
+    scored = list(scored) + [_scored(a, b, *_refine(a, b, *r, p), search_area, a.radius, p,
+                                     True) for r in registered]
+    # a searched registration was picked among the search's transforms at the crease
+    # resolution, not the minutiae's: it pays for those instead
+    trials = search_trials - _log10_transforms(search_area, a.radius, p)
+    scored += [replace(s, score=s.score - trials, search_penalty=trials) for s in (
+        _scored(a, b, *r, search_area, a.radius, p, True) for r in searched)]
+    if not scored:
+        return None, []
+    best = max(scored, key=lambda s: s.score)
+    return _refined_on_creases(a, b, best, search_area, a.radius, p), scored
+
+
+class Matcher:
+    """Minutiae matcher (settings in the constructor, scikit-image style).
+
+    Parameters
+    ----------
+    params : MatchParams, optional
+    **overrides
+        Fields of :class:`MatchParams` to change, e.g. ``Matcher(threshold=4.0)``.
+    """
+
+    def __init__(self, params: MatchParams | None = None, **overrides):
+        self.params = replace(params or MatchParams(), **overrides)
+        # every comparison draws the same RANSAC samples: one generator, rewound to its
+        # seeded state (a new default_rng per comparison costs ~15 us)
+        self._rng = np.random.default_rng(self.params.seed)
+        self._rng_start = self._rng.bit_generator.state
+
+    def index(self, ms: MinutiaSet, crease: np.ndarray | None = None,
+              ridges: np.ndarray | None = None) -> MinutiaIndex:
+        """Prepare a set (with its crease and ridge skeletons) for repeated matching."""
+        return MinutiaIndex(ms, self.params, crease, ridges)
+
+    def compare(self, a, b, crease_a=None, crease_b=None) -> MatchResult:
+        """Block-vs-block similarity.
+
+        Parameters
+        ----------
+        a, b : MinutiaSet or MinutiaIndex
+        crease_a, crease_b : ndarray, optional
+            Crease images (used only when building indexes here; ridge skeletons come
+            with indexes, :meth:`index`).
+
+        Returns
+        -------
+        MatchResult
+            Transform maps A pixels to B pixels.
+        """
+        a = _as_index(a, self.params, crease_a)
+        b = _as_index(b, self.params, crease_b)
+        ra = float(np.sqrt(a.area / math.pi))
+        rb = float(np.sqrt(b.area / math.pi))
+        search = math.pi * (ra + rb) ** 2   # centre offsets with any overlap
+        return self._match(a, b, search, localising=False)
+
+    def localise(self, camera, landmark, crease_camera=None,
+                 crease_landmark=None) -> MatchResult:
+        """Find a camera minutia set inside a (much larger) landmark region.
+
+        Parameters
+        ----------
+        camera : MinutiaSet or MinutiaIndex
+        landmark : MinutiaSet or MinutiaIndex
+            Build a :class:`~.index.MinutiaIndex` once when the same region serves several frames.
+
+        Returns
+        -------
+        MatchResult
+            Transform maps camera pixels to landmark pixels, with covariance; use
+            :meth:`MatchResult.point_covariance` for e.g. the image centre.
+        """
+        a = _as_index(camera, self.params, crease_camera)
+        b = _as_index(landmark, self.params, crease_landmark)
+        return self._match(a, b, max(b.area, 1.0), localising=True)
+
+    def _match(self, a: MinutiaIndex, b: MinutiaIndex, search_area: float,
+               localising: bool) -> MatchResult:
+        p = self.params
+        base = MatchResult(Decision.NO_DECISION, n_a=a.n, n_b=b.n)
+        use_creases = (p.crease_check and a.crease_image is not None
+                       and b.crease_image is not None)
+        # a view in its region: its scale is the prior's height above ground's, +-10 %
+        scale_change = p.search_scale if localising else 0.0
+        search = use_creases and _searches_creases(a, b, p, scale_change)
+        if search:
+            # the creases propose and carry the match: the rule is on their extent
+            n_crease = (len(a.crease_samples), b.crease_field.n)
+            if min(n_crease) < p.min_crease_pixels:
+                base.reason = (f"too little drainage ({n_crease[0]}, {n_crease[1]} crease "
+                               f"px); at least {p.min_crease_pixels} needed in each set")
+                return base
+        else:
+            needed = max(p.min_minutiae_creases if use_creases else p.min_minutiae, 2)
+            if min(a.n, b.n) < needed:
+                base.reason = (f"too few minutiae ({a.n}, {b.n}); at least {needed} needed "
+                               "in each set")
+                return base
+        radius_a = a.radius
+        if not use_creases:   # with creases, the crease evidence can add what minutiae lack
+            # B's minutiae that can fall under A (all of them for blocks of equal size)
+            n_b_under_a = b.n * min(1.0, a.area / max(b.area, 1.0))
+            best_possible = _best_possible_score(int(min(a.n, n_b_under_a)), a.n,
+                                                 n_b_under_a, a.area, search_area, radius_a,
+                                                 p, p.threshold)
+            if best_possible < p.threshold:
+                base.reason = ("too few minutiae: even a perfect match would score "
+                               f"{best_possible:.2f} < threshold {p.threshold:.2f}")
+                return base
+        votes = _root_votes(a, b, p) if _generator(b, p) == "roots" else _hash_votes(a, b, p)
+        rng = self._rng
+        rng.bit_generator.state = self._rng_start
+        registered = _registrations(_hypotheses(votes, a, b, p), a, b, p, rng)
+        best, scored = _best_registration(a, b, registered, search_area, p, use_creases)
+        n_scored = len(scored)
+        low = _low(best, n_scored, p)
+        if low and search:
+            # the wider try of a set small enough for the crease search: it covers every
+            # rotation and translation at the crease resolution (a sweep or a wide ICP would
+            # only add chances to unrelated pairs); chosen together with the first try's
+            searched, trials = _crease_search_registrations(a, b, p, None, scale_change)
+            best, scored = _best_registration(a, b, [], search_area, p, use_creases,
+                                              searched, trials, scored=scored)
+            n_scored = len(scored)
+        elif low:
+            # the wider try: every rotation cell, and the coarse-to-fine crease ICP
+            wider = _registrations(_hypotheses(votes, a, b, p, sweep=True), a, b, p, rng)
+            other, other_scored = _best_registration(a, b, wider, search_area, p,
+                                                     use_creases)
+            n_scored += len(other_scored)
+            if other is not None and (best is None or other.score > best.score):
+                best = other
+            if best is not None and use_creases:
+                best = _refined_on_creases(a, b, best, search_area, radius_a, p,
+                                           radii=p.crease_rescue_radii)
+            if localising and use_creases and p.view_search and _low(best, n_scored, p):
+                level = _view_search_level(a, b, p)
+                if level is not None:
+                    searched, trials = _crease_search_registrations(
+                        a, b, p, level, p.search_scale, p.view_search_background)
+                    view, view_scored = _best_registration(a, b, [], search_area, p, True,
+                                                           searched, trials)
+                    n_scored += len(view_scored)
+                    if view is not None and (best is None or view.score > best.score):
+                        best = view
+        base.decision = Decision.NO_MATCH
+        if best is None:
+            base.reason = "no consistent transform"
+            return base
+        if use_creases:
+            best = replace(best, score=best.score - math.log10(n_scored))   # best of n
+        c, t, pairs, score = best.c, best.t, best.pairs, best.score
+        n_ao, n_bo = best.n_overlap
+        cov, rms = _covariance(a.z[pairs[:, 0]], b.z[pairs[:, 1]], c, t, p.estimate_scale,
+                               p.pos_tol)
+        if use_creases and (len(pairs) < 3 or not np.isfinite(cov).all()):
+            # too few pairings for a covariance (a registration found by the crease search)
+            cov = crease_covariance(a.crease_samples, b.crease_field, c, t,
+                                    **p.crease_tolerances)
+        ok = score >= p.threshold
+        return MatchResult(
+            decision=Decision.MATCH if ok else Decision.NO_MATCH, score=score,
+            n_pairings=len(pairs), pairings=pairs, transform=_pixel_transform(c, t),
+            rotation=float(np.angle(c)), scale=float(abs(c)),
+            scale_estimated=p.estimate_scale, covariance=cov, rms=rms,
+            n_a=a.n, n_b=b.n, n_overlap=(n_ao, n_bo), expected_chance=best.lam,
+            pairing_ratio=len(pairs) ** 2 / max(n_ao * n_bo, 1), creases=best.creases,
+            ridges=best.ridges,
+            reason="" if ok else f"score {score:.2f} below threshold {p.threshold:.2f}")
+
+
+def compare(a, b, params: MatchParams | None = None, **overrides) -> MatchResult:
+    """Block-vs-block comparison with default or given settings (see :class:`Matcher`)."""
+    return Matcher(params, **overrides).compare(a, b)
+
+
+def localise(camera, landmark, params: MatchParams | None = None,
+             **overrides) -> MatchResult:
+    """Camera-in-landmark-region localisation (see :meth:`Matcher.localise`)."""
+    return Matcher(params, **overrides).localise(camera, landmark)
+
+
+def warm_up(params: MatchParams | None = None) -> None:
+    """Run every matching path once on small synthetic sets.
+
+    With numba installed the kernels load from numba's cache (or compile) on first use,
+    ~0.4 s in all; a node calls this at start-up so that its first frame is not late.
+    """
+    rng = np.random.default_rng(0)
+
+    def random_set():
+        crease = np.zeros((96, 96), np.uint8)
+        for x0, y0, x1, y1 in rng.integers(0, 96, (14, 4)):
+            cv2.line(crease, (int(x0), int(y0)), (int(x1), int(y1)), 1, 1)
+        rows, cols = np.nonzero(crease)
+        pick = rng.choice(len(rows), 40, replace=False)
+        ms = MinutiaSet(cols[pick].astype(float), rows[pick].astype(float),
+                        rng.uniform(-np.pi, np.pi, 40), rng.choice([1, 3], 40).astype(np.uint8),
+                        np.ones(40, np.float32))
+        return ms, crease
+
+    matcher = Matcher(params)
+    (ms, crease), other = random_set(), random_set()
+    full = matcher.index(ms, crease)
+    matcher.compare(full, full)                               # the first try
+    matcher.compare(full, matcher.index(*other))              # the wider try
+    few = matcher.index(ms.subset(np.arange(2)), crease)
+    matcher.compare(few, full)          # the crease search and the crease covariance
+    matcher.localise(few, full)         # ... over scales, and the ICP with the scale

@@ -1,0 +1,1 @@
+"""Simulation: the truth trajectory and the IMU it drives. Imports estimation."""

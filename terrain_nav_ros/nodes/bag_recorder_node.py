@@ -1,0 +1,90 @@
+"""bag_recorder: subscribe to topics and write them to a rosbag2 MCAP bag.
+
+Topics are discovered continuously (a topic that appears later is recorded from then on);
+each subscription matches the QoS of the topic's publishers, as ``ros2 bag record`` does.
+The bag is closed cleanly on Ctrl-C, SIGTERM or shutdown, so it is always readable.
+"""
+
+from __future__ import annotations
+
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+from ..tools import bags
+from .ros_common import check_parameters_known, declare, message_class, run
+
+HIDDEN_TOPICS = ("/rosout", "/parameter_events")
+
+
+class BagRecorder(Node):
+    """Writes every message of the selected topics, stamped with its receive time."""
+
+    def __init__(self):
+        super().__init__("bag_recorder")
+        self.output = declare(self, "output", "", "new bag directory to write")
+        self.topics = [t for t in declare(self, "topics", [""],
+                                          "topics to record; empty = all") if t]
+        self.exclude = [t for t in declare(self, "exclude", [""], "topics never recorded") if t]
+        period = declare(self, "discovery_period", 0.25, "how often to look for new topics [s]",
+                         min_value=0.01)
+        check_parameters_known(self)  # before the bag is created
+        if not self.output:
+            raise ValueError("parameter 'output' is required")
+        self.writer = bags.BagWriter(self.output)
+        self.writer.open()
+        self.count = 0
+        self.subs = {}
+        self.create_timer(period, self._discover)
+        self.get_logger().info(f"recording to {self.output}")
+
+    def _wanted(self, topic: str) -> bool:
+        if topic in self.exclude or topic in self.subs:
+            return False
+        return topic in self.topics if self.topics else topic not in HIDDEN_TOPICS
+
+    def _qos_for(self, topic: str) -> tuple[QoSProfile, bool, bool]:
+        infos = self.get_publishers_info_by_topic(topic)
+        reliable = bool(infos) and all(
+            i.qos_profile.reliability == ReliabilityPolicy.RELIABLE for i in infos)
+        latched = bool(infos) and all(
+            i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in infos)
+        qos = QoSProfile(
+            depth=1000,
+            reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL if latched
+            else DurabilityPolicy.VOLATILE)
+        return qos, reliable, latched
+
+    def _discover(self) -> None:
+        for topic, types in self.get_topic_names_and_types():
+            if not self._wanted(topic) or not types:
+                continue
+            msgtype = types[0]
+            try:
+                cls = message_class(msgtype)
+                qos, reliable, latched = self._qos_for(topic)
+                self.writer.add_topic(topic, msgtype, bags.qos_profile(reliable, latched))
+            except (LookupError, bags.BagError) as err:
+                self.get_logger().warning(f"not recording {topic}: {err}")
+                self.exclude.append(topic)
+                continue
+            self.subs[topic] = self.create_subscription(
+                cls, topic, lambda raw, t=topic: self._write(t, raw), qos, raw=True)
+            self.get_logger().info(f"subscribed to {topic} [{msgtype}]")
+
+    def _write(self, topic: str, raw: bytes) -> None:
+        self.writer.write(topic, self.get_clock().now().nanoseconds, raw)
+        self.count += 1
+
+    def close(self) -> None:
+        """Flush and close the bag (called by ros_common.run on shutdown)."""
+        self.writer.close()
+        self.get_logger().info(f"closed {self.output}: {self.count} messages")
+
+
+def main(args=None):
+    return run(BagRecorder, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

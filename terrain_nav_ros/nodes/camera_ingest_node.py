@@ -1,0 +1,274 @@
+"""camera_ingest: camera frames -> north-up ground images at the landmark GSD.
+
+Subscribes to the camera (``/camera/image_raw`` as sensor_msgs/Image in any common encoding,
+or ``/camera/image_raw/compressed`` with ``image_transport: compressed``), its
+``/camera/camera_info``, the navigation estimate ``/nav/odometry`` and the DEM tile
+``/metamap/tile``. Each frame is undistorted with the CameraInfo lens model and projected
+onto the mean terrain plane under the view (homography from the pose interpolated at the
+frame's stamp), then published as a ``terrain_nav_msgs/GeoImage`` on ``/camera/image_ground``
+with a validity mask. A frame that cannot be projected (no estimate or tile yet, no
+calibration, camera above the horizon, undecodable image) is still published, as a GeoImage
+without an image whose ``reason`` says why, so that the matcher answers it with a no-fix; a
+throttled log line says so too, and ``/camera_ingest/diagnostics`` counts each reason.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import time
+from collections import Counter
+
+import numpy as np
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+
+from terrain_nav_msgs.msg import DemTile, GeoImage
+
+from ..core.camera.camera_mount import camera_rotation, mount_rotation
+from ..core.camera.ground_projection import (
+    CameraIntrinsics,
+    CameraPose,
+    footprint_georef,
+    mean_height_near,
+    project_to_ground,
+)
+from ..core.camera.orthorectify import heights_on, orthorectify
+from ..core.camera.pose_buffer import PoseBuffer, StampedPose
+from ..core.render.sun import sun_at
+from ..core.terrain.georef import GeoReference
+from . import conversions as cv
+from .ros_common import (
+    DIAG_OK,
+    DIAG_WARN,
+    LATCHED_QOS,
+    RELIABLE_QOS,
+    SENSOR_QOS,
+    contained,
+    declare,
+    publish_diagnostics,
+    run,
+)
+
+
+class CameraIngestNode(Node):
+    """Projects camera frames onto the ground for the feature extractor."""
+
+    def __init__(self):
+        super().__init__("camera_ingest")
+        self.gsd = declare(self, "gsd", 20.0, "ground image GSD; use the landmark GSD [m/px]",
+                           min_value=0.01)
+        self.max_size = declare(self, "max_size", 1024, "largest ground image side [px]",
+                                min_value=16, max_value=8192)
+        self.max_range_factor = declare(
+            self, "max_range_factor", 3.0,
+            "ground farther than this x height above ground is not projected [-]",
+            min_value=0.1)
+        transport = declare(self, "image_transport", "raw", "raw | compressed")
+        mount = [math.radians(v) for v in declare(
+            self, "mount_rpy", [0.0, 0.0, 0.0],
+            "camera tilt from the nadir mount, roll/pitch/yaw about body FLU [deg]")]
+        self.max_pose_gap = declare(self, "max_pose_gap", 0.25,
+                                    "largest time between a frame and the estimate [s]",
+                                    min_value=0.0)
+        self.frame_id = declare(self, "frame_id", "map", "frame of the ground images")
+        self.orthorectify = declare(self, "orthorectify", True,
+                                    "use the DEM tile's height for every ground pixel (true "
+                                    "ortho) instead of one mean terrain plane")
+        self.r_body_optical = mount_rotation(*mount)
+        self.poses = PoseBuffer(horizon=5.0, max_extrapolation=self.max_pose_gap)
+        self.intrinsics: CameraIntrinsics | None = None
+        self.calibration_problem = "no CameraInfo received yet"
+        self.tile: tuple[np.ndarray, GeoReference] | None = None
+        self.tile_origin = (0.0, 0.0, 0.0)
+        diagnostics_period = declare(self, "diagnostics_period", 1.0,
+                                     "period of /camera_ingest/diagnostics, wall clock [s]",
+                                     min_value=0.01)
+        self.camera_timeout = declare(self, "camera_timeout", 5.0,
+                                      "no camera frame for this long is a warning [s]",
+                                      min_value=0.0)
+        self.drops: Counter = Counter()
+        self.published = 0
+        self._reported = (0, 0)   # projected and not projected at the last report
+        self._started_wall = time.monotonic()
+        self.last_frame_wall: float | None = None
+        self.pub = self.create_publisher(GeoImage, "/camera/image_ground", RELIABLE_QOS)
+        if transport == "compressed":
+            self.create_subscription(CompressedImage, "/camera/image_raw/compressed",
+                                     self.on_compressed, SENSOR_QOS)
+        elif transport == "raw":
+            self.create_subscription(Image, "/camera/image_raw", self.on_image, SENSOR_QOS)
+        else:
+            raise ValueError(f"image_transport must be 'raw' or 'compressed', not {transport!r}")
+        self.create_subscription(CameraInfo, "/camera/camera_info", self.on_info, SENSOR_QOS)
+        self.create_subscription(Odometry, "/nav/odometry", self.on_odometry, RELIABLE_QOS)
+        self.create_subscription(DemTile, "/metamap/tile", self.on_tile, LATCHED_QOS)
+        publish_diagnostics(self, "/camera_ingest/diagnostics", diagnostics_period,
+                            self.diagnostics)
+
+    # -- inputs ----------------------------------------------------------------------------
+    @contained
+    def on_info(self, msg: CameraInfo) -> None:
+        try:
+            k, d, _model, (w, h) = cv.camera_info_to_intrinsics(msg)
+        except cv.ConversionError as err:
+            self.intrinsics, self.calibration_problem = None, str(err)
+            return
+        self.intrinsics = CameraIntrinsics.from_matrix(k, w, h, tuple(d))
+        self.calibration_problem = self.intrinsics.problem()
+
+    @contained
+    def on_odometry(self, msg: Odometry) -> None:
+        stamp, p, q, cov = cv.odometry_to_arrays(msg)
+        reason = self.poses.add(StampedPose(stamp * 1e-9, p, q, cov))
+        if reason:
+            self.get_logger().warning(f"odometry ignored: {reason}", throttle_duration_sec=5.0)
+
+    @contained
+    def on_tile(self, msg: DemTile) -> None:
+        try:
+            self.tile = cv.msg_to_dem_tile(msg)
+            self.tile_origin = cv.enu_origin_of(msg.georef)
+        except cv.ConversionError as err:
+            self.get_logger().error(f"bad DemTile ignored: {err}")
+
+    @contained
+    def on_image(self, msg: Image) -> None:
+        self.last_frame_wall = time.monotonic()
+        try:
+            arr = cv.image_to_array(msg)
+        except cv.ConversionError as err:
+            self.drop(str(err), msg.header)
+            return
+        self.ingest(arr, msg.encoding, msg.header)
+
+    @contained
+    def on_compressed(self, msg: CompressedImage) -> None:
+        self.last_frame_wall = time.monotonic()
+        try:
+            arr, encoding = cv.compressed_image_to_array(msg)
+        except cv.ConversionError as err:
+            self.drop(str(err), msg.header)
+            return
+        self.ingest(arr, encoding, msg.header)
+
+    # -- projection ------------------------------------------------------------------------
+    def drop(self, reason: str, header) -> None:
+        """Tell the graph why this frame has no ground image (and count the reason)."""
+        key = re.split(r"[:(]", reason)[0].strip()[:60]   # the reason without its details
+        self.drops[key] += 1
+        self.pub.publish(cv.unprojected_frame_msg(cv.make_header(header.stamp, self.frame_id),
+                                                  f"frame not projected: {reason}"))
+        self.get_logger().warning(f"frame not projected: {reason}", throttle_duration_sec=2.0)
+
+    def terrain_height(self, east: float, north: float,
+                       radius: float) -> tuple[float | None, str]:
+        """Mean DEM height within ``radius`` of (east, north) from the latest tile, or None
+        and why not."""
+        if self.tile is None:
+            return None, "no DEM tile under the aircraft yet"
+        return mean_height_near(*self.tile, east, north, radius)
+
+    def ingest(self, image: np.ndarray, encoding: str, header) -> None:
+        """Project one frame; every frame comes out, projected or with the reason why not."""
+        try:
+            self._project(image, encoding, header)
+        except Exception as err:
+            self.drop(f"projection failed: {type(err).__name__}: {err}", header)
+            raise   # logged and counted by @contained
+
+    def _project(self, image: np.ndarray, encoding: str, header) -> None:
+        if self.intrinsics is None or self.calibration_problem:
+            self.drop(self.calibration_problem or "no CameraInfo", header)
+            return
+        pose, reason = self.poses.at(cv.stamp_to_sec(header.stamp))
+        if pose is None:
+            self.drop(reason, header)
+            return
+        camera = CameraPose(pose.position, camera_rotation(pose.quaternion, self.r_body_optical))
+        # Terrain plane: mean height near nadir, then over the footprint it implies.
+        plane, why = self.terrain_height(pose.position[0], pose.position[1], 200.0)
+        if plane is None:
+            self.drop(why, header)
+            return
+        agl = pose.position[2] - plane
+        max_range = self.max_range_factor * max(agl, 1.0)
+        georef = footprint_georef(self.intrinsics, camera, plane, self.gsd, max_range)
+        if georef is not None:
+            centre = georef.centre
+            better, _ = self.terrain_height(centre[0], centre[1],
+                                            0.5 * max(georef.width, georef.height) * self.gsd)
+            if better is not None and better < pose.position[2]:
+                plane = better
+                georef = footprint_georef(self.intrinsics, camera, plane, self.gsd, max_range)
+        if georef is None:
+            self.drop("camera is pointing at or above the horizon", header)
+            return
+        georef = self._capped(georef)
+        bgr = encoding.startswith("bgr")
+        heights = heights_on(georef, *self.tile) if self.orthorectify else None
+        if heights is not None and np.isfinite(heights).mean() > 0.5:
+            ground = orthorectify(image, self.intrinsics, camera, heights, georef, bgr,
+                                  max_range)
+        else:
+            ground = project_to_ground(image, self.intrinsics, camera, plane, georef, bgr=bgr,
+                                       max_range=max_range)
+        if ground.image is None:
+            self.drop(ground.reason, header)
+            return
+        out = cv.geo_image_to_msg(ground.image, georef, cv.make_header(header.stamp,
+                                                                       self.frame_id),
+                                  ground.valid, self.tile_origin,
+                                  sun=self.sun_at_frame(header.stamp))
+        cv.set_projection(out, camera.position, camera.rotation, plane)
+        self.pub.publish(out)
+        self.published += 1
+
+    def sun_at_frame(self, stamp) -> tuple[float, float] | None:
+        """The sun over the tile's origin at the frame's stamp; None before a tile (no
+        origin yet) or with the sun below the horizon."""
+        lat, lon, _ = self.tile_origin
+        if (lat, lon) == (0.0, 0.0):
+            return None
+        az, el = sun_at(cv.stamp_to_sec(stamp), lat, lon)
+        return (az, el) if el > 0.0 else None
+
+    def _capped(self, georef: GeoReference) -> GeoReference:
+        """Same centre, at most max_size pixels a side."""
+        if max(georef.width, georef.height) <= self.max_size:
+            return georef
+        return GeoReference.centred(*georef.centre, georef.gsd,
+                                    min(georef.width, self.max_size),
+                                    min(georef.height, self.max_size))
+
+    def diagnostics(self) -> list:
+        """Frames projected and not (these by reason) so far; a warning when frames stop
+        coming or none of those since the last report could be projected."""
+        level, problems = DIAG_OK, []
+        not_projected = sum(self.drops.values())
+        new_projected = self.published - self._reported[0]
+        new_dropped = not_projected - self._reported[1]
+        self._reported = (self.published, not_projected)
+        since = time.monotonic() - (self.last_frame_wall or self._started_wall)
+        if since > self.camera_timeout:
+            level = DIAG_WARN
+            problems.append(f"no camera frame for {since:.0f} s")
+        if new_dropped and not new_projected:
+            level = DIAG_WARN
+            problems.append(f"{new_dropped} frame(s) not projected, none projected: "
+                            f"{self.drops.most_common(1)[0][0]}")
+        values = {"projected": self.published, "not_projected": not_projected,
+                  "frames_since_last_report": new_projected + new_dropped,
+                  "time_since_last_frame": since}
+        values.update({f"not projected: {k}": n for k, n in self.drops.most_common()})
+        message = "; ".join(problems) or f"{new_projected} frame(s) projected since the last report"
+        return [cv.diagnostic_status("camera_ingest", level, message, values, "terrain_nav")]
+
+
+def main(args=None):
+    return run(CameraIngestNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

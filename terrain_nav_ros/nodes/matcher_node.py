@@ -1,0 +1,311 @@
+"""matcher: terrain recognition by minutiae and the PVA fix (dissertation chapter 4).
+
+Subscribes to the camera minutiae (``/camera/minutiae``, from ground-projected frames) and the
+landmark minutiae (``/landmark/minutiae``, latched, one set per rendered DEM tile). Each camera
+set is localised in the landmark set whose region holds it (:mod:`.core.matching`; when both
+sets carry their crease (and ridge) skeletons, the registration is also checked on them); a match
+above the calibrated significance threshold becomes a position fix
+(:func:`.core.matching.pva_fix.fix_from_ground_match`), published as ``terrain_nav_msgs/PvaFix`` on
+``/nav/pva_fix`` with its covariance, similarity and pairings. Every camera set gets an answer:
+when there is no fix the message has ``status = STATUS_NO_FIX`` and the reason.
+``/matcher/diagnostics`` (diagnostic_msgs/DiagnosticArray, every ``diagnostics_period`` s)
+counts fixes and no-fixes (by reason) and times the answers.
+
+The fix is the aircraft (``base_link``) pose: the camera's lever arm (centimetres) is
+neglected and its attitude is the prior's turned back through the camera mount. The
+registration's rotation is the prior's heading error, so with ``publish_heading`` the heading
+is measured too (``STATUS_POSITION_ATTITUDE``, roll and pitch with a 10-degree sigma that
+leaves the filter's own untouched); otherwise only the position (``STATUS_POSITION``, rotation
+covariance -1).
+
+What the node decides around the matcher is ROS-free in
+:mod:`terrain_nav_ros.core.matching.fix_stream`: the landmark set a camera set is matched in,
+the fix's tilt allowance, attitude and velocity, and the diagnostics' tallies.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+from rclpy.node import Node
+from scipy.spatial.transform import Rotation
+from sensor_msgs.msg import CameraInfo
+
+from terrain_nav_msgs.msg import DemTile, MinutiaArray, PvaFix
+
+from ..core.camera.camera_mount import mount_rotation
+from ..core.camera.ground_projection import CameraIntrinsics, CameraPose, ground_to_image
+from ..core.matching.fix_stream import (
+    AnswerTally,
+    FixVelocity,
+    LandmarkSets,
+    add_prior_tilt,
+    fix_attitude,
+)
+from ..core.matching.matcher import Matcher, warm_up
+from ..core.matching.params import MatchParams
+from ..core.matching.pva_fix import (
+    PvaFixEstimate,
+    checked_pnp,
+    dem_heights,
+    fix_from_ground_match,
+    fix_from_pnp,
+    inflate_covariance,
+)
+from ..core.terrain.geodesy import EnuOrigin
+from . import conversions as cv
+from .ros_common import (
+    LATCHED_QOS,
+    RELIABLE_QOS,
+    SENSOR_QOS,
+    check_parameters_known,
+    contained,
+    declare,
+    declare_settings,
+    new_failures,
+    publish_diagnostics,
+    reject_all_changes,
+    run,
+    settings_from_parameters,
+)
+
+
+class MatcherNode(Node):
+    """Localises camera minutiae in landmark minutiae and publishes fixes."""
+
+    def __init__(self, **node_kwargs):
+        super().__init__("matcher", **node_kwargs)
+        # the core's ranges, as a matcher publishing fixes needs them: rclpy refuses a value
+        # outside (and NaN) as it is declared; combinations fail in settings_from_parameters
+        declare_settings(self, "match", MatchParams(), MatchParams.FIX_RANGES)
+        self.landmark_sigma = declare(self, "landmark_sigma", 5.0,
+                                      "horizontal georeferencing error of the DEM [m]",
+                                      min_value=0.0)
+        self.tilt_sigma = math.radians(declare(
+            self, "prior_tilt_sigma", 0.2,
+            "prior attitude error assumed by the ground projection [deg]; times the height "
+            "above ground it is added to the fix covariance", min_value=0.0))
+        self.covariance_scale = declare(
+            self, "fix_covariance_scale", 3.5,
+            "factor on the position and attitude variances of every fix: the PnP covariance "
+            "treats the minutiae's errors as independent, which they are not", min_value=1.0)
+        self.pnp_gate = declare(
+            self, "pnp_gate_sigma", 3.0,
+            "a PnP pose farther than this from the ground match of the same registration, in "
+            "sigma of both, is dropped for the ground match [sigma]", min_value=0.0)
+        velocity_gap = declare(self, "velocity_max_gap", 5.0,
+                               "largest time between two fixes that give a velocity [s]",
+                               min_value=0.0)
+        self.method = declare(self, "method", "pnp",
+                              "pnp: camera pose by PnP over the paired minutiae's DEM points "
+                              "(needs CameraInfo and the DEM tile; falls back to ground); "
+                              "ground: shift of the ground-projected frame only")
+        if self.method not in ("pnp", "ground"):
+            raise ValueError(f"method must be 'pnp' or 'ground', not {self.method!r}")
+        self.use_heading = declare(self, "publish_heading", True,
+                                   "also measure the heading from the registration's rotation "
+                                   "(status POSITION_ATTITUDE with roll/pitch unmeasured)")
+        self.heading_floor = math.radians(declare(
+            self, "heading_sigma_floor", 0.5, "smallest heading sigma reported [deg]",
+            min_value=0.0))
+        max_landmarks = declare(self, "max_landmarks", 4, "landmark sets kept for pairing",
+                                min_value=1, max_value=64)
+        mount = [math.radians(v) for v in declare(
+            self, "mount_rpy", [0.0, 0.0, 0.0],
+            "camera tilt from the nadir mount, roll/pitch/yaw about body FLU [deg]")]
+        self.frame_id = declare(self, "frame_id", "map", "frame of the fixes")
+        diagnostics_period = declare(self, "diagnostics_period", 1.0,
+                                     "period of /matcher/diagnostics, wall clock [s]",
+                                     min_value=0.01)
+        self.camera_timeout = declare(self, "camera_timeout", 5.0,
+                                      "no camera minutiae for this long is a warning [s]",
+                                      min_value=0.0)
+        check_parameters_known(self)  # before the matcher is built and its kernels loaded
+        self.add_on_set_parameters_callback(reject_all_changes)
+        self.r_body_optical = mount_rotation(*mount)
+        self.matcher = Matcher(settings_from_parameters(self, "match", MatchParams()))
+        self.landmarks = LandmarkSets(max_landmarks)
+        self.velocity = FixVelocity(velocity_gap)
+        self.tally = AnswerTally()
+        self.last_camera_wall: float | None = None
+        self.pub = self.create_publisher(PvaFix, "/nav/pva_fix", RELIABLE_QOS)
+        self.create_subscription(MinutiaArray, "/landmark/minutiae", self.on_landmark,
+                                 LATCHED_QOS)
+        self.create_subscription(MinutiaArray, "/camera/minutiae", self.on_camera, RELIABLE_QOS)
+        self.dem = None          # (heights, georef) of the latest DEM tile
+        self.camera_model: CameraIntrinsics | None = None
+        self.create_subscription(DemTile, "/metamap/tile", self.on_tile, LATCHED_QOS)
+        self.create_subscription(CameraInfo, "/camera/camera_info", self.on_info, SENSOR_QOS)
+        # numba's kernels load on first use (~0.4 s): not on the first frame's clock
+        warm_up(self.matcher.params)
+        self._started_wall = time.monotonic()
+        publish_diagnostics(self, "/matcher/diagnostics", diagnostics_period,
+                            self.diagnostics)
+
+    @property
+    def counts(self) -> dict:
+        """Fixes and no-fixes published so far."""
+        return {"fix": self.tally.fixes, "no_fix": self.tally.no_fixes}
+
+    @contained
+    def on_tile(self, msg: DemTile) -> None:
+        try:
+            self.dem = cv.msg_to_dem_tile(msg)
+        except cv.ConversionError as err:
+            self.get_logger().error(f"bad DemTile ignored: {err}")
+
+    @contained
+    def on_info(self, msg: CameraInfo) -> None:
+        try:
+            k, d, _model, (width, height) = cv.camera_info_to_intrinsics(msg)
+        except cv.ConversionError:
+            self.camera_model = None
+            return
+        self.camera_model = CameraIntrinsics.from_matrix(k, width, height, tuple(d))
+
+    @contained
+    def on_landmark(self, msg: MinutiaArray) -> None:
+        try:
+            minutiae = cv.msg_to_minutiae(msg)
+            creases, ridges = cv.msg_to_creases(msg), cv.msg_to_ridges(msg)
+        except cv.ConversionError as err:
+            self.get_logger().error(f"landmark minutiae ignored: {err}")
+            return
+        index = None
+        if len(minutiae):
+            index = self.matcher.index(minutiae, creases, ridges).prepare_as_reference()
+        self.landmarks.add(minutiae, index, cv.enu_origin_of(msg.georef))
+        self.get_logger().info(f"landmark set with {len(minutiae)} minutiae "
+                               f"({minutiae.reason or 'ok'})")
+
+    @contained
+    def on_camera(self, msg: MinutiaArray) -> None:
+        start = self.last_camera_wall = time.monotonic()
+        try:
+            self._answer(msg)
+            self.tally.answered(1e3 * (time.monotonic() - start))
+        except Exception as err:
+            # every frame gets an answer: the filter and the recorded bag see this one fail
+            self.publish_no_fix(msg.header.stamp,
+                                f"matching failed: {type(err).__name__}: {err}")
+            raise   # logged and counted by @contained
+
+    def _answer(self, msg: MinutiaArray) -> None:
+        """A fix or a no-fix with its reason for one camera minutiae set."""
+        stamp = cv.stamp_to_sec(msg.header.stamp)
+        if not msg.minutiae:   # flat terrain, or a frame with no minutiae set at all
+            self.publish_no_fix(msg.header.stamp,
+                                f"no camera minutiae: {msg.reason or 'none found'}")
+            return
+        try:
+            camera = cv.msg_to_minutiae(msg)
+            camera_creases, camera_ridges = cv.msg_to_creases(msg), cv.msg_to_ridges(msg)
+        except cv.ConversionError as err:
+            self.publish_no_fix(msg.header.stamp, f"bad camera minutiae: {err}")
+            return
+        projection = cv.get_projection(msg)
+        if projection is None:
+            self.publish_no_fix(msg.header.stamp, "camera minutiae carry no projection pose")
+            return
+        position, rotation, plane = projection
+        landmark = self.landmarks.holding(*camera.georef.centre)
+        if landmark is None:
+            self.publish_no_fix(msg.header.stamp, "no landmark covers the camera footprint")
+            return
+        land_minutiae, land_index, origin = landmark
+        if land_index is None:
+            self.publish_no_fix(msg.header.stamp,
+                                f"no landmark minutiae: {land_minutiae.reason}")
+            return
+        result = self.matcher.localise(
+            self.matcher.index(camera, camera_creases, camera_ridges), land_index)
+        fix = fix_from_ground_match(result, camera.georef, land_minutiae.georef, position,
+                                    rotation, plane, landmark_sigma=self.landmark_sigma)
+        add_prior_tilt(fix, position[2] - plane, self.tilt_sigma)
+        if result.matched and self.method == "pnp":
+            fix = checked_pnp(self.pnp_fix(result, camera, land_minutiae, position, rotation),
+                              fix, self.pnp_gate)
+        if not fix.valid:
+            self.publish_no_fix(msg.header.stamp, fix.reason, fix)
+            return
+        self.publish_fix(msg.header.stamp, stamp, fix, origin)
+
+    def pnp_fix(self, result, camera, landmark, position, rotation) -> PvaFixEstimate | None:
+        """Camera pose by PnP: raw-frame pixels of the camera minutiae against the DEM points
+        of their landmark partners. The raw pixel of a ground-image minutia is recovered
+        exactly by projecting its ground point (at the DEM height the orthorectification used)
+        through the projection pose; unlike the ground shift, the result does not inherit
+        the prior's tilt error (which moves a ground image by height x tilt)."""
+        if self.dem is None or self.camera_model is None:
+            return None
+        heights, dem_georef = self.dem
+        intr = self.camera_model
+        east, north = camera.enu()
+        u, v = ground_to_image(east, north, dem_heights(heights, dem_georef, east, north),
+                               intr, CameraPose(position, rotation))
+        pixels = np.column_stack([u, v])            # NaN: no DEM height or behind the camera
+        if np.isfinite(pixels).all(axis=1).sum() < 6:
+            return None
+        land_east, land_north = landmark.enu()
+        land_h = dem_heights(heights, dem_georef, land_east, land_north)
+        return fix_from_pnp(result, pixels, (land_east, land_north), land_h, intr.matrix,
+                            intr.dist_coeffs, position, rotation,
+                            landmark_sigma=self.landmark_sigma)
+
+    def publish_no_fix(self, stamp, reason: str, fix: PvaFixEstimate | None = None) -> None:
+        out = PvaFix(header=cv.make_header(stamp, self.frame_id),
+                     status=PvaFix.STATUS_NO_FIX, reason=reason)
+        if fix is not None:
+            out.similarity = float(fix.similarity) if math.isfinite(fix.similarity) else 0.0
+            out.num_pairings = fix.num_pairings
+            out.num_camera_minutiae = fix.num_camera_minutiae
+            out.num_landmark_minutiae = fix.num_landmark_minutiae
+        out.pose.covariance = cv.array_to_covariance(-np.eye(6))
+        self.pub.publish(out)
+        self.tally.no_fix(reason)
+        self.get_logger().info(f"no fix: {reason}", throttle_duration_sec=2.0)
+
+    def publish_fix(self, stamp, stamp_s: float, fix: PvaFixEstimate, origin) -> None:
+        inflate_covariance(fix, self.covariance_scale)
+        r_enu_body = fix_attitude(fix, self.r_body_optical, self.use_heading, self.heading_floor)
+        quaternion = Rotation.from_matrix(r_enu_body).as_quat()
+        out = PvaFix(header=cv.make_header(stamp, self.frame_id), status=fix.status,
+                     reason=fix.reason, similarity=float(fix.similarity),
+                     num_pairings=fix.num_pairings,
+                     num_camera_minutiae=fix.num_camera_minutiae,
+                     num_landmark_minutiae=fix.num_landmark_minutiae,
+                     pose=cv.pose_with_covariance(fix.position, quaternion, fix.covariance))
+        lat, lon, alt = EnuOrigin(*origin).enu_to_geodetic(*fix.position)
+        out.latitude, out.longitude, out.altitude = float(lat), float(lon), float(alt)
+        velocity = self.velocity.update(stamp_s, fix.position, fix.covariance)
+        if velocity is not None:
+            out.velocity_valid = True
+            out.velocity.x, out.velocity.y, out.velocity.z = map(float, velocity[0])
+            out.velocity_covariance = velocity[1].ravel()
+        self.pub.publish(out)
+        self.tally.fix(fix.similarity, fix.num_pairings, time.monotonic())
+        sigma = math.sqrt(max(fix.covariance[0, 0] + fix.covariance[1, 1], 0.0))
+        self.get_logger().info(
+            f"fix ({fix.position[0]:.0f}, {fix.position[1]:.0f}) m +- {sigma:.0f} m, "
+            f"{fix.num_pairings} pairings, score {fix.similarity:.1f}")
+
+    def diagnostics(self) -> list:
+        """Fixes and no-fixes so far (these by reason), the time per camera set since the
+        last report; a warning when camera minutiae stop coming or no landmark set is held,
+        an error when matching failed since the last report."""
+        now = time.monotonic()
+        failures, new = new_failures(self)
+        level, message, values = self.tally.report(
+            now, now - (self.last_camera_wall or self._started_wall), self.camera_timeout,
+            self.landmarks.any_with_minutiae, failures, new, len(self.landmarks))
+        return [cv.diagnostic_status("matcher", level, message, values, "terrain_nav")]
+
+
+def main(args=None):
+    return run(MatcherNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,382 @@
+"""Run the node graph without ``ros2 launch``: one process per node, supervised.
+
+The graph is described once, in a YAML file (``config/graph.yaml``)::
+
+    params_files: [terrain_nav.yaml]   # ROS 2 parameters files, relative to this file
+    dds_profile: fastdds.xml           # Fast DDS XML profile for every node (optional)
+    nodes:
+      - name: metamap                  # node name; its block in the params files
+        executable: metamap            # an entry of terrain_nav_ros.executables.NODES
+        required: true                 # if it dies, the whole graph is stopped
+        enabled: true                  # false: started only when asked for by name
+        parameters: {gsd: 5.0}         # overrides on top of the params files
+        remappings: {/in: /out}
+
+A node with ``enabled: false`` (an optional output such as the autopilot bridge) is left out
+unless :func:`load_graph` is given its name in ``enable`` (``--enable NAME`` on the command
+line, ``enable:=NAME`` for the launch file).
+
+``launch/terrain_nav.launch.py`` builds the same nodes from the same file for normal ROS
+installs. The runner starts every node in its own process (and session, so a terminal's
+Ctrl-C reaches only the runner), waits until all are visible in the ROS graph, prefixes their
+output with their name, forwards SIGINT/SIGTERM, escalates to SIGKILL after a grace period,
+and reports any node that dies.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+from ..executables import NODES
+
+
+class GraphError(RuntimeError):
+    """The graph description is invalid, or the graph could not be brought up."""
+
+
+@dataclass
+class NodeSpec:
+    """One node of the graph."""
+
+    name: str
+    executable: str
+    required: bool = True
+    enabled: bool = True
+    parameters: dict = field(default_factory=dict)
+    remappings: dict = field(default_factory=dict)
+
+
+@dataclass
+class GraphSpec:
+    """The nodes and their shared parameters file."""
+
+    nodes: list[NodeSpec]
+    params_files: list[Path] = field(default_factory=list)
+    dds_profile: Path | None = None   # Fast DDS profile XML for every node (graph.yaml)
+
+    def environment(self, base=None) -> dict:
+        """The nodes' environment: ``base`` (default this process's) with the graph's Fast
+        DDS profile, unless ``base`` names one already."""
+        env = dict(os.environ if base is None else base)
+        if self.dds_profile is not None and not env.get(DDS_PROFILE_VARIABLE):
+            env[DDS_PROFILE_VARIABLE] = str(self.dds_profile)
+        return env
+
+
+# the variable rmw_fastrtps reads its XML profile from
+DDS_PROFILE_VARIABLE = "FASTRTPS_DEFAULT_PROFILES_FILE"
+
+
+def load_graph(path: str | Path, enable=()) -> GraphSpec:
+    """Parse and validate a graph YAML file (see the module docstring).
+
+    The spec holds the enabled nodes, and those with ``enabled: false`` whose names are in
+    ``enable``; a name in ``enable`` that the file does not have is an error.
+    """
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text()) or {}
+    except (OSError, yaml.YAMLError) as err:
+        raise GraphError(f"cannot read graph file {path}: {err}") from err
+    names = doc.get("params_files") or []
+    if isinstance(names, str):
+        names = [names]
+    params_paths = [(path.parent / name).resolve() for name in names]
+    for params_path in params_paths:
+        if not params_path.is_file():
+            raise GraphError(f"{path}: params file {params_path} does not exist")
+    nodes = []
+    for entry in doc.get("nodes") or []:
+        unknown = set(entry) - {"name", "executable", "required", "enabled", "parameters",
+                                "remappings"}
+        if unknown:
+            raise GraphError(f"{path}: node entry {entry.get('name')} has unknown keys {unknown}")
+        spec = NodeSpec(name=entry["name"], executable=entry.get("executable", entry["name"]),
+                        required=bool(entry.get("required", True)),
+                        enabled=bool(entry.get("enabled", True)),
+                        parameters=dict(entry.get("parameters") or {}),
+                        remappings=dict(entry.get("remappings") or {}))
+        if spec.executable not in NODES:
+            raise GraphError(f"{path}: node {spec.name}: unknown executable {spec.executable} "
+                             f"(known: {', '.join(sorted(NODES))})")
+        nodes.append(spec)
+    names = [n.name for n in nodes]
+    if len(set(names)) != len(names):
+        raise GraphError(f"{path}: duplicate node names in {names}")
+    unknown = set(enable) - set(names)
+    if unknown:
+        raise GraphError(f"{path}: cannot enable {', '.join(sorted(unknown))}: not in the "
+                         f"graph (nodes: {', '.join(names)})")
+    nodes = [n for n in nodes if n.enabled or n.name in enable]
+    if not nodes:
+        raise GraphError(f"{path}: no nodes")
+    profile = None
+    if doc.get("dds_profile"):
+        profile = (path.parent / doc["dds_profile"]).resolve()
+        if not profile.is_file():
+            raise GraphError(f"{path}: dds_profile {profile} does not exist")
+    return GraphSpec(nodes, params_paths, profile)
+
+
+def _yaml_scalar(value) -> str:
+    """A parameter value as ``-p name:=value`` text (YAML, so strings are quoted)."""
+    return yaml.safe_dump(value, default_flow_style=True, width=1 << 20).strip().removesuffix(
+        "\n...").removesuffix("...").strip()
+
+
+def node_command(spec: NodeSpec, params_files=(), extra_parameters: dict | None = None,
+                 ) -> list[str]:
+    """The command line that starts one node with its parameters and remappings."""
+    script = Path(sys.executable).parent / spec.executable
+    if script.exists():
+        cmd = [str(script)]
+    elif shutil.which(spec.executable):
+        cmd = [shutil.which(spec.executable)]
+    else:
+        module, function = NODES[spec.executable].split(":")
+        cmd = [sys.executable, "-c", f"import sys; from {module} import {function}; "
+               f"sys.exit({function}())"]
+    cmd += ["--ros-args", "-r", f"__node:={spec.name}"]
+    for params_file in params_files:
+        cmd += ["--params-file", str(params_file)]
+    for key, value in {**spec.parameters, **(extra_parameters or {})}.items():
+        cmd += ["-p", f"{key}:={_yaml_scalar(value)}"]
+    for source, target in spec.remappings.items():
+        cmd += ["-r", f"{source}:={target}"]
+    return cmd
+
+
+def _describe_exit(code: int) -> str:
+    """'signal SIGSEGV' for a negative return code, else 'exit code N'."""
+    if code < 0:
+        try:
+            return f"signal {signal.Signals(-code).name}"
+        except ValueError:
+            return f"signal {-code}"
+    return f"exit code {code}"
+
+
+class GraphRunner:
+    """Start, watch and stop the processes of a graph.
+
+    Parameters
+    ----------
+    spec : GraphSpec
+        The nodes to run.
+    extra_parameters : dict, optional
+        Parameters given to every node (e.g. ``{"use_sim_time": True}``).
+    log_dir : Path, optional
+        Also write each node's output to ``<log_dir>/<name>.log``.
+    grace : float
+        Seconds between SIGINT and SIGTERM, and between SIGTERM and SIGKILL, at shutdown.
+    out : file
+        Where the prefixed node output and the runner's reports go.
+    echo : callable(name, line) -> bool, optional
+        Which node output lines to copy to ``out`` (default all; the log files get all).
+    """
+
+    def __init__(self, spec: GraphSpec, extra_parameters: dict | None = None,
+                 log_dir: Path | None = None, grace: float = 5.0, out=None, echo=None):
+        self.spec = spec
+        self.extra_parameters = extra_parameters or {}
+        self.log_dir = Path(log_dir) if log_dir else None
+        self.grace = grace
+        self.out = out or sys.stdout
+        self.echo = echo or (lambda _name, _line: True)
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.usage: dict[str, dict] = {}
+        self.exit_codes: dict[str, int] = {}
+        self.died: list[str] = []
+        self._pumps: list[threading.Thread] = []
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+
+    def report(self, text: str) -> None:
+        with self._lock:
+            print(f"[graph] {text}", file=self.out, flush=True)
+
+    # -- start ---------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Start every node's process."""
+        if self.log_dir:
+            self.log_dir.mkdir(parents=True, exist_ok=True)
+        for spec in self.spec.nodes:
+            cmd = node_command(spec, self.spec.params_files, self.extra_parameters)
+            proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                    stdin=subprocess.DEVNULL, text=True, bufsize=1,
+                                    env=self.spec.environment(), start_new_session=True)
+            self.procs[spec.name] = proc
+            pump = threading.Thread(target=self._pump, args=(spec.name, proc), daemon=True)
+            pump.start()
+            self._pumps.append(pump)
+            self.report(f"started {spec.name} (pid {proc.pid})")
+
+    def _pump(self, name: str, proc: subprocess.Popen) -> None:
+        log = open(self.log_dir / f"{name}.log", "w") if self.log_dir else None  # noqa: SIM115
+        try:
+            for line in proc.stdout:
+                if self.echo(name, line):
+                    with self._lock:
+                        self.out.write(f"[{name}] {line}")
+                        self.out.flush()
+                if log:
+                    log.write(line)
+        finally:
+            if log:
+                log.close()
+
+    def wait_until_up(self, timeout: float = 30.0) -> float:
+        """Block until every node is visible in the ROS graph; return the time it took.
+
+        Raises GraphError if a node dies first or the timeout passes.
+        """
+        import rclpy
+
+        start = time.monotonic()
+        context = rclpy.Context()
+        rclpy.init(context=context)
+        probe = rclpy.create_node("_terrain_nav_graph_probe", context=context)
+        try:
+            wanted = {n.name for n in self.spec.nodes}
+            while time.monotonic() - start < timeout:
+                if self._stop.is_set():
+                    raise GraphError("stopped during start-up")
+                self._check_exits()
+                if self.died:
+                    raise GraphError(f"node(s) died during start-up: {', '.join(self.died)}")
+                seen = {name for name, _ in probe.get_node_names_and_namespaces()}
+                # Nodes that already finished normally (e.g. a short bag) count as up.
+                if wanted <= seen | set(self.exit_codes):
+                    elapsed = time.monotonic() - start
+                    self.report(f"all {len(wanted)} nodes up in {elapsed:.1f} s")
+                    return elapsed
+                time.sleep(0.1)
+            missing = wanted - seen
+            raise GraphError(f"nodes not up after {timeout:.0f} s: {', '.join(sorted(missing))}")
+        finally:
+            probe.destroy_node()
+            context.try_shutdown()
+
+    # -- watch ---------------------------------------------------------------------------------
+    def _check_exits(self) -> None:
+        for name, proc in self.procs.items():
+            if name in self.exit_codes or proc.poll() is None:
+                continue
+            code = proc.returncode
+            self.exit_codes[name] = code
+            if code == 0:
+                self.report(f"{name} finished (exit code 0)")
+            else:
+                self.report(f"NODE DIED: {name} ({_describe_exit(code)})")
+                self.died.append(name)
+
+    def sample_usage(self) -> None:
+        """Record CPU time and peak resident memory of every live node (psutil)."""
+        import psutil
+
+        for name, proc in self.procs.items():
+            if proc.poll() is not None:
+                continue
+            try:
+                p = psutil.Process(proc.pid)
+                cpu = p.cpu_times()
+                rss = p.memory_info().rss
+                created = p.create_time()
+            except psutil.Error:
+                continue
+            # wall time from the process's own start (epoch clock, as psutil's): CPU spent
+            # before the first sample over the time since the first sample gave shares in
+            # the millions of percent when a graph stopped at once (issue 22)
+            entry = self.usage.setdefault(name, {"cpu_s": 0.0, "peak_rss_mb": 0.0,
+                                                 "started": created})
+            entry["cpu_s"] = cpu.user + cpu.system
+            entry["peak_rss_mb"] = max(entry["peak_rss_mb"], rss / 2**20)
+            entry["last"] = time.time()
+
+    def spin(self, duration: float | None = None, until_exit: str | None = None) -> int:
+        """Watch the processes until a stop condition; return the graph's exit status.
+
+        Stops when a required node dies (status 1), when ``until_exit`` names a node that has
+        exited, after ``duration`` seconds, when every process has ended, or on
+        :meth:`request_stop` (from a signal handler).
+        """
+        start = time.monotonic()
+        status = 0
+        next_sample = start
+        while not self._stop.is_set():
+            if time.monotonic() >= next_sample:
+                self.sample_usage()
+                next_sample += 1.0
+            self._check_exits()
+            required_dead = [n.name for n in self.spec.nodes if n.required and n.name in self.died]
+            if required_dead:
+                self.report(f"stopping the graph: required node(s) {required_dead} died")
+                status = 1
+                break
+            if until_exit and until_exit in self.exit_codes:
+                break
+            if len(self.exit_codes) == len(self.procs):
+                break
+            if duration is not None and time.monotonic() - start >= duration:
+                break
+            self._stop.wait(0.1)
+        return status
+
+    def request_stop(self, *_args) -> None:
+        self._stop.set()
+
+    # -- stop ----------------------------------------------------------------------------------
+    def shutdown(self) -> dict[str, int]:
+        """SIGINT every live node, escalate to SIGTERM then SIGKILL; return exit codes."""
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
+            live = {n: p for n, p in self.procs.items() if p.poll() is None}
+            if not live:
+                break
+            for proc in live.values():
+                try:
+                    os.killpg(proc.pid, sig)  # the node and anything it started
+                except ProcessLookupError:
+                    pass
+            deadline = time.monotonic() + self.grace
+            while time.monotonic() < deadline and any(p.poll() is None for p in live.values()):
+                time.sleep(0.05)
+            if sig != signal.SIGINT and live:
+                self.report(f"sent {sig.name} to {', '.join(live)}")
+        for pump in self._pumps:
+            pump.join(timeout=2)
+        for name, proc in self.procs.items():
+            self.exit_codes.setdefault(name, proc.returncode)
+        failed = {n: c for n, c in self.exit_codes.items() if c}
+        self.report("graph stopped" + ("; non-zero exit codes: " + ", ".join(
+            f"{n} {_describe_exit(c)}" for n, c in failed.items()) if failed else ""))
+        return dict(self.exit_codes)
+
+
+def run_graph(spec: GraphSpec, *, extra_parameters: dict | None = None,
+              duration: float | None = None, until_exit: str | None = None,
+              log_dir: Path | None = None, startup_timeout: float = 30.0) -> int:
+    """Run a graph in the foreground, handling SIGINT/SIGTERM; return an exit status."""
+    runner = GraphRunner(spec, extra_parameters, log_dir)
+    previous = {s: signal.signal(s, runner.request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        runner.start()
+        try:
+            runner.wait_until_up(startup_timeout)
+        except GraphError as err:
+            runner.report(str(err))
+            return 1
+        return runner.spin(duration, until_exit)
+    finally:
+        runner.shutdown()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)

@@ -1,0 +1,780 @@
+"""The real-imagery study (``terrain-nav evaluate --image`` / ``--scenes``).
+
+Every other study renders its "camera" from the DEM it matches against. This one cuts the
+camera views from a real satellite or aerial image and localises them in the project's own
+landmark render of a co-registered DEM, lit by the image's sun, the way the graph would:
+
+1. **Scene.** The image (one band, or a grey mix of the first three) and the DEM are put on
+   one north-up metric grid: the DEM is reprojected onto the image's grid (both onto the
+   local UTM zone first when the image is in degrees), then both are resampled to the study
+   GSD. Nodata and cloud-masked pixels (the image's nodata value) are invalid. A scene
+   finer than its DEM's cell is matched at that cell (views and regions area averaged):
+   the render holds no terrain finer, and the camera's albedo detail (fields, roads, tree
+   crowns) would outnumber the drainage the two share.
+2. **Landmark.** :class:`~.core.render.renderer.LandmarkRenderer` renders the DEM nadir with the
+   scene's sun (given, or from the acquisition time and the scene's centre).
+3. **Cases.** For each view size, views are cut from the image at random places, with a
+   random rotation (within +-180 degrees with the heading unknown; within +-2 degrees, and
+   the matcher told so, with it known) and scale (+-10 %); a view must lie on >= 95 % valid
+   pixels. Each is localised in the landmark region ``region_factor`` times its side around
+   its true place (clipped to the scene) with :meth:`~.core.matching.matcher.Matcher.localise`; a
+   fix within ``success_px`` of the truth is a success, one further off is wrong (pixels of the
+   GSD the scene is matched at: a view finer than its DEM is localised to the DEM's cell).
+4. **Controls (non-PVA).** The same views against landmark regions that do not contain them:
+   the regions of the other places' cases (a scene of the same DEM is the same place), and
+   regions of the same scene at least a region
+   apart where the scene is large enough. Their scores calibrate the threshold for the stated
+   false-match rate (:func:`~.core.matching.significance.calibrate_threshold`), and the accepted
+   ones are counted at the threshold used.
+5. **Baselines** on the same cases: gradient NCC (without rotation search with the heading
+   known, with 36 rotations without it) and ORB (SIFT with ``--sift``) with RANSAC; they
+   always answer, so every answer off the truth is wrong.
+
+A view with too little drainage is answered with a no-fix and its reason by the matcher; it
+is counted apart, not dropped. Outputs: ``report.md``, ``results.json`` and a PNG per scene
+(image beside its landmark render).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import json
+import math
+import re
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..core.features.hillshade import extractor_input
+from ..core.features.minutiae import FeatureExtractor, MinutiaParams
+from ..core.matching.baselines import keypoint_locate, ncc_locate
+from ..core.matching.matcher import Decision, Matcher
+from ..core.matching.params import MatchParams
+from ..core.matching.significance import calibrate_threshold
+from ..core.render.sun import parse_utc, solar_position
+from ..core.terrain.georef import GeoReference
+
+__all__ = ["Scene", "load_scene", "load_scenes", "run_real_imagery_study"]
+
+# A view must lie on at least this fraction of valid image pixels.
+MIN_VALID = 0.95
+# Rotation of the views with the heading known (deg), and what the matcher is told.
+KNOWN_HEADING_DEG = 2.0
+KNOWN_HEADING_PRIOR_DEG = 10.0
+# Reasons of a no-fix that mean "this view holds too little drainage", counted apart.
+_TOO_LITTLE = ("too little drainage", "too few minutiae")
+
+
+@dataclass
+class Scene:
+    """A real image and its DEM on one north-up metric grid.
+
+    ``image`` is 8-bit grey (0 where invalid), ``valid`` its mask, ``elevation`` the DEM on
+    the same grid (voids filled with the median), ``sun`` (azimuth, elevation) in degrees.
+    """
+
+    name: str
+    image: np.ndarray
+    valid: np.ndarray
+    elevation: np.ndarray
+    gsd: float
+    sun: tuple[float, float]
+    centre_latlon: tuple[float, float]
+    place: str = ""   # scenes of one place (one DEM) are never each other's controls
+    dem_cell: float = math.nan   # the DEM's own cell [m] (before resampling to ``gsd``)
+    landmark: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def georef(self) -> GeoReference:
+        h, w = self.image.shape
+        return GeoReference(0.0, 0.0, self.gsd, w, h)
+
+
+# Band descriptions that name the near infrared: by name, or the NIR band of Landsat TM /
+# ETM+ (B4), OLI (B5) and Sentinel-2 MSI (B8, B8A) when the sensor is named with it.
+_NIR_NAMES = re.compile(r"\bnir\b|near[- ]?infra[- ]?red", re.IGNORECASE)
+_NIR_BANDS = re.compile(r"\b(?:TM|ETM\+?)\s*B0?4\b|\bOLI\s*B0?5\b|\bMSI\s*B0?8A?\b",
+                        re.IGNORECASE)
+
+
+def nir_band(descriptions) -> int | None:
+    """The 1-based band whose description names the near infrared, or None.
+
+    Under vegetation the red band is absorbed by chlorophyll and carries little of the
+    terrain's shading; the near infrared is bright and shaded like the terrain (Costa Rica's
+    forested volcano: 15 of 24 views of 128 px localised in NIR, 2 of 24 in red).
+    """
+    for pattern in (_NIR_NAMES, _NIR_BANDS):
+        for i, text in enumerate(descriptions or ()):
+            if text and pattern.search(text):
+                return i + 1
+    return None
+
+
+def _read_band(ds, band) -> np.ndarray:
+    """One band (1-based) as float32; ``band=None``: the near-infrared band if the file's
+    band descriptions name one (:func:`nir_band`), else as "grey": the mean of the first
+    three (the only one of a single-band file); nodata as NaN."""
+    if band is None:
+        band = nir_band(ds.descriptions) or "grey"
+    if band in ("grey", "gray"):
+        bands = list(range(1, min(ds.count, 3) + 1))
+    else:
+        b = int(band)
+        if not 1 <= b <= ds.count:
+            raise ValueError(f"{ds.name}: band {b} does not exist (the file has {ds.count})")
+        bands = [b]
+    a = ds.read(bands, masked=True).astype(np.float32)
+    mask = np.ma.getmaskarray(a).any(axis=0)
+    out = a.filled(np.nan).mean(axis=0)
+    out[mask] = np.nan
+    return out
+
+
+def _utm_crs(lon: float, lat: float):
+    from rasterio.crs import CRS
+    zone = int((lon + 180.0) // 6.0) % 60 + 1
+    return CRS.from_epsg((32600 if lat >= 0 else 32700) + zone)
+
+
+def _centre_lonlat(crs, transform, shape) -> tuple[float, float]:
+    from pyproj import Transformer
+    x = transform.c + transform.a * shape[1] / 2.0
+    y = transform.f + transform.e * shape[0] / 2.0
+    if crs.is_geographic:
+        return float(x), float(y)
+    lon, lat = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(x, y)
+    return float(lon), float(lat)
+
+
+@contextlib.contextmanager
+def _rasterio_quiet():
+    """rasterio 1.4's warp helpers multiply affines with ``*``, which affine 2.4 deprecates:
+    a warning about rasterio's code, not this one's."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "Use `@` matmul", PendingDeprecationWarning)
+        yield
+
+
+def _reproject(src, src_transform, src_crs, dst_shape, dst_transform, dst_crs, resampling):
+    from rasterio.warp import reproject
+    out = np.full(dst_shape, np.nan, np.float32)
+    with _rasterio_quiet():
+        reproject(np.asarray(src, np.float32), out, src_transform=src_transform,
+                  src_crs=src_crs,
+                  src_nodata=np.nan, dst_transform=dst_transform, dst_crs=dst_crs,
+                  dst_nodata=np.nan, resampling=resampling)
+    return out
+
+
+def _cell_metres(transform, crs, lat: float) -> float:
+    """Side of a square of a raster cell's area, in metres."""
+    dx, dy = abs(transform.a), abs(transform.e)
+    if crs.is_geographic:
+        dx, dy = dx * 111_320.0 * math.cos(math.radians(lat)), dy * 110_574.0
+    return math.sqrt(dx * dy)
+
+
+def _parse_sun(sun, when, lat: float, lon: float) -> tuple[float, float]:
+    if sun is not None:
+        az, el = (float(x) for x in sun)
+        if not (0.0 < el <= 90.0 and math.isfinite(az)):
+            raise ValueError(f"sun elevation must be in (0, 90] deg, got {el}")
+        return az % 360.0, el
+    if when is None:
+        raise ValueError("the scene's sun is needed: give --sun AZ,EL or --time ISO8601 "
+                         "(the acquisition time)")
+    t = when if isinstance(when, _dt.datetime) else parse_utc(when)
+    az, el = solar_position(t, lat, lon)
+    if not float(el) > 0:
+        raise ValueError(f"the sun is below the horizon at {t.isoformat()} "
+                         f"({lat:.3f}, {lon:.3f})")
+    return float(az), float(el)
+
+
+def load_scene(image, dem, *, band=None, gsd: float | None = None, sun=None, when=None,
+               name: str | None = None) -> Scene:
+    """Read an image and its DEM onto one metric grid (see the module docstring).
+
+    Parameters
+    ----------
+    image, dem : str or Path
+        Any raster rasterio reads, each with its CRS.
+    band : int, "grey" or None
+        1-based band of the image; "grey": the mean of the first three bands; None: the
+        near-infrared band where the file names one, else "grey".
+    gsd : float, optional
+        Study GSD (m); default the image's own (its UTM cell when it is in degrees).
+    sun : (azimuth, elevation), optional
+        Degrees; else computed from ``when`` (ISO 8601 or datetime, UTC unless stated).
+    name : str, optional
+        Default: the image's file stem.
+    """
+    import rasterio
+    from rasterio.warp import Resampling, calculate_default_transform
+
+    image, dem = Path(image), Path(dem)
+    for path in (image, dem):
+        if not path.is_file():
+            raise ValueError(f"no such file: {path}")
+    try:
+        with rasterio.open(image) as ds:
+            img = _read_band(ds, band)
+            transform, crs = ds.transform, ds.crs
+        with rasterio.open(dem) as ds:
+            z_src = ds.read(1, masked=True).astype(np.float32).filled(np.nan)
+            z_transform, z_crs = ds.transform, ds.crs
+    except rasterio.errors.RasterioError as err:
+        raise ValueError(f"cannot read the scene: {err}") from err
+    if crs is None or z_crs is None:
+        raise ValueError(f"{image.name if crs is None else dem.name} has no CRS: the image and "
+                         "DEM must be georeferenced to be co-registered")
+    lon, lat = _centre_lonlat(crs, transform, img.shape)
+    if crs.is_geographic:
+        utm = _utm_crs(lon, lat)
+        h, w = img.shape
+        bounds = (transform.c, transform.f + transform.e * h, transform.c + transform.a * w,
+                  transform.f)   # west, south, east, north
+        # the image's own cell in metres, unless a GSD is asked for
+        cell = gsd or abs(transform.e) * 111_320.0
+        with _rasterio_quiet():
+            dst_transform, w, h = calculate_default_transform(crs, utm, w, h, *bounds,
+                                                              resolution=cell)
+        img = _reproject(img, transform, crs, (h, w), dst_transform, utm, Resampling.bilinear)
+        transform, crs = dst_transform, utm
+    native = abs(transform.a)
+    z = _reproject(z_src, z_transform, z_crs, img.shape, transform, crs, Resampling.cubic)
+    gsd = float(gsd or native)
+    if abs(gsd - native) > 1e-6 * native:
+        f = native / gsd
+        shape = (max(int(round(img.shape[1] * f)), 1), max(int(round(img.shape[0] * f)), 1))
+        down = cv2.INTER_AREA if f < 1 else cv2.INTER_LINEAR
+        valid_src = np.isfinite(img).astype(np.float32)
+        img = cv2.resize(np.nan_to_num(img), shape, interpolation=down)
+        valid_f = cv2.resize(valid_src, shape, interpolation=down)
+        img[valid_f < 0.999] = np.nan
+        z = cv2.resize(z, shape, interpolation=down if f < 1 else cv2.INTER_CUBIC)
+    valid = np.isfinite(img) & np.isfinite(z)
+    if valid.mean() < 0.2:
+        raise ValueError(f"{image.name}: image and DEM overlap on {100 * valid.mean():.0f} % "
+                         "of the image: are they of the same place?")
+    lo, hi = np.percentile(img[valid], [1.0, 99.0])
+    grey = np.where(valid, np.clip((img - lo) / max(hi - lo, 1e-6) * 255.0, 0, 255), 0)
+    elevation = np.where(np.isfinite(z), z, np.nanmedian(z)).astype(np.float32)
+    return Scene(name or image.stem, grey.astype(np.uint8), valid, elevation, gsd,
+                 _parse_sun(sun, when, lat, lon), (lat, lon), place=str(dem.resolve()),
+                 dem_cell=_cell_metres(z_transform, z_crs, lat))
+
+
+def load_scenes(path, data_dir=None) -> list[Scene]:
+    """Scenes listed in a YAML file (``scenes: [{name, image, dem, band, gsd, sun, time}]``),
+    file names relative to ``data_dir`` (default: the YAML file's folder)."""
+    import yaml
+    path = Path(path)
+    doc = yaml.safe_load(path.read_text()) or {}
+    base = Path(data_dir) if data_dir else path.parent
+    scenes = []
+    for entry in doc.get("scenes", []):
+        gsds = entry.get("gsd")
+        for g in gsds if isinstance(gsds, list) else [gsds]:
+            name = entry["name"] + (f"@{g:g}m" if isinstance(gsds, list) else "")
+            scenes.append(load_scene(base / entry["image"], base / entry["dem"],
+                                     band=entry.get("band"), gsd=g, sun=entry.get("sun"),
+                                     when=entry.get("time"), name=name))
+    if not scenes:
+        raise ValueError(f"{path}: no scenes listed")
+    return scenes
+
+
+def render_landmark(scenes: list[Scene]) -> None:
+    """Render each scene's landmark (nadir, its sun) into ``scene.landmark``."""
+    from ..core.render.renderer import LandmarkRenderer, create_headless_context
+    ctx = create_headless_context()
+    for s in scenes:
+        renderer = LandmarkRenderer(ctx)
+        renderer.set_terrain(s.elevation, s.georef)
+        s.landmark = renderer.render_nadir(s.georef, sun=s.sun).grey_u8
+        renderer.release()
+
+
+@dataclass
+class _Case:
+    view: np.ndarray                  # camera view, 8-bit grey
+    region: tuple[int, int, int, int]  # x0, y0, x1, y1 in the scene
+    truth: np.ndarray                 # the view's centre in region pixels (col, row)
+
+
+def _cut_cases(scene: Scene, size: int, n: int, heading_known: bool, region_factor: float,
+               rng: np.random.Generator, max_scale_change: float = 0.1) -> list[_Case]:
+    """Up to ``n`` views of ``size`` px on valid pixels (fewer if the scene cannot hold
+    them)."""
+    h, w = scene.image.shape
+    c = 0.5 * (size - 1)
+    corners = np.array([[0, 0, 1], [size - 1, 0, 1], [0, size - 1, 1], [size - 1, size - 1, 1]],
+                       float)
+    valid_u8 = scene.valid.astype(np.uint8)
+    half = int(round(0.5 * region_factor * size))
+    cases = []
+    for _ in range(200 * n):
+        if len(cases) == n:
+            break
+        limit = KNOWN_HEADING_DEG if heading_known else 180.0
+        theta = math.radians(rng.uniform(-limit, limit))
+        s = 1.0 + rng.uniform(-max_scale_change, max_scale_change)
+        cx, cy = rng.uniform(0, w - 1), rng.uniform(0, h - 1)
+        a, b = s * math.cos(theta), s * math.sin(theta)
+        m = np.array([[a, b, 0.0], [-b, a, 0.0]])    # view px -> scene px
+        m[:, 2] = np.array([cx, cy]) - m[:, :2] @ np.array([c, c])
+        xy = corners @ m.T
+        if xy.min() < 0 or (xy[:, 0] > w - 1).any() or (xy[:, 1] > h - 1).any():
+            continue
+        flags = cv2.WARP_INVERSE_MAP
+        if cv2.warpAffine(valid_u8, m, (size, size), flags=flags | cv2.INTER_NEAREST).mean() \
+                < MIN_VALID:
+            continue
+        view = cv2.warpAffine(scene.image, m, (size, size), flags=flags | cv2.INTER_LINEAR)
+        x0, y0 = max(int(cx) - half, 0), max(int(cy) - half, 0)
+        x1, y1 = min(int(cx) + half, w), min(int(cy) + half, h)
+        cases.append(_Case(view, (x0, y0, x1, y1), np.array([cx - x0, cy - y0])))
+    return cases
+
+
+def _decimated(grey: np.ndarray, factor: float) -> tuple[np.ndarray, np.ndarray]:
+    """``grey`` area-averaged ``factor`` times coarser, and the exact factor per axis (x, y)
+    (the pixel centres map as x = (x' + 0.5) f - 0.5)."""
+    h, w = grey.shape
+    if factor <= 1.0 + 1e-3:
+        return grey, np.ones(2)
+    shape = (max(int(round(w / factor)), 1), max(int(round(h / factor)), 1))
+    out = cv2.resize(grey, shape, interpolation=cv2.INTER_AREA)
+    return out, np.array([w / shape[0], h / shape[1]])
+
+
+class _Extractor:
+    """The graph's extraction of a camera view and of a landmark region (a region's index
+    is kept: the controls meet the same regions many times), at the matching GSD: a scene
+    finer than it is area-averaged first, as camera_ingest resamples a camera to its GSD."""
+
+    def __init__(self, params: MatchParams, match_gsd=None):
+        ridges = params.crease_check and params.ridge_check
+        self.view = FeatureExtractor(ridges=ridges)
+        self.region = FeatureExtractor(minutia_params=MinutiaParams(max_minutiae=100000),
+                                       ridges=ridges)
+        self.match_gsd = match_gsd
+        self._regions = {}
+
+    def factor(self, scene: Scene) -> float:
+        """How many times coarser than ``scene.gsd`` the scene is matched."""
+        if self.match_gsd is None:
+            return 1.0
+        target = scene.dem_cell if self.match_gsd == "dem" else float(self.match_gsd)
+        return max(1.0, target / scene.gsd) if math.isfinite(target) else 1.0
+
+    def index(self, matcher: Matcher, grey, scene: Scene, region: bool = False):
+        """The index of ``grey`` (a view or a landmark region of ``scene``) and the factor
+        per axis of its decimation."""
+        grey, f = _decimated(grey, self.factor(scene))
+        feats = (self.region if region else self.view)(
+            extractor_input(grey, "shading", scene.sun))
+        ix = matcher.index(feats.minutiae, feats.creases.skeleton(), feats.ridges)
+        return (ix.prepare_as_reference(search=True) if region else ix), f
+
+    def region_index(self, matcher: Matcher, scene: Scene, box):
+        """The index of the landmark region ``box`` (x0, y0, x1, y1) of ``scene`` and its
+        decimation factor per axis."""
+        key = (scene.name, tuple(box), id(matcher))
+        if key not in self._regions:
+            x0, y0, x1, y1 = box
+            self._regions[key] = self.index(matcher, scene.landmark[y0:y1, x0:x1], scene,
+                                            region=True)
+        return self._regions[key]
+
+
+def _summary(err, accepted, times, success_px, no_fix_few=None) -> dict:
+    err, acc = np.asarray(err, float), np.asarray(accepted, bool)
+    ok = acc & (err <= success_px)
+    out = {"cases": int(len(err)), "success": int(ok.sum()),
+           "success_rate": float(ok.mean()) if len(err) else math.nan,
+           "wrong": int((acc & ~(err <= success_px)).sum()),
+           "err_median_ok_px": float(np.median(err[ok])) if ok.any() else math.nan,
+           "time_ms_median": 1e3 * float(np.median(times)) if len(times) else math.nan}
+    if no_fix_few is not None:
+        out["no_fix_too_little_drainage"] = int(np.sum(no_fix_few))
+    return out
+
+
+def _localise(matcher: Matcher, extractor: _Extractor, scene: Scene, case: _Case,
+              region_index) -> dict:
+    t0 = time.perf_counter()
+    view, f_view = extractor.index(matcher, case.view, scene)
+    ref, f_region = region_index
+    r = matcher.localise(view, ref)
+    dt = time.perf_counter() - t0
+    centre = 0.5 * (np.array(case.view.shape[::-1]) / f_view - 1.0)   # in matching pixels
+    est = np.array(r.apply(*centre), float) if np.isfinite(r.transform).all() \
+        else np.full(2, np.nan)
+    est = (est + 0.5) * f_region - 0.5           # matching pixels -> scene pixels
+    e = float(np.hypot(*(est - case.truth)))
+    return {"score": float(r.score), "accepted": r.decision == Decision.MATCH,
+            "err": e if math.isfinite(e) else math.inf, "time": dt, "reason": r.reason,
+            "too_little": any(k in r.reason for k in _TOO_LITTLE), "view_index": view}
+
+
+def _baseline(method: str, case: _Case, region: np.ndarray, heading_known: bool,
+              n_rotations: int) -> tuple[float, float]:
+    t0 = time.perf_counter()
+    if method == "ncc":
+        loc = ncc_locate(case.view, region, n_rotations=0 if heading_known else n_rotations)
+    else:
+        loc = keypoint_locate(case.view, region, kind=method)
+    dt = time.perf_counter() - t0
+    e = float(np.hypot(loc.col - case.truth[0], loc.row - case.truth[1])) if loc.found \
+        else math.inf
+    return e, dt
+
+
+def _far_regions(case: _Case, scene: Scene, size: int, region_factor: float,
+                 rng: np.random.Generator, n: int) -> list[tuple[int, int, int, int]]:
+    """Regions of the scene that do not contain the case's view (its centre at least the
+    region's half side plus the view's reach away): none in a small scene."""
+    h, w = scene.image.shape
+    side = int(round(region_factor * size))
+    if side >= min(h, w):
+        return []
+    x0c, y0c = case.region[:2]
+    centre = np.array([x0c, y0c]) + case.truth
+    out = []
+    for _ in range(50 * n):
+        if len(out) == n:
+            break
+        x0, y0 = int(rng.integers(0, w - side + 1)), int(rng.integers(0, h - side + 1))
+        near = np.abs(centre - (x0 + side / 2, y0 + side / 2)).max()
+        if near > side / 2 + size * 0.75:
+            out.append((x0, y0, x0 + side, y0 + side))
+    return out
+
+
+def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), cases: int = 20,
+                           out_dir="out/real-imagery", seed: int = 0,
+                           region_factor: float = 3.0, success_px: float = 3.0,
+                           false_match_rate: float = 1e-3, threshold: float | None = None,
+                           headings=("unknown", "known"), baselines=("ncc", "orb"),
+                           controls_per_case: int = 2, n_rotations: int = 36,
+                           match_params: MatchParams | None = None, match_gsd="dem",
+                           log=print) -> dict:
+    """Localise views of real images in landmark renders of their DEMs (module docstring).
+
+    Parameters
+    ----------
+    scenes : list of Scene
+    sizes : sequence of int
+        View sides (px); a size a scene cannot hold (with the rotation) is skipped, said so.
+    cases : int
+        Views per scene, size and heading condition.
+    threshold : float, optional
+        Acceptance threshold; default :class:`~.core.matching.params.MatchParams`'. The command
+        passes the graph's (``match.threshold`` of ``config/terrain_nav.yaml``).
+    headings : sequence of {"unknown", "known"}
+    baselines : sequence of {"ncc", "orb", "sift"}
+    controls_per_case : int
+        Non-PVA regions per view: from each other scene (in turn) and the same scene.
+    match_gsd : float, "dem" or None
+        GSD (m) at which views and regions are matched when a scene is finer (area
+        averaged, as camera_ingest resamples a camera to its GSD); "dem" (default): each
+        scene's DEM cell, since a render holds no terrain finer than it, while the camera's
+        albedo detail grows finer; None: each scene's own GSD.
+
+    Returns
+    -------
+    dict
+        Summary (also written to ``results.json``); ``report`` is the markdown text.
+    """
+    t_all = time.perf_counter()
+    params = match_params or MatchParams()
+    thr = params.threshold if threshold is None else float(threshold)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    render_landmark(scenes)
+    extractor = _Extractor(params, match_gsd)
+    rng = np.random.default_rng(seed)
+    study = _StudyRun(scenes, extractor, thr, success_px, region_factor, controls_per_case,
+                      tuple(baselines), n_rotations, rng)
+    rows, pva_scores = [], []
+    cv_threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)   # single-thread times, comparable across methods
+    try:
+        for heading in headings:
+            known = heading == "known"
+            max_rot = math.radians(KNOWN_HEADING_PRIOR_DEG) if known else math.pi
+            matcher = Matcher(params, threshold=-1e9, max_rotation=max_rot)
+            for size in sizes:
+                per_scene = {s.name: _cut_cases(s, size, cases, known, region_factor, rng)
+                             for s in scenes}
+                for scene in scenes:
+                    if not per_scene[scene.name]:
+                        log(f"  {scene.name}: no {size} px view fits ({heading} heading)")
+                        continue
+                    row = _study_cases(study, scene, per_scene, size, heading, matcher)
+                    pva_scores += row.pop("pva_scores")
+                    rows.append(row)
+                    m = row["minutiae"]
+                    log(f"  {scene.name} {size} px, heading {heading}: {m['success']}/"
+                        f"{m['cases']} localised, {m['wrong']} wrong, "
+                        f"{m['no_fix_too_little_drainage']} too little drainage, "
+                        f"{m['time_ms_median']:.0f} ms")
+    finally:
+        cv2.setNumThreads(cv_threads)
+    non_pva = study.non_pva
+    non = np.array([x["score"] for x in non_pva], float)
+    calibrated = calibrate_threshold(non, false_match_rate) \
+        if len(non) and np.isfinite(non).any() else math.nan
+    summary = {
+        "setup": {"scenes": [{"name": s.name, "shape": list(s.image.shape), "gsd_m": s.gsd,
+                              "dem_cell_m": s.dem_cell,
+                              "sun": list(s.sun), "centre_latlon": list(s.centre_latlon),
+                              "valid": float(s.valid.mean())} for s in scenes],
+                  "sizes": list(sizes), "cases": cases, "seed": seed,
+                  "region_factor": region_factor, "success_px": success_px,
+                  "threshold": thr, "false_match_rate": false_match_rate,
+                  "headings": list(headings), "baselines": list(baselines),
+                  "n_rotations": n_rotations, "match_gsd": match_gsd,
+                  "match_gsd_m": {s.name: s.gsd * extractor.factor(s) for s in scenes}},
+        "rows": rows,
+        "non_pva": {"comparisons": int(len(non)),
+                    "accepted": int((non >= thr).sum()),
+                    "max_score": float(non.max()) if len(non) else math.nan,
+                    "calibrated_threshold": float(calibrated),
+                    "calibrated_threshold_1e-4": float(calibrate_threshold(non, 1e-4))
+                    if len(non) and np.isfinite(non).any() else math.nan,
+                    "scores": [float(x) for x in non],
+                    "by_size": _non_pva_by_size(non_pva, thr),
+                    "pva_success_at_calibrated": _success_at(rows, pva_scores, calibrated),
+                    "accepted_cases": [x for x in non_pva if x["score"] >= thr]},
+        "seconds": time.perf_counter() - t_all,
+    }
+    summary["totals"] = _totals(rows, [128, 256, 512])
+    pngs = _scene_pngs(out, scenes) + [_score_histogram(out, rows, non, thr, success_px)]
+    report = _report(summary, pngs)
+    (out / "report.md").write_text(report)
+    (out / "results.json").write_text(json.dumps(summary, indent=1, default=_json_default))
+    summary["report"] = report
+    return summary
+
+
+@dataclass
+class _StudyRun:
+    """What every case of one study run shares, and the control scores it gathers."""
+
+    scenes: list
+    extractor: _Extractor
+    threshold: float
+    success_px: float
+    region_factor: float
+    controls_per_case: int
+    baselines: tuple
+    n_rotations: int
+    rng: np.random.Generator
+    non_pva: list = field(default_factory=list)
+
+
+def _study_cases(study: _StudyRun, scene: Scene, per_scene: dict, size: int, heading: str,
+                 matcher: Matcher) -> dict:
+    """Localise the cases of one scene, size and heading, with their baselines and controls
+    (appended to ``study.non_pva``): the scene's row of the report."""
+    cs, known, thr = per_scene[scene.name], heading == "known", study.threshold
+    extractor, success_px = study.extractor, study.success_px
+    rec = {"err": [], "acc": [], "time": [], "few": [], "cases": []}
+    base = {m: {"err": [], "time": []} for m in study.baselines}
+    pva_scores = []
+    # errors in matching pixels: a view finer than its DEM is localised to the DEM's cell
+    per_px = extractor.factor(scene)
+    for k, case in enumerate(cs):
+        x0, y0, x1, y1 = case.region
+        region = scene.landmark[y0:y1, x0:x1]
+        region_index = extractor.region_index(matcher, scene, case.region)
+        r = _localise(matcher, extractor, scene, case, region_index)
+        r["err"] /= per_px
+        rec["err"].append(r["err"])
+        rec["acc"].append(r["score"] >= thr)
+        rec["time"].append(r["time"])
+        rec["few"].append(r["too_little"] and not r["score"] >= thr)
+        rec["cases"].append({"err_px": r["err"], "err_m": r["err"] * per_px * scene.gsd,
+                             "score": r["score"], "reason": r["reason"]})
+        pva_scores.append((scene.name, size, heading, r["score"], r["err"] <= success_px))
+        for method in study.baselines:
+            e, dt = _baseline(method, case, region, known, study.n_rotations)
+            base[method]["err"].append(e / per_px)
+            base[method]["time"].append(dt)
+        _controls(study, scene, per_scene, case, k, size, heading, matcher, r["view_index"])
+    row = {"scene": scene.name, "size": size, "heading": heading,
+           "minutiae": _summary(rec["err"], rec["acc"], rec["time"], success_px, rec["few"]),
+           "pva_scores": pva_scores, "cases": rec["cases"]}
+    for method, b in base.items():
+        row[method] = _summary(b["err"], np.isfinite(b["err"]), b["time"], success_px)
+    return row
+
+
+def _controls(study: _StudyRun, scene: Scene, per_scene: dict, case: _Case, k: int,
+              size: int, heading: str, matcher: Matcher, view_index) -> None:
+    """Score the ``k``-th view of ``scene`` against regions that do not hold it: those of
+    other places' cases (in turn) and a far part of its own scene; into ``study.non_pva``."""
+    others = [s for s in study.scenes if s.place != scene.place]
+    regions = []
+    for j in range(study.controls_per_case if others else 0):
+        other = others[(k + j) % len(others)]
+        if per_scene[other.name]:
+            regions.append((other, per_scene[other.name][(k + j) % len(per_scene[other.name])]
+                            .region))
+    regions += [(scene, box) for box in _far_regions(case, scene, size, study.region_factor,
+                                                     study.rng, 1)]
+    for other, box in regions:
+        ref, _ = study.extractor.region_index(matcher, other, box)
+        study.non_pva.append({"view_scene": scene.name, "region_scene": other.name,
+                              "size": size, "heading": heading,
+                              "score": float(matcher.localise(view_index, ref).score)})
+
+
+def _non_pva_by_size(non_pva: list[dict], thr: float) -> dict:
+    """Comparisons, accepts and the highest score of the controls per view size."""
+    out = {}
+    for size in sorted({x["size"] for x in non_pva}):
+        scores = np.array([x["score"] for x in non_pva if x["size"] == size])
+        out[str(size)] = {"comparisons": int(len(scores)), "accepted": int((scores >= thr).sum()),
+                          "max_score": float(scores.max())}
+    return out
+
+
+def _success_at(rows, pva_scores, thr) -> dict:
+    if not math.isfinite(thr):
+        return {}
+    ok = sum(1 for *_, score, right in pva_scores if right and score >= thr)
+    wrong = sum(1 for *_, score, right in pva_scores if not right and score >= thr)
+    return {"success": ok, "wrong": wrong, "cases": len(pva_scores)}
+
+
+def _totals(rows, sizes) -> dict:
+    """Success over all scenes for views of ``sizes`` (the issue's 128-512 px), per
+    heading condition and method."""
+    out = {}
+    for heading in {r["heading"] for r in rows}:
+        sel = [r for r in rows if r["heading"] == heading and r["size"] in sizes]
+        for method in ("minutiae", "ncc", "orb", "sift"):
+            have = [r[method] for r in sel if method in r]
+            if have:
+                n = sum(x["cases"] for x in have)
+                out[f"{heading}/{method}"] = {
+                    "cases": n, "success": sum(x["success"] for x in have),
+                    "wrong": sum(x["wrong"] for x in have),
+                    "no_fix_too_little_drainage": sum(x.get("no_fix_too_little_drainage", 0)
+                                                      for x in have)}
+    return out
+
+
+def _scene_pngs(out: Path, scenes: list[Scene]) -> list[str]:
+    names = []
+    for s in scenes:
+        name = f"scene_{s.name.replace('@', '_')}.png"
+        cv2.imwrite(str(out / name), np.hstack([s.image, np.full((s.image.shape[0], 4), 255,
+                                                                 np.uint8), s.landmark]))
+        names.append(name)
+    return names
+
+
+def _score_histogram(out: Path, rows, non: np.ndarray, thr: float, success_px: float) -> str:
+    """Scores of the views at their place (localised or not) and of the controls, with the
+    threshold: how far the two populations stand apart on real images."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .evaluation import _save
+
+    cases = [c for r in rows for c in r["cases"]]
+    right = [c["score"] for c in cases if c["err_px"] <= success_px]
+    off = [c["score"] for c in cases if not c["err_px"] <= success_px]
+    finite = [x for x in [*right, *off, *non] if np.isfinite(x)]
+    bins = np.linspace(min(finite, default=-5.0), max(max(finite, default=30.0), thr + 1), 60)
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    for values, label in ((non, "controls (non-PVA)"), (off, "views, not at their place"),
+                          (right, f"views within {success_px:g} px of their place")):
+        ax.hist(np.clip([v for v in values if np.isfinite(v)], bins[0], bins[-1]), bins,
+                histtype="step", lw=1.5, label=f"{label} ({len(values)})")
+    ax.axvline(thr, color="k", ls="--", lw=1, label=f"threshold {thr:g}")
+    ax.set_xlabel("score")
+    ax.set_ylabel("count")
+    ax.set_yscale("log")
+    ax.legend(fontsize=8)
+    return _save(fig, out / "scores.png")
+
+
+def _fmt(x, spec=".0f") -> str:
+    return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else \
+        format(x, spec)
+
+
+def _report(summary: dict, pngs: list[str]) -> str:
+    st = summary["setup"]
+    methods = [m for m in ("minutiae", "ncc", "orb", "sift")
+               if any(m in r for r in summary["rows"])]
+    lines = ["# Real-imagery study", "",
+             f"Views cut from real images, localised in a region {st['region_factor']:g}x "
+             f"their side of the landmark render of the scene's DEM at the scene's sun; "
+             f"success = centre within {st['success_px']:g} px of the GSD matched at; threshold "
+             f"{st['threshold']:g}; scale +-10 %; heading unknown = rotation +-180 deg "
+             f"(NCC with {st['n_rotations']} rotations), known = +-{KNOWN_HEADING_DEG:g} deg "
+             f"(matcher told +-{KNOWN_HEADING_PRIOR_DEG:g}, NCC without rotations). "
+             "Baselines always answer: every answer off the truth is wrong.", "",
+             "| scene | GSD m | DEM cell m | matched at m | size px | sun az/el | valid |",
+             "|---|---|---|---|---|---|---|"]
+    for s in st["scenes"]:
+        lines.append(f"| {s['name']} | {s['gsd_m']:g} | {s['dem_cell_m']:.0f} | "
+                     f"{st['match_gsd_m'][s['name']]:.0f} | {s['shape'][1]}x{s['shape'][0]} | "
+                     f"{s['sun'][0]:.1f} / {s['sun'][1]:.1f} | {100 * s['valid']:.0f} % |")
+    head = "| scene | view px | heading | cases | " + " | ".join(
+        f"{m} ok / wrong / ms" for m in methods) + " | minutiae: too little drainage |"
+    lines += ["", "## Localisation", "", head, "|" + "---|" * (5 + len(methods))]
+    for r in summary["rows"]:
+        cells = [f"{r[m]['success']} / {r[m]['wrong']} / {_fmt(r[m]['time_ms_median'])}"
+                 if m in r else "-" for m in methods]
+        lines.append(f"| {r['scene']} | {r['size']} | {r['heading']} | "
+                     f"{r['minutiae']['cases']} | " + " | ".join(cells)
+                     + f" | {r['minutiae']['no_fix_too_little_drainage']} |")
+    lines += ["", "Over all scenes, views of 128-512 px:", "",
+              "| heading / method | cases | localised | wrong | too little drainage |",
+              "|---|---|---|---|---|"]
+    for key, t in sorted(summary["totals"].items()):
+        rate = 100.0 * t["success"] / max(t["cases"], 1)
+        lines.append(f"| {key} | {t['cases']} | {t['success']} ({rate:.0f} %) | "
+                     f"{t['wrong']} | {t['no_fix_too_little_drainage']} |")
+    nv = summary["non_pva"]
+    at = nv["pva_success_at_calibrated"]
+    lines += ["", "## Controls (non-PVA)", "",
+              f"{nv['comparisons']} comparisons of views with regions that do not hold them "
+              f"(other scenes, and far parts of the same scene): **{nv['accepted']} accepted** "
+              f"at threshold {st['threshold']:g}; highest score {_fmt(nv['max_score'], '.2f')}. "
+              f"Threshold calibrated on them for a false-match rate of "
+              f"{st['false_match_rate']:g}: {_fmt(nv['calibrated_threshold'], '.2f')} "
+              f"(1e-4, from the fitted tail: {_fmt(nv['calibrated_threshold_1e-4'], '.2f')})"
+              + (f", at which {at['success']} of {at['cases']} views are localised and "
+                 f"{at['wrong']} accepted wrong." if at else "."), "",
+              "", "| view px | comparisons | accepted | highest score |", "|---|---|---|---|"]
+    lines += [f"| {size} | {b['comparisons']} | {b['accepted']} | {b['max_score']:.2f} |"
+              for size, b in nv["by_size"].items()]
+    lines += ["", f"Run time {summary['seconds']:.0f} s.", ""]
+    lines += [f"![{p}]({p})" for p in pngs]
+    return "\n".join(lines) + "\n"
+
+
+def _json_default(x):
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    raise TypeError(f"not JSON serialisable: {type(x)}")
+

@@ -1,0 +1,302 @@
+"""What a replay achieved: fix and fused errors against the truth, dead reckoning, latency, load.
+
+:func:`analyse` reads the bag that was played (sensors and, for simulated flights,
+``/ground_truth/odometry`` plus ``mission.yaml``) and the bag recorded from the graph
+(``/nav/odometry``, ``/nav/pva_fix`` and the intermediate topics), and returns plain numbers;
+:func:`format_report` prints them and :func:`plot` draws the trajectory over the hillshaded DEM
+and the error against time with the filter's 3-sigma bound.
+
+IMU-only dead reckoning is the same filter core (:class:`~.core.estimation.ekf.TerrainEkf`) fed the
+same IMU, barometer and pre-denial GNSS, but no terrain fixes: the drift the terrain fixes remove.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from ..core.estimation.baro import pressure_to_altitude
+from ..core.estimation.ekf import TerrainEkf
+from ..core.estimation.ekf_params import EkfParams
+from ..core.matching.pva_fix import reason_kind
+from ..core.terrain.geodesy import EnuOrigin
+from . import bags
+
+STAGE_TOPICS = ("/camera/image_ground", "/camera/minutiae", "/nav/pva_fix")
+CAMERA_TOPICS = ("/camera/image_raw", "/camera/image_raw/compressed")   # in the input bag
+
+
+def _stamp(msg) -> float:
+    return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+
+
+def read_mission(bag: Path) -> dict:
+    """The simulator's mission.yaml beside the bag, or {} for bags recorded elsewhere."""
+    path = Path(bag) / "mission.yaml"
+    return yaml.safe_load(path.read_text()) if path.is_file() else {}
+
+
+def plain(value):
+    """Nested dicts/lists/tuples of numpy or Python scalars -> what yaml.safe_dump takes
+    (NaN becomes null)."""
+    if isinstance(value, dict):
+        return {str(k): plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [plain(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and math.isnan(value):
+        return None
+    return value
+
+
+def _series(bag, topic):
+    """(stamps, positions, horizontal covariance traces) of an Odometry topic."""
+    t, p, var = [], [], []
+    for m in bags.read(bag, [topic]):
+        msg = bags.decode(m)
+        pos = msg.pose.pose.position
+        t.append(_stamp(msg))
+        p.append((pos.x, pos.y, pos.z))
+        cov = np.asarray(msg.pose.covariance).reshape(6, 6)
+        var.append(max(cov[0, 0], 0.0) + max(cov[1, 1], 0.0))
+    return np.array(t), np.array(p).reshape(-1, 3), np.array(var)
+
+
+def _fixes(bag):
+    out = []
+    for m in bags.read(bag, ["/nav/pva_fix"]):
+        msg = bags.decode(m)
+        p = msg.pose.pose.position
+        cov = np.asarray(msg.pose.covariance).reshape(6, 6)
+        out.append({"stamp": _stamp(msg), "received": m.timestamp_ns * 1e-9,
+                    "status": int(msg.status), "reason": msg.reason,
+                    "position": np.array([p.x, p.y, p.z]), "cov_xy": cov[:2, :2],
+                    "pairings": int(msg.num_pairings), "similarity": float(msg.similarity)})
+    return out
+
+
+def _ekf_health(bag) -> str:
+    """The EKF's last word on its health (its /nav/ekf/diagnostics filter status)."""
+    last = ""
+    for m in bags.read(bag, ["/nav/ekf/diagnostics"]):
+        for status in bags.decode(m).status:
+            if status.name == "ekf: filter":
+                last = status.message
+    return last or "it published no diagnostics either"
+
+
+def _latencies(bag) -> dict:
+    """Receive time minus the camera frame's stamp for each pipeline stage (s)."""
+    out = {}
+    for topic in STAGE_TOPICS:
+        lat = [m.timestamp_ns * 1e-9 - _stamp(bags.decode(m)) for m in bags.read(bag, [topic])]
+        if lat:
+            out[topic] = np.array(lat)
+    return out
+
+
+def dead_reckoning(bag, origin: EnuOrigin, denied_after: float, t0: float):
+    """IMU(+baro, +GNSS before denial) navigation with the filter core; (t, positions)."""
+    ekf = TerrainEkf(EkfParams(init_mode="gnss"))
+    gnss_up = baro_offset = None
+    t_out, p_out = [], []
+    for m in bags.read(bag, ["/imu/data", "/gnss/fix", "/baro/pressure"]):
+        msg = bags.decode(m)
+        stamp = _stamp(msg)
+        if m.topic == "/imu/data":
+            w, a = msg.angular_velocity, msg.linear_acceleration
+            ekf.process_imu(stamp, (w.x, w.y, w.z), (a.x, a.y, a.z))
+            if ekf.initialized and (not t_out or stamp - t_out[-1] >= 0.1):
+                t_out.append(stamp)
+                p_out.append(ekf.state.position.copy())
+        elif m.topic == "/gnss/fix":
+            if stamp - t0 >= denied_after or msg.status.status < 0 or \
+                    not math.isfinite(msg.latitude):
+                continue
+            e, n, u = origin.geodetic_to_enu(msg.latitude, msg.longitude, msg.altitude)
+            cov = np.asarray(msg.position_covariance, float).reshape(3, 3)
+            ekf.process_gnss(stamp, [float(e), float(n), float(u)], cov)
+            gnss_up = float(u)
+        else:
+            altitude = float(pressure_to_altitude(msg.fluid_pressure))
+            if baro_offset is None and gnss_up is not None and ekf.initialized:
+                baro_offset = gnss_up - altitude  # align the baro to the GNSS height once
+            if baro_offset is not None:
+                ekf.process_baro(stamp, altitude + baro_offset, 4.0)
+    return np.array(t_out), np.array(p_out).reshape(-1, 3)
+
+
+def _horizontal_error(t_est, p_est, t_truth, p_truth):
+    """Horizontal error of an estimate at the truth stamps it covers."""
+    inside = (t_truth >= t_est[0]) & (t_truth <= t_est[-1]) if len(t_est) else \
+        np.zeros(len(t_truth), bool)
+    e = np.interp(t_truth[inside], t_est, p_est[:, 0]) - p_truth[inside, 0]
+    n = np.interp(t_truth[inside], t_est, p_est[:, 1]) - p_truth[inside, 1]
+    return t_truth[inside], np.hypot(e, n)
+
+
+def analyse(input_bag, output_bag, usage: dict | None = None) -> dict:
+    """Metrics of one replay (plain numbers and arrays for the plots)."""
+    mission = read_mission(input_bag)
+    info = {t.topic: t for t in bags.topics(input_bag)}
+    result: dict = {"input_bag": str(input_bag), "output_bag": str(output_bag),
+                    "usage": usage or {}}
+    fixes = _fixes(output_bag)
+    good = [f for f in fixes if f["status"] > 0]
+    result["fixes"] = {"frames": len(fixes), "fixes": len(good),
+                       "no_fix": len(fixes) - len(good),
+                       "in_bag": sum(info[t].count for t in CAMERA_TOPICS if t in info),
+                       "reasons": Counter(reason_kind(f["reason"]) for f in fixes
+                                          if f["status"] == 0).most_common(6)}
+    result["latency"] = {k: v for k, v in _latencies(output_bag).items()}
+    t_fused, p_fused, var_fused = _series(output_bag, "/nav/odometry")
+    result["series"] = {"fused": (t_fused, p_fused, var_fused), "fixes": good}
+    if not len(t_fused):   # say why, or the report only shows empty sections
+        result["no_odometry"] = _ekf_health(output_bag)
+    if "/ground_truth/odometry" not in info:
+        result["truth"] = None
+        return result
+    t_truth, p_truth, _ = _series(input_bag, "/ground_truth/odometry")
+    t0 = t_truth[0]
+    denied = float(mission.get("gnss_denied_after_s", 0.0))
+    result["truth"] = (t_truth, p_truth)
+    result["t0"], result["denied_after"] = t0, denied
+    if good:
+        t_fix = np.array([f["stamp"] for f in good])
+        p_fix = np.array([f["position"] for f in good])
+        idx = np.clip(np.searchsorted(t_truth, t_fix), 0, len(t_truth) - 1)
+        err = np.hypot(*(p_fix[:, :2] - p_truth[idx, :2]).T)
+        sigma = np.sqrt([max(np.trace(f["cov_xy"]), 0.0) for f in good])
+        result["fix_error"] = {"median": float(np.median(err)),
+                               "p95": float(np.percentile(err, 95)),
+                               "max": float(err.max()),
+                               "within_3_sigma": float(np.mean(err <= 3 * sigma))}
+    window = t_truth - t0 >= denied
+    if len(t_fused):
+        te, err = _horizontal_error(t_fused, p_fused, t_truth[window], p_truth[window])
+        result["fused_error"] = _stats(err)
+        result["series"]["fused_error"] = (te - t0, err,
+                                           3 * np.sqrt(np.interp(te, t_fused, var_fused)))
+    origin = mission.get("origin")
+    if origin:
+        t_dr, p_dr = dead_reckoning(input_bag, EnuOrigin(*origin), denied, t0)
+        if len(t_dr):
+            te, err = _horizontal_error(t_dr, p_dr, t_truth[window], p_truth[window])
+            result["dr_error"] = _stats(err)
+            result["series"]["dr"] = (t_dr, p_dr)
+            result["series"]["dr_error"] = (te - t0, err)
+    return result
+
+
+def _stats(err: np.ndarray) -> dict:
+    if not len(err):
+        return {"rms": math.nan, "max": math.nan, "final": math.nan, "samples": 0}
+    return {"rms": float(np.sqrt(np.mean(err ** 2))), "max": float(err.max()),
+            "final": float(err[-1]), "samples": int(len(err))}
+
+
+def format_report(r: dict, gsd: float | None = None) -> str:
+    """Human-readable summary of :func:`analyse`'s result."""
+    lines = ["", "terrain_nav replay report", "=" * 25,
+             f"input bag:  {r['input_bag']}", f"output bag: {r['output_bag']}"]
+    if r.get("no_odometry"):
+        lines.append(f"NO ODOMETRY: the EKF published none; its last diagnostics: "
+                     f"{r['no_odometry']}")
+    f = r["fixes"]
+    lines.append(f"camera frames answered: {f['frames']} of {f['in_bag']}  fixes: "
+                 f"{f['fixes']}  no fix: {f['no_fix']}")
+    if f["in_bag"] and f["frames"] < f["in_bag"]:
+        lines.append(f"WARNING: {f['in_bag'] - f['frames']} camera frames of the bag got no "
+                     "answer (lost on the way to camera_ingest, or the graph fell behind)")
+    for reason, count in f["reasons"]:
+        lines.append(f"  no fix x{count}: {reason}")
+    if "fix_error" in r:
+        e = r["fix_error"]
+        lines.append(f"fix error vs truth (horizontal): median {e['median']:.1f} m, p95 "
+                     f"{e['p95']:.1f} m, max {e['max']:.1f} m; within 3 sigma "
+                     f"{100 * e['within_3_sigma']:.0f}%")
+    if r.get("truth") is not None:
+        lines.append(f"GPS denied after {r['denied_after']:.0f} s; over the denied part:")
+        for key, label in (("fused_error", "fused (terrain + IMU)"),
+                           ("dr_error", "IMU-only dead reckoning")):
+            if key in r:
+                e = r[key]
+                extra = f" = {e['rms'] / gsd:.1f} GSD" if gsd and key == "fused_error" else ""
+                lines.append(f"  {label:26s} RMS {e['rms']:8.1f} m{extra}, max {e['max']:8.1f} m,"
+                             f" final {e['final']:8.1f} m")
+    else:
+        lines.append("no /ground_truth/odometry in the input bag: errors not computed")
+    if r["latency"]:
+        lines.append("latency from camera frame stamp (p50 / p95):")
+        for topic, lat in r["latency"].items():
+            lines.append(f"  {topic:24s} {1e3 * np.median(lat):7.0f} ms / "
+                         f"{1e3 * np.percentile(lat, 95):7.0f} ms")
+    if r["usage"]:
+        lines.append("per node: CPU (share of one core) / peak RSS:")
+        for name, u in sorted(r["usage"].items()):
+            wall = u.get("last", 0) - u.get("started", 0)
+            share = f"{100 * u['cpu_s'] / wall:5.1f}%" if wall >= 1.0 else "  n/a"
+            lines.append(f"  {name:18s} {u['cpu_s']:7.1f} s CPU ({share})"
+                         f" / {u['peak_rss_mb']:6.0f} MB")
+    return "\n".join(lines)
+
+
+def plot(r: dict, out_dir: Path, background=None) -> list[Path]:
+    """Trajectory and error plots as PNG files; ``background`` = (hillshade, extent)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir = Path(out_dir)
+    written = []
+    s = r["series"]
+    fig, ax = plt.subplots(figsize=(8, 8))
+    if background is not None:
+        ax.imshow(background[0], extent=background[1], cmap="gray", origin="upper", alpha=0.8)
+    if r.get("truth") is not None:
+        ax.plot(*r["truth"][1][:, :2].T, "k-", lw=1.5, label="truth")
+    if "dr" in s:
+        ax.plot(*s["dr"][1][:, :2].T, "r--", lw=1, label="IMU-only dead reckoning")
+    t_f, p_f, _ = s["fused"]
+    if len(t_f):
+        ax.plot(*p_f[:, :2].T, "b-", lw=1, label="fused (EKF)")
+    if s["fixes"]:
+        p = np.array([f["position"] for f in s["fixes"]])
+        ax.plot(p[:, 0], p[:, 1], "g+", ms=8, label="terrain fixes")
+    ax.set_xlabel("east [m]")
+    ax.set_ylabel("north [m]")
+    ax.set_aspect("equal")
+    ax.legend(loc="best")
+    ax.set_title("trajectory over the DEM (hillshade)")
+    if r.get("truth") is not None:
+        p = r["truth"][1]
+        pad = 0.15 * max(np.ptp(p[:, 0]), np.ptp(p[:, 1]), 500.0)
+        ax.set_xlim(p[:, 0].min() - pad, p[:, 0].max() + pad)
+        ax.set_ylim(p[:, 1].min() - pad, p[:, 1].max() + pad)
+    path = out_dir / "trajectory.png"
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    written.append(path)
+    if "fused_error" in s:
+        fig, ax = plt.subplots(figsize=(9, 4))
+        te, err, bound = s["fused_error"]
+        ax.plot(te, err, "b-", label="fused horizontal error")
+        ax.plot(te, bound, "b:", label="fused 3-sigma bound")
+        if "dr_error" in s:
+            ax.plot(*s["dr_error"], "r--", label="IMU-only error")
+        ax.set_yscale("log")
+        ax.set_xlabel("time since start [s]")
+        ax.set_ylabel("horizontal error [m]")
+        ax.legend(loc="best")
+        ax.set_title("error over the GPS-denied part")
+        path = out_dir / "error.png"
+        fig.savefig(path, dpi=110, bbox_inches="tight")
+        plt.close(fig)
+        written.append(path)
+    return written

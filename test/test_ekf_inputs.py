@@ -1,0 +1,139 @@
+"""The ekf node's input decisions without ROS (core.estimation.ekf_inputs)."""
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from terrain_nav_ros.core.camera.camera_mount import mount_rotation
+from terrain_nav_ros.core.estimation.ekf_inputs import (
+    COVARIANCE_TYPE_DIAGONAL_KNOWN,
+    COVARIANCE_TYPE_UNKNOWN,
+    BaroOffset,
+    FixFrame,
+    OriginHandshake,
+    baro_refusal,
+    fix_covariance,
+    gnss_covariance,
+    gnss_refusal,
+)
+from terrain_nav_ros.core.estimation.strapdown import quat_from_euler, quat_to_matrix
+
+
+def _frame(pose_frame="camera_optical", lever_arm=(0.0, 0.0, 0.0)):
+    return FixFrame(pose_frame, Rotation.from_matrix(mount_rotation(0.0, 0.0, 0.0)).inv(),
+                    lever_arm)
+
+
+def test_a_fix_frame_is_camera_optical_or_base_link():
+    with pytest.raises(ValueError, match="fix_pose_frame"):
+        _frame("camera")
+
+
+def test_a_fix_orientation_must_be_a_unit_quaternion():
+    frame = _frame("base_link")
+    assert frame.body_quaternion([0.0, 0.0, 0.0, 2.0]) is None
+    np.testing.assert_allclose(frame.body_quaternion([0.0, 0.0, 0.0, 1.005]), [0, 0, 0, 1])
+
+
+def test_a_base_link_fix_is_the_body_pose_as_it_is():
+    frame = _frame("base_link", lever_arm=(1.0, 0.0, 0.0))
+    q = quat_from_euler(0.0, 0.0, 0.3)
+    np.testing.assert_allclose(frame.body_quaternion(q), q)
+    np.testing.assert_allclose(frame.body_position([5.0, 6.0, 7.0], q, q), [5.0, 6.0, 7.0])
+
+
+def test_the_camera_centre_is_moved_back_by_the_turned_lever_arm():
+    frame = _frame("camera_optical", lever_arm=(1.0, 0.0, 0.0))
+    q_body = quat_from_euler(0.0, 0.0, math.pi / 2)     # nose north
+    got = frame.body_position([5.0, 6.0, 7.0], q_body, None)
+    np.testing.assert_allclose(got, [5.0, 5.0, 7.0], atol=1e-12)
+    # without a fix attitude the estimate's turns it
+    got = frame.body_position([5.0, 6.0, 7.0], None, quat_from_euler(0.0, 0.0, 0.0))
+    np.testing.assert_allclose(got, [4.0, 6.0, 7.0], atol=1e-12)
+    expected = np.array([5.0, 6.0, 7.0]) - quat_to_matrix(q_body) @ [1.0, 0.0, 0.0]
+    np.testing.assert_allclose(frame.body_position([5.0, 6.0, 7.0], q_body, None), expected)
+
+
+def test_fix_covariance_is_in_the_cores_block_order():
+    pose = np.arange(36.0).reshape(6, 6)
+    velocity = np.diag([7.0, 8.0, 9.0])
+    position_only = fix_covariance(pose)
+    np.testing.assert_array_equal(position_only, pose[:3, :3])
+    full = fix_covariance(pose, velocity, with_attitude=True)
+    assert full.shape == (9, 9)
+    np.testing.assert_array_equal(full[:3, :3], pose[:3, :3])
+    np.testing.assert_array_equal(full[3:6, 3:6], velocity)
+    np.testing.assert_array_equal(full[6:, 6:], pose[3:, 3:])
+    np.testing.assert_array_equal(full[:3, 6:], pose[:3, 3:])     # position-attitude terms
+    np.testing.assert_array_equal(full[3:6, :3], 0.0)              # velocity: unknown terms
+    attitude = fix_covariance(pose, None, with_attitude=True)
+    np.testing.assert_array_equal(attitude, pose)
+
+
+def test_gnss_refusals_name_their_reason():
+    good = np.array([36.5, -84.3, 300.0])
+    assert gnss_refusal(1.0, good, True) is None
+    assert gnss_refusal(1.0, [np.nan, -84.3, 300.0], True)[0] == "non_finite_value"
+    assert gnss_refusal(math.inf, good, True)[0] == "non_finite_value"
+    assert gnss_refusal(1.0, [91.0, 0.0, 0.0], True)[0] == "latitude_longitude_out_of_range"
+    assert gnss_refusal(1.0, good, False) == ("no_enu_origin_yet", "")
+
+
+def test_gnss_covariance_falls_back_or_keeps_what_the_fix_knows():
+    cov = np.arange(9.0).reshape(3, 3) + np.eye(3)
+    np.testing.assert_array_equal(
+        gnss_covariance(cov, COVARIANCE_TYPE_UNKNOWN, [3.0, 3.0, 6.0]), np.diag([9, 9, 36.0]))
+    np.testing.assert_array_equal(gnss_covariance(cov, COVARIANCE_TYPE_DIAGONAL_KNOWN, None),
+                                  np.diag(np.diag(cov)))
+    assert gnss_covariance(cov, 3, None) is cov
+
+
+def test_baro_samples_need_a_positive_finite_pressure_and_variance():
+    assert baro_refusal(1.0, 95000.0, 4.0) is None
+    for stamp, pressure, variance in ((1.0, -1.0, 0.0), (1.0, np.nan, 0.0),
+                                      (1.0, 95000.0, -1.0), (math.nan, 95000.0, 0.0)):
+        assert baro_refusal(stamp, pressure, variance) is not None
+
+
+def _ekf(initialized=True, t=10.0, sigma_z=2.0, z=500.0, vz=1.0, stamp=10.0):
+    state = SimpleNamespace(covariance=np.diag([1.0, 1.0, sigma_z ** 2]),
+                            position=np.array([0.0, 0.0, z]),
+                            velocity=np.array([0.0, 0.0, vz]), stamp=stamp)
+    return SimpleNamespace(initialized=initialized, t=t, state=state)
+
+
+def test_the_baro_offset_is_learnt_once_the_height_is_known_and_forgotten_on_reset():
+    offset = BaroOffset(math.nan, max_sigma=10.0)
+    assert offset.value is None
+    assert not offset.learn(10.0, 480.0, _ekf(initialized=False))
+    assert not offset.learn(10.5, 480.0, _ekf(t=10.0))            # not the filter's time
+    assert not offset.learn(10.0, 480.0, _ekf(sigma_z=20.0))      # height not known yet
+    assert offset.learn(10.05, 480.0, _ekf())
+    assert offset.value == pytest.approx(500.0 + 1.0 * 0.05 - 480.0)
+    assert offset.learn(11.0, 0.0, _ekf(initialized=False))        # known: stays
+    offset.forget()
+    assert offset.value is None
+
+
+def test_a_set_baro_offset_is_never_learnt_or_forgotten():
+    offset = BaroOffset(12.5, max_sigma=10.0)
+    assert offset.value == 12.5 and offset.learn(0.0, 0.0, _ekf(initialized=False))
+    offset.forget()
+    assert offset.value == 12.5
+
+
+def test_the_origin_handshake_adopts_the_first_origin_and_resends_a_lost_request():
+    handshake = OriginHandshake(resend_after=5.0)
+    assert handshake.request(0.0, pending=False) == "send"
+    handshake.sent(0.0)
+    assert handshake.request(4.9, pending=True) == "wait"
+    assert handshake.request(5.1, pending=True) == "resend"
+    with pytest.raises(ValueError):
+        handshake.adopt(95.0, 0.0, 0.0)
+    assert handshake.adopt(36.5, -84.3, 300.0)
+    assert not handshake.adopt(10.0, 10.0, 0.0)                   # the first one wins
+    assert handshake.origin.lat == 36.5
+    assert handshake.request(6.0, pending=True) == "done"
