@@ -127,7 +127,7 @@ def main():
     matcher = Matcher(params, threshold=-1e9, max_rotation=math.pi)
     extractor = ri._Extractor(params)
     rng = np.random.default_rng(args.seed)
-    prof = cProfile.Profile() if args.profile else None
+    prof = cProfile.Profile(_CLOCK[0]) if args.profile else None
     totals = defaultdict(lambda: defaultdict(int))
     all_times = defaultdict(list)
     print(f"{'scene':22s} {'px':>4s} {'ok@8.6':>7s} {'wrong':>5s} {'ok@5':>5s} {'wrong':>5s} "

@@ -214,6 +214,15 @@ def search_scales(max_scale_change: float, radius: float, tolerance: float = 3.0
     return 1.0 + step * np.arange(-k, k + 1)
 
 
+def min_search_work(n_transforms: int, reference_shape: tuple[int, int],
+                    resolution: float) -> int:
+    """A lower bound of :meth:`CreaseSearchQuery.work` for ``n_transforms`` transforms of any
+    query (the FFT holds at least the reference): a level it puts above the work bound is
+    out without rasterising its query."""
+    hb, wb = (max(int(round(n * resolution)), 1) for n in reference_shape)
+    return n_transforms * sfft.next_fast_len(hb, real=True) * sfft.next_fast_len(wb, real=True)
+
+
 def _whole_circle(n: int) -> np.ndarray:
     """``n`` rotations evenly over the circle, from -pi."""
     return np.arange(n) * (2.0 * math.pi / n) - math.pi

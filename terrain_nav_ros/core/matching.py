@@ -67,6 +67,7 @@ from .crease_search import (
     CreaseSearchQuery,
     CreaseSearchReference,
     SearchLevel,
+    min_search_work,
     search_rotations,
     search_scales,
     search_transforms,
@@ -1459,8 +1460,11 @@ def _view_search_level(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> Sear
     for level in LEVELS:
         rotations, scales = a.crease_search_transforms(p.max_rotation, level,
                                                        p.search_scale)
-        if len(rotations) * len(scales) > _VIEW_SEARCH_MAX_TRANSFORMS:
-            continue   # too many rasters for this level: try a coarser one
+        n_transforms = len(rotations) * len(scales)
+        if n_transforms > _VIEW_SEARCH_MAX_TRANSFORMS or min_search_work(
+                n_transforms, b.crease_image.shape, level.resolution) \
+                > p.crease_search_max_work:
+            continue   # too many rasters or too much work for this level: try a coarser one
         query = a.crease_search_query(p.max_rotation, level, p.search_scale)
         if query.work(b.crease_image.shape) <= p.crease_search_max_work:
             return level
