@@ -273,12 +273,8 @@ class CreaseSearchQuery:
         # the raster's origin per transform and its shape over all of them: from the outline
         # of the pixels alone (rounding is monotonic, and a linear map's extremes are on the
         # boundary of their hull), so that a level's work is known without rasterising
-        q = self.c[:, None] * (_outline(samples.z)[None, :] * self.resolution)
-        cols, rows = np.rint(q.real), np.rint(-q.imag)
-        self.col0 = cols.min(axis=1) if self.n else np.zeros(len(self.c))
-        self.row0 = rows.min(axis=1) if self.n else np.zeros(len(self.c))
-        self.shape = ((int((rows.max(axis=1) - self.row0).max()) + 1,
-                       int((cols.max(axis=1) - self.col0).max()) + 1) if self.n else (1, 1))
+        self.col0, self.row0, self.shape = _raster_extent(samples.z, self.c * 1.0,
+                                                          self.resolution)
         self._samples = samples
         self._raster = None
         # footprint counts and searched shifts, for one padded shape at a time
@@ -439,6 +435,47 @@ def _order_margin(histogram: np.ndarray, n: int, m: int) -> int:
     low, high = np.argmax(cum > m - 1, axis=1), np.argmax(cum > n - m, axis=1)
     x_max = histogram.shape[1] - 1 - np.argmax(histogram[:, ::-1] > 0, axis=1)
     return int(np.maximum(high, x_max - low).max())
+
+
+def _raster_extent(z: np.ndarray, c: np.ndarray, resolution: float):
+    """Origins ``(col0, row0)`` per transform ``c`` and the shape over all of them of the
+    rasters of pixels ``z`` (math frame) mapped by ``c`` at ``resolution``, rounded.
+
+    Rounding is monotonic and a linear map's extremes over the pixels are at the vertices of
+    their convex hull: those alone are mapped. Where an extreme is within rounding of a
+    half pixel, a pixel on a hull edge (mathematically as far out) could round the other
+    way: those transforms are redone on the pixels first or last in their row or column,
+    which hold every pixel on the hull's boundary.
+    """
+    if len(z) == 0:
+        return np.zeros(len(c)), np.zeros(len(c)), (1, 1)
+    lo, hi = _rounded_extremes(c[:, None] * (_hull(z)[None, :] * resolution))
+    frac = np.abs(np.concatenate([lo, hi], axis=1))
+    tie = (np.abs(frac - np.floor(frac) - 0.5) < 1e-6).any(axis=1)
+    if tie.any():
+        lo[tie], hi[tie] = _rounded_extremes(c[tie, None] * (_outline(z)[None, :]
+                                                               * resolution))
+    lo, hi = np.rint(lo), np.rint(hi)
+    # columns: the real part; rows: minus the imaginary part
+    col0, row0 = lo[:, 0], lo[:, 1]
+    shape = (int((hi[:, 1] - row0).max()) + 1, int((hi[:, 0] - col0).max()) + 1)
+    return col0, row0, shape
+
+
+def _rounded_extremes(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per row of ``q`` (mapped points, complex), the smallest and largest column
+    (``rint(real)``) and row (``rint(-imag)``) as (n, 2) arrays, before the rounding."""
+    cols, rows = q.real, -q.imag
+    return (np.stack([cols.min(axis=1), rows.min(axis=1)], axis=1),
+            np.stack([cols.max(axis=1), rows.max(axis=1)], axis=1))
+
+
+def _hull(z: np.ndarray) -> np.ndarray:
+    """The vertices of the convex hull of points ``z`` (math frame): all of them when few."""
+    if len(z) < 64:
+        return z
+    xy = np.column_stack([z.real, -z.imag]).astype(np.float32)
+    return z[cv2.convexHull(xy, returnPoints=False)[:, 0]]
 
 
 def _outline(z: np.ndarray) -> np.ndarray:
