@@ -479,3 +479,28 @@ def test_a_large_view_is_found_by_the_view_search(region):
                                                                        err)
         if found:
             assert abs(r.scale - 1 / 1.07) < 0.03
+
+
+def test_the_view_search_is_the_wider_try_of_a_view_it_fits(region, monkeypatch):
+    """A view the view search fits gets it instead of the sweep of the votes (which would
+    only add chances); one it does not fit (the search off here) still gets the sweep."""
+    from terrain_nav_ros.core import matching
+    ms, skel = region
+    view, _ = _scaled_view(skel, 150, 160, 192, 140.0, 1.07)
+    rng = np.random.default_rng(5)
+    n = 40
+    unrelated = MinutiaSet(rng.uniform(0, 191, n), rng.uniform(0, 191, n),
+                           rng.uniform(-np.pi, np.pi, n), rng.choice([1, 3], n).astype(np.uint8),
+                           np.ones(n, np.float32))
+    calls = []
+    sweep, view_try = matching._sweep_try, matching._view_try
+    monkeypatch.setattr(matching, "_sweep_try",
+                        lambda *a, **k: calls.append("sweep") or sweep(*a, **k))
+    monkeypatch.setattr(matching, "_view_try",
+                        lambda *a, **k: calls.append("view") or view_try(*a, **k))
+    for view_search, expected in [(True, ["view"]), (False, ["sweep"])]:
+        calls.clear()
+        matcher = Matcher(view_search=view_search)
+        region_index = matcher.index(ms, skel).prepare_as_reference(search=True)
+        matcher.localise(matcher.index(unrelated, view), region_index)
+        assert calls == expected
