@@ -317,6 +317,43 @@ def test_moving_a_searched_registration_keeps_its_search_penalty(region):
     assert moved.score == pytest.approx(fresh.score - 3.0)
 
 
+@pytest.mark.parametrize("numba", [True, False])
+def test_query_raster_and_margins_are_those_of_every_pixel(monkeypatch, numba):
+    """The query's shape and origins (from the outline of its pixels), its rasters (the
+    kernel's or numpy's) and its alias margins (from the count rasters) are those of every
+    pixel mapped by every transform, ties of a half turn included."""
+    from terrain_nav_ros.core.matching import _matching_kernels
+    monkeypatch.setattr(_matching_kernels, "HAVE_NUMBA", numba and _matching_kernels.HAVE_NUMBA)
+    rng = np.random.default_rng(5)
+    img = np.zeros((90, 70), np.uint8)
+    for x0, y0, x1, y1 in rng.integers(0, 70, (12, 4)):
+        cv2.line(img, (int(x0), int(y0)), (int(x1), int(y1)), 1, 1)
+    samples = CreaseSamples.from_image(img)
+    for rotations, scales in ((search_rotations(math.pi, 35.0, 6.0), (0.95, 1.0, 1.05)),
+                              (np.linspace(-0.3, 0.3, 5), (1.0,))):
+        query = CreaseSearchQuery(samples, rotations, resolution=0.125, scales=scales)
+        q = query.c[:, None] * (samples.z[None, :] * 0.125)
+        cols, rows = np.rint(q.real), np.rint(-q.imag)
+        np.testing.assert_array_equal(query.col0, cols.min(axis=1))
+        np.testing.assert_array_equal(query.row0, rows.min(axis=1))
+        ri = (rows - query.row0[:, None]).astype(int)
+        ci = (cols - query.col0[:, None]).astype(int)
+        assert query.shape == (ri.max() + 1, ci.max() + 1)
+        turn = np.angle(query.c)
+        for r in range(query.n_rastered):
+            want = np.zeros((5, *query.shape))
+            d = np.mod(samples.direction + turn[r], np.pi)
+            for k in range(4):
+                np.add.at(want[k], (ri[r], ci[r]), np.maximum(np.cos(2 * (d - k * np.pi / 4)), 0))
+            np.add.at(want[4], (ri[r], ci[r]), 1.0)
+            np.testing.assert_allclose(query.raster[r], want, atol=1e-5)
+        m = int(math.ceil(0.5 * query.n))
+        for x, axis in ((ri, 0), (ci, 1)):
+            x = np.sort(x, axis=1)
+            need = int(np.maximum(x[:, query.n - m], x[:, -1] - x[:, m - 1]).max())
+            assert query._alias_margins(0.5)[axis] == need
+
+
 def test_footprint_counts_are_the_query_pixels_over_the_reference():
     """At every shift of the correlation (negative ones wrap to the end of each axis), the
     count the search keeps shifts by is the number of query pixels landing on B's footprint
@@ -446,3 +483,28 @@ def test_a_large_view_is_found_by_the_view_search(region):
                                                                        err)
         if found:
             assert abs(r.scale - 1 / 1.07) < 0.03
+
+
+def test_the_view_search_is_the_wider_try_of_a_view_it_fits(region, monkeypatch):
+    """A view the view search fits gets it instead of the sweep of the votes (which would
+    only add chances); one it does not fit (the search off here) still gets the sweep."""
+    from terrain_nav_ros.core.matching import matcher as matching
+    ms, skel = region
+    view, _ = _scaled_view(skel, 150, 160, 192, 140.0, 1.07)
+    rng = np.random.default_rng(5)
+    n = 40
+    unrelated = MinutiaSet(rng.uniform(0, 191, n), rng.uniform(0, 191, n),
+                           rng.uniform(-np.pi, np.pi, n), rng.choice([1, 3], n).astype(np.uint8),
+                           np.ones(n, np.float32))
+    calls = []
+    sweep, view_try = matching._sweep_try, matching._view_try
+    monkeypatch.setattr(matching, "_sweep_try",
+                        lambda *a, **k: calls.append("sweep") or sweep(*a, **k))
+    monkeypatch.setattr(matching, "_view_try",
+                        lambda *a, **k: calls.append("view") or view_try(*a, **k))
+    for view_search, expected in [(True, ["view"]), (False, ["sweep"])]:
+        calls.clear()
+        matcher = Matcher(view_search=view_search)
+        region_index = matcher.index(ms, skel).prepare_as_reference(search=True)
+        matcher.localise(matcher.index(unrelated, view), region_index)
+        assert calls == expected

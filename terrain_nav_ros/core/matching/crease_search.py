@@ -214,6 +214,15 @@ def search_scales(max_scale_change: float, radius: float, tolerance: float = 3.0
     return 1.0 + step * np.arange(-k, k + 1)
 
 
+def min_search_work(n_transforms: int, reference_shape: tuple[int, int],
+                    resolution: float) -> int:
+    """A lower bound of :meth:`CreaseSearchQuery.work` for ``n_transforms`` transforms of any
+    query (the FFT holds at least the reference): a level it puts above the work bound is
+    out without rasterising its query."""
+    hb, wb = (max(int(round(n * resolution)), 1) for n in reference_shape)
+    return n_transforms * sfft.next_fast_len(hb, real=True) * sfft.next_fast_len(wb, real=True)
+
+
 def _whole_circle(n: int) -> np.ndarray:
     """``n`` rotations evenly over the circle, from -pi."""
     return np.arange(n) * (2.0 * math.pi / n) - math.pi
@@ -261,14 +270,12 @@ class CreaseSearchQuery:
             self.c = (self.scales[:, None] * np.exp(1j * self.rotations)).ravel()
         # transforms rasterised and transformed: the first quarter's, or all
         self.n_rastered = len(self.c) // 4 if self.quarter else len(self.c)
-        q = self.c[:, None] * (samples.z[None, :] * self.resolution)   # (n_rot, n), search px
-        cols, rows = np.rint(q.real), np.rint(-q.imag)
-        self.col0 = cols.min(axis=1) if self.n else np.zeros(len(self.c))
-        self.row0 = rows.min(axis=1) if self.n else np.zeros(len(self.c))
-        ci = (cols - self.col0[:, None]).astype(np.intp)
-        ri = (rows - self.row0[:, None]).astype(np.intp)
-        self.shape = (int(ri.max(initial=0)) + 1, int(ci.max(initial=0)) + 1)
-        self._pixels = (samples.direction, ri, ci)
+        # the raster's origin per transform and its shape over all of them: from the outline
+        # of the pixels alone (rounding is monotonic, and a linear map's extremes are on the
+        # boundary of their hull), so that a level's work is known without rasterising
+        self.col0, self.row0, self.shape = _raster_extent(samples.z, self.c * 1.0,
+                                                          self.resolution)
+        self._samples = samples
         self._raster = None
         # footprint counts and searched shifts, for one padded shape at a time
         self._spectra, self._low, self._per_shape = {}, None, {}
@@ -280,14 +287,25 @@ class CreaseSearchQuery:
         """(n_rastered, 5, h, w): the four direction channels and, in channel 4, the pixel
         count (built on first use: choosing a search level needs only the shape)."""
         if self._raster is None:
-            direction, ri, ci = self._pixels
             n_rot = self.n_rastered
+            # the pixels' places as the search's other steps compute them (a rounding tie,
+            # e.g. at a half turn, must break the same way)
+            q = self.c[:n_rot, None] * (self._samples.z[None, :] * self.resolution)
+            ci = (np.rint(q.real) - self.col0[:n_rot, None]).astype(np.intp)
+            ri = (np.rint(-q.imag) - self.row0[:n_rot, None]).astype(np.intp)
+            # the outline's extremes are all pixels' (_outline): this only keeps the kernel's
+            # writes in bounds whatever the rounding
+            np.clip(ri, 0, self.shape[0] - 1, out=ri)
+            np.clip(ci, 0, self.shape[1] - 1, out=ci)
+            direction, turn = self._samples.direction, np.angle(self.c[:n_rot])
+            if _kernels.HAVE_NUMBA:
+                self._raster = _kernels.rasterise_channels(
+                    ri, ci, direction.astype(np.float64), turn, *self.shape)
+                return self._raster
             size = self.shape[0] * self.shape[1]
-            turn = np.angle(self.c[:n_rot])
             weights = _channel_weights(np.mod(
                 direction[None, :] + turn[:, None], np.pi))   # (4, n_rot, n)
-            flat = (np.arange(n_rot)[:, None] * size + ri[:n_rot] * self.shape[1]
-                    + ci[:n_rot]).ravel()
+            flat = (np.arange(n_rot)[:, None] * size + ri * self.shape[1] + ci).ravel()
             raster = np.empty((n_rot, 5, size), np.float32)
             for k in range(4):
                 raster[:, k] = np.bincount(flat, weights[k].ravel(), n_rot * size).reshape(
@@ -320,11 +338,12 @@ class CreaseSearchQuery:
         max(x_(n-m+1), x_max - x_(m))`` (per rotation; the largest over them)."""
         if min_inside not in self._margins:
             m = min(max(int(math.ceil(min_inside * self.n)), 1), self.n)
-            _, ri, ci = self._pixels
-            need = []
-            for x in (ri, ci):
-                x = np.sort(x, axis=1)
-                need.append(int(np.maximum(x[:, self.n - m], x[:, -1] - x[:, m - 1]).max()))
+            counts = self.raster[:, 4]
+            need = [_order_margin(counts.sum(axis=axis), self.n, m) for axis in (2, 1)]
+            if self.quarter:
+                # a quarter turn swaps the rows and the columns and mirrors one of them, which
+                # leaves the margin of each as it was (x_(k) -> x_max - x_(n-1-k))
+                need = [max(need)] * 2
             self._margins[min_inside] = tuple(need)
         return self._margins[min_inside]
 
@@ -405,6 +424,74 @@ class CreaseSearchQuery:
         cum = np.zeros((n_rot, ha + 1, w_pad), np.float32)
         np.cumsum(cols, axis=1, out=cum[:, 1:])
         return cum[:, row_hi] - cum[:, row_lo]                         # (n_rot, h_pad, w_pad)
+
+
+def _order_margin(histogram: np.ndarray, n: int, m: int) -> int:
+    """``max(x_(n-m), x_max - x_(m-1))`` over the rows of ``histogram`` (n_rot, k): counts
+    of ``n`` pixels per coordinate, ``x_(i)`` the i-th smallest coordinate (0-based)
+    (:meth:`CreaseSearchQuery._alias_margins`)."""
+    cum = np.cumsum(histogram, axis=1)
+    # x_(i): the first coordinate whose cumulative count exceeds i
+    low, high = np.argmax(cum > m - 1, axis=1), np.argmax(cum > n - m, axis=1)
+    x_max = histogram.shape[1] - 1 - np.argmax(histogram[:, ::-1] > 0, axis=1)
+    return int(np.maximum(high, x_max - low).max())
+
+
+def _raster_extent(z: np.ndarray, c: np.ndarray, resolution: float):
+    """Origins ``(col0, row0)`` per transform ``c`` and the shape over all of them of the
+    rasters of pixels ``z`` (math frame) mapped by ``c`` at ``resolution``, rounded.
+
+    Rounding is monotonic and a linear map's extremes over the pixels are at the vertices of
+    their convex hull: those alone are mapped. Where an extreme is within rounding of a
+    half pixel, a pixel on a hull edge (mathematically as far out) could round the other
+    way: those transforms are redone on the pixels first or last in their row or column,
+    which hold every pixel on the hull's boundary.
+    """
+    if len(z) == 0:
+        return np.zeros(len(c)), np.zeros(len(c)), (1, 1)
+    lo, hi = _rounded_extremes(c[:, None] * (_hull(z)[None, :] * resolution))
+    frac = np.abs(np.concatenate([lo, hi], axis=1))
+    tie = (np.abs(frac - np.floor(frac) - 0.5) < 1e-6).any(axis=1)
+    if tie.any():
+        lo[tie], hi[tie] = _rounded_extremes(c[tie, None] * (_outline(z)[None, :]
+                                                               * resolution))
+    lo, hi = np.rint(lo), np.rint(hi)
+    # columns: the real part; rows: minus the imaginary part
+    col0, row0 = lo[:, 0], lo[:, 1]
+    shape = (int((hi[:, 1] - row0).max()) + 1, int((hi[:, 0] - col0).max()) + 1)
+    return col0, row0, shape
+
+
+def _rounded_extremes(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per row of ``q`` (mapped points, complex), the smallest and largest column
+    (``rint(real)``) and row (``rint(-imag)``) as (n, 2) arrays, before the rounding."""
+    cols, rows = q.real, -q.imag
+    return (np.stack([cols.min(axis=1), rows.min(axis=1)], axis=1),
+            np.stack([cols.max(axis=1), rows.max(axis=1)], axis=1))
+
+
+def _hull(z: np.ndarray) -> np.ndarray:
+    """The vertices of the convex hull of points ``z`` (math frame): all of them when few."""
+    if len(z) < 64:
+        return z
+    xy = np.column_stack([z.real, -z.imag]).astype(np.float32)
+    return z[cv2.convexHull(xy, returnPoints=False)[:, 0]]
+
+
+def _outline(z: np.ndarray) -> np.ndarray:
+    """The points of ``z`` (math frame) first or last in their row or their column: every
+    point on the boundary of their convex hull is (the one beyond it along its row or column
+    would be outside), collinear ones included, so a linear map's extremes over them are
+    those over all of ``z`` (computed the same way: a rounding tie breaks the same way)."""
+    if len(z) < 64:
+        return z
+    keep = np.zeros(len(z), bool)
+    for major, minor in ((z.imag, z.real), (z.real, z.imag)):
+        order = np.lexsort((minor, major))
+        line = major[order]
+        first = np.r_[True, line[1:] != line[:-1]]
+        keep[order[first | np.r_[first[1:], True]]] = True
+    return z[keep]
 
 
 @dataclass(frozen=True)

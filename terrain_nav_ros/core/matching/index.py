@@ -83,6 +83,7 @@ class MinutiaIndex:
         self._crease_search = {}   # by (search resolution, background)
         self._crease_query = {}    # by (max_rotation, search level, scale change)
         self._crease_around = None
+        self._strided = None
         self.footprint = _footprint(ms)
         # the footprint as complex corners and as its box (x0, x1, y0, y1), for _overlap
         self.footprint_z = self.footprint[:, 0] + 1j * self.footprint[:, 1]
@@ -116,6 +117,13 @@ class MinutiaIndex:
         if self._crease_samples is None and self.crease_image is not None:
             self._crease_samples = CreaseSamples.from_image(self.crease_image)
         return self._crease_samples
+
+    def crease_samples_strided(self, stride: int) -> CreaseSamples:
+        """Every ``stride``-th crease sample, in raster order (cached for one stride)."""
+        if self._strided is None or self._strided[0] != stride:
+            s = self.crease_samples
+            self._strided = (stride, CreaseSamples(s.z[::stride], s.direction[::stride]))
+        return self._strided[1]
 
     def crease_samples_around(self, minutiae: np.ndarray) -> np.ndarray:
         """Crease samples within ``crease_exclude_radius`` of the given minutiae (the

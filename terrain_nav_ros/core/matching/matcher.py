@@ -58,9 +58,10 @@ from ..features.minutia_set import MinutiaSet
 from .consensus import _hypotheses
 from .crease_check import CreaseEvidence, crease_covariance
 from .crease_proposals import _crease_search_registrations, _searches_creases, _view_search_level
+from .crease_search import SearchLevel
 from .index import MinutiaIndex, _as_index, _generator
 from .params import MatchParams
-from .proposals import _hash_votes, _root_votes
+from .proposals import _hash_votes, _root_votes, _Votes
 from .registration import _covariance, _pixel_transform, _refine, _register
 from .scoring import _refined_on_creases, _Scored, _scored
 from .significance import _best_possible_score, _log10_transforms
@@ -199,6 +200,38 @@ def _best_registration(a: MinutiaIndex, b: MinutiaIndex, registered, search_area
     return _refined_on_creases(a, b, best, search_area, a.radius, p), scored
 
 
+def _sweep_try(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, votes: _Votes, rng,
+               best: _Scored | None, n_scored: int, search_area: float,
+               use_creases: bool) -> tuple[_Scored | None, int]:
+    """The wider try of the minutiae's votes: hypotheses from every rotation cell, and the
+    coarse-to-fine crease ICP of the best so far. Returns the best registration and the
+    count scored, both updated."""
+    wider = _registrations(_hypotheses(votes, a, b, p, sweep=True), a, b, p, rng)
+    other, other_scored = _best_registration(a, b, wider, search_area, p, use_creases)
+    n_scored += len(other_scored)
+    if other is not None and (best is None or other.score > best.score):
+        best = other
+    if best is not None and use_creases:
+        best = _refined_on_creases(a, b, best, search_area, a.radius, p,
+                                   radii=p.crease_rescue_radii)
+    return best, n_scored
+
+
+def _view_try(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, level: SearchLevel,
+              best: _Scored | None, n_scored: int,
+              search_area: float) -> tuple[_Scored | None, int]:
+    """The view search's try at ``level`` (:func:`_view_search_level`): its proposals, moved
+    onto B's creases and scored. Returns the best registration and the count scored, both
+    updated."""
+    searched, trials = _crease_search_registrations(
+        a, b, p, level, p.search_scale, p.view_search_background)
+    view, view_scored = _best_registration(a, b, [], search_area, p, True, searched, trials)
+    n_scored += len(view_scored)
+    if view is not None and (best is None or view.score > best.score):
+        best = view
+    return best, n_scored
+
+
 class Matcher:
     """Minutiae matcher (settings in the constructor, scikit-image style).
 
@@ -312,26 +345,18 @@ class Matcher:
                                               searched, trials, scored=scored)
             n_scored = len(scored)
         elif low:
-            # the wider try: every rotation cell, and the coarse-to-fine crease ICP
-            wider = _registrations(_hypotheses(votes, a, b, p, sweep=True), a, b, p, rng)
-            other, other_scored = _best_registration(a, b, wider, search_area, p,
-                                                     use_creases)
-            n_scored += len(other_scored)
-            if other is not None and (best is None or other.score > best.score):
-                best = other
-            if best is not None and use_creases:
-                best = _refined_on_creases(a, b, best, search_area, radius_a, p,
-                                           radii=p.crease_rescue_radii)
-            if localising and use_creases and p.view_search and _low(best, n_scored, p):
-                level = _view_search_level(a, b, p)
-                if level is not None:
-                    searched, trials = _crease_search_registrations(
-                        a, b, p, level, p.search_scale, p.view_search_background)
-                    view, view_scored = _best_registration(a, b, [], search_area, p, True,
-                                                           searched, trials)
-                    n_scored += len(view_scored)
-                    if view is not None and (best is None or view.score > best.score):
-                        best = view
+            level = _view_search_level(a, b, p) if (
+                localising and use_creases and p.view_search) else None
+            if level is not None:
+                # a view the view search fits: the search is its wider try (as the crease
+                # search is a small set's): it covers every rotation, scale and translation
+                # at the creases' resolution, where the sweep of the minutiae's votes
+                # only adds chances (on real images the minutiae of albedo edges rarely
+                # repeat those of a render, the crease skeleton largely does)
+                best, n_scored = _view_try(a, b, p, level, best, n_scored, search_area)
+            else:
+                best, n_scored = _sweep_try(a, b, p, votes, rng, best, n_scored, search_area,
+                                            use_creases)
         base.decision = Decision.NO_MATCH
         if best is None:
             base.reason = "no consistent transform"
