@@ -212,5 +212,5 @@ def test_flight_over_a_real_image_bounds_the_error(tmp_path, shared_data):
     assert fixes["fixes"] >= 0.7 * fixes["frames"], fixes
     assert result["fix_error"]["within_3_sigma"] >= 0.9, result["fix_error"]
     fused, dr = result["fused_error"], result["dr_error"]
-    assert fused["rms"] <= 5 * 30.0, fused
+    assert fused["rms"] <= 3 * 30.0, fused   # 56-57 m with the ridge skeletons
     assert fused["rms"] < 0.6 * dr["rms"] and fused["final"] < 0.5 * dr["final"], (fused, dr)
