@@ -654,7 +654,7 @@ def _jsonable(r: dict) -> dict:
 
 
 # --------------------------------------------------------------------------- outputs
-def _save(fig, path: Path, dpi: int = 90) -> str:
+def save_figure(fig, path: Path, dpi: int = 90) -> str:
     """Lay out, write and close a figure; its file name."""
     import matplotlib.pyplot as plt
 
@@ -687,7 +687,7 @@ def _plots(out: Path, study: _Study, results, setup) -> list[str]:
             a.set_ylabel("frequency")
             a.set_title(f"{title} similarity scores ({r['name']}, {len(data)})")
             a.legend(fontsize=8)
-        files.append(_save(fig, out / f"hist_{tag}.png"))
+        files.append(save_figure(fig, out / f"hist_{tag}.png"))
         fig, a = plt.subplots(figsize=(5, 4.2))
         s = np.where(np.isfinite(r["score"]), r["score"], np.nan)
         im = a.imshow(s, cmap="viridis")
@@ -695,7 +695,7 @@ def _plots(out: Path, study: _Study, results, setup) -> list[str]:
         a.set_xlabel("landmark block")
         a.set_ylabel("camera block")
         a.set_title(f"Similarity scores between {n * n} blocks ({r['name']})")
-        files.append(_save(fig, out / f"similarity_{tag}.png"))
+        files.append(save_figure(fig, out / f"similarity_{tag}.png"))
     fig, a = plt.subplots(figsize=(7, 3.2))
     idx = np.arange(n * n)
     a.bar(idx - 0.2, setup["landmark_counts"], 0.4, label="landmark")
@@ -704,7 +704,7 @@ def _plots(out: Path, study: _Study, results, setup) -> list[str]:
     a.set_ylabel("minutiae")
     a.set_title(f"Numbers of minutiae in {n * n} terrain blocks")
     a.legend(fontsize=8)
-    files.append(_save(fig, out / "minutiae_counts.png"))
+    files.append(save_figure(fig, out / "minutiae_counts.png"))
     k = min(4, n * n)
     fig, ax = plt.subplots(1 + len(results), k, figsize=(2.2 * k, 2.3 * (1 + len(results))),
                            squeeze=False)
@@ -718,7 +718,7 @@ def _plots(out: Path, study: _Study, results, setup) -> list[str]:
             ax[1 + i, j].set_title(f"camera {j} ({r['name']})", fontsize=8)
     for a in ax.ravel():
         a.axis("off")
-    files.append(_save(fig, out / "blocks_sample.png", dpi=80))
+    files.append(save_figure(fig, out / "blocks_sample.png", dpi=80))
     return files
 
 

@@ -693,7 +693,7 @@ def _score_histogram(out: Path, rows, non: np.ndarray, thr: float, success_px: f
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .evaluation import _save
+    from .evaluation import save_figure
 
     cases = [c for r in rows for c in r["cases"]]
     right = [c["score"] for c in cases if c["err_px"] <= success_px]
@@ -710,7 +710,7 @@ def _score_histogram(out: Path, rows, non: np.ndarray, thr: float, success_px: f
     ax.set_ylabel("count")
     ax.set_yscale("log")
     ax.legend(fontsize=8)
-    return _save(fig, out / "scores.png")
+    return save_figure(fig, out / "scores.png")
 
 
 def _fmt(x, spec=".0f") -> str:
