@@ -33,6 +33,7 @@ Geometry in the math frame ``z = col - 1j*row`` of :mod:`.descriptors`; ``z_b = 
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -360,8 +361,14 @@ class CreaseSearchQuery:
         if shape not in self._spectra:
             # rfft2 with zero padding, pruned: the row transforms of the all-zero padding
             # rows are skipped (the raster is ~1/3 of the padded height)
-            spec = sfft.fft(sfft.rfft(self.raster[:, :4], n=shape[1], axis=-1, workers=1),
-                            n=shape[0], axis=-2, workers=1)
+            rows = sfft.rfft(self.raster[:, :4], n=shape[1], axis=-1, workers=1)
+            # the column transforms in place, in the padded array: ``fft(..., n=)`` would
+            # pad into one fresh array and write into another (~10 MB each for a 256 px
+            # view's 57 rasters at 1/8, whose first touch in page faults cost as much as
+            # the transform); the same transforms, the same values
+            spec = np.zeros((*rows.shape[:2], shape[0], rows.shape[-1]), rows.dtype)
+            spec[:, :, :rows.shape[2]] = rows
+            spec = sfft.fft(spec, axis=-2, workers=1, overwrite_x=True)
             self._spectra = {shape: (shape, spec)}
         return self._spectra[shape]
 
@@ -394,6 +401,16 @@ class CreaseSearchQuery:
             self._per_shape[key] = SearchedShifts.of(inside >= min_inside * self.n)
         return self._per_shape[key]
 
+    @functools.cached_property
+    def _prefix_sums(self) -> np.ndarray:
+        """(n_rastered, h + 1, w + 1) 2-D prefix sums of the count rasters, a zero row and
+        column first: one table serves the footprints of every reference turn and padded
+        shape (a non-square region's four turns have four footprints)."""
+        counts = self.raster[:, 4]
+        cum = np.zeros((len(counts), self.shape[0] + 1, self.shape[1] + 1), np.float32)
+        np.cumsum(np.cumsum(counts, axis=1), axis=2, out=cum[:, 1:, 1:])
+        return cum
+
     def _footprint_counts(self, shape: tuple[int, int], reference_shape: tuple[int, int],
                           footprint: tuple[int, int, int, int]) -> np.ndarray:
         """:meth:`inside`: box sums of the count raster (exact; cheaper than its FFT)."""
@@ -415,9 +432,7 @@ class CreaseSearchQuery:
         col_lo, col_hi = ranges(w_pad, wb, wa, c0, c1)
         row_lo, row_hi = ranges(h_pad, hb, ha, r0, r1)
         if _kernels.HAVE_NUMBA:
-            cum = np.zeros((n_rot, ha + 1, wa + 1), np.float32)
-            np.cumsum(np.cumsum(counts, axis=1), axis=2, out=cum[:, 1:, 1:])
-            return _kernels.box_counts(cum, row_lo, row_hi, col_lo, col_hi)
+            return _kernels.box_counts(self._prefix_sums, row_lo, row_hi, col_lo, col_hi)
         cum = np.zeros((n_rot, ha, wa + 1), np.float32)
         np.cumsum(counts, axis=2, out=cum[:, :, 1:])
         cols = cum[:, :, col_hi] - cum[:, :, col_lo]                 # (n_rot, ha, w_pad)
