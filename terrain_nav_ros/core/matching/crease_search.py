@@ -608,16 +608,18 @@ def _largest_positive(values: np.ndarray, n: int) -> np.ndarray:
     """Flat indices of the ``n`` largest positive ``values``, largest first (ties by index).
 
     A selection over every value (``argpartition`` of the ~1e5-1e6 hits of a view search's
-    strongest rotations) cost ~10 % of the search; the ``n``-th largest of every 8th value
-    bounds it from below instead (those ``n`` are in the array too), and only the ~8 n
-    values above the bound are sorted.
+    strongest rotations) cost ~10 % of the search; the ``n``-th largest of every 8th value,
+    of those positive, bounds it from below instead (those ``n`` are in the array too), and
+    only the ~8 n values above the bound are sorted.
     """
     v = values.ravel()
     bound = 0.0
-    if v.size > 16 * n:
-        sample = v[::8]
-        bound = max(float(np.partition(sample, len(sample) - n)[len(sample) - n]), 0.0)
-    # the bound's own value is kept when positive (an n-th largest equal to it)
+    sample = v[::8]
+    # the positive ones: the shifts not searched are zeros, a selection slows on ties
+    sample = sample[sample > 0]
+    if len(sample) > 2 * n:
+        bound = float(np.partition(sample, len(sample) - n)[len(sample) - n])
+    # ``>=``: the n-th largest may equal the bound
     candidates = np.flatnonzero(v >= bound) if bound > 0 else np.flatnonzero(v > 0)
     return candidates[np.lexsort((candidates, -v[candidates]))[:n]]
 
