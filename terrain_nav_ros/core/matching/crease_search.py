@@ -19,7 +19,8 @@ such transforms by brute force, cheaply, with FFTs:
 * with many rotations, only the few with the most hits at half the resolution (a quarter
   of the product and of the inverse FFT each, from the spectra's lowest frequencies) are
   correlated at full resolution: the inverse FFT of every rotation was the search's
-  largest cost;
+  largest cost; the query's spectra too are completed for those only (the shortlist
+  reads their lowest columns, transformed for every rotation);
 * the strongest peaks, among the translations that keep at least half of the query's crease
   pixels over the reference, are the proposals. The matcher then refines each on the creases
   and scores it like any other registration (:mod:`.crease_check`).
