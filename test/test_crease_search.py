@@ -416,6 +416,28 @@ def test_query_spectra_are_completed_for_the_rasters_asked_for():
     np.testing.assert_array_equal(query.low_spectra(reference), low)
 
 
+def test_searched_shifts_are_those_with_enough_of_the_query_over_the_reference():
+    """The shifts searched (built from the prefix sums without the counts) are exactly
+    those whose footprint count reaches the fraction, for every turn of a non-square
+    reference and for fractions whose threshold is not a whole count."""
+    rng = np.random.default_rng(11)
+    samples = CreaseSamples.from_image(rng.random((27, 19)) < 0.2)
+    original = CreaseSearchReference(CreaseField(rng.random((45, 33)) < 0.1), resolution=1.0)
+    query = CreaseSearchQuery(samples, _whole_circle_rotations(8), resolution=1.0)
+    for turns in range(4):
+        reference = original.squared().turned(turns)
+        for min_inside in (0.5, 0.3, 0.77):
+            shape = query.padded_shape(reference.full_shape, min_inside)
+            searched = query.searched(shape, reference, min_inside)
+            expected = query.inside(shape, reference) >= min_inside * query.n
+            np.testing.assert_array_equal(searched.mask, expected)
+            assert searched.count == np.count_nonzero(expected) > 0
+
+
+def _whole_circle_rotations(n):
+    return np.arange(n) * (2.0 * math.pi / n) - math.pi
+
+
 def _scaled_view(skel, x0, y0, size, rotation_deg, scale):
     """A ``size`` px view of the skeleton around block (x0, y0), turned and scaled about its
     centre, re-thinned; and the pixel transform view -> skeleton."""

@@ -416,9 +416,19 @@ class CreaseSearchQuery:
         """The shifts searched against ``reference`` (cached with :meth:`inside`: a camera
         block in a study meets every landmark block at the same padded shape)."""
         key = (reference.shape, reference.footprint, min_inside)
-        inside = self.inside(shape, reference)
+        if self._per_shape.get("shape") != shape:
+            self._per_shape = {"shape": shape}
         if key not in self._per_shape:
-            self._per_shape[key] = SearchedShifts.of(inside >= min_inside * self.n)
+            # numpy compares float32 counts with a float threshold cast to float32
+            threshold = np.float32(min_inside * self.n)
+            if _kernels.HAVE_NUMBA:
+                # the mask straight from the prefix sums: the counts themselves (n_rastered
+                # padded planes of float32) are not needed
+                mask = _kernels.box_mask(self._prefix_sums, *self._footprint_ranges(
+                    shape, reference.shape, reference.footprint), threshold)
+            else:
+                mask = self.inside(shape, reference) >= threshold
+            self._per_shape[key] = SearchedShifts.of(mask)
         return self._per_shape[key]
 
     @functools.cached_property
@@ -431,15 +441,14 @@ class CreaseSearchQuery:
         np.cumsum(np.cumsum(counts, axis=1), axis=2, out=cum[:, 1:, 1:])
         return cum
 
-    def _footprint_counts(self, shape: tuple[int, int], reference_shape: tuple[int, int],
-                          footprint: tuple[int, int, int, int]) -> np.ndarray:
-        """:meth:`inside`: box sums of the count raster (exact; cheaper than its FFT)."""
+    def _footprint_ranges(self, shape: tuple[int, int], reference_shape: tuple[int, int],
+                          footprint: tuple[int, int, int, int]):
+        """Per FFT row and column index of a correlation padded to ``shape``, the query rows
+        ``[row_lo, row_hi)`` and columns ``[col_lo, col_hi)`` that its shift puts on the
+        reference's footprint."""
         hb, wb = reference_shape
         r0, r1, c0, c1 = footprint
         ha, wa = self.shape
-        h_pad, w_pad = shape
-        counts = self.raster[:, 4]
-        n_rot = len(counts)
 
         def ranges(n_pad, n_ref, n_query, start, stop):
             # signed shift d at FFT index i (d = i - n_pad past the reference), and the
@@ -449,10 +458,18 @@ class CreaseSearchQuery:
             lo = np.clip(start - d, 0, n_query)
             return lo, np.maximum(np.clip(stop - d, 0, n_query), lo)
 
-        col_lo, col_hi = ranges(w_pad, wb, wa, c0, c1)
-        row_lo, row_hi = ranges(h_pad, hb, ha, r0, r1)
-        if _kernels.HAVE_NUMBA:
-            return _kernels.box_counts(self._prefix_sums, row_lo, row_hi, col_lo, col_hi)
+        return (*ranges(shape[0], hb, ha, r0, r1), *ranges(shape[1], wb, wa, c0, c1))
+
+    def _footprint_counts(self, shape: tuple[int, int], reference_shape: tuple[int, int],
+                          footprint: tuple[int, int, int, int]) -> np.ndarray:
+        """:meth:`inside`: box sums of the count raster (exact; cheaper than its FFT). The
+        search itself needs only the shifts they keep (:meth:`searched`)."""
+        ha, wa = self.shape
+        w_pad = shape[1]
+        counts = self.raster[:, 4]
+        n_rot = len(counts)
+        row_lo, row_hi, col_lo, col_hi = self._footprint_ranges(shape, reference_shape,
+                                                                footprint)
         cum = np.zeros((n_rot, ha, wa + 1), np.float32)
         np.cumsum(counts, axis=2, out=cum[:, :, 1:])
         cols = cum[:, :, col_hi] - cum[:, :, col_lo]                 # (n_rot, ha, w_pad)
