@@ -6,6 +6,7 @@ import math
 import cv2
 import numpy as np
 import pytest
+from scipy import fft as sfft
 from skimage.morphology import skeletonize
 from synthetic_minutiae import crop_set, rigid_transform, transform_set
 
@@ -388,6 +389,53 @@ def test_footprint_counts_are_the_query_pixels_over_the_reference():
                     assert full_inside[r, dy % full_shape[0], dx % full_shape[1]] == expected
                     if expected >= 0.5 * query.n:
                         assert inside[r, dy % shape[0], dx % shape[1]] == expected, (r, dy, dx)
+
+
+def test_query_spectra_are_completed_for_the_rasters_asked_for():
+    """The shortlist reads the query's lowest frequencies of every raster, the correlation
+    the full spectra of a few: those asked for equal the zero-padded rfft2 of their raster
+    (the same values, not only close), and asking for more completes them in place."""
+    rng = np.random.default_rng(7)
+    samples = CreaseSamples.from_image(rng.random((29, 21)) < 0.2)
+    reference = CreaseSearchReference(CreaseField(rng.random((50, 43)) < 0.1), resolution=1.0)
+    query = CreaseSearchQuery(samples, np.linspace(-1.0, 1.0, 6), resolution=1.0,
+                              quarter_turns=False)
+    shape = query.padded_shape(reference.full_shape, 0.5)
+    full = sfft.fft(sfft.rfft(query.raster[:, :4], n=shape[1], axis=-1),
+                    n=shape[0], axis=-2)
+    low = query.low_spectra(reference)
+    h2, w2 = -(-shape[0] // 2), -(-shape[1] // 2)
+    rows = np.r_[0:(h2 + 1) // 2, shape[0] - h2 // 2:shape[0]]
+    np.testing.assert_array_equal(low, full[..., rows, :w2 // 2 + 1])
+    got_shape, spec = query.spectra(reference, rastered=np.array([4, 1, 4]))
+    assert got_shape == shape
+    np.testing.assert_array_equal(spec[[1, 4]], full[[1, 4]])
+    _, spec = query.spectra(reference)
+    np.testing.assert_array_equal(spec, full)
+    # the low frequencies the shortlist read are unchanged by completing the rest
+    np.testing.assert_array_equal(query.low_spectra(reference), low)
+
+
+def test_searched_shifts_are_those_with_enough_of_the_query_over_the_reference():
+    """The shifts searched (built from the prefix sums without the counts) are exactly
+    those whose footprint count reaches the fraction, for every turn of a non-square
+    reference and for fractions whose threshold is not a whole count."""
+    rng = np.random.default_rng(11)
+    samples = CreaseSamples.from_image(rng.random((27, 19)) < 0.2)
+    original = CreaseSearchReference(CreaseField(rng.random((45, 33)) < 0.1), resolution=1.0)
+    query = CreaseSearchQuery(samples, _whole_circle_rotations(8), resolution=1.0)
+    for turns in range(4):
+        reference = original.squared().turned(turns)
+        for min_inside in (0.5, 0.3, 0.77):
+            shape = query.padded_shape(reference.full_shape, min_inside)
+            searched = query.searched(shape, reference, min_inside)
+            expected = query.inside(shape, reference) >= min_inside * query.n
+            np.testing.assert_array_equal(searched.mask, expected)
+            assert searched.count == np.count_nonzero(expected) > 0
+
+
+def _whole_circle_rotations(n):
+    return np.arange(n) * (2.0 * math.pi / n) - math.pi
 
 
 def _scaled_view(skel, x0, y0, size, rotation_deg, scale):

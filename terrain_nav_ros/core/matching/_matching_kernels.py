@@ -24,8 +24,9 @@
 * :func:`crease_icp`: ``crease_check.refine_on_creases`` with its normal equations
   accumulated in the loop;
 * :func:`compound_log10_sf`: the compound Poisson-Gamma tail of ``matching.significance``;
-* :func:`channel_cross_spectra`, :func:`box_counts`: the channel product and the footprint
-  counts of :mod:`.crease_search`, without numpy's whole-array temporaries;
+* :func:`channel_cross_spectra`, :func:`box_mask`: the channel product and the shifts the
+  footprint counts keep, of :mod:`.crease_search`, without numpy's whole-array
+  temporaries;
 * :func:`rasterise_channels`: the crease search query's direction-channel rasters, one
   transform at a time.
 
@@ -760,18 +761,20 @@ def channel_cross_spectra(query, references, planes):
 
 
 @njit(**_JIT)
-def box_counts(cum, row_lo, row_hi, col_lo, col_hi):
-    """``out[r, i, j]``: the sum of rows ``[row_lo[i], row_hi[i])`` and cols ``[col_lo[j],
-    col_hi[j])`` of raster ``r``, from its 2-D prefix sums ``cum`` (n_rot, h + 1, w + 1):
-    ``crease_search.CreaseSearchQuery._inside`` without its (n_rot, h, w_pad) temporaries."""
+def box_mask(cum, row_lo, row_hi, col_lo, col_hi, threshold):
+    """``out[r, i, j]``: whether the sum of rows ``[row_lo[i], row_hi[i])`` and cols
+    ``[col_lo[j], col_hi[j])`` of raster ``r``, from its 2-D prefix sums ``cum`` (n_rot,
+    h + 1, w + 1), reaches ``threshold`` (float32): ``crease_search.CreaseSearchQuery.
+    searched`` without the (n_rot, h_pad, w_pad) counts."""
     n_rot = cum.shape[0]
-    out = np.empty((n_rot, row_lo.size, col_lo.size), np.float32)
+    out = np.empty((n_rot, row_lo.size, col_lo.size), np.bool_)
     for r in range(n_rot):
         for i in range(row_lo.size):
             a, b = row_lo[i], row_hi[i]
             for j in range(col_lo.size):
                 c, d = col_lo[j], col_hi[j]
-                out[r, i, j] = cum[r, b, d] - cum[r, a, d] - cum[r, b, c] + cum[r, a, c]
+                out[r, i, j] = (cum[r, b, d] - cum[r, a, d] - cum[r, b, c]
+                                + cum[r, a, c]) >= threshold
     return out
 
 

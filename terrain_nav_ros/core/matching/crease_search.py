@@ -19,7 +19,8 @@ such transforms by brute force, cheaply, with FFTs:
 * with many rotations, only the few with the most hits at half the resolution (a quarter
   of the product and of the inverse FFT each, from the spectra's lowest frequencies) are
   correlated at full resolution: the inverse FFT of every rotation was the search's
-  largest cost;
+  largest cost; the query's spectra too are completed for those only (the shortlist
+  reads their lowest columns, transformed for every rotation);
 * the strongest peaks, among the translations that keep at least half of the query's crease
   pixels over the reference, are the proposals. The matcher then refines each on the creases
   and scores it like any other registration (:mod:`.crease_check`).
@@ -33,6 +34,7 @@ Geometry in the math frame ``z = col - 1j*row`` of :mod:`.descriptors`; ``z_b = 
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -352,23 +354,48 @@ class CreaseSearchQuery:
         time and the memory of its spectra (~16 bytes each) grow with it."""
         return len(self.c) * math.prod(self.padded_shape(reference_shape))
 
-    def spectra(self, reference: CreaseSearchReference, min_inside: float | None = 0.5):
+    def spectra(self, reference: CreaseSearchReference, min_inside: float | None = 0.5,
+                rastered: np.ndarray | None = None):
         """Padded FFT shape (for the shifts that keep ``min_inside`` of the pixels over
         ``reference``, or any with ``None``) and channel spectra, not conjugated (cached for
-        one padded shape at a time)."""
+        one padded shape at a time).
+
+        Only the spectra of the rastered transforms ``rastered`` (indices; all by default)
+        are complete: the others hold their lowest columns (:meth:`low_spectra`'s, which
+        the shortlist reads) until a later call asks for them. The full-resolution
+        correlation of a shortlist needs about half of a view's rasters, and the column
+        transforms of the rest were ~40 % of the query's FFT work.
+        """
         shape = self.padded_shape(reference.full_shape, min_inside)
-        if shape not in self._spectra:
+        if self._spectra.get("shape") != shape:
             # rfft2 with zero padding, pruned: the row transforms of the all-zero padding
             # rows are skipped (the raster is ~1/3 of the padded height)
-            spec = sfft.fft(sfft.rfft(self.raster[:, :4], n=shape[1], axis=-1, workers=1),
-                            n=shape[0], axis=-2, workers=1)
-            self._spectra = {shape: (shape, spec)}
-        return self._spectra[shape]
+            rows = sfft.rfft(self.raster[:, :4], n=shape[1], axis=-1, workers=1)
+            # the column transforms in place, in the padded array: ``fft(..., n=)`` would
+            # pad into one fresh array and write into another (~10 MB each for a 256 px
+            # view's 57 rasters at 1/8, whose first touch in page faults cost as much as
+            # the transform); each column's transform is the same, so are its values
+            spec = np.zeros((*rows.shape[:2], shape[0], rows.shape[-1]), rows.dtype)
+            spec[:, :, :rows.shape[2]] = rows
+            _columns_fft(spec[..., :_low_columns(shape)])
+            self._spectra = {"shape": shape, "spec": spec,
+                             "done": np.zeros(len(spec), bool)}
+        spec, done = self._spectra["spec"], self._spectra["done"]
+        todo = np.arange(len(spec)) if rastered is None else np.unique(rastered)
+        todo = todo[~done[todo]]
+        low = _low_columns(shape)
+        # runs of consecutive rasters: transformed in place, without a gather and a scatter
+        starts = np.flatnonzero(np.diff(todo, prepend=-2) != 1)
+        for start, stop in zip(todo[starts], np.r_[todo[starts[1:] - 1], todo[-1:]] + 1,
+                               strict=True):
+            _columns_fft(spec[start:stop, :, :, low:])
+        done[todo] = True
+        return shape, spec
 
     def low_spectra(self, reference: CreaseSearchReference, min_inside: float | None = 0.5):
         """:meth:`spectra`'s channel spectra cut to their :func:`_low_frequencies` (cached
-        with them)."""
-        shape, spec = self.spectra(reference, min_inside)
+        with them; the rest of the spectra need not be computed)."""
+        shape, spec = self.spectra(reference, min_inside, rastered=np.zeros(0, np.intp))
         if self._low is None or self._low[0] is not spec:
             self._low = (spec, _low_frequencies(spec, shape))
         return self._low[1]
@@ -389,20 +416,39 @@ class CreaseSearchQuery:
         """The shifts searched against ``reference`` (cached with :meth:`inside`: a camera
         block in a study meets every landmark block at the same padded shape)."""
         key = (reference.shape, reference.footprint, min_inside)
-        inside = self.inside(shape, reference)
+        if self._per_shape.get("shape") != shape:
+            self._per_shape = {"shape": shape}
         if key not in self._per_shape:
-            self._per_shape[key] = SearchedShifts.of(inside >= min_inside * self.n)
+            # numpy compares float32 counts with a float threshold cast to float32
+            threshold = np.float32(min_inside * self.n)
+            if _kernels.HAVE_NUMBA:
+                # the mask straight from the prefix sums: the counts themselves (n_rastered
+                # padded planes of float32) are not needed
+                mask = _kernels.box_mask(self._prefix_sums, *self._footprint_ranges(
+                    shape, reference.shape, reference.footprint), threshold)
+            else:
+                mask = self.inside(shape, reference) >= threshold
+            self._per_shape[key] = SearchedShifts.of(mask)
         return self._per_shape[key]
 
-    def _footprint_counts(self, shape: tuple[int, int], reference_shape: tuple[int, int],
-                          footprint: tuple[int, int, int, int]) -> np.ndarray:
-        """:meth:`inside`: box sums of the count raster (exact; cheaper than its FFT)."""
+    @functools.cached_property
+    def _prefix_sums(self) -> np.ndarray:
+        """(n_rastered, h + 1, w + 1) 2-D prefix sums of the count rasters, a zero row and
+        column first: one table serves the footprints of every reference turn and padded
+        shape (a non-square region's four turns have four footprints)."""
+        counts = self.raster[:, 4]
+        cum = np.zeros((len(counts), self.shape[0] + 1, self.shape[1] + 1), np.float32)
+        np.cumsum(np.cumsum(counts, axis=1), axis=2, out=cum[:, 1:, 1:])
+        return cum
+
+    def _footprint_ranges(self, shape: tuple[int, int], reference_shape: tuple[int, int],
+                          footprint: tuple[int, int, int, int]):
+        """Per FFT row and column index of a correlation padded to ``shape``, the query rows
+        ``[row_lo, row_hi)`` and columns ``[col_lo, col_hi)`` that its shift puts on the
+        reference's footprint."""
         hb, wb = reference_shape
         r0, r1, c0, c1 = footprint
         ha, wa = self.shape
-        h_pad, w_pad = shape
-        counts = self.raster[:, 4]
-        n_rot = len(counts)
 
         def ranges(n_pad, n_ref, n_query, start, stop):
             # signed shift d at FFT index i (d = i - n_pad past the reference), and the
@@ -412,12 +458,18 @@ class CreaseSearchQuery:
             lo = np.clip(start - d, 0, n_query)
             return lo, np.maximum(np.clip(stop - d, 0, n_query), lo)
 
-        col_lo, col_hi = ranges(w_pad, wb, wa, c0, c1)
-        row_lo, row_hi = ranges(h_pad, hb, ha, r0, r1)
-        if _kernels.HAVE_NUMBA:
-            cum = np.zeros((n_rot, ha + 1, wa + 1), np.float32)
-            np.cumsum(np.cumsum(counts, axis=1), axis=2, out=cum[:, 1:, 1:])
-            return _kernels.box_counts(cum, row_lo, row_hi, col_lo, col_hi)
+        return (*ranges(shape[0], hb, ha, r0, r1), *ranges(shape[1], wb, wa, c0, c1))
+
+    def _footprint_counts(self, shape: tuple[int, int], reference_shape: tuple[int, int],
+                          footprint: tuple[int, int, int, int]) -> np.ndarray:
+        """:meth:`inside`: box sums of the count raster (exact; cheaper than its FFT). The
+        search itself needs only the shifts they keep (:meth:`searched`)."""
+        ha, wa = self.shape
+        w_pad = shape[1]
+        counts = self.raster[:, 4]
+        n_rot = len(counts)
+        row_lo, row_hi, col_lo, col_hi = self._footprint_ranges(shape, reference_shape,
+                                                                footprint)
         cum = np.zeros((n_rot, ha, wa + 1), np.float32)
         np.cumsum(counts, axis=2, out=cum[:, :, 1:])
         cols = cum[:, :, col_hi] - cum[:, :, col_lo]                 # (n_rot, ha, w_pad)
@@ -534,12 +586,24 @@ def _half_shape(shape: tuple[int, int]) -> tuple[int, int]:
     return -(-shape[0] // 2), -(-shape[1] // 2)
 
 
+def _columns_fft(spec: np.ndarray) -> None:
+    """FFT of ``spec`` (a view) along its rows, in place."""
+    out = sfft.fft(spec, axis=-2, workers=1, overwrite_x=True)
+    if not np.shares_memory(out, spec):   # scipy may not have written into the view
+        spec[...] = out
+
+
+def _low_columns(shape: tuple[int, int]) -> int:
+    """The ``rfft2`` columns (of spectra of ``shape``) that :func:`_low_frequencies` keeps."""
+    return _half_shape(shape)[1] // 2 + 1
+
+
 def _low_frequencies(spectra: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """The lowest frequencies of ``rfft2`` spectra of ``shape``: the spectra of the same
     signals low-passed and sampled at every other row and column (``_half_shape``)."""
     h2, w2 = _half_shape(shape)
     rows = np.r_[0:(h2 + 1) // 2, shape[0] - h2 // 2:shape[0]]
-    return np.ascontiguousarray(spectra[..., rows, :w2 // 2 + 1])
+    return np.ascontiguousarray(spectra[..., rows, :_low_columns(shape)])
 
 
 def _shortlist(query_low: np.ndarray, ref_low: np.ndarray, shape: tuple[int, int],
@@ -556,6 +620,26 @@ def _shortlist(query_low: np.ndarray, ref_low: np.ndarray, shape: tuple[int, int
         hits[turn] *= s.half
     best = hits.reshape(n_planes, -1).max(axis=1)
     return np.sort(np.argsort(-best, kind="stable")[:n_keep])
+
+
+def _largest_positive(values: np.ndarray, n: int) -> np.ndarray:
+    """Flat indices of the ``n`` largest positive ``values``, largest first (ties by index).
+
+    A selection over every value (``argpartition`` of the ~1e5-1e6 hits of a view search's
+    strongest rotations) cost ~10 % of the search; the ``n``-th largest of every 8th value,
+    of those positive, bounds it from below instead (those ``n`` are in the array too), and
+    only the ~8 n values above the bound are sorted.
+    """
+    v = values.ravel()
+    bound = 0.0
+    sample = v[::8]
+    # the positive ones: the shifts not searched are zeros, a selection slows on ties
+    sample = sample[sample > 0]
+    if len(sample) > 2 * n:
+        bound = float(np.partition(sample, len(sample) - n)[len(sample) - n])
+    # ``>=``: the n-th largest may equal the bound
+    candidates = np.flatnonzero(v >= bound) if bound > 0 else np.flatnonzero(v > 0)
+    return candidates[np.lexsort((candidates, -v[candidates]))[:n]]
 
 
 @dataclass(frozen=True)
@@ -615,7 +699,7 @@ def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference
         # quarter turns need a square reference: a padded one has the same hits
         reference = reference.squared()
     scale = query.resolution
-    shape, query_ch = query.spectra(reference, min_inside)
+    shape = query.padded_shape(reference.full_shape, min_inside)
     # the query's quarter turns: its first quarter against the reference turned back
     turns = range(4) if query.quarter else range(1)
     ref_ch, ref_low = reference.turned_spectra(shape, len(turns))
@@ -627,6 +711,8 @@ def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference
     if shortlist and n_rot > shortlist * n_best:
         planes = _shortlist(query.low_spectra(reference, min_inside), ref_low, shape,
                             searched, shortlist * n_best)
+    # the query's full spectra: of the shortlisted rasters only
+    _, query_ch = query.spectra(reference, min_inside, rastered=planes % query.n_rastered)
     hits = _correlations(query_ch, ref_ch, shape, planes)
     hits *= np.stack([searched[turn].mask[r]
                       for turn, r in zip(*np.divmod(planes, query.n_rastered), strict=True)])
@@ -639,16 +725,12 @@ def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference
     flat = hits.reshape(len(planes), -1)
     strongest = np.argsort(-flat.max(axis=1), kind="stable")[:4 * n_best]
     rots, sub = planes[strongest], flat[strongest]
-    n_top = min(50 * n_best, sub.size)
-    top = np.argpartition(-sub, n_top - 1, axis=None)[:n_top]
     step = 2.0 * np.ptp(query.rotations) / max(len(query.rotations) - 1, 1)
     hb, wb = reference.shape
     out = []
-    for idx in top[np.argsort(-sub.ravel()[top], kind="stable")]:
+    for idx in _largest_positive(sub, 50 * n_best):
         i, k = divmod(int(idx), sub.shape[1])
         h = float(sub[i, k])
-        if h <= 0:
-            break
         r = int(rots[i])
         turn, q = divmod(r, query.n_rastered)
         dy, dx = divmod(k, shape[1])
