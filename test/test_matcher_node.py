@@ -182,7 +182,7 @@ def test_a_failure_inside_matching_is_an_explicit_no_fix(monkeypatch):
         node.on_camera(_camera_msg(camera, prior, header))
         assert published[-1].status == PvaFix.STATUS_NO_FIX
         assert published[-1].reason == "matching failed: RuntimeError: injected"
-        assert node.failures == {"on_camera": 1} and node.counts["no_fix"] == 1
+        assert node.failures == {"on_camera": 1} and node.tally.no_fixes == 1
         # the diagnostics say so once, and count the answers by reason
         (status,) = node.diagnostics()
         level, values = cv.diagnostic_values(status)

@@ -144,11 +144,6 @@ class MatcherNode(Node):
         publish_diagnostics(self, "/matcher/diagnostics", diagnostics_period,
                             self.diagnostics)
 
-    @property
-    def counts(self) -> dict:
-        """Fixes and no-fixes published so far."""
-        return {"fix": self.tally.fixes, "no_fix": self.tally.no_fixes}
-
     @contained
     def on_tile(self, msg: DemTile) -> None:
         try:

@@ -53,7 +53,7 @@ import numpy as np
 from ..core.features.hillshade import extractor_input
 from ..core.features.minutiae import FeatureExtractor, MinutiaParams
 from ..core.matching.baselines import keypoint_locate, ncc_locate
-from ..core.matching.matcher import Decision, Matcher
+from ..core.matching.matcher import Matcher
 from ..core.matching.params import MatchParams
 from ..core.matching.significance import calibrate_threshold
 from ..core.render.sun import parse_utc, solar_position
@@ -420,9 +420,9 @@ def _localise(matcher: Matcher, extractor: _Extractor, scene: Scene, case: _Case
         else np.full(2, np.nan)
     est = (est + 0.5) * f_region - 0.5           # matching pixels -> scene pixels
     e = float(np.hypot(*(est - case.truth)))
-    return {"score": float(r.score), "accepted": r.decision == Decision.MATCH,
-            "err": e if math.isfinite(e) else math.inf, "time": dt, "reason": r.reason,
-            "too_little": any(k in r.reason for k in _TOO_LITTLE), "view_index": view}
+    return {"score": float(r.score), "err": e if math.isfinite(e) else math.inf, "time": dt,
+            "reason": r.reason, "too_little": any(k in r.reason for k in _TOO_LITTLE),
+            "view_index": view}
 
 
 def _baseline(method: str, case: _Case, region: np.ndarray, heading_known: bool,
