@@ -1,0 +1,209 @@
+"""Relocalising a camera view anywhere in a mission area (issue 24).
+
+Run from the repository root::
+
+    .venv/bin/python benchmarks/bench_relocalise.py [--dem ../shared/data/dem/N44E005.hgt]
+        [--gsd 30] [--cases 20] [--controls 10] [--tile 1024] [--overlap 256]
+
+The whole DEM (default: the 1 x 1 deg N44E005 SRTM3 tile, ~80 x 110 km) is rendered at
+``--gsd`` as the landmark (the graph's renderer, one sun), cut into overlapping tiles of
+``--tile`` px and each tile's features extracted and prepared as the graph prepares a
+landmark region. Camera views of ``--view`` px are cut anywhere in the area from a render
+with another albedo and the camera effects of the block study, turned by any heading
+(+-180 deg) and scaled by +-10 %, and each is searched in every tile
+(:func:`~terrain_nav_ros.core.matching.global_search.relocalise`, the graph's threshold).
+Controls: views of another DEM (``--control-dem``), which must never be relocalised.
+
+Prints (no assertions): views relocalised within 3 px, 3-10 px off, at a wrong place (more
+than 10 px off), not relocalised (with the reasons), controls accepted, the median and p95
+CPU time per query on one core (extraction of the view included), and the preparation time
+of the tiles.
+"""
+
+import os
+
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS",
+             "NUMBA_NUM_THREADS"):
+    os.environ[_var] = "1"
+
+import argparse  # noqa: E402
+import math  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from collections import Counter  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from terrain_nav_ros.core.features.minutiae import FeatureExtractor, MinutiaParams  # noqa: E402
+from terrain_nav_ros.core.matching.global_search import (  # noqa: E402
+    SearchTile,
+    relocalisation_matcher,
+    relocalise,
+)
+from terrain_nav_ros.core.matching.matcher import warm_up  # noqa: E402
+from terrain_nav_ros.core.matching.params import MatchParams  # noqa: E402
+from terrain_nav_ros.core.render.camera_effects import apply_camera_effects  # noqa: E402
+from terrain_nav_ros.core.render.renderer import (  # noqa: E402
+    LandmarkRenderer,
+    create_headless_context,
+)
+from terrain_nav_ros.core.terrain.dem_io import open_dem  # noqa: E402
+from terrain_nav_ros.core.terrain.georef import GeoReference  # noqa: E402
+from terrain_nav_ros.core.terrain.metamap import MetaMap  # noqa: E402
+from terrain_nav_ros.tools.evaluation import (  # noqa: E402
+    GROSS_PX,
+    CameraModel,
+    _camera_albedo,
+)
+
+cv2.setNumThreads(1)
+GRAPH_THRESHOLD = 8.6
+DATA = REPO.parent / "shared" / "data" / "dem"
+
+
+def _renders(dem_path: str, gsd: float, sun):
+    """Landmark grey and camera RGB of the whole DEM at ``gsd``, and the area's georef."""
+    mm = MetaMap(open_dem(dem_path), interpolation="spline", fill_voids=True)
+    w, e, s, n = mm.enu_bounds[0]
+    georef = GeoReference.centred(0.5 * (w + e), 0.5 * (s + n), gsd,
+                                  int((e - w) / gsd) - 2, int((n - s) / gsd) - 2)
+    tile = mm.tile(georef)
+    elev = np.where(tile.nodata, np.nanmedian(tile.elevation), tile.elevation)
+    renderer = LandmarkRenderer(create_headless_context())
+    renderer.set_terrain(elev, georef)
+    landmark = renderer.render_nadir(georef, sun=sun).grey_u8
+    renderer.set_albedo(_camera_albedo(elev))
+    camera = renderer.render_nadir(georef, sun=sun).rgb
+    renderer.release()
+    return landmark, camera, georef
+
+
+def _starts(n: int, tile: int, stride: int) -> list[int]:
+    """Tile origins along an axis of ``n`` px: every ``stride``, the last flush with the end."""
+    starts = list(range(0, max(n - tile, 0) + 1, stride))
+    if starts[-1] + tile < n:
+        starts.append(n - tile)
+    return starts
+
+
+def _tiles(matcher, landmark, georef, tile: int, overlap: int) -> list[SearchTile]:
+    extractor = FeatureExtractor(minutia_params=MinutiaParams(max_minutiae=100000), ridges=True)
+    h, w = landmark.shape
+    out = []
+    for y in _starts(h, tile, tile - overlap):
+        for x in _starts(w, tile, tile - overlap):
+            f = extractor(landmark[y:y + tile, x:x + tile])
+            ix = matcher.index(f.minutiae, f.creases.skeleton(), f.ridges)
+            g = GeoReference(georef.origin_east + x * georef.gsd,
+                             georef.origin_north - y * georef.gsd, georef.gsd,
+                             min(tile, w), min(tile, h))
+            out.append(SearchTile(ix.prepare_as_reference(search=True), g, f"{y}_{x}"))
+    return out
+
+
+def _views(camera_rgb, n: int, size: int, rng):
+    """``n`` camera views: (grey view, true centre (col, row) in the area)."""
+    h, w = camera_rgb.shape[:2]
+    c = 0.5 * (size - 1)
+    effects = CameraModel().effects
+    out = []
+    for _ in range(n):
+        theta = math.radians(rng.uniform(-180.0, 180.0))
+        s = 1.0 + rng.uniform(-0.1, 0.1)
+        cx, cy = rng.uniform(size, w - size), rng.uniform(size, h - size)
+        a, b = s * math.cos(theta), s * math.sin(theta)
+        m = np.array([[a, b, 0.0], [-b, a, 0.0]])      # view px -> area px
+        m[:, 2] = np.array([cx, cy]) - m[:, :2] @ np.array([c, c])
+        view = cv2.warpAffine(camera_rgb, m, (size, size),
+                              flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+        view = apply_camera_effects(view, np.full((size, size), 1500.0, np.float32), effects,
+                                    rng)
+        out.append((cv2.cvtColor(view, cv2.COLOR_RGB2GRAY), np.array([cx, cy])))
+    return out
+
+
+def _query(matcher, extractor, grey, tiles):
+    """(Relocalisation, CPU seconds) of one view, its extraction included."""
+    t0 = time.process_time()
+    f = extractor(grey)
+    centre = (0.5 * (grey.shape[1] - 1), 0.5 * (grey.shape[0] - 1))
+    found = relocalise(matcher, matcher.index(f.minutiae, f.creases.skeleton(), f.ridges),
+                       tiles, view_centre=centre)
+    return found, time.process_time() - t0
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--dem", default=str(DATA / "N44E005.hgt"))
+    ap.add_argument("--control-dem", default=str(DATA / "front_range_srtm3.asc"))
+    ap.add_argument("--gsd", type=float, default=30.0)
+    ap.add_argument("--view", type=int, default=256)
+    ap.add_argument("--tile", type=int, default=1024)
+    ap.add_argument("--overlap", type=int, default=256)
+    ap.add_argument("--cases", type=int, default=20)
+    ap.add_argument("--controls", type=int, default=10)
+    ap.add_argument("--sun", default="135,45", help="azimuth,elevation (deg)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--verbose", action="store_true", help="one line per view")
+    args = ap.parse_args()
+    sun = tuple(float(v) for v in args.sun.split(","))
+    rng = np.random.default_rng(args.seed)
+
+    params = MatchParams(threshold=GRAPH_THRESHOLD)
+    warm_up(params)
+    matcher = relocalisation_matcher(params, args.tile)
+    t0 = time.perf_counter()
+    landmark, camera, georef = _renders(args.dem, args.gsd, sun)
+    t1 = time.perf_counter()
+    tiles = _tiles(matcher, landmark, georef, args.tile, args.overlap)
+    t2 = time.perf_counter()
+    print(f"{Path(args.dem).name}: {georef.width} x {georef.height} px at {args.gsd:g} m "
+          f"({georef.width * args.gsd / 1e3:.0f} x {georef.height * args.gsd / 1e3:.0f} km), "
+          f"{len(tiles)} tiles of {args.tile} px (overlap {args.overlap}); render "
+          f"{t1 - t0:.1f} s, tiles' features and preparation {t2 - t1:.1f} s")
+
+    extractor = FeatureExtractor(ridges=True)
+    ok = off = wrong = 0
+    reasons, times = Counter(), []
+    for k, (grey, truth) in enumerate(_views(camera, args.cases, args.view, rng)):
+        found, seconds = _query(matcher, extractor, grey, tiles)
+        times.append(seconds)
+        if found.matched:
+            col, row = georef.enu_to_pixel(*found.position)
+            err = math.hypot(float(col) - truth[0], float(row) - truth[1])
+            ok += err <= 3.0
+            off += 3.0 < err <= GROSS_PX
+            wrong += err > GROSS_PX
+            line = f"score {found.score:.1f} (runner-up {found.runner_up:.1f}) err {err:.1f} px"
+        else:
+            reasons[found.reason.split(":")[0]] += 1
+            line = found.reason
+        if args.verbose:
+            print(f"  view {k}: {seconds:.2f} s, {line}")
+
+    accepted, control_times, best_control = 0, [], -math.inf
+    if args.controls:
+        _, other, _ = _renders(args.control_dem, args.gsd, sun)
+        for grey, _ in _views(other, args.controls, args.view, rng):
+            found, seconds = _query(matcher, extractor, grey, tiles)
+            control_times.append(seconds)
+            accepted += found.matched
+            best_control = max(best_control, found.score)
+
+    t = np.array(times)
+    print(f"relocalised within 3 px: {ok}/{args.cases}, 3-{GROSS_PX:g} px off: {off}, at a wrong "
+          f"place: {wrong}, not relocalised: {args.cases - ok - off - wrong} {dict(reasons)}")
+    print(f"CPU per query (one core): median {np.median(t):.2f} s, p95 "
+          f"{np.percentile(t, 95):.2f} s, max {t.max():.2f} s")
+    if args.controls:
+        print(f"controls ({Path(args.control_dem).name} views): {accepted}/{args.controls} "
+              f"accepted, best area score {best_control:.1f} (threshold {GRAPH_THRESHOLD})")
+
+
+if __name__ == "__main__":
+    main()
