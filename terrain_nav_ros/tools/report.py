@@ -75,6 +75,7 @@ def _fixes(bag):
         cov = np.asarray(msg.pose.covariance).reshape(6, 6)
         out.append({"stamp": _stamp(msg), "received": m.timestamp_ns * 1e-9,
                     "status": int(msg.status), "reason": msg.reason,
+                    "relocalisation": bool(msg.relocalisation),
                     "position": np.array([p.x, p.y, p.z]), "cov_xy": cov[:2, :2],
                     "pairings": int(msg.num_pairings), "similarity": float(msg.similarity)})
     return out
@@ -150,6 +151,7 @@ def analyse(input_bag, output_bag, usage: dict | None = None) -> dict:
     good = [f for f in fixes if f["status"] > 0]
     result["fixes"] = {"frames": len(fixes), "fixes": len(good),
                        "no_fix": len(fixes) - len(good),
+                       "relocalisations": sum(f["relocalisation"] for f in good),
                        "in_bag": sum(info[t].count for t in CAMERA_TOPICS if t in info),
                        "reasons": Counter(reason_kind(f["reason"]) for f in fixes
                                           if f["status"] == 0).most_common(6)}
@@ -210,6 +212,9 @@ def format_report(r: dict, gsd: float | None = None) -> str:
     f = r["fixes"]
     lines.append(f"camera frames answered: {f['frames']} of {f['in_bag']}  fixes: "
                  f"{f['fixes']}  no fix: {f['no_fix']}")
+    if f.get("relocalisations"):
+        lines.append(f"  of the fixes, {f['relocalisations']} relocalisation(s) (searched over "
+                     "the whole mission area)")
     if f["in_bag"] and f["frames"] < f["in_bag"]:
         lines.append(f"WARNING: {f['in_bag'] - f['frames']} camera frames of the bag got no "
                      "answer (lost on the way to camera_ingest, or the graph fell behind)")
