@@ -464,3 +464,70 @@ def test_every_imu_sample_is_integrated_in_order_by_either_executor(executor):
     assert stamps == [cv.stamp_to_ns(_stamp(k * 0.01)) for k in range(1, n + 1)]
     # The initial pose is taken at the first sample's stamp, then n - 1 steps of 10 ms.
     assert odom[-1].pose.pose.position.x == pytest.approx(30.0 * (n - 1) * 0.01, abs=1e-3)
+
+
+def test_relocalisations_start_the_filter_and_a_wrong_one_never_moves_it():
+    """init_mode fix with no GNSS and no prior (jammed from take-off): one relocalisation is
+    held (searching), a second that agrees with it 11 s later starts the filter (found),
+    ordinary fixes confirm it (tracking); a relocalisation 5 km off later is held (searching)
+    and does not move the estimate, then expires (tracking). Each change is logged once."""
+    from sensor_msgs.msg import Imu
+
+    from terrain_nav_msgs.msg import PvaFix
+
+    params = EkfParams()
+    rng = np.random.default_rng(24)
+    truth = simulate_trajectory([Segment(40.0)], rate_hz=RATE, start_position=(-300.0, 50.0,
+                                                                                900.0))
+    imu = simulate_imu(truth, ImuErrorModel.from_params(params), rng)
+    relocalisations = {2.0: 0.0, 13.0: 0.0, 22.0: 5000.0}     # stamp -> east offset (m)
+    fixes = sorted(set(np.arange(16.0, 40.0, 2.0)) - set(relocalisations))
+    events = [(truth.t[k], 0, k) for k in range(1, len(truth))]
+    events += [(t + 0.05, 1, t) for t in (*relocalisations, *fixes)]
+    events.sort(key=lambda e: (e[0], e[1]))
+
+    proc = start_node("ekf", {"init_mode": "fix", "relocalisation_timeout": 15.0,
+                              "diagnostics_period": 0.2, "imu_queue_depth": 1000,
+                              "use_sim_time": True})
+    client = SpinningNode("ekf_relocalisation_client")
+    rec = Recorder(client.node)
+    imu_pub = client.node.create_publisher(Imu, "/imu/data", 1000)
+    fix_pub = client.node.create_publisher(PvaFix, "/nav/pva_fix", 100)
+    try:
+        assert wait_until(lambda: imu_pub.get_subscription_count() > 0
+                          and fix_pub.get_subscription_count() > 0 and rec.diag, 20), \
+            "ekf subscriptions or diagnostics never appeared"
+        start = time.monotonic()
+        for t, kind, k in events:
+            lag = t / SPEEDUP - (time.monotonic() - start)
+            if lag > 0.002:
+                time.sleep(lag)
+            if kind == 0:
+                imu_pub.publish(cv.sample_to_imu(cv.make_header(_stamp(truth.t[k]), "base_link"),
+                                                 imu.gyro[k], imu.accel[k]))
+                continue
+            j = int(truth.at(k))
+            p = truth.position[j] + rng.normal(0, 10.0, 3) + [relocalisations.get(k, 0.0), 0, 0]
+            fix_pub.publish(cv.arrays_to_pva_fix(
+                cv.make_header(_stamp(truth.t[j]), "map"), PvaFix.STATUS_POSITION, p,
+                [0, 0, 0, 1], np.diag([400.0] * 3 + [-1.0] * 3),
+                relocalisation=k in relocalisations))
+        assert wait_until(lambda: rec.odom and _sec(rec.odom[-1].header.stamp) > 39.9, 10)
+        time.sleep(0.5)       # a diagnostics report of the finished flight
+    finally:
+        client.close()
+        log = stop(proc)
+    states = [line.split("]: navigation ")[1] for line in log.splitlines()
+              if "]: navigation " in line]
+    assert [s.split(":")[0].split(" (")[0] for s in states] == [
+        "lost", "searching", "found", "tracking", "searching", "tracking"], log
+    assert "started from agreeing relocalisations at" in states[2]
+    t, rows = _odometry(rec)
+    assert t[0] == pytest.approx(13.0, abs=0.2)           # started at the second one
+    err = np.array([np.linalg.norm(r[1] - truth.position[int(truth.at(s))])
+                    for s, r in zip(t, rows, strict=True)])
+    assert err.max() < 80.0, err.max()                    # the 5 km one never moved it
+    _, filt = rec.filter_status()["ekf: filter"]
+    assert filt["navigation_state"] == "tracking"
+    assert int(filt["relocalisation_resets"]) == 0 and int(filt["relocalisation_candidates"]) == 0
+    assert filt["found"].startswith("started from agreeing relocalisations at 17000000")
