@@ -237,6 +237,7 @@ def test_relocalisation_parameters_are_validated():
                 dict(relocalisation_agreement_probability=0.0),
                 dict(relocalisation_timeout=0.5, relocalisation_min_interval=1.0),
                 dict(relocalisation_speed_sigma=0.0),
+                dict(relocalisation_fuse_max_sigma=0.0),
                 dict(init_mode="fix", relocalisation_timeout=5.0)):
         with pytest.raises(ValueError, match="relocalisation"):
             EkfParams(**bad)
@@ -271,3 +272,18 @@ def test_navigation_state_is_lost_beyond_the_sigma_bound(straight):
     assert f.state == LOST      # horizontal sigma sqrt(2) * 800 m
     assert navigation_state(f.ekf.diagnostics, 2000.0)[0] == TRACKING
     assert math.isinf(TerrainEkf(EkfParams()).diagnostics.horizontal_sigma)
+
+
+def test_a_lost_estimates_gate_is_no_check_on_a_relocalisation(straight):
+    """Horizontal sigma ~2.8 km: a relocalisation 1.5 km off the estimate is inside the gate
+    but is held all the same, until a second one agrees."""
+    params = EkfParams(init_mode="pose", init_position_sigma=2000.0)
+    f = Flight(straight, params, offset=np.array([1500.0, 0.0, 0.0]))
+    out = f.fix(5.0)
+    assert out.nis < out.gate and out.reason == Reason.RELOCALISATION_HELD
+    assert f.error > 1400.0
+    assert f.fix(10.0).reason == Reason.RELOCALISATION_RESET and f.error < 3 * SIGMA
+    trusting = Flight(straight, EkfParams(init_mode="pose", init_position_sigma=2000.0,
+                                          relocalisation_fuse_max_sigma=1e5),
+                      offset=np.array([1500.0, 0.0, 0.0]))
+    assert trusting.fix(5.0).reason == Reason.OK

@@ -191,6 +191,9 @@ EKF_PARAMETERS = {
                                0.01, 3600.0),
     "relocalisation_min_interval": ("relocalisations closer in time than this never agree "
                                     "with each other [s]", 0.0, 600.0),
+    "relocalisation_fuse_max_sigma": ("a relocalisation inside the gate is fused on its own "
+                                      "only while the horizontal sigma is at most this [m]",
+                                      1e-3, 1e7),
     "relocalisation_speed_sigma": ("cold start: sigma of the speed prior the displacement "
                                    "between two relocalisations is tested against [m/s]",
                                    1e-3, 1e4),

@@ -865,26 +865,35 @@ class TerrainEkf:
         self._record(meas, outcome)
 
     def _relocalise(self, meas: _Measurement) -> Outcome:
-        """Fuse a relocalisation the gate accepts; hold one it rejects, and reset the
-        position onto it when a held one agrees with it (:mod:`~.relocalisation`)."""
-        outcome = self._update(meas)
-        if outcome.reason != Reason.GATED:
+        """Fuse a relocalisation the gate accepts while the estimate is good enough for the
+        gate to be a check; hold any other, and reset the position onto it when a held one
+        agrees with it (:mod:`~.relocalisation`)."""
+        tested = self._gate_test(meas)
+        if tested is None:
+            return Outcome(False, Reason.BAD_COVARIANCE)
+        nis, gate = tested[2:]
+        # A gate ~4 sigma wide around a lost estimate is no check on a mission-wide search.
+        trusted = math.sqrt(self.kf.P[0, 0] + self.kf.P[1, 1]) <= \
+            self.params.relocalisation_fuse_max_sigma
+        if nis <= gate and trusted:
             self._candidates.discard(meas.seq)   # held before a rewind changed the estimate
-            return outcome
+            return self._update(meas)
         candidate = Candidate(meas.stamp, meas.z[:3].copy(), meas.R[:3, :3].copy(),
                               self._x[IDX_P].copy(), self.kf.P.copy(), self.q.copy(), meas)
         self._candidates.expire(self.t)
-        partner = self._candidates.agreeing(candidate,
-                                            self.params.relocalisation_min_interval)
-        if partner is None:
+        if self._candidates.agreeing(candidate, self.params.relocalisation_min_interval) is None:
             self._candidates.hold(meas.seq, candidate)
-            return Outcome(False, Reason.RELOCALISATION_HELD, outcome.nis, outcome.gate)
+            return Outcome(False, Reason.RELOCALISATION_HELD, nis, gate)
+        self._reset_onto(meas)
+        return Outcome(True, Reason.RELOCALISATION_RESET, nis, gate)
+
+    def _reset_onto(self, meas: _Measurement):
+        """Reset the position onto an agreed relocalisation and say so (``found``)."""
         before = self._x[IDX_P].copy()
         meas.reset = True   # a re-application after a rewind resets again
         self._position_reset(meas)
         self._candidates.clear()
         self._diag.found = Found(meas.stamp, self._x[IDX_P] - before)
-        return Outcome(True, Reason.RELOCALISATION_RESET, outcome.nis, outcome.gate)
 
     def _innovation(self, meas: _Measurement):
         z = meas.z.copy()
@@ -896,7 +905,9 @@ class TerrainEkf:
         H[np.arange(len(z)), meas.rows] = 1.0
         return z, H
 
-    def _update(self, meas: _Measurement) -> Outcome:
+    def _gate_test(self, meas: _Measurement):
+        """``(z, H, nis, gate)`` of a measurement at the current filter time, or None when
+        its innovation covariance is not positive definite."""
         z, H = self._innovation(meas)
         P = self.kf.P
         y = z - self._x[meas.rows]
@@ -904,10 +915,15 @@ class TerrainEkf:
         try:
             L = np.linalg.cholesky(S)
         except np.linalg.LinAlgError:
-            return Outcome(False, Reason.BAD_COVARIANCE)
+            return None
         w = np.linalg.solve(L, y)
-        nis = float(w @ w)
-        gate = _gate(self.params.gate_probability(meas.source), len(z))
+        return z, H, float(w @ w), _gate(self.params.gate_probability(meas.source), len(z))
+
+    def _update(self, meas: _Measurement) -> Outcome:
+        tested = self._gate_test(meas)
+        if tested is None:
+            return Outcome(False, Reason.BAD_COVARIANCE)
+        z, H, nis, gate = tested
         if meas.source == "gnss" and not self.params.fuse_gnss:
             return Outcome(False, Reason.COMPARED_ONLY, nis, gate)
         if nis > gate:

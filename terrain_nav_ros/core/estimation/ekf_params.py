@@ -124,6 +124,12 @@ class EkfParams:
         Two relocalisations agree only when their stamps are at least this far apart (s):
         different frames, overlapping less (a wrong place found in overlapping frames moves
         with them). Default 1.0.
+    relocalisation_fuse_max_sigma : float
+        A relocalisation inside the gate is fused on its own only while the estimate's
+        horizontal sigma is at most this (m); beyond it the gate, about four sigma wide, is no
+        check on a search of the whole mission area, and the relocalisation is held like one
+        outside the gate. Default 500.0 (a gate of ~1.5 km radius: a wrong place anywhere in
+        a 100 x 100 km area falls into it less than once in 1000).
     relocalisation_speed_sigma : float
         Before the filter runs there is no dead reckoning: the displacement between two
         relocalisations is tested against a zero-mean speed prior of this sigma per axis
@@ -159,6 +165,7 @@ class EkfParams:
     relocalisation_agreement_probability: float = 0.999
     relocalisation_timeout: float = 30.0
     relocalisation_min_interval: float = 1.0
+    relocalisation_fuse_max_sigma: float = 500.0
     relocalisation_speed_sigma: float = 50.0
 
     def __post_init__(self):
@@ -188,11 +195,13 @@ class EkfParams:
         if not 0.0 < self.relocalisation_agreement_probability < 1.0:
             raise ValueError("EkfParams.relocalisation_agreement_probability must be in (0, 1), "
                              f"got {self.relocalisation_agreement_probability}")
-        if not (self.relocalisation_speed_sigma > 0
+        if not (self.relocalisation_speed_sigma > 0 and self.relocalisation_fuse_max_sigma > 0
                 and 0 <= self.relocalisation_min_interval < self.relocalisation_timeout):
-            raise ValueError("EkfParams.relocalisation_speed_sigma must be > 0 and "
+            raise ValueError("EkfParams.relocalisation_speed_sigma and "
+                             "relocalisation_fuse_max_sigma must be > 0 and "
                              "0 <= relocalisation_min_interval < relocalisation_timeout, got "
                              f"{self.relocalisation_speed_sigma}, "
+                             f"{self.relocalisation_fuse_max_sigma}, "
                              f"{self.relocalisation_min_interval}, {self.relocalisation_timeout}")
         if self.init_mode == "fix" and self.relocalisation_timeout <= self.init_min_fix_interval:
             raise ValueError("EkfParams.relocalisation_timeout must exceed init_min_fix_interval "
