@@ -287,3 +287,16 @@ def test_a_lost_estimates_gate_is_no_check_on_a_relocalisation(straight):
                                           relocalisation_fuse_max_sigma=1e5),
                       offset=np.array([1500.0, 0.0, 0.0]))
     assert trusting.fix(5.0).reason == Reason.OK
+
+
+def test_a_rewind_across_the_reset_applies_it_again_and_counts_it_once(straight):
+    f = Flight(straight, EkfParams(init_mode="pose"))
+    f.fix(5.0)
+    assert f.fix(10.0).reason == Reason.RELOCALISATION_RESET
+    f.fly_to(11.0)
+    late = f.ekf.process_fix(9.5, f.truth_at(9.5), COV)    # stamped before the reset
+    assert late.reason == Reason.GATED                     # against the estimate at 9.5
+    f.fly_to(12.0)
+    assert f.error < 3 * SIGMA
+    d = f.ekf.diagnostics
+    assert d.relocalisation_resets == 1 and d.found.stamp == pytest.approx(10.0)

@@ -894,6 +894,7 @@ class TerrainEkf:
         self._position_reset(meas)
         self._candidates.clear()
         self._diag.found = Found(meas.stamp, self._x[IDX_P] - before)
+        self._diag.relocalisation_resets += 1
 
     def _innovation(self, meas: _Measurement):
         z = meas.z.copy()
@@ -982,8 +983,6 @@ class TerrainEkf:
         if outcome.accepted:
             d.last_accepted[meas.source] = max(meas.stamp,
                                                d.last_accepted.get(meas.source, -np.inf))
-        if first and outcome.reason == Reason.RELOCALISATION_RESET:
-            d.relocalisation_resets += 1
         if first and not meas.relocalisation:   # relocalisations never arm a reset
             if outcome.reason == Reason.POSITION_RESET:
                 d.position_resets += 1
