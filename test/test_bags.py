@@ -131,3 +131,26 @@ def test_the_report_reads_which_fixes_were_relocalisations(recorded_bag):
 
     fixes = report._fixes(recorded_bag)
     assert [f["relocalisation"] for f in fixes] == [i % 3 == 0 for i in range(N)]
+
+
+def test_the_report_lists_what_the_ekf_found_once_each(tmp_path):
+    from terrain_nav_ros.tools import report
+
+    store = bags.typestore()
+    types = {name: store.types[f"diagnostic_msgs/msg/{name}"]
+             for name in ("DiagnosticArray", "DiagnosticStatus", "KeyValue")}
+    header = store.types["std_msgs/msg/Header"](
+        stamp=store.types["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="")
+    found = ["never", "started from agreeing relocalisations at 13.000 s",
+             "started from agreeing relocalisations at 13.000 s",
+             "position reset onto agreeing relocalisations at 40.000 s: jumped 5000 m "
+             "horizontally, +3 m vertically"]
+    with bags.BagWriter(tmp_path / "out") as writer:
+        for i, value in enumerate(found):
+            status = types["DiagnosticStatus"](
+                level=0, name="ekf: filter", message="ok", hardware_id="terrain_nav",
+                values=[types["KeyValue"](key="found", value=value)])
+            writer.write_message("/nav/ekf/diagnostics", i * 10**9,
+                                 types["DiagnosticArray"](header=header, status=[status]),
+                                 "diagnostic_msgs/msg/DiagnosticArray")
+    assert report.navigation_events(tmp_path / "out") == found[1::2]

@@ -91,6 +91,20 @@ def _ekf_health(bag) -> str:
     return last or "it published no diagnostics either"
 
 
+def navigation_events(bag) -> list[str]:
+    """What the EKF's diagnostics said it found, in order: each reset onto (or start from)
+    agreeing relocalisations, once (the ``found`` value of its ``ekf: filter`` status)."""
+    events = []
+    for m in bags.read(bag, ["/nav/ekf/diagnostics"]):
+        for status in bags.decode(m).status:
+            if status.name != "ekf: filter":
+                continue
+            found = {kv.key: kv.value for kv in status.values}.get("found", "never")
+            if found != "never" and (not events or events[-1] != found):
+                events.append(found)
+    return events
+
+
 def _latencies(bag) -> dict:
     """Receive time minus the camera frame's stamp for each pipeline stage (s)."""
     out = {}
@@ -155,6 +169,7 @@ def analyse(input_bag, output_bag, usage: dict | None = None) -> dict:
                        "in_bag": sum(info[t].count for t in CAMERA_TOPICS if t in info),
                        "reasons": Counter(reason_kind(f["reason"]) for f in fixes
                                           if f["status"] == 0).most_common(6)}
+    result["navigation_events"] = navigation_events(output_bag)
     result["latency"] = {k: v for k, v in _latencies(output_bag).items()}
     t_fused, p_fused, var_fused = _series(output_bag, "/nav/odometry")
     result["series"] = {"fused": (t_fused, p_fused, var_fused), "fixes": good}
@@ -220,6 +235,8 @@ def format_report(r: dict, gsd: float | None = None) -> str:
                      "answer (lost on the way to camera_ingest, or the graph fell behind)")
     for reason, count in f["reasons"]:
         lines.append(f"  no fix x{count}: {reason}")
+    for event in r.get("navigation_events", []):
+        lines.append(f"ekf found: {event}")
     if "fix_error" in r:
         e = r["fix_error"]
         lines.append(f"fix error vs truth (horizontal): median {e['median']:.1f} m, p95 "
