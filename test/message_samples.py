@@ -22,6 +22,7 @@ def samples() -> dict:
     mask = np.ones((4, 6), bool)
     mask[0, :2] = False
     fix = PvaFix(header=header, status=PvaFix.STATUS_POSITION_ATTITUDE, reason="ok",
+                 relocalisation=True,
                  latitude=36.12345678, longitude=-84.87654321, altitude=1234.5,
                  pose=cv.pose_with_covariance([10.0, -20.0, 1500.0], [0.0, 0.0, 0.38268343,
                                                0.92387953], np.diag(np.arange(1.0, 7.0))),

@@ -29,7 +29,8 @@ def _publish_and_record(bag):
         for i in range(N):
             pubs[0].publish(String(data=f"hello {i}"))
             pubs[1].publish(PvaFix(status=PvaFix.STATUS_POSITION, similarity=i / 10,
-                                   num_pairings=i, reason=f"fix {i}"))
+                                   num_pairings=i, reason=f"fix {i}",
+                                   relocalisation=i % 3 == 0))
             time.sleep(PERIOD)
         time.sleep(0.5)
         log = stop(recorder)
@@ -52,6 +53,7 @@ def test_recorded_bag_is_readable_by_rosbags(recorded_bag):
     assert info["/chatter"].count == N and info["/nav/pva_fix"].count == N
     fixes = [bags.decode(m) for m in bags.read(recorded_bag, ["/nav/pva_fix"])]
     assert [f.num_pairings for f in fixes] == list(range(N))
+    assert [f.relocalisation for f in fixes] == [i % 3 == 0 for i in range(N)]
     assert fixes[3].reason == "fix 3"
     assert "Messages:   40" in bags.info(recorded_bag)
 
@@ -122,3 +124,33 @@ def test_a_bag_cut_short_is_salvaged_up_to_the_damage(tmp_path):
     assert n // 4 < len(salvaged) < n
     assert salvaged == [f"{i:06d}" for i in range(len(salvaged))]
     assert bags.is_damaged(bag) and "DAMAGED" in bags.info(bag)
+
+
+def test_the_report_reads_which_fixes_were_relocalisations(recorded_bag):
+    from terrain_nav_ros.tools import report
+
+    fixes = report._fixes(recorded_bag)
+    assert [f["relocalisation"] for f in fixes] == [i % 3 == 0 for i in range(N)]
+
+
+def test_the_report_lists_what_the_ekf_found_once_each(tmp_path):
+    from terrain_nav_ros.tools import report
+
+    store = bags.typestore()
+    types = {name: store.types[f"diagnostic_msgs/msg/{name}"]
+             for name in ("DiagnosticArray", "DiagnosticStatus", "KeyValue")}
+    header = store.types["std_msgs/msg/Header"](
+        stamp=store.types["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="")
+    found = ["never", "started from agreeing relocalisations at 13.000 s",
+             "started from agreeing relocalisations at 13.000 s",
+             "position reset onto agreeing relocalisations at 40.000 s: jumped 5000 m "
+             "horizontally, +3 m vertically"]
+    with bags.BagWriter(tmp_path / "out") as writer:
+        for i, value in enumerate(found):
+            status = types["DiagnosticStatus"](
+                level=0, name="ekf: filter", message="ok", hardware_id="terrain_nav",
+                values=[types["KeyValue"](key="found", value=value)])
+            writer.write_message("/nav/ekf/diagnostics", i * 10**9,
+                                 types["DiagnosticArray"](header=header, status=[status]),
+                                 "diagnostic_msgs/msg/DiagnosticArray")
+    assert report.navigation_events(tmp_path / "out") == found[1::2]

@@ -63,6 +63,23 @@ def test_refused_stamps_and_gated_updates_warn():
                                "3 measurement(s) rejected by the gate"]
 
 
+def test_held_relocalisations_warn_and_the_report_says_what_was_found():
+    import numpy as np
+
+    from terrain_nav_ros.core.estimation.relocalisation import Found
+
+    health = filter_health(_diagnostics(relocalisation_candidates=2), 0.0, "", LIMITS)
+    assert health.level == WARN
+    assert health.problems == ["searching: 2 relocalisation(s) held, none agreed yet"]
+    d = _diagnostics(relocalisation_resets=1, found=Found(90.0, np.array([-3000.0, 4000.0, 12.0])))
+    values = filter_values(d, "fix", 0, 0.01, 0, None, None, Counter())
+    assert values["relocalisation_resets"] == 1 and values["relocalisation_candidates"] == 0
+    assert values["found"] == ("position reset onto agreeing relocalisations at 90.000 s: "
+                               "jumped 5000 m horizontally, +12 m vertically")
+    assert filter_values(_diagnostics(), "fix", 0, 0.01, 0, None, None,
+                         Counter())["found"] == "never"
+
+
 def test_gnss_gate_rejections_count_only_when_gnss_is_fused():
     records = [UpdateRecord(1.0, "gnss", 3, 30.0, 11.3, False),
                UpdateRecord(2.0, "fix", 2, 30.0, 9.2, False),

@@ -464,3 +464,109 @@ def test_every_imu_sample_is_integrated_in_order_by_either_executor(executor):
     assert stamps == [cv.stamp_to_ns(_stamp(k * 0.01)) for k in range(1, n + 1)]
     # The initial pose is taken at the first sample's stamp, then n - 1 steps of 10 ms.
     assert odom[-1].pose.pose.position.x == pytest.approx(30.0 * (n - 1) * 0.01, abs=1e-3)
+
+
+def _fly_with_relocalisations(node_params: dict, seconds: float, relocalisations: dict,
+                              fixes, seed: int):
+    """A straight flight of ``seconds`` published at SPEEDUP to an ekf started with
+    ``node_params``: IMU, relocalisations (stamp -> east offset from the truth, m) and
+    ordinary fixes at their stamps (sigma 20 m, 50 ms late). Returns the truth, the recorder,
+    the node's log and its navigation state lines."""
+    from sensor_msgs.msg import Imu
+
+    from terrain_nav_msgs.msg import PvaFix
+
+    rng = np.random.default_rng(seed)
+    truth = simulate_trajectory([Segment(seconds)], rate_hz=RATE,
+                                start_position=(-300.0, 50.0, 900.0))
+    imu = simulate_imu(truth, ImuErrorModel.from_params(EkfParams()), rng)
+    events = [(truth.t[k], 0, k) for k in range(1, len(truth))]
+    events += [(t + 0.05, 1, t) for t in (*relocalisations, *fixes)]
+    events.sort(key=lambda e: (e[0], e[1]))
+    proc = start_node("ekf", {"diagnostics_period": 0.2, "imu_queue_depth": 1000,
+                              "use_sim_time": True, **node_params})
+    client = SpinningNode("ekf_relocalisation_client")
+    rec = Recorder(client.node)
+    imu_pub = client.node.create_publisher(Imu, "/imu/data", 1000)
+    fix_pub = client.node.create_publisher(PvaFix, "/nav/pva_fix", 100)
+    try:
+        assert wait_until(lambda: imu_pub.get_subscription_count() > 0
+                          and fix_pub.get_subscription_count() > 0 and rec.diag, 20), \
+            "ekf subscriptions or diagnostics never appeared"
+        start = time.monotonic()
+        for t, kind, k in events:
+            lag = t / SPEEDUP - (time.monotonic() - start)
+            if lag > 0.002:
+                time.sleep(lag)
+            if kind == 0:
+                imu_pub.publish(cv.sample_to_imu(cv.make_header(_stamp(truth.t[k]), "base_link"),
+                                                 imu.gyro[k], imu.accel[k]))
+                continue
+            j = int(truth.at(k))
+            p = truth.position[j] + rng.normal(0, 10.0, 3) + [relocalisations.get(k, 0.0), 0, 0]
+            fix_pub.publish(cv.arrays_to_pva_fix(
+                cv.make_header(_stamp(truth.t[j]), "map"), PvaFix.STATUS_POSITION, p,
+                [0, 0, 0, 1], np.diag([400.0] * 3 + [-1.0] * 3),
+                relocalisation=k in relocalisations))
+        assert wait_until(lambda: rec.odom and _sec(rec.odom[-1].header.stamp)
+                          > seconds - 0.1, 10)
+        time.sleep(0.5)       # a diagnostics report of the finished flight
+    finally:
+        client.close()
+        log = stop(proc)
+    states = [line.split("]: navigation ")[1] for line in log.splitlines()
+              if "]: navigation " in line]
+    return truth, rec, log, states
+
+
+def _state_names(states) -> list[str]:
+    return [s.split(":")[0].split(" (")[0] for s in states]
+
+
+def _errors(truth, rec):
+    t, rows = _odometry(rec)
+    return t, np.array([np.linalg.norm(r[1] - truth.position[int(truth.at(s))])
+                        for s, r in zip(t, rows, strict=True)])
+
+
+def test_relocalisations_start_the_filter_and_a_wrong_one_never_moves_it():
+    """init_mode fix with no GNSS and no prior (jammed from take-off): one relocalisation is
+    held (searching), a second that agrees with it 11 s later starts the filter (found),
+    ordinary fixes confirm it (tracking); a relocalisation 5 km off later is held (searching)
+    and does not move the estimate, then expires (tracking). Each change is logged once."""
+    relocalisations = {2.0: 0.0, 13.0: 0.0, 22.0: 5000.0}     # stamp -> east offset (m)
+    fixes = sorted(set(np.arange(16.0, 40.0, 2.0)) - set(relocalisations))
+    truth, rec, log, states = _fly_with_relocalisations(
+        {"init_mode": "fix", "relocalisation_timeout": 15.0}, 40.0, relocalisations, fixes, 24)
+    assert _state_names(states) == [
+        "lost", "searching", "found", "tracking", "searching", "tracking"], log
+    assert "started from agreeing relocalisations at" in states[2]
+    t, err = _errors(truth, rec)
+    assert t[0] == pytest.approx(13.0, abs=0.2)           # started at the second one
+    assert err.max() < 80.0, err.max()                    # the 5 km one never moved it
+    _, filt = rec.filter_status()["ekf: filter"]
+    assert filt["navigation_state"] == "tracking"
+    assert int(filt["relocalisation_resets"]) == 0 and int(filt["relocalisation_candidates"]) == 0
+    assert filt["found"].startswith("started from agreeing relocalisations at 17000000")
+
+
+def test_two_agreeing_relocalisations_bring_a_kidnapped_estimate_back():
+    """The estimate starts 5 km east of the truth with a confident covariance: ordinary fixes
+    are gated, two relocalisations 5 s apart agree with the IMU's motion and reset the position
+    (found, jump ~5 km), the ordinary fixes after it pass the gate (tracking)."""
+    truth_start = np.array([-300.0, 50.0, 900.0])
+    relocalisations = {4.0: 0.0, 9.0: 0.0}
+    fixes = [2.0, 12.0, 14.0, 16.0]
+    truth, rec, log, states = _fly_with_relocalisations(
+        {"init_mode": "pose", "initial_position": list(truth_start + [5000.0, 0.0, 0.0]),
+         "initial_velocity": [30.0, 0.0, 0.0], "reset_after_rejections": 0},
+        18.0, relocalisations, fixes, 25)
+    assert _state_names(states) == ["lost", "tracking", "searching", "found", "tracking"], log
+    assert "position reset onto agreeing relocalisations at" in states[3]
+    jump = float(states[3].split("jumped ")[1].split(" m")[0])
+    assert jump == pytest.approx(5000.0, abs=60.0)
+    t, err = _errors(truth, rec)
+    assert err[t < 8.9].min() > 4900.0                    # one relocalisation moved nothing
+    assert err[t > 9.1].max() < 80.0
+    _, filt = rec.filter_status()["ekf: filter"]
+    assert int(filt["relocalisation_resets"]) == 1 and filt["navigation_state"] == "tracking"

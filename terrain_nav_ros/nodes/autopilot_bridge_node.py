@@ -198,7 +198,8 @@ class AutopilotBridge(Node):
                 level, values = cv.diagnostic_values(status)
                 self.ekf_status = (level, status.message, values)
                 self._ekf_status_wall = time.monotonic()
-                resets = int(values.get("resets", 0)) + int(values.get("position_resets", 0))
+                resets = sum(int(values.get(key, 0)) for key in (
+                    "resets", "position_resets", "relocalisation_resets"))
                 if self.resets.observe_filter_resets(resets):
                     self.get_logger().info(f"ekf reset (count {resets}): reset_counter "
                                            f"now {self.resets.value}")

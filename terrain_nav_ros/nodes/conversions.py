@@ -512,6 +512,7 @@ class PvaFixArrays(NamedTuple):
     covariance: np.ndarray             # (6, 6) position, rotation about x, y, z
     velocity: np.ndarray | None        # (3,) when velocity_valid
     velocity_covariance: np.ndarray | None
+    relocalisation: bool = False       # found by a mission-wide search, independent of the prior
 
 
 def pva_fix_to_arrays(msg: PvaFix) -> PvaFixArrays:
@@ -523,13 +524,16 @@ def pva_fix_to_arrays(msg: PvaFix) -> PvaFixArrays:
         vcov = covariance_to_array(msg.velocity_covariance, 3)
     return PvaFixArrays(stamp_to_sec(msg.header.stamp), int(msg.status),
                         np.array([p.x, p.y, p.z]), np.array([o.x, o.y, o.z, o.w]),
-                        covariance_to_array(msg.pose.covariance, 6), vel, vcov)
+                        covariance_to_array(msg.pose.covariance, 6), vel, vcov,
+                        bool(msg.relocalisation))
 
 
 def arrays_to_pva_fix(header: Header, status: int, position, quaternion, covariance,
-                      velocity=None, velocity_covariance=None, reason: str = "") -> PvaFix:
+                      velocity=None, velocity_covariance=None, reason: str = "",
+                      relocalisation: bool = False) -> PvaFix:
     """Arrays -> terrain_nav_msgs/PvaFix (position-only fixes: -1 on the rotation diagonal)."""
     msg = PvaFix(header=header, status=int(status), reason=reason,
+                 relocalisation=bool(relocalisation),
                  pose=pose_with_covariance(position, quaternion, covariance))
     if velocity is not None:
         msg.velocity_valid = True

@@ -27,7 +27,12 @@ Subscribed:
   (``camera_optical``: optical centre, optical-frame orientation) moved to ``base_link`` with
   ``camera_mount_rpy`` and ``camera_lever_arm``, for matchers that publish camera poses.
   Late and out-of-order fixes are applied at their own stamp by the core (state history of
-  ``history_length`` s).
+  ``history_length`` s). A fix marked ``relocalisation`` (found by a search of the whole
+  mission area) is fused when the gate accepts it; otherwise it is held, and the position
+  is reset onto it (or, with ``init_mode: fix`` and no estimate yet, the filter starts from
+  it) only when another relocalisation from a frame ``relocalisation_min_interval`` s or
+  more apart agrees with the IMU's motion between them
+  (:mod:`~terrain_nav_ros.core.estimation.relocalisation`).
 * ``/baro/pressure`` (sensor_msgs/FluidPressure): ISA pressure altitude
   (:mod:`~terrain_nav_ros.core.estimation.baro`, ``sea_level_pressure``) plus a constant offset
   to ENU up. The core has no baro-bias state, so the offset is ``baro_offset`` or, when that is
@@ -60,10 +65,12 @@ Published:
 * ``/nav/ekf/diagnostics`` (diagnostic_msgs/DiagnosticArray), every
   ``diagnostics_period`` s of wall time: ``ekf: filter`` (health OK/WARN/ERROR, time since
   the last fix, position sigma, covariance trace, resets, input rejections per
-  ``source:reason``) and one status per measurement source (``ekf: fix``, ``ekf: baro``,
-  ``ekf: gnss``) with accepted/rejected counts, the NIS of every update since the previous
-  report (``nis``), the last NIS, the gate and the mean NIS over the recent window
-  (consistent filter: about the measurement dimension ``dof``).
+  ``source:reason``, the navigation state ``lost`` / ``searching`` / ``found`` / ``tracking``
+  with when and by how much the last reset onto relocalisations moved the position; each
+  change of state is logged once) and one status per measurement source (``ekf: fix``,
+  ``ekf: baro``, ``ekf: gnss``) with accepted/rejected counts, the NIS of every update
+  since the previous report (``nis``), the last NIS, the gate and the mean NIS over the
+  recent window (consistent filter: about the measurement dimension ``dof``).
 
 Parameters: every :class:`~terrain_nav_ros.core.estimation.ekf_params.EkfParams` field under its own
 name, plus the node's own (frames, rates, origin, baro, mount, initial pose, health
@@ -106,11 +113,13 @@ from ..core.estimation.ekf import EkfParams, Outcome, Reason, TerrainEkf
 from ..core.estimation.ekf_health import (
     SOURCES,
     HealthLimits,
+    NavigationLog,
     NewRecords,
     RefusalLog,
     filter_health,
     filter_values,
     gated_records,
+    navigation_state,
     source_report,
 )
 from ..core.estimation.ekf_inputs import (
@@ -174,6 +183,20 @@ EKF_PARAMETERS = {
                        "the last good state [s]", 0.0, 600.0),
     "max_imu_dt": ("IMU intervals longer than this are flagged as gaps [s]", 1e-4, 10.0),
     "nis_history_length": ("NIS records kept for the diagnostics", 1, 100000),
+    "relocalisation_agreement_probability": (
+        "two relocalisations agree when their displacement minus the dead-reckoned one is "
+        "inside this chi-square probability (3 dof); only then does the filter move onto them",
+        1e-6, 0.999999999),
+    "relocalisation_timeout": ("a held relocalisation expires this long after its stamp [s]",
+                               0.01, 3600.0),
+    "relocalisation_min_interval": ("relocalisations closer in time than this never agree "
+                                    "with each other [s]", 0.0, 600.0),
+    "relocalisation_fuse_max_sigma": ("a relocalisation inside the gate is fused on its own "
+                                      "only while the horizontal sigma is at most this [m]",
+                                      1e-3, 1e7),
+    "relocalisation_speed_sigma": ("cold start: sigma of the speed prior the displacement "
+                                   "between two relocalisations is tested against [m/s]",
+                                   1e-3, 1e4),
 }
 assert set(EKF_PARAMETERS) == {f.name for f in fields(EkfParams)}, "map every EkfParams field"
 
@@ -182,8 +205,9 @@ _ORIGIN_RESEND_S = 5.0
 # Reasons that are normal operation, not worth a warning.
 _QUIET = {Reason.OK, Reason.INITIALIZED, Reason.QUEUED, Reason.WAITING_FOR_INIT,
           Reason.IMU_GAP, Reason.POSITION_RESET, Reason.COMPARED_ONLY, Reason.NOT_INITIALIZED,
-          Reason.GATED}   # gate rejections are logged from the diagnostics records (queued
+          Reason.GATED,   # gate rejections are logged from the diagnostics records (queued
                           # fixes are gated later, when the IMU reaches their stamp)
+          Reason.RELOCALISATION_HELD, Reason.RELOCALISATION_RESET}   # navigation state log
 
 
 class EkfNode(Node):
@@ -254,7 +278,10 @@ class EkfNode(Node):
                                 "ERROR above this position sigma [m]", min_value=0.0),
             imu_timeout=declare(self, "diag_imu_timeout", 1.0,
                                 "ERROR when no IMU arrived for this long (wall) [s]",
-                                min_value=0.0))
+                                min_value=0.0),
+            lost_sigma=declare(self, "diag_lost_horizontal_sigma", 1000.0,
+                               "navigation state 'lost' above this horizontal position sigma "
+                               "[m]", min_value=0.0))
         log_throttle = declare(self, "log_throttle", 5.0,
                                "minimum time between two logs of one reason [s]",
                                min_value=0.0)
@@ -308,6 +335,7 @@ class EkfNode(Node):
         self._new_records = NewRecords()
         self._stamps_reported = 0
         self._init_stamp = None
+        self._navigation = NavigationLog()
 
         imu_qos = QoSProfile(depth=imu_depth, reliability=ReliabilityPolicy.BEST_EFFORT,
                              history=HistoryPolicy.KEEP_LAST)
@@ -494,8 +522,18 @@ class EkfNode(Node):
                              fix.velocity_covariance if fix.velocity is not None else None,
                              with_attitude)
         out = self.ekf.process_fix(fix.stamp, position, cov, velocity=fix.velocity,
-                                   quaternion=q_body, source="fix")
+                                   quaternion=q_body, source="fix",
+                                   relocalisation=fix.relocalisation)
         self._report("fix", out, fix.stamp)
+        self._navigation_state(self.ekf.diagnostics)
+
+    def _navigation_state(self, d) -> tuple[str, str]:
+        """Lost / searching / found / tracking now; logged when it changes."""
+        state, detail = navigation_state(d, self.health_limits.lost_sigma)
+        line = self._navigation.change(state, detail)
+        if line is not None:
+            self.get_logger().info(line)
+        return state, detail
 
     def on_baro(self, msg: FluidPressure):
         stamp, pressure, variance = cv.fluid_pressure_to_sample(msg)
@@ -572,6 +610,7 @@ class EkfNode(Node):
         values = filter_values(d, self.params.init_mode, self._imu_count, self._imu_dt,
                                self.no_fix_count, self.baro.value, self.origin,
                                self.rejections)
+        values["navigation_state"], values["navigation"] = self._navigation_state(d)
         statuses = [cv.diagnostic_status("ekf: filter", health.level, health.message, values,
                                          "terrain_nav")]
         for source in SOURCES:

@@ -271,10 +271,15 @@ class MatcherNode(Node):
                      num_pairings=fix.num_pairings,
                      num_camera_minutiae=fix.num_camera_minutiae,
                      num_landmark_minutiae=fix.num_landmark_minutiae,
+                     relocalisation=bool(fix.relocalisation),
                      pose=cv.pose_with_covariance(fix.position, quaternion, fix.covariance))
         lat, lon, alt = EnuOrigin(*origin).enu_to_geodetic(*fix.position)
         out.latitude, out.longitude, out.altitude = float(lat), float(lon), float(alt)
         velocity = self.velocity.update(stamp_s, fix.position, fix.covariance)
+        if fix.relocalisation:
+            # the previous fix was searched around the estimate a relocalisation contradicts:
+            # their difference is no velocity
+            velocity = None
         if velocity is not None:
             out.velocity_valid = True
             out.velocity.x, out.velocity.y, out.velocity.z = map(float, velocity[0])

@@ -75,6 +75,7 @@ def _fixes(bag):
         cov = np.asarray(msg.pose.covariance).reshape(6, 6)
         out.append({"stamp": _stamp(msg), "received": m.timestamp_ns * 1e-9,
                     "status": int(msg.status), "reason": msg.reason,
+                    "relocalisation": bool(msg.relocalisation),
                     "position": np.array([p.x, p.y, p.z]), "cov_xy": cov[:2, :2],
                     "pairings": int(msg.num_pairings), "similarity": float(msg.similarity)})
     return out
@@ -88,6 +89,20 @@ def _ekf_health(bag) -> str:
             if status.name == "ekf: filter":
                 last = status.message
     return last or "it published no diagnostics either"
+
+
+def navigation_events(bag) -> list[str]:
+    """What the EKF's diagnostics said it found, in order: each reset onto (or start from)
+    agreeing relocalisations, once (the ``found`` value of its ``ekf: filter`` status)."""
+    events = []
+    for m in bags.read(bag, ["/nav/ekf/diagnostics"]):
+        for status in bags.decode(m).status:
+            if status.name != "ekf: filter":
+                continue
+            found = {kv.key: kv.value for kv in status.values}.get("found", "never")
+            if found != "never" and (not events or events[-1] != found):
+                events.append(found)
+    return events
 
 
 def _latencies(bag) -> dict:
@@ -150,9 +165,11 @@ def analyse(input_bag, output_bag, usage: dict | None = None) -> dict:
     good = [f for f in fixes if f["status"] > 0]
     result["fixes"] = {"frames": len(fixes), "fixes": len(good),
                        "no_fix": len(fixes) - len(good),
+                       "relocalisations": sum(f["relocalisation"] for f in good),
                        "in_bag": sum(info[t].count for t in CAMERA_TOPICS if t in info),
                        "reasons": Counter(reason_kind(f["reason"]) for f in fixes
                                           if f["status"] == 0).most_common(6)}
+    result["navigation_events"] = navigation_events(output_bag)
     result["latency"] = {k: v for k, v in _latencies(output_bag).items()}
     t_fused, p_fused, var_fused = _series(output_bag, "/nav/odometry")
     result["series"] = {"fused": (t_fused, p_fused, var_fused), "fixes": good}
@@ -210,11 +227,16 @@ def format_report(r: dict, gsd: float | None = None) -> str:
     f = r["fixes"]
     lines.append(f"camera frames answered: {f['frames']} of {f['in_bag']}  fixes: "
                  f"{f['fixes']}  no fix: {f['no_fix']}")
+    if f.get("relocalisations"):
+        lines.append(f"  of the fixes, {f['relocalisations']} relocalisation(s) (searched over "
+                     "the whole mission area)")
     if f["in_bag"] and f["frames"] < f["in_bag"]:
         lines.append(f"WARNING: {f['in_bag'] - f['frames']} camera frames of the bag got no "
                      "answer (lost on the way to camera_ingest, or the graph fell behind)")
     for reason, count in f["reasons"]:
         lines.append(f"  no fix x{count}: {reason}")
+    for event in r.get("navigation_events", []):
+        lines.append(f"ekf found: {event}")
     if "fix_error" in r:
         e = r["fix_error"]
         lines.append(f"fix error vs truth (horizontal): median {e['median']:.1f} m, p95 "

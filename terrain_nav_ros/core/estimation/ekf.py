@@ -44,6 +44,18 @@ has come ``reinit_timeout`` s into the new timeline, it starts again from the la
 with the initial covariance added (``REINITIALIZED``) rather than wait for a source that may
 be gone.
 
+Relocalisations
+---------------
+A fix marked ``relocalisation`` (found by a search of the whole mission area, independent of
+the estimate) is fused when the gate accepts it. One it rejects is held
+(``RELOCALISATION_HELD``) with the estimate at its stamp; when another relocalisation, at least
+``relocalisation_min_interval`` s apart, agrees with a held one (their displacement matches the
+dead-reckoned one within a chi-square test: :mod:`.relocalisation`), the position is reset onto
+the newer evaluation (``RELOCALISATION_RESET``; velocity, attitude and biases kept), or before
+initialisation with ``init_mode="fix"`` the filter starts from the pair. Held ones expire
+after ``relocalisation_timeout``. One unverified relocalisation never moves the filter, and
+relocalisations never count towards ``reset_after_rejections``.
+
 Every public ``process_*`` method returns an :class:`Outcome` with a :class:`Reason`; bad input
 never raises and never stops the filter.
 
@@ -51,8 +63,8 @@ Mapping for the ROS node (kept out of this module)
 --------------------------------------------------
 * ``sensor_msgs/Imu`` in ``base_link`` (FLU) -> ``process_imu(stamp, angular_velocity,
   linear_acceleration)``; rotate first if the IMU frame differs.
-* ``PvaFix`` -> ``process_fix(stamp, position, covariance, velocity=..., quaternion=...)`` with
-  the covariance ordered ``[position, velocity?, attitude?]``.
+* ``PvaFix`` -> ``process_fix(stamp, position, covariance, velocity=..., quaternion=...,
+  relocalisation=...)`` with the covariance ordered ``[position, velocity?, attitude?]``.
 * ``NavSatFix`` -> ENU through the mission's pyproj transformer -> ``process_gnss``.
 * Barometric altitude minus the map origin height -> ``process_baro``.
 * Output: :attr:`TerrainEkf.state` (``NavState``; ``pose_covariance()`` gives the 6x6 ROS
@@ -75,6 +87,7 @@ from scipy.stats import chi2
 
 from .ekf_params import EkfParams
 from .imu_timing import ImuTiming, ImuTimingGuard
+from .relocalisation import Candidate, Found, RelocalisationCandidates
 from .strapdown import (
     DIM_ERR,
     IDX_BA,
@@ -118,6 +131,8 @@ class Reason(StrEnum):
     TIME_JUMP_RESET = "time_jump_reset"
     STAMP_OFF_PERIOD = "stamp_far_from_expected_period"
     REINITIALIZED = "reinitialised_from_last_good_state"
+    RELOCALISATION_HELD = "relocalisation_held_until_another_agrees"
+    RELOCALISATION_RESET = "position_reset_on_agreeing_relocalisations"
 
 
 @dataclass(frozen=True)
@@ -210,6 +225,13 @@ class EkfDiagnostics:
         period (those that a confirmed jump then proves right are integrated after all).
     position_resets : int
         Position resets after consecutive rejections.
+    relocalisation_resets : int
+        Position resets onto agreeing relocalisations.
+    relocalisation_candidates : int
+        Relocalisations held, waiting for another to agree (expired ones dropped).
+    found : Found or None
+        The last reset onto (or start from) agreeing relocalisations since the filter last
+        (re)started.
     imu_gaps : int
         IMU intervals longer than ``max_imu_dt``.
     last_accepted : dict
@@ -218,6 +240,8 @@ class EkfDiagnostics:
         Trace of the full error covariance (mixed units, for trend only).
     position_sigma : float
         sqrt of the trace of the position covariance (m).
+    horizontal_sigma : float
+        sqrt of the east + north position variances (m).
     """
 
     initialized: bool = False
@@ -230,10 +254,14 @@ class EkfDiagnostics:
     reinitialisations: int = 0
     imu_stamps_refused: int = 0
     position_resets: int = 0
+    relocalisation_resets: int = 0
+    relocalisation_candidates: int = 0
+    found: Found | None = None
     imu_gaps: int = 0
     last_accepted: dict = field(default_factory=dict)
     covariance_trace: float = float("nan")
     position_sigma: float = float("nan")
+    horizontal_sigma: float = float("nan")
 
     def time_since(self, source: str = "fix") -> float | None:
         """Seconds since the last accepted measurement of ``source`` (None if never)."""
@@ -273,6 +301,7 @@ class _Measurement:
     attitude: np.ndarray | None = None   # measured quaternion, attitude rows are rows[-3:]
     outcome: Outcome | None = None
     reset: bool = False      # apply as a position reset instead of a gated update
+    relocalisation: bool = False   # found by a mission-wide search, independent of the prior
 
     @property
     def key(self):
@@ -331,6 +360,10 @@ class TerrainEkf:
         # Outlives resets: it decides what a reset is.
         self._timing = ImuTimingGuard(p.time_jump_reset, p.max_imu_dt, p.time_jump_confirm)
         self._diag = EkfDiagnostics(records=deque(maxlen=p.nis_history_length))
+        self._candidates = RelocalisationCandidates(
+            _gate(p.relocalisation_agreement_probability, 3), p.relocalisation_timeout,
+            gravity=p.gravity, accel_noise_density=p.accel_noise_density,
+            gyro_noise_density=p.gyro_noise_density, speed_sigma=p.relocalisation_speed_sigma)
         self._clear()
 
     # ------------------------------------------------------------------ state access
@@ -351,8 +384,10 @@ class TerrainEkf:
         self._last_good: NavState | None = None   # set after a time jump, for re-init
         self._init_source_seen = False
         self._reinit_after = math.inf
+        self._candidates.clear()
         self._diag.initialized = False
         self._diag.stamp = None
+        self._diag.found = None
 
     @property
     def state(self) -> NavState:
@@ -371,9 +406,20 @@ class TerrainEkf:
         d = self._diag
         d.initialized, d.stamp = self.initialized, self.t
         d.imu_stamps_refused = self._timing.refused
+        now = self._now()
+        if now is not None:
+            self._candidates.expire(now)
+        d.relocalisation_candidates = len(self._candidates)
         P = self.kf.P
         d.covariance_trace = float(np.trace(P))
         d.position_sigma = float(np.sqrt(np.trace(P[IDX_P, IDX_P])))
+        d.horizontal_sigma = float(np.sqrt(P[0, 0] + P[1, 1])) if self.initialized else math.inf
+
+    def _now(self) -> float | None:
+        """Filter time, or before initialisation the newest IMU stamp buffered (None if none)."""
+        if self.t is not None:
+            return self.t
+        return self._pre_init_imu[-1][0] if self._pre_init_imu else None
 
     # ------------------------------------------------------------------ initialisation
     def default_covariance(self) -> np.ndarray:
@@ -450,18 +496,45 @@ class TerrainEkf:
         """Initialise from GNSS or fixes: at once when they carry velocity and attitude,
         otherwise from two fixes ``init_min_fix_interval`` apart (velocity by difference,
         yaw from course, level roll/pitch)."""
+        self._init_source_seen = True
+        if 3 in meas.rows:
+            return self._init_from(meas)
+        first = self._init_candidate
+        if first is None or meas.stamp - first.stamp < self.params.init_min_fix_interval:
+            if first is None or meas.stamp < first.stamp:
+                self._init_candidate = meas
+            return Outcome(True, Reason.WAITING_FOR_INIT)
+        return self._init_from(meas, first)
+
+    def _init_from_relocalisation(self, meas: _Measurement) -> Outcome:
+        """Cold start from relocalisations: hold each one until another, far enough apart
+        for a velocity by difference (``init_min_fix_interval``), agrees with it; then start
+        from the pair as from two fixes. One relocalisation alone never starts the filter."""
         p = self.params
         self._init_source_seen = True
+        candidate = Candidate(meas.stamp, meas.z[:3].copy(), meas.R[:3, :3].copy(),
+                              measurement=meas)
+        now = self._now()
+        self._candidates.expire(meas.stamp if now is None else max(now, meas.stamp))
+        partner = self._candidates.agreeing(
+            candidate, max(p.init_min_fix_interval, p.relocalisation_min_interval))
+        if partner is None:
+            self._candidates.hold(meas.seq, candidate)
+            return Outcome(False, Reason.RELOCALISATION_HELD)
+        first, second = sorted((partner.measurement, meas), key=lambda m: m.stamp)
+        out = self._init_from(second, first)
+        if out.accepted:
+            self._diag.found = Found(second.stamp)
+        return out
+
+    def _init_from(self, meas: _Measurement, first: _Measurement | None = None) -> Outcome:
+        """Initialise at ``meas``: its velocity, or the difference from ``first``'s
+        position; its attitude, or level with the nose along the course."""
+        p = self.params
         pos, pcov = meas.z[:3], meas.R[:3, :3]
-        has_v = 3 in meas.rows
-        if has_v:
+        if first is None:
             v, vcov = meas.z[3:6], meas.R[3:6, 3:6]
         else:
-            first = self._init_candidate
-            if first is None or meas.stamp - first.stamp < p.init_min_fix_interval:
-                if first is None or meas.stamp < first.stamp:
-                    self._init_candidate = meas
-                return Outcome(True, Reason.WAITING_FOR_INIT)
             dt = meas.stamp - first.stamp
             v = (pos - first.z[:3]) / dt
             vcov = (pcov + first.R[:3, :3]) / dt**2
@@ -492,6 +565,11 @@ class TerrainEkf:
         p = self.params
         if p.init_mode == "pose":
             return "an initial pose and an IMU sample"
+        if self._candidates.held:
+            stamps = ", ".join(f"{c.stamp:.3f}" for c in self._candidates.held)
+            return (f"a relocalisation that agrees with the one(s) held at {stamps} s, "
+                    f"{max(p.init_min_fix_interval, p.relocalisation_min_interval):g} s or "
+                    "more apart")
         first = self._init_candidate
         if first is None:
             return f"a first {p.init_mode} measurement"
@@ -648,7 +726,7 @@ class TerrainEkf:
 
     # ------------------------------------------------------------------ measurements
     def process_fix(self, stamp: float, position, covariance, velocity=None, quaternion=None,
-                    source: str = "fix") -> Outcome:
+                    source: str = "fix", relocalisation: bool = False) -> Outcome:
         """Position fix (optionally with velocity and/or attitude), e.g. a terrain PvaFix.
 
         Parameters
@@ -667,6 +745,15 @@ class TerrainEkf:
             Body -> ENU attitude ``[x, y, z, w]``.
         source : str
             Counter / gate key: ``"fix"`` (terrain) or ``"gnss"``.
+        relocalisation : bool
+            The fix was found by a search of the whole mission area, independent of the
+            estimate. Fused when the gate accepts it; otherwise held
+            (``RELOCALISATION_HELD``) until another relocalisation agrees with it, when the
+            position is reset onto it (``RELOCALISATION_RESET``) or, before initialisation
+            with ``init_mode="fix"``, the filter starts from the pair
+            (:mod:`~.relocalisation`). Its velocity, if any, is ignored: a difference from a
+            fix searched around the estimate it contradicts. It never counts towards
+            ``reset_after_rejections`` nor becomes an armed reset.
 
         Returns
         -------
@@ -674,7 +761,7 @@ class TerrainEkf:
         """
         parts = [np.asarray(position, dtype=float)]
         rows = [np.arange(0, 3)]
-        if velocity is not None:
+        if velocity is not None and not relocalisation:
             parts.append(np.asarray(velocity, dtype=float))
             rows.append(np.arange(3, 6))
         att = None
@@ -692,7 +779,7 @@ class TerrainEkf:
         if any(p.shape != (3,) for p in parts):
             return self._refuse(source, Reason.BAD_SHAPE)
         return self._submit(stamp, source, np.concatenate(parts), covariance,
-                            np.concatenate(rows), att)
+                            np.concatenate(rows), att, relocalisation)
 
     def process_gnss(self, stamp: float, position, covariance) -> Outcome:
         """GNSS position already converted to the ENU map frame (m), with its 3x3 covariance
@@ -712,7 +799,8 @@ class TerrainEkf:
                             np.atleast_2d(np.asarray(variance, dtype=float)), np.array([2]),
                             None)
 
-    def _submit(self, stamp, source, z, covariance, rows, attitude) -> Outcome:
+    def _submit(self, stamp, source, z, covariance, rows, attitude,
+                relocalisation: bool = False) -> Outcome:
         """Validate, log and apply (now, queued or in the past) one measurement."""
         m = len(z)
         R = np.asarray(covariance, dtype=float)
@@ -723,8 +811,10 @@ class TerrainEkf:
         if not _is_pd(R):
             return self._refuse(source, Reason.BAD_COVARIANCE)
         meas = _Measurement(float(stamp), next(self._seq), source, z.copy(), 0.5 * (R + R.T),
-                            rows, attitude)
+                            rows, attitude, relocalisation=relocalisation)
         if not self.initialized:
+            if relocalisation and source == self.params.init_mode:
+                return self._init_from_relocalisation(meas)
             if source == self.params.init_mode:
                 return self._init_from_measurement(meas)
             return self._refuse(source, Reason.NOT_INITIALIZED)
@@ -734,7 +824,7 @@ class TerrainEkf:
             return self._refuse(source, Reason.TOO_FAR_AHEAD)
         if meas.stamp < self._history[0].t:
             return self._refuse(source, Reason.STALE)
-        if source in self._reset_armed:   # divergence recovery armed by _record
+        if source in self._reset_armed and not relocalisation:   # armed by _record
             meas.reset = True
             self._reset_armed.discard(source)
         bisect.insort(self._log, meas, key=lambda o: o.key)
@@ -768,9 +858,43 @@ class TerrainEkf:
         """Gate and apply a measurement at the current filter time; record the outcome."""
         if meas.reset:
             outcome = self._position_reset(meas)
+        elif meas.relocalisation:
+            outcome = self._relocalise(meas)
         else:
             outcome = self._update(meas)
         self._record(meas, outcome)
+
+    def _relocalise(self, meas: _Measurement) -> Outcome:
+        """Fuse a relocalisation the gate accepts while the estimate is good enough for the
+        gate to be a check; hold any other, and reset the position onto it when a held one
+        agrees with it (:mod:`~.relocalisation`)."""
+        tested = self._gate_test(meas)
+        if tested is None:
+            return Outcome(False, Reason.BAD_COVARIANCE)
+        nis, gate = tested[2:]
+        # A gate ~4 sigma wide around a lost estimate is no check on a mission-wide search.
+        trusted = math.sqrt(self.kf.P[0, 0] + self.kf.P[1, 1]) <= \
+            self.params.relocalisation_fuse_max_sigma
+        if nis <= gate and trusted:
+            self._candidates.discard(meas.seq)   # held before a rewind changed the estimate
+            return self._update(meas)
+        candidate = Candidate(meas.stamp, meas.z[:3].copy(), meas.R[:3, :3].copy(),
+                              self._x[IDX_P].copy(), self.kf.P.copy(), self.q.copy(), meas)
+        self._candidates.expire(self.t)
+        if self._candidates.agreeing(candidate, self.params.relocalisation_min_interval) is None:
+            self._candidates.hold(meas.seq, candidate)
+            return Outcome(False, Reason.RELOCALISATION_HELD, nis, gate)
+        self._reset_onto(meas)
+        return Outcome(True, Reason.RELOCALISATION_RESET, nis, gate)
+
+    def _reset_onto(self, meas: _Measurement):
+        """Reset the position onto an agreed relocalisation and say so (``found``)."""
+        before = self._x[IDX_P].copy()
+        meas.reset = True   # a re-application after a rewind resets again
+        self._position_reset(meas)
+        self._candidates.clear()
+        self._diag.found = Found(meas.stamp, self._x[IDX_P] - before)
+        self._diag.relocalisation_resets += 1
 
     def _innovation(self, meas: _Measurement):
         z = meas.z.copy()
@@ -782,7 +906,9 @@ class TerrainEkf:
         H[np.arange(len(z)), meas.rows] = 1.0
         return z, H
 
-    def _update(self, meas: _Measurement) -> Outcome:
+    def _gate_test(self, meas: _Measurement):
+        """``(z, H, nis, gate)`` of a measurement at the current filter time, or None when
+        its innovation covariance is not positive definite."""
         z, H = self._innovation(meas)
         P = self.kf.P
         y = z - self._x[meas.rows]
@@ -790,10 +916,15 @@ class TerrainEkf:
         try:
             L = np.linalg.cholesky(S)
         except np.linalg.LinAlgError:
-            return Outcome(False, Reason.BAD_COVARIANCE)
+            return None
         w = np.linalg.solve(L, y)
-        nis = float(w @ w)
-        gate = _gate(self.params.gate_probability(meas.source), len(z))
+        return z, H, float(w @ w), _gate(self.params.gate_probability(meas.source), len(z))
+
+    def _update(self, meas: _Measurement) -> Outcome:
+        tested = self._gate_test(meas)
+        if tested is None:
+            return Outcome(False, Reason.BAD_COVARIANCE)
+        z, H, nis, gate = tested
         if meas.source == "gnss" and not self.params.fuse_gnss:
             return Outcome(False, Reason.COMPARED_ONLY, nis, gate)
         if nis > gate:
@@ -828,6 +959,8 @@ class TerrainEkf:
         P[:, r] = 0.0
         P[np.ix_(r, r)] = meas.R[np.ix_(keep, keep)]
         self._x[r] = z[keep]
+        if meas.relocalisation:
+            return Outcome(True, Reason.RELOCALISATION_RESET)
         return Outcome(True, Reason.POSITION_RESET)
 
     def _record(self, meas: _Measurement, outcome: Outcome):
@@ -850,7 +983,7 @@ class TerrainEkf:
         if outcome.accepted:
             d.last_accepted[meas.source] = max(meas.stamp,
                                                d.last_accepted.get(meas.source, -np.inf))
-        if first:
+        if first and not meas.relocalisation:   # relocalisations never arm a reset
             if outcome.reason == Reason.POSITION_RESET:
                 d.position_resets += 1
             if outcome.accepted:

@@ -4,8 +4,10 @@ What :mod:`terrain_nav_ros.nodes.ekf_node` publishes on ``/nav/ekf/diagnostics``
 computed from the filter's :class:`~.ekf.EkfDiagnostics`: the filter's level (OK, WARN,
 ERROR) with the problems that set it (:func:`filter_health`), its key-value report
 (:func:`filter_values`), one report per measurement source with the NIS of the updates since
-the previous report (:func:`source_report`, :class:`NewRecords`), and throttled refusal logs
-(:class:`RefusalLog`). The levels are ``diagnostic_msgs/DiagnosticStatus``'s.
+the previous report (:func:`source_report`, :class:`NewRecords`), throttled refusal logs
+(:class:`RefusalLog`), and the navigation state, lost / searching / found / tracking
+(:func:`navigation_state`, logged once per change by :class:`NavigationLog`). The levels are
+``diagnostic_msgs/DiagnosticStatus``'s.
 """
 
 from __future__ import annotations
@@ -34,6 +36,8 @@ class HealthLimits:
         Position sigma (m).
     imu_timeout : float
         Wall time without an IMU sample before ERROR (s).
+    lost_sigma : float
+        Horizontal position sigma beyond which the navigation state is ``lost`` (m).
     """
 
     fix_warn: float = 30.0
@@ -41,6 +45,7 @@ class HealthLimits:
     sigma_warn: float = 50.0
     sigma_error: float = 200.0
     imu_timeout: float = 1.0
+    lost_sigma: float = 1000.0
 
 
 @dataclass
@@ -65,6 +70,47 @@ def time_since_fix(d: EkfDiagnostics) -> float | None:
     """Filter time since the last accepted fix or GNSS (None if never)."""
     ages = [a for a in (d.time_since("fix"), d.time_since("gnss")) if a is not None]
     return min(ages) if ages else None
+
+
+LOST, SEARCHING, FOUND, TRACKING = "lost", "searching", "found", "tracking"
+
+
+def navigation_state(d: EkfDiagnostics, lost_sigma: float) -> tuple[str, str]:
+    """Where navigation stands, and why, as ``(state, detail)``.
+
+    ``searching`` while relocalisations are held with none agreed yet (whatever the
+    estimate: one that contradicts it is news); else ``lost`` with no estimate or a
+    horizontal sigma beyond ``lost_sigma``; else ``found`` after a reset onto (or a start
+    from) agreeing relocalisations, until a fix or GNSS stamped after it passes the gate;
+    else ``tracking``.
+    """
+    if d.relocalisation_candidates:
+        return SEARCHING, (f"{d.relocalisation_candidates} relocalisation(s) held, none "
+                           "agreed yet")
+    if not d.initialized:
+        return LOST, "no estimate"
+    if not d.horizontal_sigma <= lost_sigma:
+        return LOST, f"horizontal sigma {d.horizontal_sigma:.0f} m > {lost_sigma:.0f} m"
+    found = d.found
+    confirmed = max(d.last_accepted.get("fix", -math.inf), d.last_accepted.get("gnss", -math.inf))
+    if found is not None and confirmed <= found.stamp:
+        return FOUND, found.describe()
+    return TRACKING, ""
+
+
+class NavigationLog:
+    """The navigation state's changes, each once (not every frame it holds)."""
+
+    def __init__(self):
+        self.state: str | None = None
+
+    def change(self, state: str, detail: str) -> str | None:
+        """The line to log when ``state`` differs from the previous one, else None."""
+        if state == self.state:
+            return None
+        before, self.state = self.state, state
+        came = "" if before is None else f" (was {before})"
+        return f"navigation {state}{came}" + (f": {detail}" if detail else "")
 
 
 def filter_health(d: EkfDiagnostics, since_imu: float, waiting_for: str,
@@ -106,6 +152,9 @@ def filter_health(d: EkfDiagnostics, since_imu: float, waiting_for: str,
         health.worse(WARN, f"{refused_stamps} IMU stamp(s) far from the expected period refused")
     if gated:
         health.worse(WARN, f"{gated} measurement(s) rejected by the gate")
+    if d.relocalisation_candidates:
+        health.worse(WARN, f"searching: {d.relocalisation_candidates} relocalisation(s) held, "
+                     "none agreed yet")
     return health
 
 
@@ -131,6 +180,9 @@ def filter_values(d: EkfDiagnostics, init_mode: str, imu_received: int, imu_dt: 
         "resets": d.resets, "reinitialisations": d.reinitialisations,
         "imu_stamps_refused": d.imu_stamps_refused,
         "position_resets": d.position_resets, "imu_gaps": d.imu_gaps,
+        "relocalisation_resets": d.relocalisation_resets,
+        "relocalisation_candidates": d.relocalisation_candidates,
+        "found": "never" if d.found is None else d.found.describe(),
         "imu_received": imu_received, "imu_rate_hz": 1.0 / imu_dt,
         "no_fix_messages": no_fix_messages,
         "baro_offset_m": float("nan") if baro_offset is None else baro_offset,

@@ -110,6 +110,30 @@ class EkfParams:
         IMU intervals longer than this are integrated but flagged as a gap (s). Default 0.1.
     nis_history_length : int
         Number of per-update NIS records kept in the diagnostics. Default 200.
+    relocalisation_agreement_probability : float
+        A relocalisation the gate rejects is held as a candidate; the filter resets (or, with
+        ``init_mode="fix"``, starts) onto it only when another one agrees: their displacement
+        minus the dead-reckoned one is inside this chi-square probability (3 dof) of the sum
+        of their covariances and the dead reckoning's growth over the interval. In (0, 1):
+        there is no "off", an unverified relocalisation never moves the filter. Default 0.999.
+    relocalisation_timeout : float
+        A held relocalisation expires this long after its stamp (s, filter time). Must exceed
+        ``init_min_fix_interval`` with ``init_mode="fix"`` (a cold start needs two that far
+        apart). Default 30.0.
+    relocalisation_min_interval : float
+        Two relocalisations agree only when their stamps are at least this far apart (s):
+        different frames, overlapping less (a wrong place found in overlapping frames moves
+        with them). Default 1.0.
+    relocalisation_fuse_max_sigma : float
+        A relocalisation inside the gate is fused on its own only while the estimate's
+        horizontal sigma is at most this (m); beyond it the gate, about four sigma wide, is no
+        check on a search of the whole mission area, and the relocalisation is held like one
+        outside the gate. Default 500.0 (a gate of ~1.5 km radius: a wrong place anywhere in
+        a 100 x 100 km area falls into it less than once in 1000).
+    relocalisation_speed_sigma : float
+        Before the filter runs there is no dead reckoning: the displacement between two
+        relocalisations is tested against a zero-mean speed prior of this sigma per axis
+        (m/s). Default 50.0 (faster than a ScanEagle-class aircraft cruises).
     """
 
     gravity: float = 9.80665
@@ -138,6 +162,11 @@ class EkfParams:
     reinit_timeout: float = 2.0
     max_imu_dt: float = 0.1
     nis_history_length: int = 200
+    relocalisation_agreement_probability: float = 0.999
+    relocalisation_timeout: float = 30.0
+    relocalisation_min_interval: float = 1.0
+    relocalisation_fuse_max_sigma: float = 500.0
+    relocalisation_speed_sigma: float = 50.0
 
     def __post_init__(self):
         for f in fields(self):
@@ -157,9 +186,28 @@ class EkfParams:
             raise ValueError("EkfParams.time_jump_confirm must be >= 1, reinit_timeout and "
                              f"max_imu_outage >= 0, got {self.time_jump_confirm}, "
                              f"{self.reinit_timeout}, {self.max_imu_outage}")
+        self._check_relocalisation()
         if self.init_mode not in ("pose", "gnss", "fix"):
             raise ValueError("EkfParams.init_mode must be pose, gnss or fix, "
                              f"not {self.init_mode!r}")
+
+    def _check_relocalisation(self):
+        if not 0.0 < self.relocalisation_agreement_probability < 1.0:
+            raise ValueError("EkfParams.relocalisation_agreement_probability must be in (0, 1), "
+                             f"got {self.relocalisation_agreement_probability}")
+        if not (self.relocalisation_speed_sigma > 0 and self.relocalisation_fuse_max_sigma > 0
+                and 0 <= self.relocalisation_min_interval < self.relocalisation_timeout):
+            raise ValueError("EkfParams.relocalisation_speed_sigma and "
+                             "relocalisation_fuse_max_sigma must be > 0 and "
+                             "0 <= relocalisation_min_interval < relocalisation_timeout, got "
+                             f"{self.relocalisation_speed_sigma}, "
+                             f"{self.relocalisation_fuse_max_sigma}, "
+                             f"{self.relocalisation_min_interval}, {self.relocalisation_timeout}")
+        if self.init_mode == "fix" and self.relocalisation_timeout <= self.init_min_fix_interval:
+            raise ValueError("EkfParams.relocalisation_timeout must exceed init_min_fix_interval "
+                             "with init_mode fix (a cold start needs two relocalisations that far "
+                             f"apart), got {self.relocalisation_timeout} <= "
+                             f"{self.init_min_fix_interval}")
 
     def gate_probability(self, source: str) -> float:
         """Gate probability configured for a measurement source (fix, baro, gnss)."""

@@ -63,6 +63,10 @@ class PvaFixEstimate:
         Heading change (rad, CCW about Up) found by a ground match, and its variance.
     similarity : float
     num_pairings, num_camera_minutiae, num_landmark_minutiae : int
+    relocalisation : bool
+        True when the fix was found by a search of the whole mission area (a global query),
+        independent of the navigation estimate; False for a fix searched around the estimate.
+        The filter resets onto relocalisations only when several agree.
     """
 
     status: int
@@ -76,6 +80,7 @@ class PvaFixEstimate:
     num_pairings: int = 0
     num_camera_minutiae: int = 0
     num_landmark_minutiae: int = 0
+    relocalisation: bool = False
 
     @property
     def valid(self) -> bool:
