@@ -201,3 +201,35 @@ def test_metamap_covers_the_dem_footprint_not_beyond(dem):
     e = np.array([0.0, 0.5 * west, west - 1e3, 0.0, 0.0])
     n = np.array([0.0, 0.0, 0.0, north + 1e3, 0.99 * south])
     assert metamap.covers(e, n).tolist() == [True, True, False, False, True]
+
+
+def test_ctrl_c_exits_130_in_one_line_keeping_the_finished_tiles(dem, tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    out = tmp_path / "index"
+    cmd = [sys.executable, "-m", "terrain_nav_ros.tools.cli", "prepare", "--dem", str(dem),
+           "--area", "44.1,5.1,44.9,5.9", "--gsd", "90", "--out", str(out), "--suns",
+           "110/35,120/40,130/45", "--tile", "96", "--overlap", "32", "--workers", "1"]
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True,
+                            start_new_session=True)   # its own group, as a terminal's job
+    lines = []
+    try:
+        for line in proc.stderr:   # interrupted once some tiles are done
+            lines.append(line)
+            if "tile 3/" in line:
+                os.killpg(proc.pid, signal.SIGINT)
+                break
+        rest = proc.stderr.read()
+        code = proc.wait(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert code == 130, (code, lines, rest)
+    others = [line for line in rest.strip().splitlines() if " tile " not in line]
+    assert len(others) == 1 and "Traceback" not in rest, rest   # one line, progress aside
+    last = others[0]
+    assert "interrupted" in last and "run the same command again" in last
+    assert len(list((out / "tiles").glob("*.npz"))) >= 3 * 3

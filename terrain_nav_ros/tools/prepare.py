@@ -24,6 +24,7 @@ import logging
 import math
 import resource
 import shutil
+import signal
 import sys
 import time
 from dataclasses import dataclass, replace
@@ -239,7 +240,8 @@ def plan_index(req: PrepareRequest, parameters=GRAPH_PARAMETERS) -> IndexPlan:
                   bounds[:, 3].max())
     grid = mi.TileGrid.covering(extent, req.gsd, req.tile_px, req.overlap_px)
     suns, sun_source = _suns(req, origin, default_step)
-    paths = [d.name for d in dems]
+    # absolute: the workers may run elsewhere (another cwd, another machine's shared disk)
+    paths = [str(Path(d.name).resolve()) for d in dems]
     for d in dems:
         d.close()
     area_record = dict(zip(("south", "west", "north", "east"), map(float, area), strict=True))
@@ -329,7 +331,7 @@ def _jobs(plan: IndexPlan, out: Path) -> list[dict]:
     todo: dict = {}
     for col, row, k in mi.MissionIndex(out).missing():
         todo.setdefault((col, row), []).append(k)
-    common = {"dems": plan.dem_paths, "out": str(out), "grid": plan.grid.to_dict(),
+    common = {"dems": plan.dem_paths, "out": str(out.resolve()), "grid": plan.grid.to_dict(),
               "suns": plan.suns.tolist(), "settings": plan.settings.to_dict(),
               "origin": plan.manifest["origin"]}
     return [{**common, "col": c, "row": r, "sun_indices": ks} for (c, r), ks in todo.items()]
@@ -342,8 +344,14 @@ def _client(req: PrepareRequest):
 
     if req.scheduler:
         return Client(req.scheduler, timeout="20s"), None
-    cluster = LocalCluster(n_workers=req.workers, threads_per_worker=1, processes=True,
-                           dashboard_address=None, silence_logs=logging.CRITICAL)
+    # The workers inherit an ignored SIGINT: a Ctrl-C reaches the terminal's whole process
+    # group, and a worker stopped by it prints its traceback; the client stops them instead.
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        cluster = LocalCluster(n_workers=req.workers, threads_per_worker=1, processes=True,
+                               dashboard_address=None, silence_logs=logging.CRITICAL)
+    finally:
+        signal.signal(signal.SIGINT, previous)
     return Client(cluster), cluster
 
 
