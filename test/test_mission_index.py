@@ -158,6 +158,19 @@ def test_another_index_in_the_directory_is_refused(mission, dem, capsys):
     assert "gsd" in err and _mtimes(mission) == before
 
 
+def test_overwrite_replaces_another_index(dem, tmp_path, capsys):
+    out = tmp_path / "index"
+    small = ["prepare", "--dem", str(dem), "--area", "44.40,5.40,44.43,5.44", "--gsd", "90",
+             "--out", str(out), "--tile", "64", "--overlap", "0", "--workers", "1"]
+    assert cli.main([*small, "--suns", "100/30,120/40"]) == 0
+    assert cli.main([*small, "--suns", "150/50"]) == 2
+    assert cli.main([*small, "--suns", "150/50", "--overwrite"]) == 0
+    capsys.readouterr()
+    assert MissionIndex(out).suns.tolist() == [[150.0, 50.0]]
+    assert sorted(p.name for p in (out / "tiles").iterdir()) == ["r000_c000_s00.npz"]
+    assert MissionIndex(out).load(0, 0, 0).sun == (150.0, 50.0)
+
+
 def test_the_nearest_sun_layer_is_picked(mission):
     index = MissionIndex(mission)
     assert index.nearest_sun((112.0, 36.0)) == 0
