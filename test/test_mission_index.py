@@ -200,6 +200,19 @@ def test_overwrite_replaces_another_index(dem, tmp_path, capsys):
     assert MissionIndex(out).load(0, 0, 0).sun == (150.0, 50.0)
 
 
+def test_an_existing_cluster_is_used_with_scheduler(dem, tmp_path, capsys):
+    from dask.distributed import LocalCluster
+
+    out = tmp_path / "index"
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster:
+        assert cli.main(["prepare", "--dem", str(dem), "--area", "44.40,5.40,44.43,5.44",
+                         "--gsd", "90", "--out", str(out), "--tile", "64", "--overlap", "0",
+                         "--suns", "120/40", "--scheduler", cluster.scheduler_address]) == 0
+    assert "built 1 tiles (1 layers)" in capsys.readouterr().out
+    assert len(MissionIndex(out).load(0, 0, 0).minutiae) > 0
+
+
 def test_the_nearest_sun_layer_is_picked(mission):
     index = MissionIndex(mission)
     assert index.nearest_sun((112.0, 36.0)) == 0
