@@ -215,6 +215,21 @@ def _suns(req: PrepareRequest, origin: EnuOrigin, default_step: float):
                   "step_deg": step, "min_elevation_deg": MIN_SUN_ELEVATION}
 
 
+def _area(req: PrepareRequest, dems):
+    """The area's geodetic box, the ENU origin at its centre and the ENU extent to tile;
+    InputError when ``--area`` reaches beyond the DEMs."""
+    area = _area_box(req.area) if req.area else _geodetic_bounds(dems)
+    origin = EnuOrigin(0.5 * (area[0] + area[2]), 0.5 * (area[1] + area[3]))
+    metamap = MetaMap(dems, origin)
+    if req.area:
+        _check_covered(metamap, origin, area, dems)
+        return area, origin, _enu_extent(origin, area)
+    # the DEMs' own footprints (their geodetic box reaches beyond them)
+    bounds = np.array(metamap.enu_bounds)
+    extent = (bounds[:, 0].min(), bounds[:, 1].max(), bounds[:, 2].min(), bounds[:, 3].max())
+    return area, origin, tuple(float(v) for v in extent)
+
+
 def plan_index(req: PrepareRequest, parameters=GRAPH_PARAMETERS) -> IndexPlan:
     """Check a request and decide the index: area, origin, grid, suns, manifest.
 
@@ -228,22 +243,15 @@ def plan_index(req: PrepareRequest, parameters=GRAPH_PARAMETERS) -> IndexPlan:
                          f"{req.overlap_px} in [0, tile)")
     settings, default_step = graph_settings(parameters)
     dems = _open_dems(req.dems)
-    area = _area_box(req.area) if req.area else _geodetic_bounds(dems)
-    origin = EnuOrigin(0.5 * (area[0] + area[2]), 0.5 * (area[1] + area[3]))
-    metamap = MetaMap(dems, origin, interpolation=settings.interpolation)
-    if req.area:
-        _check_covered(metamap, origin, area, dems)
-        extent = _enu_extent(origin, area)
-    else:   # the DEMs' footprints, which their geodetic box overreaches
-        bounds = np.array(metamap.enu_bounds)
-        extent = (bounds[:, 0].min(), bounds[:, 1].max(), bounds[:, 2].min(),
-                  bounds[:, 3].max())
+    try:
+        area, origin, extent = _area(req, dems)
+    finally:
+        for d in dems:
+            d.close()
     grid = mi.TileGrid.covering(extent, req.gsd, req.tile_px, req.overlap_px)
     suns, sun_source = _suns(req, origin, default_step)
     # absolute: the workers may run elsewhere (another cwd, another machine's shared disk)
     paths = [str(Path(d.name).resolve()) for d in dems]
-    for d in dems:
-        d.close()
     area_record = dict(zip(("south", "west", "north", "east"), map(float, area), strict=True))
     area_record.update({"from": "--area" if req.area else "DEM extent",
                         "enu_extent": [float(v) for v in extent]})
