@@ -25,6 +25,7 @@ from terrain_nav_ros.core.terrain.dem_io import open_dem
 from terrain_nav_ros.core.terrain.geodesy import EnuOrigin
 from terrain_nav_ros.core.terrain.metamap import MetaMap
 from terrain_nav_ros.tools import cli
+from terrain_nav_ros.tools.prepare import graph_settings
 
 AREA = "44.40,5.40,44.55,5.60"          # ~16 x 17 km of N44E005
 SUNS = [(110.0, 35.0), (140.0, 50.0)]
@@ -66,6 +67,7 @@ def test_the_manifest_says_what_was_built(mission, dem):
     assert manifest["dems"][0]["path"] == str(dem.resolve())
     assert manifest["dems"][0]["size"] == dem.stat().st_size
     assert manifest["settings"]["minutia"]["max_minutiae"] == 100000
+    assert MissionIndex(mission).settings == graph_settings()[0]   # the graph's, read back
     assert len(_mtimes(mission)) == 4 * len(SUNS)
 
 
