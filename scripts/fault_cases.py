@@ -315,6 +315,13 @@ def cases() -> list[Case]:
             "simulate", "-o", tmp / "out", "--duration", -5), 2, ("--duration",))),
         Case("simulate over an existing output", "options", lambda tmp: judge(terrain_nav(
             "simulate", "-o", tmp, "--duration", 5), 2, ("exists already",))),
+        Case("prepare of an area beyond its DEM", "options", _prepare(
+            ("--area", "34.30,-118.06,34.40,-117.90", "--suns", "120/40"),
+            "the DEMs do not cover the area")),
+        Case("prepare without suns", "options", _prepare(
+            (), "give --suns AZ/EL,... (degrees) or --time ISO8601")),
+        Case("prepare --area of three numbers", "options", _prepare(
+            ("--area", "34.3,-118.1,34.4", "--suns", "120/40"), "give LAT,LON,LAT,LON")),
         Case("graph --config missing", "options", lambda tmp: judge(terrain_nav(
             "graph", "--config", tmp / "nope.yaml"), 2, ("cannot read graph file",))),
         Case("misspelt parameter (time_jump_reste)", "parameters", _node_params(
@@ -334,6 +341,14 @@ def cases() -> list[Case]:
         Case("IMU stamp 5 s in the past, GNSS gone", "ekf", _ekf_stamp(-5.0)),
         Case("IMU stamp 1 h ahead, GNSS gone", "ekf", _ekf_stamp(3600.0), ci=True),
     ]
+
+
+def _prepare(options: tuple, words: str):
+    """``prepare`` over the small relief GeoTIFF (UTM 11N, around 34.3 N 118.1 W) with
+    ``options``: refused with exit 2 and ``words`` before any work."""
+    return lambda tmp: judge(terrain_nav(
+        "prepare", "--dem", relief_geotiff(tmp / "relief.tif"), "--gsd", 30, "--out",
+        tmp / "index", *options), 2, (words,))
 
 
 def _write(path: Path, data) -> Path:

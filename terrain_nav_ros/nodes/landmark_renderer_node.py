@@ -24,6 +24,7 @@ from ..core.render.renderer import (
     PinholeCamera,
     RendererError,
     create_headless_context,
+    display_u8,
 )
 from ..core.render.sun import sun_at, sun_separation
 from ..core.terrain.georef import GeoReference
@@ -125,7 +126,7 @@ class LandmarkRendererNode(Node):
             r = np.clip(np.rint(row).astype(int), 0, georef.height - 1)
             c = np.clip(np.rint(col).astype(int), 0, georef.width - 1)
             valid &= ~void[r, c]
-        image = self.renderer_output(result.grey)
+        image = display_u8(result.grey)
         self.pub.publish(cv.geo_image_to_msg(
             image, out, msg.header, valid, cv.enu_origin_of(msg.georef), msg.georef.source_crs,
             sun))
@@ -169,17 +170,12 @@ class LandmarkRendererNode(Node):
             response.message = str(err)
             return response
         header = cv.make_header(self.get_clock().now().to_msg(), "camera_optical")
-        response.image = cv.array_to_image(self.renderer_output(result.grey), "mono8", header)
+        response.image = cv.array_to_image(display_u8(result.grey), "mono8", header)
         response.terrain_height = cv.array_to_image(
             result.hit_enu[..., 2].astype(np.float32), "32FC1", header)
         response.success = True
         response.message = f"{width}x{height} px, {result.mask.mean():.0%} terrain"
         return response
-
-    @staticmethod
-    def renderer_output(grey: np.ndarray) -> np.ndarray:
-        """Linear grey in [0, 1] -> uint8 with the same display gamma a camera applies."""
-        return np.clip(np.rint(255.0 * np.clip(grey, 0, 1) ** (1 / 2.2)), 0, 255).astype(np.uint8)
 
     def close(self) -> None:
         self.renderer.release()

@@ -170,6 +170,18 @@ def _cmd_evaluate(args) -> int:
     return 0
 
 
+def _cmd_prepare(args) -> int:
+    from .prepare import interrupted_message, request_from_args, run_prepare
+
+    request = request_from_args(args)
+    try:
+        run_prepare(request)
+    except KeyboardInterrupt:
+        print(f"terrain-nav prepare: {interrupted_message(request.out)}", file=sys.stderr)
+        return 130
+    return 0
+
+
 def _match_gsd(text: str):
     """``--match-gsd``: "native" -> None, "dem", or a positive GSD in metres."""
     if text in ("native", "dem"):
@@ -389,6 +401,41 @@ def build_parser() -> argparse.ArgumentParser:
                      help="bag time of the start, UTC (with --albedo: the image's "
                           "acquisition, so the landmarks get its sun)")
     sim.set_defaults(func=_cmd_simulate)
+
+    prep = sub.add_parser("prepare", help="the mission index: every tile of the area "
+                          "rendered under the flight's suns and reduced to landmark features, "
+                          "built before flight on Dask")
+    prep.add_argument("--dem", nargs="+", required=True, metavar="FILE",
+                      help="DEM files, folders or globs (GeoTIFF, ESRI ASCII grid, SRTM .hgt)")
+    prep.add_argument("--area", metavar="LAT,LON,LAT,LON",
+                      help="two opposite corners of the mission area [deg] (default: the "
+                           "DEMs' extent); its centre is the ENU origin")
+    prep.add_argument("--gsd", type=float, required=True, help="landmark GSD [m/px]")
+    prep.add_argument("--out", required=True, metavar="MISSION_DIR",
+                      help="the index's directory (new, or the same request's to resume)")
+    prep.add_argument("--suns", metavar="AZ/EL,...",
+                      help="the suns to index [deg], e.g. 120/35,135/40")
+    prep.add_argument("--time", metavar="ISO8601",
+                      help="start of the flight window (UTC): the suns over it at the area's "
+                           "centre")
+    prep.add_argument("--hours", type=float, default=2.0,
+                      help="length of the flight window [h] (default 2)")
+    prep.add_argument("--sun-step", dest="sun_step", type=float,
+                      help="largest angle between indexed suns [deg] (default: the landmark "
+                           "renderer's max_sun_change in config/terrain_nav.yaml, 2)")
+    prep.add_argument("--tile", type=int, default=768, help="tile side [px] (default 768)")
+    prep.add_argument("--overlap", type=int, default=256,
+                      help="overlap of neighbouring tiles [px]: any view up to this side lies "
+                           "wholly in some tile (default 256)")
+    prep.add_argument("--scheduler", metavar="ADDRESS",
+                      help="an existing Dask scheduler (e.g. tcp://host:8786); its workers "
+                           "need this package and the DEM and --out paths")
+    prep.add_argument("--workers", type=int,
+                      help="worker processes of the local Dask cluster (default: one per "
+                           "core)")
+    prep.add_argument("--overwrite", action="store_true",
+                      help="replace another index found in --out")
+    prep.set_defaults(func=_cmd_prepare)
 
     ev = sub.add_parser("evaluate", help="PVA / non-PVA block study with baselines "
                                          "(dissertation chapter 5) on a DEM")

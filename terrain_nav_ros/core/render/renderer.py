@@ -44,7 +44,7 @@ __all__ = [
     "AlbedoRamp", "DistanceMap", "EGLUnavailableError", "InvalidTerrainError",
     "LandmarkRenderer", "NoTerrainVisibleError", "PinholeCamera", "RenderResult",
     "RendererError", "TerrainFrame", "bilinear_local", "build_distance_map", "build_lipschitz_map",
-    "create_headless_context", "normal_map", "resolve_sun",
+    "create_headless_context", "display_u8", "normal_map", "resolve_sun",
 ]
 
 
@@ -514,6 +514,12 @@ class RenderResult:
     @property
     def rgb_u8(self) -> np.ndarray:
         return np.clip(np.rint(self.rgb * 255), 0, 255).astype(np.uint8)
+
+
+def display_u8(grey: np.ndarray) -> np.ndarray:
+    """Linear grey in [0, 1] -> uint8 with the display gamma (1/2.2) a camera applies: the
+    landmark image the graph publishes and extracts features from."""
+    return np.clip(np.rint(255.0 * np.clip(grey, 0, 1) ** (1 / 2.2)), 0, 255).astype(np.uint8)
 
 
 # ----------------------------------------------------------------------------- shaders

@@ -22,7 +22,7 @@ import datetime as _dt
 import numpy as np
 
 __all__ = ["parse_utc", "solar_position", "sun_at", "sun_direction_enu",
-           "sun_direction_from_time"]
+           "sun_direction_from_time", "sun_separation", "suns_over_window"]
 
 _J2000 = 2451545.0
 _UNIX_EPOCH_JD = 2440587.5
@@ -159,3 +159,57 @@ def sun_direction_from_time(when, lat_deg: float, lon_deg: float,
     """ENU unit vector towards the sun for one time and place (see :func:`solar_position`)."""
     az, el = solar_position(when, lat_deg, lon_deg, refraction=refraction)
     return sun_direction_enu(float(az), float(el))
+
+
+def suns_over_window(start, hours: float, lat_deg: float, lon_deg: float, step_deg: float,
+                     min_elevation: float = 5.0, sample_s: float = 60.0) -> np.ndarray:
+    """Suns at most ``step_deg`` apart along the sun's path over a time window.
+
+    The sun is sampled every ``sample_s`` seconds from ``start`` for ``hours``; samples
+    below ``min_elevation`` are dropped (the landmark renderer then falls back to a fixed
+    sun); the kept path is cut into equal arcs no longer than ``step_deg`` and the sun at
+    each cut is returned, both ends included. Every sun of the window above
+    ``min_elevation`` is thus within ``step_deg / 2`` (of path) of a returned one.
+
+    Parameters
+    ----------
+    start : datetime.datetime
+        Start of the window (naive: UTC).
+    hours : float
+        Length of the window, >= 0.
+    lat_deg, lon_deg : float
+        Where the sun is seen (degrees).
+    step_deg : float
+        Largest angle between consecutive suns (degrees), > 0.
+    min_elevation : float
+        Suns lower than this (degrees) are left out.
+    sample_s : float
+        Sampling period of the path (seconds).
+
+    Returns
+    -------
+    ndarray, shape (n, 2)
+        (azimuth, elevation) in degrees, in time order; n = 0 when the sun stays below
+        ``min_elevation`` all window.
+    """
+    if not step_deg > 0 or not hours >= 0:
+        raise ValueError(f"need step_deg > 0 and hours >= 0, got {step_deg}, {hours}")
+    if isinstance(start, _dt.datetime) and start.tzinfo:
+        start = start.astimezone(_dt.UTC).replace(tzinfo=None)
+    seconds = np.arange(0.0, hours * 3600.0 + 0.5 * sample_s, sample_s)
+    when = np.datetime64(start, "us") + (seconds * 1e6).astype("timedelta64[us]")
+    az, el = solar_position(when, lat_deg, lon_deg)
+    keep = el >= min_elevation
+    if keep.sum() < 2:
+        return np.column_stack([az[keep], el[keep]])
+    a, e = np.radians(az[keep]), np.radians(el[keep])
+    unit = np.column_stack([np.sin(a) * np.cos(e), np.cos(a) * np.cos(e), np.sin(e)])
+    steps = np.degrees(np.arccos(np.clip((unit[1:] * unit[:-1]).sum(axis=1), -1.0, 1.0)))
+    path = np.r_[0.0, np.cumsum(steps)]
+    n = max(int(np.ceil(path[-1] / step_deg - 1e-9)), 1) + 1
+    # the time of each cut along the path (the sun is smooth between samples), then its sun
+    cut_s = np.interp(np.linspace(0.0, path[-1], n), path, seconds[keep])
+    az, el = solar_position(np.datetime64(start, "us") + (cut_s * 1e6).astype("timedelta64[us]"),
+                            lat_deg, lon_deg)
+    keep = el >= min_elevation   # a cut inside a night the window spans
+    return np.column_stack([az[keep], el[keep]])

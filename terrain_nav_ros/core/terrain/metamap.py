@@ -266,6 +266,31 @@ class MetaMap:
         """Finest cell size (m) of the first DEM near its centre (min of east/north sizes)."""
         return min(self.layers[0].cell_m)
 
+    def covers(self, east, north) -> np.ndarray:
+        """Which ENU points lie on some DEM's footprint (its outer cell edges).
+
+        The footprint, not the data: a void inside a DEM counts as covered. Points are placed
+        at ``reference_height``, as tile pixels are.
+
+        Parameters
+        ----------
+        east, north : array_like
+            ENU horizontal coordinates (m), broadcast together.
+
+        Returns
+        -------
+        ndarray of bool
+        """
+        east, north = np.broadcast_arrays(np.asarray(east, float), np.asarray(north, float))
+        inside = np.zeros(east.shape, bool)
+        for layer in self.layers:
+            x, y = layer.transform.from_enu(east, north, self.reference_height)
+            col, row = layer.dem.crs_to_pixel(x, y)
+            with np.errstate(invalid="ignore"):
+                inside |= ((col >= -0.5) & (col <= layer.dem.width - 0.5)
+                           & (row >= -0.5) & (row <= layer.dem.height - 0.5))
+        return inside
+
     # -- tiles --------------------------------------------------------------------------
     def tile_at(self, east: float, north: float, gsd: float, width: int, height: int) -> DemTile:
         """Tile of ``width x height`` cells of ``gsd`` metres centred on ENU (east, north)."""
