@@ -1,10 +1,22 @@
 """The matcher node's relocalisation helpers (core.matching.relocaliser)."""
 
+import math
+
+import cv2
+import numpy as np
 import pytest
 
-from terrain_nav_ros.core.matching.relocaliser import SearchPolicy, tile_in_frame
+from terrain_nav_ros.core.features.minutiae import FeatureExtractor
+from terrain_nav_ros.core.matching.mission_index import MissionIndex
+from terrain_nav_ros.core.matching.params import MatchParams
+from terrain_nav_ros.core.matching.relocaliser import MissionSearch, SearchPolicy, tile_in_frame
+from terrain_nav_ros.core.render.renderer import LandmarkRenderer, create_headless_context
+from terrain_nav_ros.core.terrain.dem_io import open_dem
 from terrain_nav_ros.core.terrain.geodesy import EnuOrigin
 from terrain_nav_ros.core.terrain.georef import GeoReference
+from terrain_nav_ros.core.terrain.metamap import MetaMap
+from terrain_nav_ros.tools import cli
+from terrain_nav_ros.tools.evaluation import _camera_albedo
 
 
 def test_frames_are_searched_off_the_tiles_and_after_a_run_of_no_fixes():
@@ -15,6 +27,13 @@ def test_frames_are_searched_off_the_tiles_and_after_a_run_of_no_fixes():
         policy.tile_answered(fixed=False)
     policy.tile_answered(fixed=False)
     assert policy.reason_to_search(covered=True) == "3 frames in a row without a fix in the tile"
+    # while the run lasts, searches and tries in the tile alternate
+    policy.searched()
+    assert policy.reason_to_search(covered=True) == ""
+    assert policy.reason_to_search(covered=False) != ""
+    policy.tile_answered(fixed=False)
+    assert policy.reason_to_search(covered=True) == "4 frames in a row without a fix in the tile"
+    policy.searched()
     policy.tile_answered(fixed=True)
     assert policy.reason_to_search(covered=True) == ""
     with pytest.raises(ValueError):
@@ -36,3 +55,67 @@ def test_a_tile_moves_into_another_frame_exactly_at_the_matched_pixel():
     # 55 km apart: a shift of tens of kilometres
     assert abs(moved.origin_east - georef.origin_east) > 20_000
     assert tile_in_frame(georef, col, row, tile_origin, tile_origin) is georef
+
+
+# ---------------------------------------------------------------- MissionSearch on a real index
+WHEN = 1718960400.0                          # 2024-06-21T09:00:00Z
+GRAPH_ORIGIN = EnuOrigin(44.45, 5.42, 0.0)   # the graph's frame, not the index's
+
+
+@pytest.fixture(scope="module")
+def mission(shared_data, tmp_path_factory):
+    """A 3 x 3 tile index of N44E005 at 90 m for a flight window at 09:00 UTC, built
+    through the command."""
+    out = tmp_path_factory.mktemp("relocaliser") / "index"
+    dem = shared_data / "dem" / "N44E005.hgt"
+    assert cli.main(["prepare", "--dem", str(dem), "--area", "44.30,5.30,44.70,5.70",
+                     "--gsd", "90", "--out", str(out), "--time", "2024-06-21T08:50:00Z",
+                     "--hours", "0.4", "--tile", "256", "--overlap", "128",
+                     "--workers", "1"]) == 0
+    return MissionIndex(out), dem
+
+
+def _camera_view(dem, east, north, degrees, sun, gsd=90.0, side=128):
+    """A camera set of side ``side`` px centred on graph-frame (east, north), turned by
+    ``degrees``: another albedo than the landmarks', extracted as camera_ingest's frames
+    are, with its georef in the graph's frame."""
+    mm = MetaMap(open_dem(dem), GRAPH_ORIGIN, interpolation="spline", fill_voids=True)
+    big = GeoReference.centred(east, north, gsd, 2 * side, 2 * side)
+    elevation = mm.tile(big).elevation
+    renderer = LandmarkRenderer(create_headless_context())
+    renderer.set_terrain(elevation, big)
+    renderer.set_albedo(_camera_albedo(elevation))
+    rgb = renderer.render_nadir(big, sun=sun).rgb
+    renderer.release()
+    turn = cv2.getRotationMatrix2D((side - 0.5, side - 0.5), degrees, 1.0)
+    grey = cv2.cvtColor(cv2.warpAffine(rgb, turn, (2 * side, 2 * side)), cv2.COLOR_RGB2GRAY)
+    crop = np.ascontiguousarray(grey[side // 2:side // 2 + side, side // 2:side // 2 + side])
+    georef = GeoReference.centred(east, north, gsd, side, side)
+    return FeatureExtractor(ridges=True)(crop, georef=georef)
+
+
+def test_a_camera_set_is_relocalised_in_the_graph_frame(mission):
+    index, dem = mission
+    search = MissionSearch(index, MatchParams(threshold=8.6))
+    east, north = 6000.0, -9000.0                 # in the graph's frame
+    features = _camera_view(dem, east, north, 40.0, search.sun_at(WHEN))
+    camera = search.matcher.index(features.minutiae, features.creases.skeleton(),
+                                  features.ridges)
+    found, land_georef = search.search(camera, WHEN, GRAPH_ORIGIN)
+    assert found.matched, found.reason
+    assert search.layer == index.nearest_sun(search.sun_at(WHEN))
+    assert found.penalty == pytest.approx(math.log10(len(index.tiles())))
+    col, row = found.result.apply(63.5, 63.5)
+    got = land_georef.pixel_to_enu(col, row)
+    assert math.hypot(got[0] - east, got[1] - north) < 1.5 * index.gsd
+
+
+def test_a_camera_set_at_another_gsd_is_refused_with_the_reason(mission):
+    index, dem = mission
+    search = MissionSearch(index, MatchParams(threshold=8.6))
+    features = _camera_view(dem, 6000.0, -9000.0, 0.0, search.sun_at(WHEN), gsd=60.0)
+    camera = search.matcher.index(features.minutiae, features.creases.skeleton(),
+                                  features.ridges)
+    found, land_georef = search.search(camera, WHEN, GRAPH_ORIGIN)
+    assert not found.matched and land_georef is None
+    assert "prepare the index at the graph's gsd" in found.reason

@@ -45,6 +45,7 @@ from ..core.matching.fix_stream import (
     fix_attitude,
 )
 from ..core.matching.matcher import Matcher, warm_up
+from ..core.matching.mission_index import MissionIndex, MissionIndexError
 from ..core.matching.params import MatchParams
 from ..core.matching.pva_fix import (
     PvaFixEstimate,
@@ -54,6 +55,7 @@ from ..core.matching.pva_fix import (
     fix_from_pnp,
     inflate_covariance,
 )
+from ..core.matching.relocaliser import MissionSearch, SearchPolicy
 from ..core.terrain.geodesy import EnuOrigin
 from . import conversions as cv
 from .ros_common import (
@@ -122,10 +124,18 @@ class MatcherNode(Node):
         self.camera_timeout = declare(self, "camera_timeout", 5.0,
                                       "no camera minutiae for this long is a warning [s]",
                                       min_value=0.0)
+        mission_dir = declare(self, "mission_dir", "",
+                              "mission index (terrain-nav prepare) searched when lost; "
+                              "empty: frames are matched near the estimate only")
+        after_no_fixes = declare(self, "relocalise_after_no_fixes", 5,
+                                 "no-fixes in a row in the landmark tile after which frames "
+                                 "are searched in the whole mission index", min_value=1)
         check_parameters_known(self)  # before the matcher is built and its kernels loaded
         self.add_on_set_parameters_callback(reject_all_changes)
         self.r_body_optical = mount_rotation(*mount)
         self.matcher = Matcher(settings_from_parameters(self, "match", MatchParams()))
+        self.mission = self._open_mission(mission_dir)
+        self.policy = SearchPolicy(after_no_fixes)
         self.landmarks = LandmarkSets(max_landmarks)
         self.velocity = FixVelocity(velocity_gap)
         self.tally = AnswerTally()
@@ -143,6 +153,20 @@ class MatcherNode(Node):
         self._started_wall = time.monotonic()
         publish_diagnostics(self, "/matcher/diagnostics", diagnostics_period,
                             self.diagnostics)
+
+    def _open_mission(self, mission_dir: str) -> MissionSearch | None:
+        """The mission index to search when lost (None without one); a bad index stops the
+        node at start-up, not in flight."""
+        if not mission_dir:
+            return None
+        mission = MissionSearch(MissionIndex(mission_dir), self.matcher.params)
+        missing = mission.mission.missing()
+        if missing:
+            raise MissionIndexError(f"{mission_dir}: {len(missing)} tile layers missing: run "
+                                    "terrain-nav prepare again to complete it")
+        self.get_logger().info(f"mission index {mission_dir}: {len(mission.mission.tiles())} "
+                               f"tiles, {len(mission.mission.suns)} suns")
+        return mission
 
     @contained
     def on_tile(self, msg: DemTile) -> None:
@@ -189,7 +213,6 @@ class MatcherNode(Node):
 
     def _answer(self, msg: MinutiaArray) -> None:
         """A fix or a no-fix with its reason for one camera minutiae set."""
-        stamp = cv.stamp_to_sec(msg.header.stamp)
         if not msg.minutiae:   # flat terrain, or a frame with no minutiae set at all
             self.publish_no_fix(msg.header.stamp,
                                 f"no camera minutiae: {msg.reason or 'none found'}")
@@ -204,16 +227,29 @@ class MatcherNode(Node):
         if projection is None:
             self.publish_no_fix(msg.header.stamp, "camera minutiae carry no projection pose")
             return
-        position, rotation, plane = projection
         landmark = self.landmarks.holding(*camera.georef.centre)
+        covered = landmark is not None and landmark[1] is not None
+        why = self.policy.reason_to_search(covered) if self.mission is not None else ""
+        if why:
+            self.policy.searched()
+            self._relocalise(msg, camera, camera_creases, camera_ridges, projection, why)
+            return
+        self.policy.tile_answered(self._answer_in_tile(msg, camera, camera_creases,
+                                                       camera_ridges, projection, landmark))
+
+    def _answer_in_tile(self, msg: MinutiaArray, camera, camera_creases, camera_ridges,
+                        projection, landmark) -> bool:
+        """A fix or a no-fix of a camera set in the landmark tile holding it; whether it
+        was a fix."""
+        position, rotation, plane = projection
         if landmark is None:
             self.publish_no_fix(msg.header.stamp, "no landmark covers the camera footprint")
-            return
+            return False
         land_minutiae, land_index, origin = landmark
         if land_index is None:
             self.publish_no_fix(msg.header.stamp,
                                 f"no landmark minutiae: {land_minutiae.reason}")
-            return
+            return False
         result = self.matcher.localise(
             self.matcher.index(camera, camera_creases, camera_ridges), land_index)
         fix = fix_from_ground_match(result, camera.georef, land_minutiae.georef, position,
@@ -224,7 +260,33 @@ class MatcherNode(Node):
                               fix, self.pnp_gate)
         if not fix.valid:
             self.publish_no_fix(msg.header.stamp, fix.reason, fix)
+            return False
+        self.publish_fix(msg.header.stamp, cv.stamp_to_sec(msg.header.stamp), fix, origin)
+        return True
+
+    def _relocalise(self, msg: MinutiaArray, camera, camera_creases, camera_ridges,
+                    projection, why: str) -> None:
+        """A fix marked as a relocalisation, or a no-fix, from a search of the camera set
+        in the whole mission index. The ground match only: the DEM tile held for PnP lies
+        around the estimate, which is what is in doubt."""
+        position, rotation, plane = projection
+        origin = cv.enu_origin_of(msg.georef)
+        stamp = cv.stamp_to_sec(msg.header.stamp)
+        found, land_georef = self.mission.search(
+            self.mission.matcher.index(camera, camera_creases, camera_ridges), stamp,
+            EnuOrigin(*origin))
+        if not found.matched:
+            self.publish_no_fix(msg.header.stamp, f"relocalisation ({why}): {found.reason}")
             return
+        fix = fix_from_ground_match(found.result, camera.georef, land_georef, position,
+                                    rotation, plane, landmark_sigma=self.landmark_sigma)
+        add_prior_tilt(fix, position[2] - plane, self.tilt_sigma)
+        if not fix.valid:
+            self.publish_no_fix(msg.header.stamp, f"relocalisation: {fix.reason}", fix)
+            return
+        fix.relocalisation = True
+        self.get_logger().info(f"relocalised ({why}) in tile {found.tile.key}, area score "
+                               f"{found.score:.1f} over {found.searched} tiles")
         self.publish_fix(msg.header.stamp, stamp, fix, origin)
 
     def pnp_fix(self, result, camera, landmark, position, rotation) -> PvaFixEstimate | None:

@@ -91,7 +91,8 @@ def _cmd_replay(args) -> int:
         raise InputError(f"bag {bag} not found: give a bag directory with --bag")
     out = Path(args.out) if args.out else REPO / "out" / f"replay-{bag.name}-{_now()}"
     result = run_replay(bag, out, args.config, rate=args.rate, verbose=args.verbose,
-                        enable=args.enable or ())
+                        enable=args.enable or (), mission_dir=args.mission,
+                        lost_offset=args.lost)
     if "stopped" in result["partial"]:
         return 130
     return 0 if result["graph_status"] == 0 and not result["died"] else 1
@@ -363,6 +364,12 @@ def build_parser() -> argparse.ArgumentParser:
         job.add_argument("--verbose", action="store_true", help="show all node output")
         job.add_argument("--enable", nargs="+", metavar="NODE",
                          help="also run these disabled nodes (e.g. autopilot_bridge)")
+        job.add_argument("--mission", type=Path, metavar="MISSION_DIR",
+                         help="mission index (terrain-nav prepare) the matcher searches "
+                              "when lost")
+        job.add_argument("--lost", type=float, nargs=2, metavar=("E", "N"),
+                         help="GNSS jammed from the start: the filter starts at the bag's "
+                              "true initial state moved by E, N metres (a lost aircraft)")
         job.set_defaults(func=_cmd_replay)
 
     sim = sub.add_parser("simulate", help="simulate a flight over a DEM into an MCAP bag")
@@ -423,7 +430,7 @@ def build_parser() -> argparse.ArgumentParser:
     prep.add_argument("--sun-step", dest="sun_step", type=float,
                       help="largest angle between indexed suns [deg] (default: the landmark "
                            "renderer's max_sun_change in config/terrain_nav.yaml, 2)")
-    prep.add_argument("--tile", type=int, default=768, help="tile side [px] (default 768)")
+    prep.add_argument("--tile", type=int, default=1024, help="tile side [px] (default 1024)")
     prep.add_argument("--overlap", type=int, default=256,
                       help="overlap of neighbouring tiles [px]: any view up to this side lies "
                            "wholly in some tile (default 256)")

@@ -66,7 +66,7 @@ class PrepareRequest:
     time: str | None = None
     hours: float = 2.0
     sun_step: float | None = None
-    tile_px: int = 768
+    tile_px: int = 1024
     overlap_px: int = 256
     scheduler: str | None = None
     workers: int | None = None

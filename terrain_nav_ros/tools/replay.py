@@ -66,6 +66,30 @@ def _mission_parameters(topics: set[str], mission: dict) -> dict[str, dict]:
     return out
 
 
+def _lost_parameters(bag: Path, offset) -> dict:
+    """EKF parameters of a lost aircraft: GNSS jammed from the start (the replay leaves
+    ``/gnss/fix`` out), the filter started at the bag's first true state with its position
+    moved by ``offset`` (east, north metres) and the usual initial sigmas, which the offset
+    far exceeds. The matcher must find the aircraft again (``--mission``)."""
+    first = next(iter(bags.read(bag, ["/ground_truth/odometry"])), None)
+    if first is None:
+        raise InputError(f"bag {bag} has no /ground_truth/odometry to start a lost "
+                         "aircraft from")
+    from ..core.estimation.strapdown import quat_rotate, quat_to_euler
+
+    truth = bags.decode(first)
+    pose, twist = truth.pose.pose, truth.twist.twist
+    q = np.array([pose.orientation.x, pose.orientation.y, pose.orientation.z,
+                  pose.orientation.w])     # body -> ENU
+    velocity = quat_rotate(q, np.array([twist.linear.x, twist.linear.y, twist.linear.z]))
+    roll_pitch_yaw = quat_to_euler(q)
+    position = (pose.position.x + float(offset[0]), pose.position.y + float(offset[1]),
+                pose.position.z)
+    return {"init_mode": "pose", "initial_position": [float(v) for v in position],
+            "initial_velocity": [float(v) for v in velocity],
+            "initial_rpy": [float(v) for v in roll_pitch_yaw]}
+
+
 def _echo(name: str, line: str) -> bool:
     """Show the player's progress and every warning or error; the rest goes to the logs."""
     return name == "bag_player" or "[WARN]" in line or "[ERROR]" in line or "fatal" in line
@@ -121,13 +145,15 @@ def check_inputs(bag: Path, out_dir: Path, rate: float) -> tuple[dict, bags.BagH
 
 def run_replay(bag: str | Path, out_dir: str | Path, graph_config: str | Path,
                rate: float = 1.0, drain: float = 5.0, startup_timeout: float = 60.0,
-               verbose: bool = False, enable=()) -> dict:
+               verbose: bool = False, enable=(), mission_dir: str | Path | None = None,
+               lost_offset=None) -> dict:
     """Replay ``bag`` through the graph; return the report's metrics (see :mod:`.report`).
 
     The inputs are checked first (:func:`check_inputs`); a damaged bag is replayed as far
     as it can be read, and the report says so (``input_damaged``). ``enable`` names nodes
     the graph file disables to run too (e.g. ``autopilot_bridge``, whose outputs are then
-    recorded).
+    recorded). ``mission_dir`` is the mission index the matcher searches when lost;
+    ``lost_offset`` (east, north metres) replays a lost aircraft (:func:`_lost_parameters`).
     """
     bag, out_dir = Path(bag).resolve(), Path(out_dir).resolve()
     mission, health = check_inputs(bag, out_dir, rate)
@@ -136,6 +162,11 @@ def run_replay(bag: str | Path, out_dir: str | Path, graph_config: str | Path,
     output_bag = out_dir / "outputs"
     input_topics = [t.topic for t in bags.topics(bag)]
     overrides = _mission_parameters(set(input_topics), mission)
+    if mission_dir is not None:
+        overrides.setdefault("matcher", {})["mission_dir"] = str(Path(mission_dir).resolve())
+    if lost_offset is not None:
+        overrides.setdefault("ekf", {}).update(_lost_parameters(bag, lost_offset))
+        input_topics = [t for t in input_topics if t != "/gnss/fix"]
     for node in spec.nodes:
         node.parameters.update(overrides.get(node.name, {}))
     wait_for = [t for t in ("/imu/data", "/camera/image_raw", "/camera/image_raw/compressed")
@@ -187,7 +218,8 @@ def run_replay(bag: str | Path, out_dir: str | Path, graph_config: str | Path,
         if stopped_by:   # stopped before the recorder wrote anything: no report to write
             raise KeyboardInterrupt
         raise RuntimeError(f"the recorder wrote no bag (graph status {status}, died: {died})")
-    result = report.analyse(bag, output_bag, usage)
+    result = report.analyse(bag, output_bag, usage,
+                            denied_after=0.0 if lost_offset is not None else None)
     result["graph_status"], result["died"] = status, died
     result["input_damaged"] = health.problem
     result["partial"] = _cut_short(stopped_by, status, died)

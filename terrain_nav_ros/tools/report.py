@@ -155,8 +155,20 @@ def _horizontal_error(t_est, p_est, t_truth, p_truth):
     return t_truth[inside], np.hypot(e, n)
 
 
-def analyse(input_bag, output_bag, usage: dict | None = None) -> dict:
-    """Metrics of one replay (plain numbers and arrays for the plots)."""
+def settled_after(t: np.ndarray, err: np.ndarray, bound: float) -> float:
+    """The time from which ``err`` stays at or below ``bound`` to the end (the first
+    sample's time if it always does; NaN if the last sample is above)."""
+    above = np.flatnonzero(np.asarray(err) > bound)
+    if not len(above):
+        return float(t[0]) if len(t) else math.nan
+    return float(t[above[-1] + 1]) if above[-1] + 1 < len(t) else math.nan
+
+
+def analyse(input_bag, output_bag, usage: dict | None = None,
+            denied_after: float | None = None) -> dict:
+    """Metrics of one replay (plain numbers and arrays for the plots). ``denied_after``
+    (s from the start) overrides the bag's GNSS denial, e.g. 0 when the replay left the
+    GNSS out."""
     mission = read_mission(input_bag)
     info = {t.topic: t for t in bags.topics(input_bag)}
     result: dict = {"input_bag": str(input_bag), "output_bag": str(output_bag),
@@ -180,7 +192,8 @@ def analyse(input_bag, output_bag, usage: dict | None = None) -> dict:
         return result
     t_truth, p_truth, _ = _series(input_bag, "/ground_truth/odometry")
     t0 = t_truth[0]
-    denied = float(mission.get("gnss_denied_after_s", 0.0))
+    denied = float(mission.get("gnss_denied_after_s", 0.0) if denied_after is None
+                   else denied_after)
     result["truth"] = (t_truth, p_truth)
     result["t0"], result["denied_after"] = t0, denied
     if good:
@@ -197,6 +210,9 @@ def analyse(input_bag, output_bag, usage: dict | None = None) -> dict:
     if len(t_fused):
         te, err = _horizontal_error(t_fused, p_fused, t_truth[window], p_truth[window])
         result["fused_error"] = _stats(err)
+        if mission.get("landmark_gsd") and len(te):
+            result["fused_error"]["below_2_gsd_after"] = settled_after(
+                te - t0, err, 2.0 * float(mission["landmark_gsd"]))
         result["series"]["fused_error"] = (te - t0, err,
                                            3 * np.sqrt(np.interp(te, t_fused, var_fused)))
     origin = mission.get("origin")
@@ -251,6 +267,10 @@ def format_report(r: dict, gsd: float | None = None) -> str:
                 extra = f" = {e['rms'] / gsd:.1f} GSD" if gsd and key == "fused_error" else ""
                 lines.append(f"  {label:26s} RMS {e['rms']:8.1f} m{extra}, max {e['max']:8.1f} m,"
                              f" final {e['final']:8.1f} m")
+                if key == "fused_error" and "below_2_gsd_after" in e:
+                    settled = e["below_2_gsd_after"]
+                    lines.append(f"  fused error at or below 2 GSD from {settled:.0f} s "
+                                 "after the start on")
     else:
         lines.append("no /ground_truth/odometry in the input bag: errors not computed")
     if r["latency"]:

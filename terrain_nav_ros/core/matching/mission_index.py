@@ -101,7 +101,7 @@ class TileGrid:
             raise ValueError(f"gsd must be > 0 m, got {self.gsd}")
 
     @classmethod
-    def covering(cls, extent, gsd: float, tile_px: int = 768, overlap_px: int = 256):
+    def covering(cls, extent, gsd: float, tile_px: int = 1024, overlap_px: int = 256):
         """The fewest tiles that cover ``extent`` (west, east, south, north), centred on it."""
         west, east, south, north = (float(v) for v in extent)
         stride = tile_px - overlap_px

@@ -2,7 +2,8 @@
 
 The matcher node's ROS-free helpers for relocalisation (issue 24): :class:`SearchPolicy`
 decides, frame by frame, whether the camera set is matched in the landmark tile around the
-estimate or searched in the mission index (:func:`.global_search.relocalise`);
+estimate or searched in the mission index; :class:`MissionSearch` holds the index's tiles
+for the frame's sun, prepared, and searches them (:func:`.global_search.relocalise`);
 :func:`tile_in_frame` moves a mission tile's georeference into the graph's ENU frame.
 """
 
@@ -10,8 +11,14 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+from ..render.sun import sun_at, sun_separation
 from ..terrain.geodesy import EnuOrigin
 from ..terrain.georef import GeoReference
+from .global_search import Relocalisation, SearchTile, relocalisation_matcher, relocalise
+from .index import MinutiaIndex
+from .matcher import Decision, MatchResult
+from .mission_index import MissionIndex
+from .params import MatchParams
 
 
 class SearchPolicy:
@@ -19,9 +26,10 @@ class SearchPolicy:
 
     A frame is searched when no landmark tile around the estimate covers it (no estimate
     yet, or it moved off the tiles served), or after ``after_no_fixes`` frames in a row got
-    no fix in the tile (the estimate may have drifted out of it). The run is counted again
-    from zero after a fix in the tile; a search that finds nothing keeps searching the next
-    frames, since the tile has not become more likely to hold them.
+    no fix in the tile (the estimate may have drifted out of it). While that run lasts,
+    frames alternate between a search and a try in the tile: the filter moves its estimate
+    only when two relocalisations agree, and the try in the tile around the moved estimate
+    is what ends the run (a fix there counts it again from zero).
 
     Parameters
     ----------
@@ -34,19 +42,25 @@ class SearchPolicy:
             raise ValueError(f"after_no_fixes must be >= 1, got {after_no_fixes}")
         self.after_no_fixes = after_no_fixes
         self.no_fixes = 0
+        self.searched_last = False
 
     def reason_to_search(self, covered: bool) -> str:
         """Why this frame is searched in the mission area; empty when it is matched in the
         tile around the estimate."""
         if not covered:
             return "no landmark tile covers the camera footprint"
-        if self.no_fixes >= self.after_no_fixes:
+        if self.no_fixes >= self.after_no_fixes and not self.searched_last:
             return f"{self.no_fixes} frames in a row without a fix in the tile"
         return ""
+
+    def searched(self) -> None:
+        """Count a frame searched in the mission area."""
+        self.searched_last = True
 
     def tile_answered(self, fixed: bool) -> None:
         """Count a frame matched in the tile around the estimate."""
         self.no_fixes = 0 if fixed else self.no_fixes + 1
+        self.searched_last = False
 
 
 def tile_in_frame(georef: GeoReference, col: float, row: float, tile_origin: EnuOrigin,
@@ -69,3 +83,69 @@ def tile_in_frame(georef: GeoReference, col: float, row: float, tile_origin: Enu
     e2, n2, _ = frame_origin.geodetic_to_enu(lat, lon, h)
     return replace(georef, origin_east=georef.origin_east + float(e2) - float(east),
                    origin_north=georef.origin_north + float(n2) - float(north))
+
+
+class MissionSearch:
+    """A mission index as the matcher searches it.
+
+    The tiles of one sun layer (the one nearest the frame's sun, computed from the frame's
+    time at the area's centre) are loaded and prepared as landmark regions on the first
+    search under that sun, and kept until the sun has moved nearer another layer.
+
+    Parameters
+    ----------
+    mission : MissionIndex
+    params : MatchParams
+        The graph's matcher settings; the tiles' view-search bound is grown to their size
+        (:func:`~.global_search.relocalisation_matcher`).
+    """
+
+    def __init__(self, mission: MissionIndex, params: MatchParams):
+        self.mission = mission
+        self.matcher = relocalisation_matcher(params, mission.grid.tile_px)
+        self.layer: int | None = None
+        self.tiles: list[SearchTile] = []
+
+    def sun_at(self, unix_seconds: float) -> tuple[float, float]:
+        """(azimuth, elevation) of the sun at the area's centre at a time (deg)."""
+        return sun_at(unix_seconds, self.mission.origin.lat, self.mission.origin.lon)
+
+    def tiles_for(self, sun) -> list[SearchTile]:
+        """The prepared tiles of the layer nearest ``sun`` (loaded on first use)."""
+        k = self.mission.nearest_sun(sun)
+        if k != self.layer:
+            self.tiles = [self._prepared(t.col, t.row, k) for t in self.mission.tiles()]
+            self.tiles = [t for t in self.tiles if t is not None]
+            self.layer = k
+        return self.tiles
+
+    def _prepared(self, col: int, row: int, layer: int) -> SearchTile | None:
+        found = self.mission.load(col, row, layer)
+        if not len(found.minutiae):
+            return None     # a tile without drainage (lake, plain): nothing to search
+        index = self.matcher.index(found.minutiae, found.creases, found.ridges)
+        return SearchTile(index.prepare_as_reference(search=True), found.georef,
+                          f"r{row}_c{col}_s{layer}")
+
+    def layer_sun_gap(self, sun) -> float:
+        """Degrees between ``sun`` and the nearest layer's sun: beyond a few, shaded creases
+        stop repeating and the search will find little."""
+        return sun_separation(sun, self.mission.suns[self.mission.nearest_sun(sun)])
+
+    def search(self, camera: MinutiaIndex, unix_seconds: float,
+               frame_origin: EnuOrigin) -> tuple[Relocalisation, GeoReference | None]:
+        """Relocalise a camera set (built with :attr:`matcher`) taken at ``unix_seconds``;
+        with a relocalisation, its tile's georeference in the ENU frame of
+        ``frame_origin`` (the camera set's)."""
+        gsd = camera.set.georef.gsd if camera.set.georef is not None else float("nan")
+        if not abs(gsd / self.mission.gsd - 1.0) < 0.01:
+            reason = (f"the camera set's GSD {gsd:g} m is not the mission index's "
+                      f"{self.mission.gsd:g} m: prepare the index at the graph's gsd")
+            return Relocalisation(MatchResult(Decision.NO_DECISION, reason=reason),
+                                  reason=reason), None
+        found = relocalise(self.matcher, camera, self.tiles_for(self.sun_at(unix_seconds)))
+        if not found.matched:
+            return found, None
+        col, row = found.tile.georef.enu_to_pixel(*found.position)
+        return found, tile_in_frame(found.tile.georef, float(col), float(row),
+                                    self.mission.origin, frame_origin)
