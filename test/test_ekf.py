@@ -551,6 +551,27 @@ def test_position_reset_keeps_the_imu_velocity_and_attitude():
     assert np.linalg.norm(ekf.state.position - truth.position[-1]) < 50.0
 
 
+def test_set_position_moves_the_estimate_without_a_gate():
+    """An operator's re-seed (/ekf/set_pose) puts the position where it says, 5 km off a
+    tracking filter, keeping the velocity; it is refused before initialisation and with a
+    position that is not 3 values."""
+    params = EkfParams(init_mode="pose")
+    _, truth, imu = flight(straight_flight(30.0), 11, params)
+    ekf = TerrainEkf(params)
+    assert ekf.set_position(0.0, truth.position[0], np.eye(3)).reason == Reason.NOT_INITIALIZED
+    ekf.initialize(0.0, truth.position[0], truth.velocity[0], truth.quaternion[0])
+    k = len(truth) // 2
+    for j in range(1, k + 1):
+        ekf.process_imu(truth.t[j], imu.gyro[j], imu.accel[j])
+    kidnapped = truth.position[k] + [0.0, 5000.0, 0.0]
+    out = ekf.set_position(truth.t[k], kidnapped, np.eye(3) * 100.0)
+    assert out.accepted and out.reason == Reason.POSITION_RESET
+    assert np.allclose(ekf.state.position, kidnapped)
+    assert np.allclose(ekf.kf.P[:3, :3], np.eye(3) * 100.0)
+    assert np.linalg.norm(ekf.state.velocity - truth.velocity[k]) < 1.0
+    assert ekf.set_position(truth.t[k], [1.0, 2.0], np.eye(2)).reason == Reason.BAD_SHAPE
+
+
 def test_imu_gap_is_integrated_and_flagged():
     params = EkfParams(init_mode="pose", max_imu_dt=0.1)
     _, truth, imu = flight(straight_flight(5.0), 13, params)

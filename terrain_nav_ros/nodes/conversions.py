@@ -13,7 +13,7 @@ from typing import NamedTuple
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from geometry_msgs.msg import PoseWithCovariance, TransformStamped
+from geometry_msgs.msg import PoseWithCovariance, PoseWithCovarianceStamped, TransformStamped
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import (
     CameraInfo,
@@ -245,6 +245,15 @@ def odometry_to_arrays(msg: Odometry) -> tuple[int, np.ndarray, np.ndarray, np.n
     p, q = msg.pose.pose.position, msg.pose.pose.orientation
     return (stamp_to_ns(msg.header.stamp), np.array([p.x, p.y, p.z]),
             np.array([q.x, q.y, q.z, q.w]), covariance_to_array(msg.pose.covariance, 6))
+
+
+def set_pose_to_arrays(msg: PoseWithCovarianceStamped) -> tuple[float, str, np.ndarray,
+                                                                 np.ndarray]:
+    """PoseWithCovarianceStamped (an operator's re-seed) -> (stamp s, frame_id, position
+    (3,), position covariance (3, 3)); the orientation is not used."""
+    p = msg.pose.pose.position
+    cov = covariance_to_array(msg.pose.covariance, 6)[:3, :3]
+    return stamp_to_sec(msg.header.stamp), msg.header.frame_id, np.array([p.x, p.y, p.z]), cov
 
 
 def pose_with_covariance(position, quaternion_xyzw, cov6: np.ndarray) -> PoseWithCovariance:

@@ -33,6 +33,9 @@ Subscribed:
   it) only when another relocalisation from a frame ``relocalisation_min_interval`` s or
   more apart agrees with the IMU's motion between them
   (:mod:`~terrain_nav_ros.core.estimation.relocalisation`).
+* ``/ekf/set_pose`` (geometry_msgs/PoseWithCovarianceStamped, reliable, ``map_frame``): an
+  operator's re-seed of the position (robot_localization's ``set_pose``; the orientation is
+  not used), applied at its stamp without a gate.
 * ``/baro/pressure`` (sensor_msgs/FluidPressure): ISA pressure altitude
   (:mod:`~terrain_nav_ros.core.estimation.baro`, ``sea_level_pressure``) plus a constant offset
   to ENU up. The core has no baro-bias state, so the offset is ``baro_offset`` or, when that is
@@ -95,6 +98,7 @@ from collections import Counter
 from dataclasses import fields
 
 import numpy as np
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import PublisherEventCallbacks
@@ -351,6 +355,8 @@ class EkfNode(Node):
                                                 event_callbacks=quiet)
         self.create_subscription(Imu, "/imu/data", self.on_imu, imu_qos)
         self.create_subscription(PvaFix, "/nav/pva_fix", self.on_pva_fix, RELIABLE_QOS)
+        self.create_subscription(PoseWithCovarianceStamped, "/ekf/set_pose", self.on_set_pose,
+                                 RELIABLE_QOS)
         self.create_subscription(FluidPressure, "/baro/pressure", self.on_baro, imu_qos)
         self.create_subscription(NavSatFix, "/gnss/fix", self.on_gnss, imu_qos)
         publish_diagnostics(self, "/nav/ekf/diagnostics", diag_period, self.diagnostics)
@@ -525,6 +531,25 @@ class EkfNode(Node):
                                    quaternion=q_body, source="fix",
                                    relocalisation=fix.relocalisation)
         self._report("fix", out, fix.stamp)
+        self._navigation_state(self.ekf.diagnostics)
+
+    def on_set_pose(self, msg: PoseWithCovarianceStamped):
+        """An operator's re-seed of the position (robot_localization's ``set_pose``; the
+        orientation is not used): applied at its stamp, not gated."""
+        try:
+            stamp, frame, position, cov = cv.set_pose_to_arrays(msg)
+        except cv.ConversionError as err:
+            self._refuse("set_pose", "bad_message", f": {err}")
+            return
+        if frame != self.map_frame:
+            self._refuse("set_pose", "wrong_frame", f": {frame!r}, not {self.map_frame!r}")
+            return
+        out = self.ekf.set_position(stamp, position, cov)
+        if out.accepted:
+            self.get_logger().warning(f"position set by /ekf/set_pose at {stamp:.3f} s: "
+                                      f"({position[0]:.0f}, {position[1]:.0f}, "
+                                      f"{position[2]:.0f}) m")
+        self._report("set_pose", out, stamp)
         self._navigation_state(self.ekf.diagnostics)
 
     def _navigation_state(self, d) -> tuple[str, str]:

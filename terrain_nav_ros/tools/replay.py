@@ -11,6 +11,7 @@ configures the metamap; bags recorded elsewhere use the parameter files as they 
 from __future__ import annotations
 
 import math
+import shutil
 import signal
 import sys
 import time
@@ -90,6 +91,43 @@ def _lost_parameters(bag: Path, offset) -> dict:
             "initial_rpy": [float(v) for v in roll_pitch_yaw]}
 
 
+def _kidnapped(bag: Path, copy: Path, at: float, east: float, north: float) -> Path:
+    """A copy of ``bag`` (and its mission.yaml) with one ``/ekf/set_pose`` ``at`` s after
+    its first message: the true position then, moved by (``east``, ``north``) metres, with a
+    10 m sigma. The filter believes it, as it would a wrong operator re-seed or a wrong fix
+    accepted once, and the matcher must find the aircraft again (``--mission``)."""
+    store = bags.typestore().types
+    start, injected = None, False
+    with bags.BagWriter(copy, compress=True) as writer:
+        for t in bags.topics(bag):
+            writer.add_topic(t.topic, t.msgtype, bags.qos_profile(t.reliable,
+                                                                 t.transient_local))
+        for m in bags.read(bag):
+            start = m.timestamp_ns if start is None else start
+            if not injected and m.topic == "/ground_truth/odometry" and \
+                    m.timestamp_ns - start >= at * 1e9:
+                truth = bags.decode(m)
+                p = truth.pose.pose.position
+                pose = store["geometry_msgs/msg/Pose"](
+                    position=store["geometry_msgs/msg/Point"](x=p.x + east, y=p.y + north,
+                                                              z=p.z),
+                    orientation=truth.pose.pose.orientation)
+                covariance = np.diag([100.0] * 3 + [-1.0] * 3).ravel()
+                msg = store["geometry_msgs/msg/PoseWithCovarianceStamped"](
+                    header=truth.header, pose=store["geometry_msgs/msg/PoseWithCovariance"](
+                        pose=pose, covariance=covariance))
+                writer.write_message("/ekf/set_pose", m.timestamp_ns, msg,
+                                     "geometry_msgs/msg/PoseWithCovarianceStamped")
+                injected = True
+            writer.write(m.topic, m.timestamp_ns, m.rawdata)
+    if not injected:
+        raise InputError(f"bag {bag} has no /ground_truth/odometry {at:g} s after its start "
+                         "to kidnap the aircraft from")
+    if (bag / "mission.yaml").exists():
+        shutil.copy(bag / "mission.yaml", copy / "mission.yaml")
+    return copy
+
+
 def _echo(name: str, line: str) -> bool:
     """Show the player's progress and every warning or error; the rest goes to the logs."""
     return name == "bag_player" or "[WARN]" in line or "[ERROR]" in line or "fatal" in line
@@ -146,19 +184,22 @@ def check_inputs(bag: Path, out_dir: Path, rate: float) -> tuple[dict, bags.BagH
 def run_replay(bag: str | Path, out_dir: str | Path, graph_config: str | Path,
                rate: float = 1.0, drain: float = 5.0, startup_timeout: float = 60.0,
                verbose: bool = False, enable=(), mission_dir: str | Path | None = None,
-               lost_offset=None) -> dict:
+               lost_offset=None, kidnap=None) -> dict:
     """Replay ``bag`` through the graph; return the report's metrics (see :mod:`.report`).
 
     The inputs are checked first (:func:`check_inputs`); a damaged bag is replayed as far
     as it can be read, and the report says so (``input_damaged``). ``enable`` names nodes
     the graph file disables to run too (e.g. ``autopilot_bridge``, whose outputs are then
     recorded). ``mission_dir`` is the mission index the matcher searches when lost;
-    ``lost_offset`` (east, north metres) replays a lost aircraft (:func:`_lost_parameters`).
+    ``lost_offset`` (east, north metres) replays a lost aircraft (:func:`_lost_parameters`);
+    ``kidnap`` (seconds, east, north metres) a kidnapped one (:func:`_kidnapped`).
     """
     bag, out_dir = Path(bag).resolve(), Path(out_dir).resolve()
     mission, health = check_inputs(bag, out_dir, rate)
     spec = load_graph(graph_config, enable)
     out_dir.mkdir(parents=True, exist_ok=True)
+    if kidnap is not None:
+        bag = _kidnapped(bag, out_dir / "input", *kidnap)
     output_bag = out_dir / "outputs"
     input_topics = [t.topic for t in bags.topics(bag)]
     overrides = _mission_parameters(set(input_topics), mission)

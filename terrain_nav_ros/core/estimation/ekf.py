@@ -781,6 +781,17 @@ class TerrainEkf:
         return self._submit(stamp, source, np.concatenate(parts), covariance,
                             np.concatenate(rows), att, relocalisation)
 
+    def set_position(self, stamp: float, position, covariance) -> Outcome:
+        """Put the position at ``position`` (ENU, m; 3x3 covariance) at ``stamp``, whatever
+        the estimate: an operator's re-seed (robot_localization's ``set_pose``, position
+        only). Not gated; velocity, attitude and biases stay the filter's, and the position
+        is decorrelated from them (``POSITION_RESET`` under the source ``"set_pose"``)."""
+        position = np.asarray(position, dtype=float)
+        if position.shape != (3,):
+            return self._refuse("set_pose", Reason.BAD_SHAPE)
+        return self._submit(stamp, "set_pose", position, covariance, np.arange(0, 3), None,
+                            reset=True)
+
     def process_gnss(self, stamp: float, position, covariance) -> Outcome:
         """GNSS position already converted to the ENU map frame (m), with its 3x3 covariance
         (NavSatFix's ``position_covariance`` is ENU).
@@ -800,8 +811,9 @@ class TerrainEkf:
                             None)
 
     def _submit(self, stamp, source, z, covariance, rows, attitude,
-                relocalisation: bool = False) -> Outcome:
-        """Validate, log and apply (now, queued or in the past) one measurement."""
+                relocalisation: bool = False, reset: bool = False) -> Outcome:
+        """Validate, log and apply (now, queued or in the past) one measurement; with
+        ``reset``, as a position reset (not gated)."""
         m = len(z)
         R = np.asarray(covariance, dtype=float)
         if R.shape != (m, m):
@@ -811,7 +823,7 @@ class TerrainEkf:
         if not _is_pd(R):
             return self._refuse(source, Reason.BAD_COVARIANCE)
         meas = _Measurement(float(stamp), next(self._seq), source, z.copy(), 0.5 * (R + R.T),
-                            rows, attitude, relocalisation=relocalisation)
+                            rows, attitude, relocalisation=relocalisation, reset=reset)
         if not self.initialized:
             if relocalisation and source == self.params.init_mode:
                 return self._init_from_relocalisation(meas)
