@@ -3,12 +3,13 @@
 Run from the repository root::
 
     .venv/bin/python benchmarks/bench_relocalise.py [--dem ../shared/data/dem/N44E005.hgt]
-        [--gsd 30] [--cases 20] [--controls 10] [--tile 1024] [--overlap 256]
+        [--gsd 30] [--cases 20] [--controls 10] [--mission DIR]
 
-The whole DEM (default: the 1 x 1 deg N44E005 SRTM3 tile, ~80 x 110 km) is rendered at
-``--gsd`` as the landmark (the graph's renderer, one sun), cut into overlapping tiles of
-``--tile`` px and each tile's features extracted and prepared as the graph prepares a
-landmark region. Camera views of ``--view`` px are cut anywhere in the area from a render
+The mission index of the whole DEM (default: the 1 x 1 deg N44E005 SRTM3 tile, ~80 x 110
+km) at ``--gsd`` for one sun is built with ``terrain-nav prepare`` (2 Dask workers) into
+``--mission`` unless it is there already, and its tiles are loaded and prepared as the
+matcher node does on its first search (:class:`~terrain_nav_ros.core.matching.relocaliser.
+MissionSearch`). Camera views of ``--view`` px are cut anywhere in the area from a render
 with another albedo and the camera effects of the block study, turned by any heading
 (+-180 deg) and scaled by +-10 %, and each is searched in every tile
 (:func:`~terrain_nav_ros.core.matching.global_search.relocalise`, the graph's threshold).
@@ -16,8 +17,8 @@ Controls: views of another DEM (``--control-dem``), which must never be relocali
 
 Prints (no assertions): views relocalised within 3 px, 3-10 px off, at a wrong place (more
 than 10 px off), not relocalised (with the reasons), controls accepted, the median and p95
-CPU time per query on one core (extraction of the view included), and the preparation time
-of the tiles.
+CPU time per query on one core (extraction of the view included), the time to load and
+prepare the tiles, and the process's peak memory.
 """
 
 import os
@@ -28,6 +29,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS",
 
 import argparse  # noqa: E402
 import math  # noqa: E402
+import resource  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections import Counter  # noqa: E402
@@ -39,14 +41,12 @@ import numpy as np  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from terrain_nav_ros.core.features.minutiae import FeatureExtractor, MinutiaParams  # noqa: E402
-from terrain_nav_ros.core.matching.global_search import (  # noqa: E402
-    SearchTile,
-    relocalisation_matcher,
-    relocalise,
-)
+from terrain_nav_ros.core.features.minutiae import FeatureExtractor  # noqa: E402
+from terrain_nav_ros.core.matching.global_search import relocalise  # noqa: E402
 from terrain_nav_ros.core.matching.matcher import warm_up  # noqa: E402
+from terrain_nav_ros.core.matching.mission_index import MissionIndex  # noqa: E402
 from terrain_nav_ros.core.matching.params import MatchParams  # noqa: E402
+from terrain_nav_ros.core.matching.relocaliser import MissionSearch  # noqa: E402
 from terrain_nav_ros.core.render.camera_effects import apply_camera_effects  # noqa: E402
 from terrain_nav_ros.core.render.renderer import (  # noqa: E402
     LandmarkRenderer,
@@ -55,6 +55,7 @@ from terrain_nav_ros.core.render.renderer import (  # noqa: E402
 from terrain_nav_ros.core.terrain.dem_io import open_dem  # noqa: E402
 from terrain_nav_ros.core.terrain.georef import GeoReference  # noqa: E402
 from terrain_nav_ros.core.terrain.metamap import MetaMap  # noqa: E402
+from terrain_nav_ros.tools import cli  # noqa: E402
 from terrain_nav_ros.tools.evaluation import (  # noqa: E402
     GROSS_PX,
     CameraModel,
@@ -66,44 +67,39 @@ GRAPH_THRESHOLD = 8.6
 DATA = REPO.parent / "shared" / "data" / "dem"
 
 
-def _renders(dem_path: str, gsd: float, sun):
-    """Landmark grey and camera RGB of the whole DEM at ``gsd``, and the area's georef."""
-    mm = MetaMap(open_dem(dem_path), interpolation="spline", fill_voids=True)
-    w, e, s, n = mm.enu_bounds[0]
-    georef = GeoReference.centred(0.5 * (w + e), 0.5 * (s + n), gsd,
-                                  int((e - w) / gsd) - 2, int((n - s) / gsd) - 2)
-    tile = mm.tile(georef)
+def _camera(dem_path: str, georef: GeoReference, sun, origin=None):
+    """Camera RGB of ``georef`` (in the ENU frame of ``origin``, default the DEM's centre):
+    the graph's renderer with another albedo than the landmarks'."""
+    tile = MetaMap(open_dem(dem_path), origin, interpolation="spline",
+                   fill_voids=True).tile(georef)
     elev = np.where(tile.nodata, np.nanmedian(tile.elevation), tile.elevation)
     renderer = LandmarkRenderer(create_headless_context())
     renderer.set_terrain(elev, georef)
-    landmark = renderer.render_nadir(georef, sun=sun).grey_u8
     renderer.set_albedo(_camera_albedo(elev))
     camera = renderer.render_nadir(georef, sun=sun).rgb
     renderer.release()
-    return landmark, camera, georef
+    return camera
 
 
-def _starts(n: int, tile: int, stride: int) -> list[int]:
-    """Tile origins along an axis of ``n`` px: every ``stride``, the last flush with the end."""
-    starts = list(range(0, max(n - tile, 0) + 1, stride))
-    if starts[-1] + tile < n:
-        starts.append(n - tile)
-    return starts
+def _dem_extent(dem_path: str, gsd: float) -> GeoReference:
+    """The DEM's whole extent at ``gsd``, around its centre."""
+    w, e, s, n = MetaMap(open_dem(dem_path)).enu_bounds[0]
+    return GeoReference.centred(0.5 * (w + e), 0.5 * (s + n), gsd, int((e - w) / gsd) - 2,
+                                int((n - s) / gsd) - 2)
 
 
-def _tiles(matcher, landmark, georef, tile: int, overlap: int) -> list[SearchTile]:
-    extractor = FeatureExtractor(minutia_params=MinutiaParams(max_minutiae=100000), ridges=True)
-    h, w = landmark.shape
-    out = []
-    for y in _starts(h, tile, tile - overlap):
-        for x in _starts(w, tile, tile - overlap):
-            f = extractor(landmark[y:y + tile, x:x + tile])
-            ix = matcher.index(f.minutiae, f.creases.skeleton(), f.ridges)
-            g = GeoReference(georef.origin_east + x * georef.gsd,
-                             georef.origin_north - y * georef.gsd, georef.gsd,
-                             min(tile, w), min(tile, h))
-            out.append(SearchTile(ix.prepare_as_reference(search=True), g, f"{y}_{x}"))
-    return out
+def _mission(args, sun) -> MissionIndex:
+    """The mission index of the DEM for ``sun``, built unless it is there."""
+    out = Path(args.mission or REPO / "out" / "bench_relocalise" /
+               f"{Path(args.dem).stem}_{args.gsd:g}m_{sun[0]:g}_{sun[1]:g}")
+    if not (out / "manifest.json").exists():
+        t0 = time.perf_counter()
+        code = cli.main(["prepare", "--dem", args.dem, "--gsd", f"{args.gsd:g}", "--out",
+                         str(out), "--suns", f"{sun[0]:g}/{sun[1]:g}", "--workers", "2"])
+        if code != 0:
+            raise SystemExit(code)
+        print(f"prepared {out} in {time.perf_counter() - t0:.0f} s (2 workers)")
+    return MissionIndex(out)
 
 
 def _views(camera_rgb, n: int, size: int, rng):
@@ -143,8 +139,7 @@ def main():
     ap.add_argument("--control-dem", default=str(DATA / "front_range_srtm3.asc"))
     ap.add_argument("--gsd", type=float, default=30.0)
     ap.add_argument("--view", type=int, default=256)
-    ap.add_argument("--tile", type=int, default=1024)
-    ap.add_argument("--overlap", type=int, default=256)
+    ap.add_argument("--mission", help="mission index directory (built when missing)")
     ap.add_argument("--cases", type=int, default=20)
     ap.add_argument("--controls", type=int, default=10)
     ap.add_argument("--sun", default="135,45", help="azimuth,elevation (deg)")
@@ -156,16 +151,21 @@ def main():
 
     params = MatchParams(threshold=GRAPH_THRESHOLD)
     warm_up(params)
-    matcher = relocalisation_matcher(params, args.tile)
-    t0 = time.perf_counter()
-    landmark, camera, georef = _renders(args.dem, args.gsd, sun)
-    t1 = time.perf_counter()
-    tiles = _tiles(matcher, landmark, georef, args.tile, args.overlap)
-    t2 = time.perf_counter()
-    print(f"{Path(args.dem).name}: {georef.width} x {georef.height} px at {args.gsd:g} m "
-          f"({georef.width * args.gsd / 1e3:.0f} x {georef.height * args.gsd / 1e3:.0f} km), "
-          f"{len(tiles)} tiles of {args.tile} px (overlap {args.overlap}); render "
-          f"{t1 - t0:.1f} s, tiles' features and preparation {t2 - t1:.1f} s")
+    mission = _mission(args, sun)
+    search = MissionSearch(mission, params)
+    matcher = search.matcher
+    t0 = time.process_time()
+    tiles = search.tiles_for(sun)
+    t1 = time.process_time()
+    # the views are cut from the area prepared (the DEMs' extent), not the tiles beyond it
+    west, east, south, north = mission.manifest["area"]["enu_extent"]
+    georef = GeoReference(west, north, mission.gsd, int((east - west) / mission.gsd),
+                          int((north - south) / mission.gsd))
+    camera = _camera(args.dem, georef, sun, mission.origin)
+    print(f"{Path(args.dem).name}: {georef.width} x {georef.height} px at {mission.gsd:g} m "
+          f"({georef.width * mission.gsd / 1e3:.0f} x {georef.height * mission.gsd / 1e3:.0f}"
+          f" km), {len(tiles)} tiles of {mission.grid.tile_px} px (overlap "
+          f"{mission.grid.overlap_px}); tiles loaded and prepared in {t1 - t0:.1f} s CPU")
 
     extractor = FeatureExtractor(ridges=True)
     ok = off = wrong = 0
@@ -188,7 +188,7 @@ def main():
 
     accepted, control_times, best_control = 0, [], -math.inf
     if args.controls:
-        _, other, _ = _renders(args.control_dem, args.gsd, sun)
+        other = _camera(args.control_dem, _dem_extent(args.control_dem, args.gsd), sun)
         for grey, _ in _views(other, args.controls, args.view, rng):
             found, seconds = _query(matcher, extractor, grey, tiles)
             control_times.append(seconds)
@@ -203,6 +203,8 @@ def main():
     if args.controls:
         print(f"controls ({Path(args.control_dem).name} views): {accepted}/{args.controls} "
               f"accepted, best area score {best_control:.1f} (threshold {GRAPH_THRESHOLD})")
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"peak memory of the process: {peak:.0f} MB")
 
 
 if __name__ == "__main__":
