@@ -75,11 +75,11 @@ def mission(shared_data, tmp_path_factory):
     return MissionIndex(out), dem
 
 
-def _camera_view(dem, east, north, degrees, sun, gsd=90.0, side=128):
+def _camera_view(dem, east, north, degrees, sun, gsd=90.0, side=128, origin=GRAPH_ORIGIN):
     """A camera set of side ``side`` px centred on graph-frame (east, north), turned by
     ``degrees``: another albedo than the landmarks', extracted as camera_ingest's frames
     are, with its georef in the graph's frame."""
-    mm = MetaMap(open_dem(dem), GRAPH_ORIGIN, interpolation="spline", fill_voids=True)
+    mm = MetaMap(open_dem(dem), origin, interpolation="spline", fill_voids=True)
     big = GeoReference.centred(east, north, gsd, 2 * side, 2 * side)
     elevation = mm.tile(big).elevation
     renderer = LandmarkRenderer(create_headless_context())
@@ -119,3 +119,18 @@ def test_a_camera_set_at_another_gsd_is_refused_with_the_reason(mission):
     found, land_georef = search.search(camera, WHEN, GRAPH_ORIGIN)
     assert not found.matched and land_georef is None
     assert "prepare the index at the graph's gsd" in found.reason
+
+
+def test_a_search_under_a_sun_the_index_was_not_prepared_for_says_so(mission, shared_data):
+    index, _ = mission
+    search = MissionSearch(index, MatchParams(threshold=8.6))
+    evening = WHEN + 8 * 3600.0                   # 17:00 UTC: the sun in the west
+    # a view of terrain the index does not hold: no match, and the reason names the sun
+    other = shared_data / "dem" / "front_range_srtm3.asc"
+    features = _camera_view(other, 0.0, 0.0, 0.0, search.sun_at(evening), origin=None)
+    camera = search.matcher.index(features.minutiae, features.creases.skeleton(),
+                                  features.ridges)
+    found, _ = search.search(camera, evening, GRAPH_ORIGIN)
+    assert not found.matched
+    assert "prepare it for the flight's hours" in found.reason
+    assert search.layer_sun_gap(search.sun_at(evening)) > 90.0
