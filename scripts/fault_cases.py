@@ -338,6 +338,11 @@ def cases() -> list[Case]:
         Case("matcher: match.candidates kd", "parameters", _node_params(
             "    match.candidates: kd\n", "MatchParams.candidates must be one of",
             node="matcher")),
+        Case("matcher: mission_dir that holds no index", "parameters", _node_params(
+            "    mission_dir: /nonexistent/mission\n", "holds no mission index",
+            node="matcher")),
+        Case("matcher: mission index with a tile layer missing", "parameters",
+             _partial_mission),
         Case("IMU stamp 5 s in the past, GNSS gone", "ekf", _ekf_stamp(-5.0)),
         Case("IMU stamp 1 h ahead, GNSS gone", "ekf", _ekf_stamp(3600.0), ci=True),
     ]
@@ -349,6 +354,19 @@ def _prepare(options: tuple, words: str):
     return lambda tmp: judge(terrain_nav(
         "prepare", "--dem", relief_geotiff(tmp / "relief.tif"), "--gsd", 30, "--out",
         tmp / "index", *options), 2, (words,))
+
+
+def _partial_mission(tmp: Path):
+    """A mission index of the small relief GeoTIFF with one tile layer deleted (a prepare
+    cut short): the matcher refuses it at start-up, naming the fix."""
+    index = tmp / "index"
+    subprocess.run(terrain_nav("prepare", "--dem", relief_geotiff(tmp / "relief.tif"), "--gsd",
+                               "60", "--tile", "128", "--overlap", "32", "--suns", "135/45",
+                               "--workers", "1", "--out", index), capture_output=True,
+                   check=True, timeout=300)
+    next((index / "tiles").glob("*.npz")).unlink()
+    return _node_params(f"    mission_dir: {index}\n", "tile layers missing: run "
+                        "terrain-nav prepare again", node="matcher")(tmp)
 
 
 def _write(path: Path, data) -> Path:
