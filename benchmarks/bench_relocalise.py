@@ -13,7 +13,9 @@ MissionSearch`). Camera views of ``--view`` px are cut anywhere in the area from
 with another albedo and the camera effects of the block study, turned by any heading
 (+-180 deg) and scaled by +-10 %, and each is searched in every tile
 (:func:`~terrain_nav_ros.core.matching.global_search.relocalise`, the graph's threshold).
-Controls: views of another DEM (``--control-dem``), which must never be relocalised.
+Controls: views of another DEM (``--control-dem``) and, with ``--real-controls N``, N views
+(160 px, any heading) of each real image of ``benchmarks/real_scenes.yaml`` at the index's
+GSD (real albedo: fields, forest, snow, clouds), none of which may be relocalised.
 
 Prints (no assertions): views relocalised within 3 px, 3-10 px off, at a wrong place (more
 than 10 px off), not relocalised (with the reasons), controls accepted, the median and p95
@@ -123,6 +125,17 @@ def _views(camera_rgb, n: int, size: int, rng):
     return out
 
 
+def _real_views(n: int, gsd: float, rng, size: int = 160):
+    """``n`` views of each real image at ``gsd`` (benchmarks/real_scenes.yaml), any
+    heading."""
+    from terrain_nav_ros.tools import real_imagery as ri
+
+    scenes = ri.load_scenes(REPO / "benchmarks" / "real_scenes.yaml",
+                            REPO.parent / "shared" / "data" / "imagery")
+    return [case.view for scene in scenes if abs(scene.gsd - gsd) < 0.5
+            for case in ri._cut_cases(scene, size, n, False, 1.0, rng)]
+
+
 def _query(matcher, extractor, grey, tiles):
     """(Relocalisation, CPU seconds) of one view, its extraction included."""
     t0 = time.process_time()
@@ -142,6 +155,8 @@ def main():
     ap.add_argument("--mission", help="mission index directory (built when missing)")
     ap.add_argument("--cases", type=int, default=20)
     ap.add_argument("--controls", type=int, default=10)
+    ap.add_argument("--real-controls", type=int, default=0,
+                    help="views of each real image (benchmarks/real_scenes.yaml) as controls")
     ap.add_argument("--sun", default="135,45", help="azimuth,elevation (deg)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--verbose", action="store_true", help="one line per view")
@@ -195,6 +210,13 @@ def main():
             accepted += found.matched
             best_control = max(best_control, found.score)
 
+    real = _real_views(args.real_controls, mission.gsd, rng) if args.real_controls else []
+    real_accepted, best_real = 0, -math.inf
+    for grey in real:
+        found, _ = _query(matcher, extractor, grey, tiles)
+        real_accepted += found.matched
+        best_real = max(best_real, found.score)
+
     t = np.array(times)
     print(f"relocalised within 3 px: {ok}/{args.cases}, 3-{GROSS_PX:g} px off: {off}, at a wrong "
           f"place: {wrong}, not relocalised: {args.cases - ok - off - wrong} {dict(reasons)}")
@@ -203,6 +225,9 @@ def main():
     if args.controls:
         print(f"controls ({Path(args.control_dem).name} views): {accepted}/{args.controls} "
               f"accepted, best area score {best_control:.1f} (threshold {GRAPH_THRESHOLD})")
+    if real:
+        print(f"controls (real images): {real_accepted}/{len(real)} accepted, best area score "
+              f"{best_real:.1f}")
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"peak memory of the process: {peak:.0f} MB")
 
