@@ -154,3 +154,13 @@ def test_the_report_lists_what_the_ekf_found_once_each(tmp_path):
                                  types["DiagnosticArray"](header=header, status=[status]),
                                  "diagnostic_msgs/msg/DiagnosticArray")
     assert report.navigation_events(tmp_path / "out") == found[1::2]
+
+
+def test_settled_after_is_when_the_error_stays_below_the_bound():
+    from terrain_nav_ros.tools import report
+
+    t = np.arange(6.0)
+    assert report.settled_after(t, [90, 50, 70, 40, 30, 20], 60.0) == 3.0
+    assert report.settled_after(t, [10] * 6, 60.0) == 0.0
+    assert np.isnan(report.settled_after(t, [10, 10, 10, 10, 10, 70], 60.0))
+    assert np.isnan(report.settled_after(np.array([]), [], 60.0))

@@ -45,16 +45,16 @@ def test_a_tile_moves_into_another_frame_exactly_at_the_matched_pixel():
     frame_origin = EnuOrigin(44.9, 5.1, 250.0)      # ~55 km away
     georef = GeoReference(-20_000.0, 15_000.0, 30.0, 1024, 1024)
     col, row = 700.0, 300.0
-    moved = tile_in_frame(georef, col, row, tile_origin, frame_origin)
+    east, north = map(float, georef.pixel_to_enu(col, row))
+    moved = tile_in_frame(georef, east, north, tile_origin, frame_origin)
     assert (moved.gsd, moved.width, moved.height) == (georef.gsd, georef.width, georef.height)
-    east, north = georef.pixel_to_enu(col, row)
     lat, lon, h = tile_origin.enu_to_geodetic(east, north, tile_origin.surface_up(east, north))
     want = frame_origin.geodetic_to_enu(lat, lon, h)
     got = moved.pixel_to_enu(col, row)
     assert abs(got[0] - want[0]) < 0.5 and abs(got[1] - want[1]) < 0.5
     # 55 km apart: a shift of tens of kilometres
     assert abs(moved.origin_east - georef.origin_east) > 20_000
-    assert tile_in_frame(georef, col, row, tile_origin, tile_origin) is georef
+    assert tile_in_frame(georef, east, north, tile_origin, tile_origin) is georef
 
 
 # ---------------------------------------------------------------- MissionSearch on a real index

@@ -241,7 +241,6 @@ class MatcherNode(Node):
                         projection, landmark) -> bool:
         """A fix or a no-fix of a camera set in the landmark tile holding it; whether it
         was a fix."""
-        position, rotation, plane = projection
         if landmark is None:
             self.publish_no_fix(msg.header.stamp, "no landmark covers the camera footprint")
             return False
@@ -252,10 +251,9 @@ class MatcherNode(Node):
             return False
         result = self.matcher.localise(
             self.matcher.index(camera, camera_creases, camera_ridges), land_index)
-        fix = fix_from_ground_match(result, camera.georef, land_minutiae.georef, position,
-                                    rotation, plane, landmark_sigma=self.landmark_sigma)
-        add_prior_tilt(fix, position[2] - plane, self.tilt_sigma)
+        fix = self._ground_fix(result, camera.georef, land_minutiae.georef, projection)
         if result.matched and self.method == "pnp":
+            position, rotation, _ = projection
             fix = checked_pnp(self.pnp_fix(result, camera, land_minutiae, position, rotation),
                               fix, self.pnp_gate)
         if not fix.valid:
@@ -269,7 +267,6 @@ class MatcherNode(Node):
         """A fix marked as a relocalisation, or a no-fix, from a search of the camera set
         in the whole mission index. The ground match only: the DEM tile held for PnP lies
         around the estimate, which is what is in doubt."""
-        position, rotation, plane = projection
         origin = cv.enu_origin_of(msg.georef)
         stamp = cv.stamp_to_sec(msg.header.stamp)
         found, land_georef = self.mission.search(
@@ -278,9 +275,7 @@ class MatcherNode(Node):
         if not found.matched:
             self.publish_no_fix(msg.header.stamp, f"relocalisation ({why}): {found.reason}")
             return
-        fix = fix_from_ground_match(found.result, camera.georef, land_georef, position,
-                                    rotation, plane, landmark_sigma=self.landmark_sigma)
-        add_prior_tilt(fix, position[2] - plane, self.tilt_sigma)
+        fix = self._ground_fix(found.result, camera.georef, land_georef, projection)
         if not fix.valid:
             self.publish_no_fix(msg.header.stamp, f"relocalisation: {fix.reason}", fix)
             return
@@ -288,6 +283,16 @@ class MatcherNode(Node):
         self.get_logger().info(f"relocalised ({why}) in tile {found.tile.key}, area score "
                                f"{found.score:.1f} over {found.searched} tiles")
         self.publish_fix(msg.header.stamp, stamp, fix, origin)
+
+    def _ground_fix(self, result, camera_georef, landmark_georef,
+                    projection) -> PvaFixEstimate:
+        """The fix of a registration of the ground-projected camera set in a landmark
+        raster, with the prior tilt's allowance."""
+        position, rotation, plane = projection
+        fix = fix_from_ground_match(result, camera_georef, landmark_georef, position,
+                                    rotation, plane, landmark_sigma=self.landmark_sigma)
+        add_prior_tilt(fix, position[2] - plane, self.tilt_sigma)
+        return fix
 
     def pnp_fix(self, result, camera, landmark, position, rotation) -> PvaFixEstimate | None:
         """Camera pose by PnP: raw-frame pixels of the camera minutiae against the DEM points

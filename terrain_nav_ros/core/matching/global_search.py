@@ -46,7 +46,8 @@ class SearchTile:
     Parameters
     ----------
     index : MinutiaIndex
-        The tile's landmark set, best prepared once (``prepare_as_reference(search=True)``).
+        The tile's landmark set, prepared once (``prepare_as_reference()``) for the frames
+        searched in it.
     georef : GeoReference
         The tile's raster in the mission's ENU frame (the landmark set's pixel frame).
     key : str
@@ -82,6 +83,9 @@ class Relocalisation:
         Tiles searched (fewer than given when a certain answer stopped the search).
     reason : str
         Why there is no relocalisation.
+    candidates : list
+        Every registration significant over the area, as (area score, tile position in the
+        list searched, result, east, north), best first: for logs and studies.
     """
 
     result: MatchResult
@@ -175,13 +179,14 @@ def relocalise(matcher: Matcher, camera: MinutiaIndex, tiles: Sequence[SearchTil
         tile = tiles[k]
         result = matcher.localise(camera, tile.index)
         searched += 1
-        best_seen = max(best_seen, result.score - penalty)
-        if not result.matched or result.score - penalty < threshold:
+        area_score = result.score - penalty
+        best_seen = max(best_seen, area_score)
+        if not result.matched or area_score < threshold:
             continue
         c, r = result.apply(col, row)
         east, north = tile.georef.pixel_to_enu(float(c[0]), float(r[0]))
-        found.append((result.score - penalty, k, result, float(east), float(north)))
-        if result.score - penalty >= certain_score:
+        found.append((area_score, k, result, float(east), float(north)))
+        if area_score >= certain_score:
             break
     if not found:
         reason = (f"no significant match in the mission area (best {best_seen:.1f} < "

@@ -67,10 +67,10 @@ class SearchPolicy:
         self.searched_last = False
 
 
-def tile_in_frame(georef: GeoReference, col: float, row: float, tile_origin: EnuOrigin,
+def tile_in_frame(georef: GeoReference, east: float, north: float, tile_origin: EnuOrigin,
                   frame_origin: EnuOrigin) -> GeoReference:
     """``georef`` (a raster in the ENU frame of ``tile_origin``) moved into the ENU frame of
-    ``frame_origin``, exactly at pixel (``col``, ``row``).
+    ``frame_origin``, exactly at the point (``east``, ``north``) of the tile's frame.
 
     The two frames' east-north planes are tangent at different places: between origins tens
     of kilometres apart their axes turn by a fraction of a degree and their planes drift
@@ -80,13 +80,12 @@ def tile_in_frame(georef: GeoReference, col: float, row: float, tile_origin: Enu
     """
     if tile_origin == frame_origin:
         return georef
-    east, north = georef.pixel_to_enu(col, row)
     # on the ellipsoid's surface, not the tangent plane (which rises above it, ~200 m at 50 km)
     up = tile_origin.surface_up(east, north)
-    lat, lon, h = tile_origin.enu_to_geodetic(float(east), float(north), float(up))
+    lat, lon, h = tile_origin.enu_to_geodetic(east, north, float(up))
     e2, n2, _ = frame_origin.geodetic_to_enu(lat, lon, h)
-    return replace(georef, origin_east=georef.origin_east + float(e2) - float(east),
-                   origin_north=georef.origin_north + float(n2) - float(north))
+    return replace(georef, origin_east=georef.origin_east + float(e2) - east,
+                   origin_north=georef.origin_north + float(n2) - north)
 
 
 class MissionSearch:
@@ -158,6 +157,5 @@ class MissionSearch:
                 found.reason += (f"; the index's nearest sun is {gap:.0f} deg from the "
                                  "frame's: prepare it for the flight's hours")
             return found, None
-        col, row = found.tile.georef.enu_to_pixel(*found.position)
-        return found, tile_in_frame(found.tile.georef, float(col), float(row),
-                                    self.mission.origin, frame_origin)
+        return found, tile_in_frame(found.tile.georef, *found.position, self.mission.origin,
+                                    frame_origin)
