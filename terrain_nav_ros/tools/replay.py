@@ -94,8 +94,10 @@ def _lost_parameters(bag: Path, offset) -> dict:
 def _kidnapped(bag: Path, copy: Path, at: float, east: float, north: float) -> Path:
     """A copy of ``bag`` (and its mission.yaml) with one ``/ekf/set_pose`` ``at`` s after
     its first message: the true position then, moved by (``east``, ``north``) metres, with a
-    10 m sigma. The filter believes it, as it would a wrong operator re-seed or a wrong fix
-    accepted once, and the matcher must find the aircraft again (``--mission``)."""
+    10 m horizontal sigma; the height is left to the barometer (a 1 km sigma), so the kidnap
+    moves the estimate sideways only. The filter believes it, as it would a wrong operator
+    re-seed or a wrong fix accepted once, and the matcher must find the aircraft again
+    (``--mission``)."""
     store = bags.typestore().types
     start, injected = None, False
     with bags.BagWriter(copy, compress=True) as writer:
@@ -112,7 +114,7 @@ def _kidnapped(bag: Path, copy: Path, at: float, east: float, north: float) -> P
                     position=store["geometry_msgs/msg/Point"](x=p.x + east, y=p.y + north,
                                                               z=p.z),
                     orientation=truth.pose.pose.orientation)
-                covariance = np.diag([100.0] * 3 + [-1.0] * 3).ravel()
+                covariance = np.diag([100.0, 100.0, 1e6] + [-1.0] * 3).ravel()
                 msg = store["geometry_msgs/msg/PoseWithCovarianceStamped"](
                     header=truth.header, pose=store["geometry_msgs/msg/PoseWithCovariance"](
                         pose=pose, covariance=covariance))
