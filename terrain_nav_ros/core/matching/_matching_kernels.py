@@ -27,8 +27,8 @@
 * :func:`channel_cross_spectra`, :func:`box_mask`: the channel product and the shifts the
   footprint counts keep, of :mod:`.crease_search`, without numpy's whole-array
   temporaries;
-* :func:`rasterise_channels`: the crease search query's direction-channel rasters, one
-  transform at a time.
+* :func:`rasterise_transformed`: the crease search query's direction-channel rasters, one
+  transform at a time, with the pixels' places.
 
 They are used when numba is importable and ``TERRAIN_NAV_NO_NUMBA`` is not set, and compute
 the same floating-point operations in the same order as the numpy path (no ``fastmath``:
@@ -40,8 +40,11 @@ with fused multiply-adds where the CPU has them) round differently from the scal
 those and of :func:`ransac`, so values that go through them agree to rounding (~1e-15
 relative), and a comparison of such a value with a tolerance could only differ at the
 tolerance itself; and two minutiae of B at exactly the same distance from a mapped minutia
-of A may be ranked in another order than the k-d tree ranks them; :func:`rasterise_channels`
-turns the direction weights by angle sums instead of numpy's cosines (~1e-16 apart).
+of A may be ranked in another order than the k-d tree ranks them; :func:`rasterise_transformed`
+turns the direction weights by angle sums instead of numpy's cosines (~1e-16 apart), and its
+scalar complex products of the pixels' places may round differently from numpy's (fused
+multiply-adds): a pixel could land on the next search pixel only where its place is within
+~1e-13 px of a half pixel.
 """
 
 from __future__ import annotations
@@ -779,23 +782,28 @@ def box_mask(cum, row_lo, row_hi, col_lo, col_hi, threshold):
 
 
 @njit(**_JIT)
-def rasterise_channels(rows, cols, direction, turn, h, w):
-    """``crease_search.CreaseSearchQuery.raster``: the query's pixels at search pixels
-    ``(rows, cols)`` (n_rot, n) under each transform, accumulated on (n_rot, 5, h, w):
-    their direction channels (crease directions ``direction`` turned by ``turn``) and
-    their count, one pass per transform without the numpy path's (4, n_rot, n) weights.
+def rasterise_transformed(z, c, col0, row0, direction, turn, h, w):
+    """``crease_search.CreaseSearchQuery.raster``: the query's pixels ``z`` (math frame,
+    search pixels) mapped by each transform ``c[r]`` (its angle ``turn[r]``), at column
+    ``rint(Re(c z)) - col0`` and row ``rint(-Im(c z)) - row0`` (clipped to the raster),
+    accumulated on (n_rot, 5, h, w): their direction channels (crease directions
+    ``direction`` turned by ``turn``) and their count, one pass per transform without the
+    numpy path's (n_rot, n) positions, indices and (4, n_rot, n) weights.
     The weights ``max(0, cos 2(d - k pi/4))`` are ``max(0, +-cos 2d)`` and ``max(0,
     +-sin 2d)``, turned by the angle-sum formulas: they agree with the numpy path's
     cosines to rounding."""
-    n_rot, n = rows.shape
+    n_rot, n = c.size, z.size
     c2d, s2d = np.cos(2.0 * direction), np.sin(2.0 * direction)
     acc = np.zeros((5, h, w))
     out = np.empty((n_rot, 5, h, w), np.float32)
     for r in range(n_rot):
         acc[:] = 0.0
         c2t, s2t = np.cos(2.0 * turn[r]), np.sin(2.0 * turn[r])
+        cr = c[r]
         for i in range(n):
-            row, col = rows[r, i], cols[r, i]
+            q = cr * z[i]
+            col = min(max(np.intp(np.rint(q.real) - col0[r]), 0), w - 1)
+            row = min(max(np.intp(np.rint(-q.imag) - row0[r]), 0), h - 1)
             cos2 = c2d[i] * c2t - s2d[i] * s2t
             sin2 = s2d[i] * c2t + c2d[i] * s2t
             acc[0, row, col] += max(cos2, 0.0)
