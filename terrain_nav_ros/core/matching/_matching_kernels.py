@@ -771,13 +771,19 @@ def box_mask(cum, row_lo, row_hi, col_lo, col_hi, threshold):
     searched`` without the (n_rot, h_pad, w_pad) counts."""
     n_rot = cum.shape[0]
     out = np.empty((n_rot, row_lo.size, col_lo.size), np.bool_)
+    rows = np.empty(cum.shape[2], cum.dtype)
     for r in range(n_rot):
         for i in range(row_lo.size):
             a, b = row_lo[i], row_hi[i]
+            if i and a == row_lo[i - 1] and b == row_hi[i - 1]:
+                out[r, i] = out[r, i - 1]   # the same rows of the query (most shifts)
+                continue
+            # the row band's column sums: the prefix sums hold integer counts, exact in
+            # float32 (< 2**24), so any order of the four terms gives the same sum
+            for k in range(rows.size):
+                rows[k] = cum[r, b, k] - cum[r, a, k]
             for j in range(col_lo.size):
-                c, d = col_lo[j], col_hi[j]
-                out[r, i, j] = (cum[r, b, d] - cum[r, a, d] - cum[r, b, c]
-                                + cum[r, a, c]) >= threshold
+                out[r, i, j] = rows[col_hi[j]] - rows[col_lo[j]] >= threshold
     return out
 
 
