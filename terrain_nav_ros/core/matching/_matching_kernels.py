@@ -581,23 +581,9 @@ def crease_icp(z, direction, distance, field_dir, label, crease_z, crease_normal
             if settled:
                 break
             continue
-        a00 = a01 = a02 = a11 = a12 = a22 = 0.0
-        b0 = b1 = b2 = 0.0
-        for k in range(m):
-            nc = normal[k].conjugate()
-            r = (nc * (p[k] - q[k])).real
-            j0 = (nc * 1j * (p[k] - p0)).real
-            j1 = normal[k].real
-            j2 = normal[k].imag
-            a00 += j0 * j0
-            a01 += j0 * j1
-            a02 += j0 * j2
-            a11 += j1 * j1
-            a12 += j1 * j2
-            a22 += j2 * j2
-            b0 -= j0 * r
-            b1 -= j1 * r
-            b2 -= j2 * r
+        # rotation, shift east, shift north: the terms without the scale's
+        a00, _, a01, a02, _, _, _, a11, a12, a22, b0, _, b1, b2 = _icp_normal_sums(
+            p, q, normal, m, p0, False)
         # Cramer's rule on the symmetric 3x3 system
         c00 = a11 * a22 - a12 * a12
         c01 = a02 * a12 - a01 * a22
@@ -620,25 +606,53 @@ def crease_icp(z, direction, distance, field_dir, label, crease_z, crease_normal
 
 
 @njit(**_JIT)
+def _icp_normal_sums(p, q, normal, m, p0, with_scale):
+    """The point-to-line ICP's normal equations ``J^T J`` (upper triangle, row by row) and
+    ``-J^T r`` over the first ``m`` correspondences, the unknowns rotation, scale (zero
+    without ``with_scale``), shift east and north about ``p0``: summed in registers, each
+    in the order of the correspondences (as the 4x4 array's entries were; ``j[u] * j[v]``
+    is ``j[v] * j[u]`` exactly, so the triangle gives the whole matrix)."""
+    a00 = a01 = a02 = a03 = a11 = a12 = a13 = a22 = a23 = a33 = 0.0
+    b0 = b1 = b2 = b3 = 0.0
+    for k in range(m):
+        nc = normal[k].conjugate()
+        r = (nc * (p[k] - q[k])).real
+        j0 = (nc * 1j * (p[k] - p0)).real
+        j1 = (nc * (p[k] - p0)).real if with_scale else 0.0
+        j2 = normal[k].real
+        j3 = normal[k].imag
+        b0 -= j0 * r
+        b1 -= j1 * r
+        b2 -= j2 * r
+        b3 -= j3 * r
+        a00 += j0 * j0
+        a01 += j0 * j1
+        a02 += j0 * j2
+        a03 += j0 * j3
+        a11 += j1 * j1
+        a12 += j1 * j2
+        a13 += j1 * j3
+        a22 += j2 * j2
+        a23 += j2 * j3
+        a33 += j3 * j3
+    return a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, b0, b1, b2, b3
+
+
+@njit(**_JIT)
 def _scaled_icp_step(p, q, normal, m, p0, c, t, scale_lo, scale_hi):
     """One point-to-line step for rotation, scale and shift about ``p0``: the new (c, t) and
     whether it settled. The scale step is bounded to 5 % and ``|c|`` to [scale_lo,
     scale_hi] (a few wrong pairings on parallel creases must not shrink the view onto
     them, nor a chance registration stretch to fit)."""
-    a = np.zeros((4, 4))
-    b = np.zeros(4)
-    j = np.empty(4)
-    for k in range(m):
-        nc = normal[k].conjugate()
-        r = (nc * (p[k] - q[k])).real
-        j[0] = (nc * 1j * (p[k] - p0)).real
-        j[1] = (nc * (p[k] - p0)).real
-        j[2] = normal[k].real
-        j[3] = normal[k].imag
-        for u in range(4):
-            b[u] -= j[u] * r
-            for v in range(4):
-                a[u, v] += j[u] * j[v]
+    a = np.empty((4, 4))
+    b = np.empty(4)
+    a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, b0, b1, b2, b3 = _icp_normal_sums(
+        p, q, normal, m, p0, True)
+    a[0, 0], a[0, 1], a[0, 2], a[0, 3] = a00, a01, a02, a03
+    a[1, 0], a[1, 1], a[1, 2], a[1, 3] = a01, a11, a12, a13
+    a[2, 0], a[2, 1], a[2, 2], a[2, 3] = a02, a12, a22, a23
+    a[3, 0], a[3, 1], a[3, 2], a[3, 3] = a03, a13, a23, a33
+    b[0], b[1], b[2], b[3] = b0, b1, b2, b3
     if abs(np.linalg.det(a)) < 1e-12:
         return c, t, True
     s = np.linalg.solve(a, b)
