@@ -9,7 +9,8 @@
   reference set, by brute force instead of a k-d tree query plus numpy filtering;
 * :func:`greedy_one_to_one`: ``matching._greedy_one_to_one`` as one loop;
 * :func:`listed_segments`: the crease samples around given minutiae, from their stored
-  lists, without the index arithmetic of the numpy path;
+  lists, without the index arithmetic of the numpy path; :func:`pixels_within`: those
+  lists, from a grid of the samples instead of a k-d tree;
 * :func:`ransac`: ``matching._ransac`` from its random samples, transform by transform,
   without its (transforms x correspondences) arrays;
 * :func:`registration_terms`: the minutiae terms of ``matching._scored`` (overlap counts,
@@ -250,6 +251,46 @@ def listed_segments(start, flat, lists):
             out[n] = flat[i]
             n += 1
     return out
+
+
+@njit(**_JIT)
+def pixels_within(cols, rows, px, py, bound):
+    """For each point ``(px[k], py[k])`` the indices of the pixels ``(cols, rows)``
+    (integers, distinct) at a squared distance ``(col - px)**2 + (row - py)**2 <= bound``,
+    as lists stored end to end ``flat[start[k]:start[k + 1]]``, each in the pixels' order:
+    ``crease_check.CreaseSamples.around`` from a grid of the pixels' indices instead of a
+    k-d tree (the same sums of squares, compared with the same bound)."""
+    n = cols.size
+    c0, c1, r0, r1 = cols.min(), cols.max(), rows.min(), rows.max()
+    w = np.intp(c1 - c0) + 1
+    grid = np.full((np.intp(r1 - r0) + 1, w), -1, np.intp)
+    for i in range(n):
+        grid[np.intp(rows[i] - r0), np.intp(cols[i] - c0)] = i
+    reach = np.sqrt(bound) + 1.0
+    start = np.zeros(px.size + 1, np.intp)
+    flat = np.empty(0, np.intp)
+    for fill in range(2):   # count, then fill
+        m = 0
+        for k in range(px.size):
+            lo_r = max(np.intp(np.floor(py[k] - reach - r0)), 0)
+            hi_r = min(np.intp(np.ceil(py[k] + reach - r0)), grid.shape[0] - 1)
+            lo_c = max(np.intp(np.floor(px[k] - reach - c0)), 0)
+            hi_c = min(np.intp(np.ceil(px[k] + reach - c0)), w - 1)
+            for r in range(lo_r, hi_r + 1):
+                for c in range(lo_c, hi_c + 1):
+                    i = grid[r, c]
+                    if i < 0:
+                        continue
+                    dx = cols[i] - px[k]
+                    dy = rows[i] - py[k]
+                    if dx * dx + dy * dy <= bound:
+                        if fill:
+                            flat[m] = i
+                        m += 1
+            start[k + 1] = m
+        if not fill:
+            flat = np.empty(m, np.intp)
+    return start, flat
 
 
 @njit(**_JIT)
