@@ -272,6 +272,28 @@ def test_numba_kernels_agree_with_the_numpy_path(region, other_region, monkeypat
     assert fast[1][3] != fast[1][2]                              # and the ridges pull too
 
 
+def test_samples_around_points_from_the_grid_are_the_k_d_trees(region, monkeypatch):
+    """The numba grid lists the same samples strictly within the radius of each point as
+    the k-d tree, at pixel places and between them, at and beside the radius."""
+    from terrain_nav_ros.core.matching import _matching_kernels
+
+    if not _matching_kernels.HAVE_NUMBA:
+        pytest.skip("numba not installed: the numpy path is the only one")
+    samples = CreaseSamples.from_image(region[1][150:278, 160:288])
+    points = np.concatenate([samples.z[::7], samples.z[::11] + (0.5 - 0.37j),
+                             np.array([-20 + 20j, 64.25 - 64.75j])])
+    for radius in (6.0, 3.0, 2.5):
+        start, flat = samples.around_lists(points, radius)
+        monkeypatch.setattr(_matching_kernels, "HAVE_NUMBA", False)
+        want_start, want_flat = samples.around_lists(points, radius)
+        monkeypatch.setattr(_matching_kernels, "HAVE_NUMBA", True)
+        np.testing.assert_array_equal(start, want_start)
+        for k in range(len(points)):
+            assert (sorted(flat[start[k]:start[k + 1]])
+                    == sorted(want_flat[want_start[k]:want_start[k + 1]]))
+    assert start[-1] > len(points)   # the lists are not empty
+
+
 def test_the_kernels_axial_remainder_is_numpys_bit_for_bit():
     """The crease look-ups' remainder by pi, branches instead of fmod, rounds as np.mod
     does: at random direction differences, at the branch edges and beyond them."""
