@@ -97,7 +97,8 @@ def _localise(matcher, extractor, scene, case, region_index, size):
     _PARTS.clear()
     clock = _CLOCK[0]
     t0 = clock()
-    view, _ = extractor.index(matcher, case.view, scene)   # at the scene's own GSD
+    # at the scene's own GSD, observed where the scene is
+    view, _ = extractor.index(matcher, case.view, scene, valid=case.valid)
     t1 = clock()
     r = matcher.localise(view, region_index)
     t2 = clock()

@@ -181,3 +181,29 @@ def test_scenes_file_lists_every_dev_pair(shared_data):
     for entry in doc["scenes"]:
         for key in ("image", "dem"):
             assert (shared_data / "imagery" / entry[key]).is_file(), entry[key]
+
+
+def test_a_views_nodata_makes_no_creases(tmp_path):
+    """A view with a patch of nodata (a cloud mask, the scene's edge) is extracted with its
+    mask, as camera_ingest's GeoImage tells the graph's extractor: the patch's edge, a step
+    from the terrain to 0, gives no creases; unmasked it does."""
+    from terrain_nav_ros.core.matching.matcher import Matcher
+    from terrain_nav_ros.core.matching.params import MatchParams
+    from terrain_nav_ros.tools.real_imagery import _Extractor
+
+    scene = load_scene(*_write_pair(tmp_path, geographic=False), sun=(160.0, 40.0))
+    view = scene.image[10:138, 10:138].copy()
+    valid = np.ones(view.shape, bool)
+    valid[40:80, 40:80] = False
+    view[~valid] = 0
+    ring = np.zeros(view.shape, bool)
+    ring[36:84, 36:84] = True
+    ring[44:76, 44:76] = False                   # 4 px either side of the patch's edge
+    extractor, matcher = _Extractor(MatchParams()), Matcher()
+    masked, _ = extractor.index(matcher, view, scene, valid=valid)
+    unmasked, _ = extractor.index(matcher, view, scene)
+    masked_creases, unmasked_creases = (ix.crease_image.astype(bool)
+                                        for ix in (masked, unmasked))
+    assert not masked_creases[~valid].any()
+    assert (masked_creases & ring).sum() < 0.6 * (unmasked_creases & ring).sum()
+    assert masked.n > 0

@@ -307,6 +307,7 @@ class _Case:
     view: np.ndarray                  # camera view, 8-bit grey
     region: tuple[int, int, int, int]  # x0, y0, x1, y1 in the scene
     truth: np.ndarray                 # the view's centre in region pixels (col, row)
+    valid: np.ndarray | None = None   # the view's observed pixels (nodata, cloud masks)
 
 
 def _cut_cases(scene: Scene, size: int, n: int, heading_known: bool, region_factor: float,
@@ -334,13 +335,14 @@ def _cut_cases(scene: Scene, size: int, n: int, heading_known: bool, region_fact
         if xy.min() < 0 or (xy[:, 0] > w - 1).any() or (xy[:, 1] > h - 1).any():
             continue
         flags = cv2.WARP_INVERSE_MAP
-        if cv2.warpAffine(valid_u8, m, (size, size), flags=flags | cv2.INTER_NEAREST).mean() \
-                < MIN_VALID:
+        valid = cv2.warpAffine(valid_u8, m, (size, size), flags=flags | cv2.INTER_NEAREST)
+        if valid.mean() < MIN_VALID:
             continue
         view = cv2.warpAffine(scene.image, m, (size, size), flags=flags | cv2.INTER_LINEAR)
         x0, y0 = max(int(cx) - half, 0), max(int(cy) - half, 0)
         x1, y1 = min(int(cx) + half, w), min(int(cy) + half, h)
-        cases.append(_Case(view, (x0, y0, x1, y1), np.array([cx - x0, cy - y0])))
+        cases.append(_Case(view, (x0, y0, x1, y1), np.array([cx - x0, cy - y0]),
+                           valid.astype(bool)))
     return cases
 
 
@@ -375,12 +377,15 @@ class _Extractor:
         target = scene.dem_cell if self.match_gsd == "dem" else float(self.match_gsd)
         return max(1.0, target / scene.gsd) if math.isfinite(target) else 1.0
 
-    def index(self, matcher: Matcher, grey, scene: Scene, region: bool = False):
-        """The index of ``grey`` (a view or a landmark region of ``scene``) and the factor
-        per axis of its decimation."""
+    def index(self, matcher: Matcher, grey, scene: Scene, region: bool = False, valid=None):
+        """The index of ``grey`` (a view or a landmark region of ``scene``, observed where
+        ``valid``, as camera_ingest's mask tells the extractor) and the factor per axis of
+        its decimation."""
         grey, f = _decimated(grey, self.factor(scene))
+        if valid is not None:   # a decimated pixel is observed when all it averages are
+            valid = _decimated(valid.astype(np.float32), self.factor(scene))[0] > 0.999
         feats = (self.region if region else self.view)(
-            extractor_input(grey, "shading", scene.sun))
+            extractor_input(grey, "shading", scene.sun), valid_mask=valid)
         ix = matcher.index(feats.minutiae, feats.creases.skeleton(), feats.ridges)
         return (ix.prepare_as_reference(search=True) if region else ix), f
 
@@ -411,7 +416,7 @@ def _summary(err, accepted, times, success_px, no_fix_few=None) -> dict:
 def _localise(matcher: Matcher, extractor: _Extractor, scene: Scene, case: _Case,
               region_index) -> dict:
     t0 = time.perf_counter()
-    view, f_view = extractor.index(matcher, case.view, scene)
+    view, f_view = extractor.index(matcher, case.view, scene, valid=case.valid)
     ref, f_region = region_index
     r = matcher.localise(view, ref)
     dt = time.perf_counter() - t0
