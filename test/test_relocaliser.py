@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from terrain_nav_ros.core.features.minutiae import FeatureExtractor
+from terrain_nav_ros.core.matching.global_search import rescaled_view, scale_ladder
 from terrain_nav_ros.core.matching.mission_index import MissionIndex
 from terrain_nav_ros.core.matching.params import MatchParams
 from terrain_nav_ros.core.matching.relocaliser import MissionSearch, SearchPolicy, tile_in_frame
@@ -134,3 +135,38 @@ def test_a_search_under_a_sun_the_index_was_not_prepared_for_says_so(mission, sh
     assert not found.matched
     assert "prepare it for the flight's hours" in found.reason
     assert search.layer_sun_gap(search.sun_at(evening)) > 90.0
+
+
+def test_a_view_at_the_wrong_scale_is_found_on_the_ladder_of_scales(mission):
+    """A pose-free frame projected from a wrongly assumed height: its ground distances are
+    the true ones / 1.35. One search (+-10 % of scale) cannot register it; the ladder's rung
+    near 1.35 does, at the true place, and pays for its rungs."""
+    index, dem = mission
+    search = MissionSearch(index, MatchParams(threshold=8.6))
+    east, north = 6000.0, -9000.0
+    features = _camera_view(dem, east, north, 40.0, search.sun_at(WHEN), gsd=90.0 * 1.35)
+    # labelled as the camera_ingest would: 90 m pixels, centred under the camera
+    assumed = GeoReference.centred(east + 700.0, north - 400.0, 90.0, 128, 128)
+    m = features.minutiae
+    shrunk = type(m)(m.col, m.row, m.angle, m.kind, m.quality, georef=assumed)
+    anchor = assumed.centre
+    factors = scale_ladder(0.8, 1.6)
+    assert len(factors) == 4
+    views = [rescaled_view(shrunk, features.creases.skeleton(), features.ridges, f, anchor)
+             for f in factors]
+    found, land_georef, k = search.search_ladder([search.matcher.index(*v) for v in views],
+                                                 WHEN, GRAPH_ORIGIN)
+    assert found.matched, found.reason
+    assert abs(factors[k] * found.result.scale - 1.35) < 0.1, (factors, k, found.result.scale)
+    assert found.penalty == pytest.approx(math.log10(len(index.tiles()) * len(factors)))
+    # the view's centre (under the camera) at the true place
+    view_georef = views[k][0].georef
+    c, r = view_georef.enu_to_pixel(*anchor)
+    col, row = found.result.apply(c, r)
+    got = land_georef.pixel_to_enu(col, row)
+    assert math.hypot(got[0] - east, got[1] - north) < 2.0 * index.gsd
+    # without the ladder, the shrunk view is not found
+    alone, _ = search.search(search.matcher.index(shrunk, features.creases.skeleton(),
+                                                  features.ridges), WHEN, GRAPH_ORIGIN)
+    assert not alone.matched
+
