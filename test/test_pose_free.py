@@ -12,8 +12,13 @@ from terrain_nav_ros.core.camera.ground_projection import (
     ground_to_image,
     image_to_ground,
 )
-from terrain_nav_ros.core.camera.pose_free import CruiseAttitude, pose_free_view, scale_range
-from terrain_nav_ros.core.estimation.strapdown import quat_from_euler
+from terrain_nav_ros.core.camera.pose_free import (
+    CruiseAttitude,
+    levelled,
+    pose_free_view,
+    scale_range,
+)
+from terrain_nav_ros.core.estimation.strapdown import quat_from_euler, quat_to_matrix
 from terrain_nav_ros.core.features.minutia_set import MinutiaSet
 from terrain_nav_ros.core.matching.global_search import rescaled_view, scale_ladder
 from terrain_nav_ros.core.terrain.georef import GeoReference
@@ -109,16 +114,24 @@ def test_a_rescaled_view_moves_minutiae_exactly_about_the_point_under_the_camera
     assert moved_creases.sum() == pytest.approx(1.5 * creases.sum(), rel=0.1)
 
 
-def test_level_flight_assumes_wings_level_and_a_turn_is_refused():
-    attitude = CruiseAttitude(level_sigma=math.radians(3.0), max_turn_rate=math.radians(3.0))
+def test_straight_flight_is_levelled_from_the_accelerometers_and_a_turn_is_refused():
+    attitude = CruiseAttitude(level_sigma=math.radians(3.0), max_turn_rate=math.radians(3.0),
+                              levelled_sigma=math.radians(1.0))
     assert attitude.at(10.0) == ((0.0, 0.0, math.radians(3.0)), "")   # no IMU yet
+    # a steady 3 degree climb, nose up (pitch -3 deg in FLU / ENU), right wing 2 deg down
+    q = quat_from_euler(math.radians(2.0), math.radians(-3.0), 0.7)
+    gravity_reaction = quat_to_matrix(q).T @ np.array([0.0, 0.0, 9.81])
     rng = np.random.default_rng(1)
-    for k in range(200):                           # straight flight: gyro noise only
-        attitude.add(k * 0.01, rng.normal(0.0, 0.002, 3))
-    got, why = attitude.at(1.99)
-    assert why == "" and got == (0.0, 0.0, math.radians(3.0))
+    for k in range(200):                           # straight flight: noise only
+        attitude.add(k * 0.01, rng.normal(0.0, 0.002, 3),
+                     gravity_reaction + rng.normal(0.0, 0.05, 3))
+    (roll, pitch, sigma), why = attitude.at(1.99)
+    assert why == "" and sigma == pytest.approx(math.radians(1.0))
+    assert math.degrees(roll) == pytest.approx(2.0, abs=0.1)
+    assert math.degrees(pitch) == pytest.approx(-3.0, abs=0.1)
+    assert levelled(gravity_reaction) == pytest.approx((math.radians(2.0), math.radians(-3.0)))
     for k in range(200, 400):                      # a 6 deg/s turn
-        attitude.add(k * 0.01, [0.0, 0.0, math.radians(6.0)])
+        attitude.add(k * 0.01, [0.0, 0.0, math.radians(6.0)], [0.0, 0.0, 9.81])
     got, why = attitude.at(3.99)
     assert got is None and "turning" in why
 
@@ -126,10 +139,10 @@ def test_level_flight_assumes_wings_level_and_a_turn_is_refused():
 def test_an_imu_orientation_gives_roll_and_pitch():
     attitude = CruiseAttitude(floor_sigma=math.radians(0.5))
     q = quat_from_euler(math.radians(4.0), math.radians(-2.0), 1.0)
-    attitude.add(5.0, [0.0, 0.0, 0.0], q, math.radians(0.2) ** 2)
+    attitude.add(5.0, [0.0, 0.0, 0.0], None, q, math.radians(0.2) ** 2)
     (roll, pitch, sigma), why = attitude.at(5.05)
     assert why == ""
     assert (math.degrees(roll), math.degrees(pitch)) == pytest.approx((4.0, -2.0))
     assert sigma == pytest.approx(math.radians(0.5))          # the floor
-    # an orientation too old for the frame: wings level again
+    # an orientation too old for the frame, no accelerometers: wings level
     assert attitude.at(9.0)[0][:2] == (0.0, 0.0)

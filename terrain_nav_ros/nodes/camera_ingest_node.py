@@ -14,8 +14,9 @@ throttled log line says so too, and ``/camera_ingest/diagnostics`` counts each r
 Cold start (``cold_start: true``, with the ``mission_dir`` the matcher searches): while there
 is no estimate at a frame's stamp (the ekf publishes none before it is initialised), the frame
 is projected without a pose (:mod:`..core.camera.pose_free`): at the ENU origin, heading 0,
-wings level (or the IMU's roll and pitch when ``/imu/data`` carries an orientation; frames in
-a turn are not projected), its camera height the barometer's (``/baro/pressure``, ISA)
+the roll and pitch of ``/imu/data``'s orientation when it carries one, else of its
+accelerometers levelled in straight flight (frames in a turn are not projected), its camera
+height the barometer's (``/baro/pressure``, ISA)
 above the mission area's median terrain, on a plane at that height (no orthorectification:
 the place is unknown). The GeoImage is marked ``pose_free`` with the range of planes the
 area's terrain allows and the attitude's sigma, so the matcher searches it in the whole
@@ -100,7 +101,11 @@ class CameraIngestNode(Node):
                               "terrain heights a pose-free frame assumes; the matcher's")
         tilt_sigma = declare(self, "cold_start_tilt_sigma", 3.0,
                              "cold start: 1-sigma of the wings-level attitude assumed "
-                             "without an IMU orientation [deg]", min_value=0.0)
+                             "before any IMU message [deg]", min_value=0.0)
+        levelled_sigma = declare(self, "cold_start_levelled_sigma", 1.0,
+                                 "cold start: 1-sigma of the roll and pitch levelled from "
+                                 "the accelerometers in straight flight [deg]",
+                                 min_value=0.0)
         turn_rate = declare(self, "cold_start_max_turn_rate", 3.0,
                             "cold start: frames whose last second turned faster than this "
                             "are not projected (bank unknown) [deg/s]", min_value=0.0)
@@ -115,7 +120,8 @@ class CameraIngestNode(Node):
                                     "cold start: largest time between a frame and the "
                                     "barometer sample used [s]", min_value=0.0)
         self.r_body_optical = mount_rotation(*mount)
-        self.attitude = CruiseAttitude(math.radians(tilt_sigma), math.radians(turn_rate))
+        self.attitude = CruiseAttitude(math.radians(tilt_sigma), math.radians(turn_rate),
+                                       levelled_sigma=math.radians(levelled_sigma))
         self.baro: tuple[float, float] | None = None     # (stamp s, pressure Pa)
         self.pose_free_published = 0
         self.terrain, self.terrain_problem = None, ""
@@ -185,9 +191,9 @@ class CameraIngestNode(Node):
 
     @contained
     def on_imu(self, msg: Imu) -> None:
-        stamp, gyro, _ = cv.imu_to_sample(msg)
+        stamp, gyro, accel = cv.imu_to_sample(msg)
         orientation = cv.imu_orientation(msg)
-        self.attitude.add(stamp, gyro, *(orientation or (None, None)))
+        self.attitude.add(stamp, gyro, accel, *(orientation or (None, None)))
 
     @contained
     def on_info(self, msg: CameraInfo) -> None:

@@ -23,7 +23,9 @@ is always searched in the mission index, at the ladder of scales its range of te
 needs (:func:`.core.matching.global_search.relocalise_ladder`), and its fix is a
 relocalisation: the position under the camera found, the height the barometer's (the scale
 measures the height above the unknown terrain, not the aircraft's), the horizontal
-covariance grown by the height above ground x the attitude's assumed sigma. Without a mission
+covariance grown by the height above ground x the attitude's assumed sigma, the roll and
+pitch camera_ingest's with that sigma (levelled apart from the filter: what the ekf starts
+from), the heading the registration's. Without a mission
 index it is a no-fix saying so.
 
 What the node decides around the matcher is ROS-free in
@@ -47,6 +49,7 @@ from ..core.camera.camera_mount import mount_rotation
 from ..core.camera.ground_projection import CameraIntrinsics, CameraPose, ground_to_image
 from ..core.camera.pose_free import scale_range
 from ..core.matching.fix_stream import (
+    UNOBSERVED_TILT_VAR,
     AnswerTally,
     FixVelocity,
     LandmarkSets,
@@ -345,7 +348,8 @@ class MatcherNode(Node):
             f"relocalised a pose-free frame in tile {found.tile.key} at scale "
             f"{factors[k]:.2f} ({len(factors)} scales), {measured_agl:.0f} m above ground, "
             f"area score {found.score:.1f} over {found.searched} tile searches")
-        self.publish_fix(msg.header.stamp, stamp, fix, origin)
+        # its roll and pitch are camera_ingest's, measured apart from the filter
+        self.publish_fix(msg.header.stamp, stamp, fix, origin, tilt_variance=tilt_sigma ** 2)
 
     def _ground_fix(self, result, camera_georef, landmark_georef,
                     projection) -> PvaFixEstimate:
@@ -392,9 +396,11 @@ class MatcherNode(Node):
         self.tally.no_fix(reason)
         self.get_logger().info(f"no fix: {reason}", throttle_duration_sec=2.0)
 
-    def publish_fix(self, stamp, stamp_s: float, fix: PvaFixEstimate, origin) -> None:
+    def publish_fix(self, stamp, stamp_s: float, fix: PvaFixEstimate, origin,
+                    tilt_variance: float = UNOBSERVED_TILT_VAR) -> None:
         inflate_covariance(fix, self.covariance_scale)
-        r_enu_body = fix_attitude(fix, self.r_body_optical, self.use_heading, self.heading_floor)
+        r_enu_body = fix_attitude(fix, self.r_body_optical, self.use_heading, self.heading_floor,
+                                  tilt_variance)
         quaternion = Rotation.from_matrix(r_enu_body).as_quat()
         out = PvaFix(header=cv.make_header(stamp, self.frame_id), status=fix.status,
                      reason=fix.reason, similarity=float(fix.similarity),

@@ -7,7 +7,8 @@ frames to do so. A pose-free projection makes one from what is known without a p
 * **Place and heading**: a nominal place (the graph's ENU origin) and heading 0. The mission
   search covers every place and every rotation, so neither is needed.
 * **Attitude**: roll and pitch from the IMU's orientation when its messages carry one, else
-  wings level (a fixed-wing in straight cruise flies within a few degrees of it); the
+  from its accelerometers levelled in straight flight (they measure the reaction to gravity:
+  a climb's pitch shows), else wings level (before any IMU message); the
   attitude assumed is off by ``tilt_sigma``, which moves the matched ground point by the
   height above ground x tilt (the matcher adds it to the fix's covariance). A frame taken in
   a turn (the gyro's rate above a few degrees per second) is not projected: the bank is
@@ -36,7 +37,7 @@ from ..estimation.strapdown import quat_from_euler, quat_to_euler
 from .camera_mount import R_BODY_OPTICAL_NADIR, camera_rotation
 from .ground_projection import CameraPose
 
-__all__ = ["CruiseAttitude", "PoseFreeView", "pose_free_view", "scale_range"]
+__all__ = ["CruiseAttitude", "PoseFreeView", "levelled", "pose_free_view", "scale_range"]
 
 # a pose-free view needs at least this height above the area's highest terrain (m): below
 # it the height above ground, hence the image's scale, is unknown by more than any ladder of
@@ -145,15 +146,26 @@ def scale_range(camera_height: float, plane: float, plane_min: float,
     return (camera_height - plane_max) / agl, (camera_height - plane_min) / agl
 
 
+def levelled(specific_force) -> tuple[float, float]:
+    """Roll and pitch (rad; REP 103 body FLU in ENU, :func:`~..estimation.strapdown.
+    quat_from_euler`'s convention) of a body whose accelerometers measure
+    ``specific_force`` (m/s^2, body) in unaccelerated flight: the reaction to gravity, along
+    the ENU up axis (an INS's coarse levelling)."""
+    fx, fy, fz = (float(v) for v in np.asarray(specific_force, float).reshape(3))
+    return math.atan2(fy, fz), math.atan2(-fx, math.hypot(fy, fz))
+
+
 class CruiseAttitude:
     """Roll and pitch for a pose-free projection, from the IMU's messages.
 
-    With an orientation in the IMU's messages (an AHRS), its roll and pitch, their sigma at
-    least ``floor_sigma``; without one, wings level with ``level_sigma``. In either case a
-    frame whose last ``window`` s of gyro samples turned faster than ``max_turn_rate`` is in a
-    turn (the norm of the mean gyro vector over the window): no attitude (the bank of a
-    coordinated turn does not show in the accelerometers).
-    Before any IMU message: wings level, as without an orientation.
+    In order of preference: the IMU messages' orientation (an AHRS), its sigma at least
+    ``floor_sigma``; the accelerometers levelled over the last ``window`` s (unaccelerated
+    straight flight: they measure the reaction to gravity; a climb's pitch shows), with
+    ``levelled_sigma`` (speed changes and turbulence); wings level with ``level_sigma``
+    before any IMU message. A frame whose last ``window`` s turned faster than
+    ``max_turn_rate`` (the norm of the mean gyro vector) is in a turn: no attitude (the bank
+    of a coordinated turn shows neither in the accelerometers nor, without a heading, in the
+    gyros alone).
 
     Parameters
     ----------
@@ -162,28 +174,37 @@ class CruiseAttitude:
     max_turn_rate : float
         Largest gyro rate (norm, rad/s) of straight flight.
     window : float
-        Gyro samples this long before a frame are checked (s).
+        IMU samples this long before a frame are used (s).
     floor_sigma : float
         Smallest sigma taken from an orientation's covariance (rad).
+    levelled_sigma : float
+        1-sigma of the accelerometers' levelling (rad).
     """
 
     def __init__(self, level_sigma: float = math.radians(3.0),
                  max_turn_rate: float = math.radians(3.0), window: float = 1.0,
-                 floor_sigma: float = math.radians(0.5)):
+                 floor_sigma: float = math.radians(0.5),
+                 levelled_sigma: float = math.radians(1.0)):
         self.level_sigma = level_sigma
         self.max_turn_rate = max_turn_rate
         self.window = window
         self.floor_sigma = floor_sigma
-        self._rates: deque = deque()          # (stamp, gyro vector)
+        self.levelled_sigma = levelled_sigma
+        self._rates: deque = deque()          # (stamp, gyro vector, accel vector or None)
         self._orientation = None              # (stamp, roll, pitch, sigma)
 
-    def add(self, stamp: float, gyro, orientation=None, orientation_variance=None) -> None:
-        """One IMU message: its gyro (rad/s, body) and, if it has one, its orientation
-        quaternion ``[x, y, z, w]`` (body -> ENU) with the variance of its roll and pitch
-        (rad^2; None or negative: no orientation)."""
+    def add(self, stamp: float, gyro, accel=None, orientation=None,
+            orientation_variance=None) -> None:
+        """One IMU message: its gyro (rad/s, body), accelerometers (m/s^2, body; None
+        without) and, if it has one, its orientation quaternion ``[x, y, z, w]`` (body ->
+        ENU) with the variance of its roll and pitch (rad^2; None or negative: no
+        orientation)."""
         gyro = np.asarray(gyro, float).reshape(3)
+        accel = None if accel is None else np.asarray(accel, float).reshape(3)
         if np.isfinite(gyro).all():
-            self._rates.append((float(stamp), gyro))
+            self._rates.append((float(stamp), gyro,
+                                accel if accel is not None and np.isfinite(accel).all()
+                                else None))
         while self._rates and self._rates[0][0] < self._rates[-1][0] - 4.0 * self.window:
             self._rates.popleft()
         if orientation is not None and orientation_variance is not None \
@@ -194,8 +215,9 @@ class CruiseAttitude:
 
     def at(self, stamp: float) -> tuple[tuple[float, float, float] | None, str]:
         """(roll, pitch, sigma) for a frame at ``stamp``, or None and why not."""
-        recent = [g for t, g in self._rates if stamp - self.window <= t <= stamp + 0.1]
-        rate = float(np.linalg.norm(np.mean(recent, axis=0))) if recent else 0.0
+        recent = [(g, a) for t, g, a in self._rates if stamp - self.window <= t <= stamp + 0.1]
+        rate = float(np.linalg.norm(np.mean([g for g, _ in recent], axis=0))) if recent \
+            else 0.0
         if rate > self.max_turn_rate:
             return None, (f"cold start: the aircraft is turning ({math.degrees(rate):.1f}"
                           f" deg/s > {math.degrees(self.max_turn_rate):.1f}): its bank is "
@@ -203,4 +225,7 @@ class CruiseAttitude:
         o = self._orientation
         if o is not None and abs(o[0] - stamp) <= self.window:
             return (o[1], o[2], o[3]), ""
+        accels = [a for _, a in recent if a is not None]
+        if accels:
+            return (*levelled(np.mean(accels, axis=0)), self.levelled_sigma), ""
         return (0.0, 0.0, self.level_sigma), ""
