@@ -125,7 +125,8 @@ def test_a_cold_start_projects_frames_pose_free_until_there_is_odometry(tmp_path
     """cold_start: no odometry yet, so each frame is projected at the ENU origin, heading 0,
     wings level, its height the barometer's above the mission area's median terrain, and
     marked pose-free with the area's range of terrain planes; without a barometer sample it
-    says so; once odometry comes, frames are projected with it."""
+    says so; once odometry comes, frames are projected with it, and pose-free again only
+    when it has stopped for a while."""
     from sensor_msgs.msg import FluidPressure
 
     from terrain_nav_ros.core.estimation.baro import altitude_to_pressure
@@ -171,6 +172,18 @@ def test_a_cold_start_projects_frames_pose_free_until_there_is_odometry(tmp_path
         odom.pose = cv.pose_with_covariance(CAMERA, [0, 0, 0, 1], np.eye(6))
         assert wait_until(frame_answered(lambda m: m.projected and not m.pose_free,
                                          [("/nav/odometry", odom)]), 30, period=0.3), stop(node)
+        # a frame 1 s after the last odometry: a short gap, a no-fix as without cold start;
+        # 3 s after (the filter was reset): pose-free again
+        stamp += 10**9
+        assert wait_until(frame_answered(lambda m: "older than the frame" in m.reason), 30,
+                          period=0.3), stop(node)
+        stamp += 2 * 10**9
+        baro.header = cv.make_header(stamp, "base_link")
+        n_pose_free = sum(m.pose_free for m in got)
+        assert wait_until(frame_answered(lambda m: m.pose_free and m.header.stamp.sec
+                                         == stamp // 10**9, [("/baro/pressure", baro)]), 30,
+                          period=0.3), stop(node)
+        assert sum(m.pose_free for m in got) > n_pose_free
         assert node.poll() is None
     finally:
         client.close()

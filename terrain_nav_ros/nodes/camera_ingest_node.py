@@ -11,18 +11,19 @@ calibration, camera above the horizon, undecodable image) is still published, as
 without an image whose ``reason`` says why, so that the matcher answers it with a no-fix; a
 throttled log line says so too, and ``/camera_ingest/diagnostics`` counts each reason.
 
-Cold start (``cold_start: true``, with the ``mission_dir`` the matcher searches): while there
-is no estimate at a frame's stamp (the ekf publishes none before it is initialised), the frame
-is projected without a pose (:mod:`..core.camera.pose_free`): at the ENU origin, heading 0,
-the roll and pitch of ``/imu/data``'s orientation when it carries one, else of its
-accelerometers levelled in straight flight (frames in a turn are not projected), its camera
-height the barometer's (``/baro/pressure``, ISA)
-above the mission area's median terrain, on a plane at that height (no orthorectification:
-the place is unknown). The GeoImage is marked ``pose_free`` with the range of planes the
-area's terrain allows and the attitude's sigma, so the matcher searches it in the whole
-mission index at the scales they allow. As soon as the ekf publishes odometry, frames are
-projected with it. Without a barometer sample, the mission index, its terrain heights or a
-DEM tile (it carries the ENU origin), the frame is a no-fix saying which.
+Cold start (``cold_start: true``, with the ``mission_dir`` the matcher searches): while
+there is no estimate at a frame's stamp (the ekf publishes none before it is initialised),
+the frame is projected without a pose (:mod:`..core.camera.pose_free`): at the ENU origin,
+heading 0, the roll and pitch of ``/imu/data``'s orientation when it carries one, else of
+its accelerometers levelled in straight flight (frames in a turn are not projected), the
+camera at the barometer's altitude (``/baro/pressure``, ISA), on a plane at the mission
+area's median terrain height (no orthorectification: the place is unknown). The GeoImage is
+marked ``pose_free`` with the range of planes the area's terrain allows and the attitude's
+sigma, so the matcher searches it in the whole mission index at the scales they allow. As
+soon as the ekf publishes odometry, frames are projected with it (and pose-free again only
+when it stops for ``COLD_START_GAP`` s). Without a barometer sample, the mission index, its
+terrain heights or a DEM tile (it carries the ENU origin), the frame is a no-fix saying
+which.
 """
 
 from __future__ import annotations
@@ -66,6 +67,10 @@ from .ros_common import (
     publish_diagnostics,
     run,
 )
+
+# cold start: frames this long after the last odometry are projected pose-free again (the
+# filter was reset); within it, a frame without a pose is a no-fix as without cold start (s)
+COLD_START_GAP = 2.0
 
 
 class CameraIngestNode(Node):
@@ -123,6 +128,7 @@ class CameraIngestNode(Node):
         self.attitude = CruiseAttitude(math.radians(tilt_sigma), math.radians(turn_rate),
                                        levelled_sigma=math.radians(levelled_sigma))
         self.baro: tuple[float, float] | None = None     # (stamp s, pressure Pa)
+        self._odometry_span: tuple[float, float] | None = None   # first, last stamp (s)
         self.pose_free_published = 0
         self.terrain, self.terrain_problem = None, ""
         if self.cold_start:
@@ -209,6 +215,12 @@ class CameraIngestNode(Node):
     def on_odometry(self, msg: Odometry) -> None:
         stamp, p, q, cov = cv.odometry_to_arrays(msg)
         reason = self.poses.add(StampedPose(stamp * 1e-9, p, q, cov))
+        if not reason:
+            t = stamp * 1e-9
+            first, last = self._odometry_span or (t, t)
+            if t < last - self.poses.horizon:      # time went backwards: start again
+                first, last = t, t
+            self._odometry_span = (min(first, t), max(last, t))
         if reason:
             self.get_logger().warning(f"odometry ignored: {reason}", throttle_duration_sec=5.0)
 
@@ -270,7 +282,8 @@ class CameraIngestNode(Node):
             self.drop(self.calibration_problem or "no CameraInfo", header)
             return
         pose, reason = self.poses.at(cv.stamp_to_sec(header.stamp))
-        if pose is None and self.cold_start:
+        if pose is None and self.cold_start and self._without_odometry(
+                cv.stamp_to_sec(header.stamp)):
             self._project_pose_free(image, encoding, header)
             return
         if pose is None:
@@ -314,6 +327,15 @@ class CameraIngestNode(Node):
         cv.set_projection(out, camera.position, camera.rotation, plane)
         self.pub.publish(out)
         self.published += 1
+
+    def _without_odometry(self, stamp: float) -> bool:
+        """Whether a frame at ``stamp`` has no navigation estimate to wait for: none yet, the
+        frame taken before the filter started, or the odometry stopped (a filter reset)
+        ``COLD_START_GAP`` s before it. A shorter gap is a no-fix, as without cold start."""
+        if self._odometry_span is None:
+            return True
+        first, last = self._odometry_span
+        return stamp < first or stamp > last + COLD_START_GAP
 
     def _project_pose_free(self, image: np.ndarray, encoding: str, header) -> None:
         """A frame with no navigation pose at its stamp, projected pose-free (cold start)."""
