@@ -112,6 +112,9 @@ def test_a_rescaled_view_moves_minutiae_exactly_about_the_point_under_the_camera
     rows_hit = np.flatnonzero(moved_creases.any(axis=1))
     assert len(rows_hit) <= 2
     assert moved_creases.sum() == pytest.approx(1.5 * creases.sum(), rel=0.1)
+    # the one rung of a frame whose scale is known well enough: the set as it is
+    same = rescaled_view(ms, creases, None, 1.0, anchor)
+    assert same[0] is ms and same[1] is creases
 
 
 def test_straight_flight_is_levelled_from_the_accelerometers_and_a_turn_is_refused():

@@ -214,8 +214,11 @@ def analyse(input_bag, output_bag, usage: dict | None = None,
         if len(te):
             result["fused_error"]["first_after"] = float(te[0] - t0)
         if mission.get("landmark_gsd") and len(te):
-            result["fused_error"]["below_2_gsd_after"] = settled_after(
-                te - t0, err, 2.0 * float(mission["landmark_gsd"]))
+            bound = 2.0 * float(mission["landmark_gsd"])
+            result["fused_error"]["below_2_gsd_after"] = settled_after(te - t0, err, bound)
+            reached = np.flatnonzero(err <= bound)
+            result["fused_error"]["first_below_2_gsd_after"] = \
+                float(te[reached[0]] - t0) if len(reached) else math.nan
         result["series"]["fused_error"] = (te - t0, err,
                                            3 * np.sqrt(np.interp(te, t_fused, var_fused)))
     origin = mission.get("origin")
@@ -277,7 +280,8 @@ def format_report(r: dict, gsd: float | None = None) -> str:
                 if key == "fused_error" and "below_2_gsd_after" in e:
                     settled = e["below_2_gsd_after"]
                     lines.append(f"  fused error at or below 2 GSD from {settled:.0f} s "
-                                 "after the start on")
+                                 f"after the start on (first {e['first_below_2_gsd_after']:.0f}"
+                                 " s after it)")
     else:
         lines.append("no /ground_truth/odometry in the input bag: errors not computed")
     if r["latency"]:

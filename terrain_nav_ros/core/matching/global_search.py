@@ -269,6 +269,8 @@ def rescaled_view(minutiae: MinutiaSet, creases, ridges, factor: float,
     g = minutiae.georef
     if g is None:
         raise ValueError("rescaled_view: the camera set has no georeference")
+    if factor == 1.0:
+        return minutiae, creases, ridges
     ax, ay = float(anchor[0]), float(anchor[1])
     width, height = max(1, int(round(g.width * factor))), max(1, int(round(g.height * factor)))
     west, _, _, north = g.extent
