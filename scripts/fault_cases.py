@@ -85,6 +85,33 @@ def with_mission(bag: Path, dest: Path, text: str) -> Path:
     return dest
 
 
+def frozen_camera(bag: Path, dest: Path, start: float, seconds: float) -> Path:
+    """A copy of ``bag`` whose camera republishes, from ``start`` s for ``seconds``, the
+    frame it took at ``start`` under new stamps (a hung driver)."""
+    from terrain_nav_ros.tools import bags
+
+    cameras = ("/camera/image_raw", "/camera/image_raw/compressed")
+    first, frozen = None, None
+    with bags.BagWriter(dest, compress=True) as writer:
+        for t in bags.topics(bag):
+            writer.add_topic(t.topic, t.msgtype, bags.qos_profile(t.reliable,
+                                                                 t.transient_local))
+        for m in bags.read(bag):
+            first = m.timestamp_ns if first is None else first
+            at = (m.timestamp_ns - first) * 1e-9
+            if m.topic in cameras and start <= at < start + seconds:
+                msg = bags.decode(m)
+                if frozen is None:
+                    frozen = msg.data
+                else:
+                    msg.data = frozen
+                    writer.write_message(m.topic, m.timestamp_ns, msg, m.msgtype)
+                    continue
+            writer.write(m.topic, m.timestamp_ns, m.rawdata)
+    (dest / "mission.yaml").write_bytes((bag / "mission.yaml").read_bytes())
+    return dest
+
+
 def geotiff(path: Path) -> Path:
     """A valid 64 x 64 GeoTIFF (UTM 11N)."""
     import numpy as np
@@ -343,6 +370,7 @@ def cases() -> list[Case]:
             node="matcher")),
         Case("matcher: mission index with a tile layer missing", "parameters",
              _partial_mission),
+        Case("camera frozen for 15 s mid-flight", "flight", _frozen_camera_flight),
         Case("IMU stamp 5 s in the past, GNSS gone", "ekf", _ekf_stamp(-5.0)),
         Case("IMU stamp 1 h ahead, GNSS gone", "ekf", _ekf_stamp(3600.0), ci=True),
     ]
@@ -354,6 +382,32 @@ def _prepare(options: tuple, words: str):
     return lambda tmp: judge(terrain_nav(
         "prepare", "--dem", relief_geotiff(tmp / "relief.tif"), "--gsd", 30, "--out",
         tmp / "index", *options), 2, (words,))
+
+
+def _frozen_camera_flight(tmp: Path):
+    """The short bag with its camera frozen from 25 to 40 s: those frames get no fix, with
+    the reason, and the fused error stays bounded (fixes of the frozen frame would pull the
+    filter back to where the aircraft was at 25 s)."""
+    import yaml
+
+    from terrain_nav_ros.tools.cli import REPO
+
+    bag = frozen_camera(REPO / "bags" / "jacksboro_short", tmp / "frozen", 25.0, 15.0)
+    try:
+        proc = subprocess.run(terrain_nav("replay", "--bag", bag, "--out", tmp / "out"),
+                              capture_output=True, text=True, timeout=400)
+    except subprocess.TimeoutExpired:
+        return BAD, "replay did not finish within 400 s"
+    if proc.returncode != 0:
+        return BAD, f"replay exit {proc.returncode}: {proc.stderr.strip()[-110:]}"
+    report = yaml.safe_load((tmp / "out" / "report.yaml").read_text())
+    frozen = sum(n for reason, n in report["fixes"]["reasons"] if "camera frozen" in reason)
+    fused = report["fused_error"]
+    detail = (f"{frozen} frozen frames refused, {report['fixes']['fixes']} fixes, fused RMS "
+              f"{fused['rms']:.1f} m, final {fused['final']:.1f} m")
+    if fused["final"] > 3 * 20.0 or fused["rms"] > 3 * 20.0:
+        return BAD, detail
+    return (GOOD if frozen >= 12 else POOR), detail
 
 
 def _partial_mission(tmp: Path):

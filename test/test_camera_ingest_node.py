@@ -21,6 +21,7 @@ CAMERA = np.array([1000.0, 2000.0, 1100.0])  # 1000 m above a flat terrain at 10
 
 def _frame(stamp_ns):
     image = np.full((H, W), 40, np.uint8)
+    image[0, :8] = np.frombuffer(int(stamp_ns).to_bytes(8, "little"), np.uint8)  # frames differ
     image[148:153, 198:203] = 250          # principal point (199.5, 149.5): straight down
     image[148:153, 298:303] = 250          # 100 px right of it: right wing = south (heading E)
     return cv.array_to_image(image, "mono8", cv.make_header(stamp_ns, "camera_optical"))
@@ -45,9 +46,15 @@ def test_frames_are_projected_to_the_right_place_and_bad_frames_explained():
             ("/nav/odometry", Odometry, 10), ("/metamap/tile", DemTile, LATCHED_QOS))}
         assert wait_until(lambda: all(p.get_subscription_count() for p in pubs.values()), 20)
         stamp = 1_750_000_000 * 10**9          # 2025-06-15 15:06 UTC: daylight in the Alps
+        sent = [stamp - 10**8]                 # frames go out 1 ms apart (stamps must move on)
+
+        def next_frame():
+            sent.append(sent[-1] + 10**6)
+            return _frame(sent[-1])
+
         # no calibration yet: the frame comes out without an image (sent until one does:
         # the camera topic is best effort)
-        assert wait_until(lambda: (pubs["/camera/image_raw"].publish(_frame(stamp)),
+        assert wait_until(lambda: (pubs["/camera/image_raw"].publish(next_frame()),
                                    bool(got))[1], 20, period=0.3), stop(node)
         info = cv.intrinsics_to_camera_info(np.array([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2],
                                                       [0, 0, 1]]), [0] * 5, W, H)
@@ -60,9 +67,11 @@ def test_frames_are_projected_to_the_right_place_and_bad_frames_explained():
         odom.pose = cv.pose_with_covariance(CAMERA, [0, 0, 0, 1], np.eye(6))  # heading east
 
         def publish_and_check():
+            frame = next_frame()
+            odom.header.stamp = frame.header.stamp
             pubs["/camera/camera_info"].publish(info)
             pubs["/nav/odometry"].publish(odom)
-            pubs["/camera/image_raw"].publish(_frame(stamp))
+            pubs["/camera/image_raw"].publish(frame)
             return any(not m.reason for m in got)
 
         assert wait_until(publish_and_check, 30, period=0.3), stop(node)
@@ -70,6 +79,14 @@ def test_frames_are_projected_to_the_right_place_and_bad_frames_explained():
         garbled.encoding = "yuv9000"
         pubs["/camera/image_raw"].publish(garbled)
         assert wait_until(lambda: got[-1].header.stamp.nanosec == 1, 10), stop(node)
+        # a frozen camera: the last image again under a new stamp; and a stamp repeated
+        last = _frame(sent[-1])
+        frozen = _frame(sent[-1])
+        frozen.header = cv.make_header(sent[-1] + 10**6, "camera_optical")
+        for msg in (frozen, last):
+            pubs["/camera/image_raw"].publish(msg)
+            assert wait_until(lambda m=msg: got[-1].header.stamp == m.header.stamp, 10), \
+                stop(node)
         n_reports = len(diagnostics)
         assert wait_until(lambda: len(diagnostics) > n_reports, 10), stop(node)
         assert node.poll() is None
@@ -80,6 +97,9 @@ def test_frames_are_projected_to_the_right_place_and_bad_frames_explained():
     garbled_out = next(m for m in got if m.header.stamp.nanosec == 1)
     assert "no CameraInfo" in got[0].reason and got[0].image.width == 0
     assert "yuv9000" in garbled_out.reason and garbled_out.image.width == 0
+    assert got[-2].reason.startswith("frame not projected: camera frozen") and \
+        got[-2].image.width == 0
+    assert got[-1].reason.startswith("frame not projected: frame repeated or out of order")
     with pytest.raises(cv.ConversionError, match="no CameraInfo"):
         cv.msg_to_geo_image(got[0])
     # ... and the diagnostics count them by reason
@@ -104,7 +124,9 @@ def test_frames_are_projected_to_the_right_place_and_bad_frames_explained():
     np.testing.assert_allclose(ground[1], (1000.0, 1800.0), atol=2.5)
     assert valid.mean() > 0.9
     # the sun over the tile's origin at the frame's time, for the extractor's lighting option
-    assert cv.geo_image_sun(projected) == pytest.approx(sun_at(1.75e9, *ORIGIN[:2]))
+    at = cv.stamp_to_sec(projected.header.stamp)
+    assert abs(at - 1.75e9) < 1.0
+    assert cv.geo_image_sun(projected) == pytest.approx(sun_at(at, *ORIGIN[:2]))
 
 
 def _mission_without_tiles(path, terrain):
@@ -153,37 +175,42 @@ def test_a_cold_start_projects_frames_pose_free_until_there_is_odometry(tmp_path
             np.full(tile.shape, 100.0, np.float32), tile, Header(frame_id="map"),
             enu_origin=ORIGIN))
 
+        sent = [stamp]                         # frames go out 1 ms apart (stamps move on)
+
         def frame_answered(check, extra=()):
+            """Send frames (and ``extra`` messages at their stamps) until one answer
+            passes ``check``."""
             def publish():
+                sent.append(sent[-1] + 10**6)
+                frame = _frame(sent[-1])
                 pubs["/camera/camera_info"].publish(info)
                 for topic, msg in extra:
+                    msg.header.stamp = frame.header.stamp
                     pubs[topic].publish(msg)
-                pubs["/camera/image_raw"].publish(_frame(stamp))
+                pubs["/camera/image_raw"].publish(frame)
                 return any(check(m) for m in got)
             return publish
 
         assert wait_until(frame_answered(lambda m: "no barometer" in m.reason), 30,
                           period=0.3), stop(node)
-        baro = FluidPressure(header=cv.make_header(stamp, "base_link"),
+        baro = FluidPressure(header=Header(frame_id="base_link"),
                              fluid_pressure=float(altitude_to_pressure(1100.0)))
         assert wait_until(frame_answered(lambda m: m.pose_free, [("/baro/pressure", baro)]),
                           30, period=0.3), stop(node)
-        odom = Odometry(header=cv.make_header(stamp, "map"))
+        odom = Odometry(header=Header(frame_id="map"))
         odom.pose = cv.pose_with_covariance(CAMERA, [0, 0, 0, 1], np.eye(6))
         assert wait_until(frame_answered(lambda m: m.projected and not m.pose_free,
                                          [("/nav/odometry", odom)]), 30, period=0.3), stop(node)
-        # a frame 1 s after the last odometry: a short gap, a no-fix as without cold start;
+        # frames 1 s after the last odometry: a short gap, a no-fix as without cold start;
         # 3 s after (the filter was reset): pose-free again
-        stamp += 10**9
+        sent.append(sent[-1] + 10**9)
         assert wait_until(frame_answered(lambda m: "older than the frame" in m.reason), 30,
                           period=0.3), stop(node)
-        stamp += 2 * 10**9
-        baro.header = cv.make_header(stamp, "base_link")
-        n_pose_free = sum(m.pose_free for m in got)
-        assert wait_until(frame_answered(lambda m: m.pose_free and m.header.stamp.sec
-                                         == stamp // 10**9, [("/baro/pressure", baro)]), 30,
-                          period=0.3), stop(node)
-        assert sum(m.pose_free for m in got) > n_pose_free
+        sent.append(sent[-1] + 2 * 10**9)
+        restarted = sent[-1]
+        assert wait_until(frame_answered(
+            lambda m: m.pose_free and cv.stamp_to_sec(m.header.stamp) > restarted * 1e-9,
+            [("/baro/pressure", baro)]), 30, period=0.3), stop(node)
         assert node.poll() is None
     finally:
         client.close()
@@ -223,9 +250,12 @@ def test_a_cold_start_without_a_mission_index_says_so_for_every_frame():
         info = cv.intrinsics_to_camera_info(np.array([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2],
                                                       [0, 0, 1]]), [0] * 5, W, H)
 
+        sent = [10**9]
+
         def publish():
+            sent.append(sent[-1] + 10**6)
             info_pub.publish(info)
-            image_pub.publish(_frame(10**9))
+            image_pub.publish(_frame(sent[-1]))
             return any("no mission index" in m.reason for m in got)
 
         assert wait_until(publish, 30, period=0.3), stop(node)

@@ -272,6 +272,28 @@ def test_numba_kernels_agree_with_the_numpy_path(region, other_region, monkeypat
     assert fast[1][3] != fast[1][2]                              # and the ridges pull too
 
 
+def test_samples_around_points_from_the_grid_are_the_k_d_trees(region, monkeypatch):
+    """The numba grid lists the same samples strictly within the radius of each point as
+    the k-d tree, at pixel places and between them, at and beside the radius."""
+    from terrain_nav_ros.core.matching import _matching_kernels
+
+    if not _matching_kernels.HAVE_NUMBA:
+        pytest.skip("numba not installed: the numpy path is the only one")
+    samples = CreaseSamples.from_image(region[1][150:278, 160:288])
+    points = np.concatenate([samples.z[::7], samples.z[::11] + (0.5 - 0.37j),
+                             np.array([-20 + 20j, 64.25 - 64.75j])])
+    for radius in (6.0, 3.0, 2.5):
+        start, flat = samples.around_lists(points, radius)
+        monkeypatch.setattr(_matching_kernels, "HAVE_NUMBA", False)
+        want_start, want_flat = samples.around_lists(points, radius)
+        monkeypatch.setattr(_matching_kernels, "HAVE_NUMBA", True)
+        np.testing.assert_array_equal(start, want_start)
+        for k in range(len(points)):
+            assert (sorted(flat[start[k]:start[k + 1]])
+                    == sorted(want_flat[want_start[k]:want_start[k + 1]]))
+    assert start[-1] > len(points)   # the lists are not empty
+
+
 def test_the_kernels_axial_remainder_is_numpys_bit_for_bit():
     """The crease look-ups' remainder by pi, branches instead of fmod, rounds as np.mod
     does: at random direction differences, at the branch edges and beyond them."""
@@ -329,11 +351,19 @@ def test_ridge_check_adds_the_ridges_agreement(region, other_region):
         matcher.index(a, window(skel, x0, y0), window(ridges, x0 + 150, y0 + 120)), b_index)
     assert elsewhere.ridges.score < 2
     assert elsewhere.score < valleys.score + 2
-    for off in (Matcher(ridge_check=False), Matcher(ridge_check_below=0)):
-        r = off.compare(off.index(a, window(skel, x0, y0), window(ridges, x0, y0)),
-                        off.index(b, window(skel, x0 + dx, y0 + dy),
-                                  window(ridges, x0 + dx, y0 + dy)))
-        assert r.ridges is None and r.score == pytest.approx(valleys.score)
+    def compared(m: Matcher):
+        return m.compare(m.index(a, window(skel, x0, y0), window(ridges, x0, y0)),
+                         m.index(b, window(skel, x0 + dx, y0 + dy),
+                                 window(ridges, x0 + dx, y0 + dy)))
+
+    off = compared(Matcher(ridge_check=False))
+    assert off.ridges is None and off.score == pytest.approx(valleys.score)
+    # a set too large for the ridges at every registration (real images' albedo edges add
+    # minutiae): the registration chosen on the valleys gets its ridge agreement added
+    large = compared(Matcher(ridge_check_below=0))
+    np.testing.assert_allclose(large.transform, valleys.transform)
+    assert large.ridges is not None and large.ridges.fraction > 0.8
+    assert large.score == pytest.approx(valleys.score + large.ridges.score)
 
 
 def test_ridges_that_disagree_neither_pull_far_nor_lower_the_score(region, other_region):

@@ -365,6 +365,37 @@ def test_numba_kernels_give_the_numpy_results(region, block, monkeypatch):
     assert fast[0].decision == Decision.MATCH and fast[2].decision == Decision.MATCH
 
 
+def test_pairings_in_a_large_region_by_brute_force_are_the_k_d_trees(region, monkeypatch):
+    """A view's pairings in a region of more than _BRUTE_PAIR_MAX minutiae: brute force
+    over the region's minutiae within reach of the view (numba) and the k-d tree query
+    give the same pairings, at the true transform and off it."""
+    from terrain_nav_ros.core.matching import _matching_kernels
+    from terrain_nav_ros.core.matching.index import MinutiaIndex
+    from terrain_nav_ros.core.matching.params import MatchParams
+    from terrain_nav_ros.core.matching.registration import _BRUTE_PAIR_MAX, _pair
+
+    if not _matching_kernels.HAVE_NUMBA:
+        pytest.skip("numba not installed: the numpy path is the only one")
+    p = MatchParams()
+    b = MinutiaIndex(region[0], p)
+    assert b.n > _BRUTE_PAIR_MAX
+    truth = rigid_transform(np.radians(-20.0), -100.0, -60.0)
+    view, _ = transform_set(region[0], truth, (BLOCK, BLOCK), rng=4)
+    a = MinutiaIndex(view, p)
+    rng = np.random.default_rng(3)
+    found = 0
+    for k in range(30):
+        c = complex(np.exp(1j * (np.radians(20.0) + rng.normal(0, 0.02 * (k % 3)))))
+        t = complex(100 + rng.normal(0, 3 * (k % 3)), -(60 + rng.normal(0, 3 * (k % 3))))
+        fast = _pair(a, b, c, t, p)
+        monkeypatch.setattr(_matching_kernels, "HAVE_NUMBA", False)
+        slow = _pair(a, b, c, t, p)
+        monkeypatch.setattr(_matching_kernels, "HAVE_NUMBA", True)
+        np.testing.assert_array_equal(fast, slow)
+        found += len(fast)
+    assert found > 30   # the cases pair something
+
+
 def test_scoring_and_ransac_kernels_agree_with_the_numpy_path(region, block, monkeypatch):
     """The fused minutiae terms of a registration's score, the RANSAC inlier counts and the
     crease samples around minutiae, against the numpy path, on registrations near and far

@@ -7,7 +7,8 @@ or ``/camera/image_raw/compressed`` with ``image_transport: compressed``), its
 onto the mean terrain plane under the view (homography from the pose interpolated at the
 frame's stamp), then published as a ``terrain_nav_msgs/GeoImage`` on ``/camera/image_ground``
 with a validity mask. A frame that cannot be projected (no estimate or tile yet, no
-calibration, camera above the horizon, undecodable image) is still published, as a GeoImage
+calibration, camera above the horizon, undecodable image, a frozen camera repeating its
+last image or a stamp that does not move forward) is still published, as a GeoImage
 without an image whose ``reason`` says why, so that the matcher answers it with a no-fix; a
 throttled log line says so too, and ``/camera_ingest/diagnostics`` counts each reason.
 
@@ -41,6 +42,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, FluidPressure, Image, I
 from terrain_nav_msgs.msg import DemTile, GeoImage
 
 from ..core.camera.camera_mount import camera_rotation, mount_rotation
+from ..core.camera.frame_guard import FrameGuard
 from ..core.camera.ground_projection import (
     CameraIntrinsics,
     CameraPose,
@@ -134,6 +136,7 @@ class CameraIngestNode(Node):
         if self.cold_start:
             self.terrain, self.terrain_problem = self._area_terrain(mission_dir)
         self.poses = PoseBuffer(horizon=5.0, max_extrapolation=self.max_pose_gap)
+        self.frames = FrameGuard()
         self.intrinsics: CameraIntrinsics | None = None
         self.calibration_problem = "no CameraInfo received yet"
         self.tile: tuple[np.ndarray, GeoReference] | None = None
@@ -271,6 +274,10 @@ class CameraIngestNode(Node):
 
     def ingest(self, image: np.ndarray, encoding: str, header) -> None:
         """Project one frame; every frame comes out, projected or with the reason why not."""
+        refused = self.frames.check(cv.stamp_to_sec(header.stamp), image)
+        if refused:
+            self.drop(refused, header)
+            return
         try:
             self._project(image, encoding, header)
         except Exception as err:

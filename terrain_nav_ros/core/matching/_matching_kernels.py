@@ -9,7 +9,8 @@
   reference set, by brute force instead of a k-d tree query plus numpy filtering;
 * :func:`greedy_one_to_one`: ``matching._greedy_one_to_one`` as one loop;
 * :func:`listed_segments`: the crease samples around given minutiae, from their stored
-  lists, without the index arithmetic of the numpy path;
+  lists, without the index arithmetic of the numpy path; :func:`pixels_within`: those
+  lists, from a grid of the samples instead of a k-d tree;
 * :func:`ransac`: ``matching._ransac`` from its random samples, transform by transform,
   without its (transforms x correspondences) arrays;
 * :func:`registration_terms`: the minutiae terms of ``matching._scored`` (overlap counts,
@@ -27,8 +28,8 @@
 * :func:`channel_cross_spectra`, :func:`box_mask`: the channel product and the shifts the
   footprint counts keep, of :mod:`.crease_search`, without numpy's whole-array
   temporaries;
-* :func:`rasterise_channels`: the crease search query's direction-channel rasters, one
-  transform at a time.
+* :func:`rasterise_transformed`: the crease search query's direction-channel rasters, one
+  transform at a time, with the pixels' places.
 
 They are used when numba is importable and ``TERRAIN_NAV_NO_NUMBA`` is not set, and compute
 the same floating-point operations in the same order as the numpy path (no ``fastmath``:
@@ -40,8 +41,11 @@ with fused multiply-adds where the CPU has them) round differently from the scal
 those and of :func:`ransac`, so values that go through them agree to rounding (~1e-15
 relative), and a comparison of such a value with a tolerance could only differ at the
 tolerance itself; and two minutiae of B at exactly the same distance from a mapped minutia
-of A may be ranked in another order than the k-d tree ranks them; :func:`rasterise_channels`
-turns the direction weights by angle sums instead of numpy's cosines (~1e-16 apart).
+of A may be ranked in another order than the k-d tree ranks them; :func:`rasterise_transformed`
+turns the direction weights by angle sums instead of numpy's cosines (~1e-16 apart), and its
+scalar complex products of the pixels' places may round differently from numpy's (fused
+multiply-adds): a pixel could land on the next search pixel only where its place is within
+~1e-13 px of a half pixel.
 """
 
 from __future__ import annotations
@@ -247,6 +251,46 @@ def listed_segments(start, flat, lists):
             out[n] = flat[i]
             n += 1
     return out
+
+
+@njit(**_JIT)
+def pixels_within(cols, rows, px, py, bound):
+    """For each point ``(px[k], py[k])`` the indices of the pixels ``(cols, rows)``
+    (integers, distinct) at a squared distance ``(col - px)**2 + (row - py)**2 <= bound``,
+    as lists stored end to end ``flat[start[k]:start[k + 1]]``, each in the pixels' order:
+    ``crease_check.CreaseSamples.around`` from a grid of the pixels' indices instead of a
+    k-d tree (the same sums of squares, compared with the same bound)."""
+    n = cols.size
+    c0, c1, r0, r1 = cols.min(), cols.max(), rows.min(), rows.max()
+    w = np.intp(c1 - c0) + 1
+    grid = np.full((np.intp(r1 - r0) + 1, w), -1, np.intp)
+    for i in range(n):
+        grid[np.intp(rows[i] - r0), np.intp(cols[i] - c0)] = i
+    reach = np.sqrt(bound) + 1.0
+    start = np.zeros(px.size + 1, np.intp)
+    flat = np.empty(0, np.intp)
+    for fill in range(2):   # count, then fill
+        m = 0
+        for k in range(px.size):
+            lo_r = max(np.intp(np.floor(py[k] - reach - r0)), 0)
+            hi_r = min(np.intp(np.ceil(py[k] + reach - r0)), grid.shape[0] - 1)
+            lo_c = max(np.intp(np.floor(px[k] - reach - c0)), 0)
+            hi_c = min(np.intp(np.ceil(px[k] + reach - c0)), w - 1)
+            for r in range(lo_r, hi_r + 1):
+                for c in range(lo_c, hi_c + 1):
+                    i = grid[r, c]
+                    if i < 0:
+                        continue
+                    dx = cols[i] - px[k]
+                    dy = rows[i] - py[k]
+                    if dx * dx + dy * dy <= bound:
+                        if fill:
+                            flat[m] = i
+                        m += 1
+            start[k + 1] = m
+        if not fill:
+            flat = np.empty(m, np.intp)
+    return start, flat
 
 
 @njit(**_JIT)
@@ -578,23 +622,9 @@ def crease_icp(z, direction, distance, field_dir, label, crease_z, crease_normal
             if settled:
                 break
             continue
-        a00 = a01 = a02 = a11 = a12 = a22 = 0.0
-        b0 = b1 = b2 = 0.0
-        for k in range(m):
-            nc = normal[k].conjugate()
-            r = (nc * (p[k] - q[k])).real
-            j0 = (nc * 1j * (p[k] - p0)).real
-            j1 = normal[k].real
-            j2 = normal[k].imag
-            a00 += j0 * j0
-            a01 += j0 * j1
-            a02 += j0 * j2
-            a11 += j1 * j1
-            a12 += j1 * j2
-            a22 += j2 * j2
-            b0 -= j0 * r
-            b1 -= j1 * r
-            b2 -= j2 * r
+        # rotation, shift east, shift north: the terms without the scale's
+        a00, _, a01, a02, _, _, _, a11, a12, a22, b0, _, b1, b2 = _icp_normal_sums(
+            p, q, normal, m, p0, False)
         # Cramer's rule on the symmetric 3x3 system
         c00 = a11 * a22 - a12 * a12
         c01 = a02 * a12 - a01 * a22
@@ -617,25 +647,53 @@ def crease_icp(z, direction, distance, field_dir, label, crease_z, crease_normal
 
 
 @njit(**_JIT)
+def _icp_normal_sums(p, q, normal, m, p0, with_scale):
+    """The point-to-line ICP's normal equations ``J^T J`` (upper triangle, row by row) and
+    ``-J^T r`` over the first ``m`` correspondences, the unknowns rotation, scale (zero
+    without ``with_scale``), shift east and north about ``p0``: summed in registers, each
+    in the order of the correspondences (as the 4x4 array's entries were; ``j[u] * j[v]``
+    is ``j[v] * j[u]`` exactly, so the triangle gives the whole matrix)."""
+    a00 = a01 = a02 = a03 = a11 = a12 = a13 = a22 = a23 = a33 = 0.0
+    b0 = b1 = b2 = b3 = 0.0
+    for k in range(m):
+        nc = normal[k].conjugate()
+        r = (nc * (p[k] - q[k])).real
+        j0 = (nc * 1j * (p[k] - p0)).real
+        j1 = (nc * (p[k] - p0)).real if with_scale else 0.0
+        j2 = normal[k].real
+        j3 = normal[k].imag
+        b0 -= j0 * r
+        b1 -= j1 * r
+        b2 -= j2 * r
+        b3 -= j3 * r
+        a00 += j0 * j0
+        a01 += j0 * j1
+        a02 += j0 * j2
+        a03 += j0 * j3
+        a11 += j1 * j1
+        a12 += j1 * j2
+        a13 += j1 * j3
+        a22 += j2 * j2
+        a23 += j2 * j3
+        a33 += j3 * j3
+    return a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, b0, b1, b2, b3
+
+
+@njit(**_JIT)
 def _scaled_icp_step(p, q, normal, m, p0, c, t, scale_lo, scale_hi):
     """One point-to-line step for rotation, scale and shift about ``p0``: the new (c, t) and
     whether it settled. The scale step is bounded to 5 % and ``|c|`` to [scale_lo,
     scale_hi] (a few wrong pairings on parallel creases must not shrink the view onto
     them, nor a chance registration stretch to fit)."""
-    a = np.zeros((4, 4))
-    b = np.zeros(4)
-    j = np.empty(4)
-    for k in range(m):
-        nc = normal[k].conjugate()
-        r = (nc * (p[k] - q[k])).real
-        j[0] = (nc * 1j * (p[k] - p0)).real
-        j[1] = (nc * (p[k] - p0)).real
-        j[2] = normal[k].real
-        j[3] = normal[k].imag
-        for u in range(4):
-            b[u] -= j[u] * r
-            for v in range(4):
-                a[u, v] += j[u] * j[v]
+    a = np.empty((4, 4))
+    b = np.empty(4)
+    a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, b0, b1, b2, b3 = _icp_normal_sums(
+        p, q, normal, m, p0, True)
+    a[0, 0], a[0, 1], a[0, 2], a[0, 3] = a00, a01, a02, a03
+    a[1, 0], a[1, 1], a[1, 2], a[1, 3] = a01, a11, a12, a13
+    a[2, 0], a[2, 1], a[2, 2], a[2, 3] = a02, a12, a22, a23
+    a[3, 0], a[3, 1], a[3, 2], a[3, 3] = a03, a13, a23, a33
+    b[0], b[1], b[2], b[3] = b0, b1, b2, b3
     if abs(np.linalg.det(a)) < 1e-12:
         return c, t, True
     s = np.linalg.solve(a, b)
@@ -768,34 +826,45 @@ def box_mask(cum, row_lo, row_hi, col_lo, col_hi, threshold):
     searched`` without the (n_rot, h_pad, w_pad) counts."""
     n_rot = cum.shape[0]
     out = np.empty((n_rot, row_lo.size, col_lo.size), np.bool_)
+    rows = np.empty(cum.shape[2], cum.dtype)
     for r in range(n_rot):
         for i in range(row_lo.size):
             a, b = row_lo[i], row_hi[i]
+            if i and a == row_lo[i - 1] and b == row_hi[i - 1]:
+                out[r, i] = out[r, i - 1]   # the same rows of the query (most shifts)
+                continue
+            # the row band's column sums: the prefix sums hold integer counts, exact in
+            # float32 (< 2**24), so any order of the four terms gives the same sum
+            for k in range(rows.size):
+                rows[k] = cum[r, b, k] - cum[r, a, k]
             for j in range(col_lo.size):
-                c, d = col_lo[j], col_hi[j]
-                out[r, i, j] = (cum[r, b, d] - cum[r, a, d] - cum[r, b, c]
-                                + cum[r, a, c]) >= threshold
+                out[r, i, j] = rows[col_hi[j]] - rows[col_lo[j]] >= threshold
     return out
 
 
 @njit(**_JIT)
-def rasterise_channels(rows, cols, direction, turn, h, w):
-    """``crease_search.CreaseSearchQuery.raster``: the query's pixels at search pixels
-    ``(rows, cols)`` (n_rot, n) under each transform, accumulated on (n_rot, 5, h, w):
-    their direction channels (crease directions ``direction`` turned by ``turn``) and
-    their count, one pass per transform without the numpy path's (4, n_rot, n) weights.
+def rasterise_transformed(z, c, col0, row0, direction, turn, h, w):
+    """``crease_search.CreaseSearchQuery.raster``: the query's pixels ``z`` (math frame,
+    search pixels) mapped by each transform ``c[r]`` (its angle ``turn[r]``), at column
+    ``rint(Re(c z)) - col0`` and row ``rint(-Im(c z)) - row0`` (clipped to the raster),
+    accumulated on (n_rot, 5, h, w): their direction channels (crease directions
+    ``direction`` turned by ``turn``) and their count, one pass per transform without the
+    numpy path's (n_rot, n) positions, indices and (4, n_rot, n) weights.
     The weights ``max(0, cos 2(d - k pi/4))`` are ``max(0, +-cos 2d)`` and ``max(0,
     +-sin 2d)``, turned by the angle-sum formulas: they agree with the numpy path's
     cosines to rounding."""
-    n_rot, n = rows.shape
+    n_rot, n = c.size, z.size
     c2d, s2d = np.cos(2.0 * direction), np.sin(2.0 * direction)
     acc = np.zeros((5, h, w))
     out = np.empty((n_rot, 5, h, w), np.float32)
     for r in range(n_rot):
         acc[:] = 0.0
         c2t, s2t = np.cos(2.0 * turn[r]), np.sin(2.0 * turn[r])
+        cr = c[r]
         for i in range(n):
-            row, col = rows[r, i], cols[r, i]
+            q = cr * z[i]
+            col = min(max(np.intp(np.rint(q.real) - col0[r]), 0), w - 1)
+            row = min(max(np.intp(np.rint(-q.imag) - row0[r]), 0), h - 1)
             cos2 = c2d[i] * c2t - s2d[i] * s2t
             sin2 = s2d[i] * c2t + c2d[i] * s2t
             acc[0, row, col] += max(cos2, 0.0)

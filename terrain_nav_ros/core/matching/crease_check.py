@@ -87,6 +87,23 @@ class CreaseSamples:
                                      np.nextafter(radius, 0.0))   # strictly closer
         return [np.asarray(i, np.intp) for i in near]
 
+    def around_lists(self, points, radius: float) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`around`'s lists stored end to end: ``flat[start[k]:start[k + 1]]`` for
+        point ``k`` (in another order within a list with numba: by sample, not as the k-d
+        tree visits them)."""
+        points = np.asarray(points)
+        cols, rows = self.z.real, -self.z.imag
+        if (_kernels.HAVE_NUMBA and len(self) and points.size and radius > 0
+                and np.array_equal(cols, np.rint(cols)) and np.array_equal(rows, np.rint(rows))):
+            # pixel places (a skeleton's): a grid of them instead of the k-d tree, the same
+            # squared distances against the same bound
+            r = float(np.nextafter(radius, 0.0))
+            return _kernels.pixels_within(cols, rows, points.real, -points.imag, r * r)
+        near = self.around(points, radius)
+        start = np.zeros(len(near) + 1, np.intp)
+        np.cumsum([len(i) for i in near], out=start[1:])
+        return start, (np.concatenate(near) if near else np.zeros(0, np.intp)).astype(np.intp)
+
 
 class CreaseField:
     """Reference side: distance to and direction of the nearest crease pixel, everywhere.

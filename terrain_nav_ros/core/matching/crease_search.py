@@ -290,20 +290,23 @@ class CreaseSearchQuery:
         count (built on first use: choosing a search level needs only the shape)."""
         if self._raster is None:
             n_rot = self.n_rastered
+            direction, turn = self._samples.direction, np.angle(self.c[:n_rot])
+            z = self._samples.z * self.resolution
+            if _kernels.HAVE_NUMBA:
+                # the places and the channels in one pass per transform
+                self._raster = _kernels.rasterise_transformed(
+                    z, np.ascontiguousarray(self.c[:n_rot]), self.col0[:n_rot],
+                    self.row0[:n_rot], direction.astype(np.float64), turn, *self.shape)
+                return self._raster
             # the pixels' places as the search's other steps compute them (a rounding tie,
             # e.g. at a half turn, must break the same way)
-            q = self.c[:n_rot, None] * (self._samples.z[None, :] * self.resolution)
+            q = self.c[:n_rot, None] * z[None, :]
             ci = (np.rint(q.real) - self.col0[:n_rot, None]).astype(np.intp)
             ri = (np.rint(-q.imag) - self.row0[:n_rot, None]).astype(np.intp)
             # the outline's extremes are all pixels' (_outline): this only keeps the kernel's
             # writes in bounds whatever the rounding
             np.clip(ri, 0, self.shape[0] - 1, out=ri)
             np.clip(ci, 0, self.shape[1] - 1, out=ci)
-            direction, turn = self._samples.direction, np.angle(self.c[:n_rot])
-            if _kernels.HAVE_NUMBA:
-                self._raster = _kernels.rasterise_channels(
-                    ri, ci, direction.astype(np.float64), turn, *self.shape)
-                return self._raster
             size = self.shape[0] * self.shape[1]
             weights = _channel_weights(np.mod(
                 direction[None, :] + turn[:, None], np.pi))   # (4, n_rot, n)

@@ -129,11 +129,8 @@ class MinutiaIndex:
         """Crease samples within ``crease_exclude_radius`` of the given minutiae (the
         per-minutia lists are built on first use, stored end to end)."""
         if self._crease_around is None:
-            near = self.crease_samples.around(self.z, self.params.crease_exclude_radius)
-            start = np.zeros(len(near) + 1, np.intp)
-            np.cumsum([len(i) for i in near], out=start[1:])
-            flat = np.concatenate(near) if near else np.zeros(0, np.intp)
-            self._crease_around = (start, flat.astype(np.intp))
+            self._crease_around = self.crease_samples.around_lists(
+                self.z, self.params.crease_exclude_radius)
         start, flat = self._crease_around
         minutiae = np.asarray(minutiae, np.intp)
         if _kernels.HAVE_NUMBA:

@@ -63,7 +63,7 @@ from .index import MinutiaIndex, _as_index, _generator
 from .params import MatchParams
 from .proposals import _hash_votes, _root_votes, _Votes
 from .registration import _covariance, _pixel_transform, _refine, _register
-from .scoring import _refined_on_creases, _Scored, _scored
+from .scoring import _refined_on_creases, _Scored, _scored, with_ridge_evidence
 from .significance import _best_possible_score, _log10_transforms
 
 
@@ -362,6 +362,7 @@ class Matcher:
             base.reason = "no consistent transform"
             return base
         if use_creases:
+            best = with_ridge_evidence(a, b, best, p)
             best = replace(best, score=best.score - math.log10(n_scored))   # best of n
         c, t, pairs, score = best.c, best.t, best.pairs, best.score
         n_ao, n_bo = best.n_overlap

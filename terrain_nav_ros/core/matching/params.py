@@ -136,8 +136,11 @@ class MatchParams:
         crease ICP pull on them too: a second, largely independent check of a small block's
         registration, at no extra search.
     ridge_check_below : int
-        ... only when the smaller set has fewer minutiae than this: larger sets have
-        evidence enough, and it costs ~0.2 ms per scored registration.
+        ... at every registration scored only when the smaller set has fewer minutiae than
+        this (it costs ~0.2 ms per scored registration, and pulls on the ICP); a larger set's
+        chosen registration still gets its ridge agreement added
+        (:func:`~.scoring.with_ridge_evidence`): on real images minutiae counts overstate
+        the evidence, albedo edges add minutiae that pair with nothing in a render.
     min_crease_pixels : int
         Where the crease search runs, the minimum-minutiae rule becomes one on the drainage
         itself: fewer crease pixels than this in either set give "no decision" (a flat

@@ -96,6 +96,18 @@ def _pair(a: MinutiaIndex, b: MinutiaIndex, c: complex, t: complex, p: MatchPara
                                               b.angle, float(np.angle(c)), k,
                                               float(p.pos_tol), float(p.angle_tol))
         return _greedy_one_to_one(i, j, cost)
+    if _kernels.HAVE_NUMBA and a.n:
+        # a view in a large region: B's points within reach of A's box (in B's order), by
+        # brute force; a point of B out of the box by pos_tol or more is no candidate
+        x, y, tol = zt.real, zt.imag, float(p.pos_tol)
+        bx, by = b.z.real, b.z.imag
+        near = np.flatnonzero((bx > x.min() - tol) & (bx < x.max() + tol)
+                              & (by > y.min() - tol) & (by < y.max() + tol))
+        if len(near) <= _BRUTE_PAIR_MAX:
+            i, j, cost = _kernels.pair_candidates(x, y, bx[near], by[near], a.angle,
+                                                  b.angle[near], float(np.angle(c)), k,
+                                                  tol, float(p.angle_tol))
+            return _greedy_one_to_one(i, near[j], cost)
     # complex128 is (re, im) pairs in memory: the (n, 2) point array without a copy
     d, j = b.tree.query(zt.view(np.float64).reshape(-1, 2), k=k,
                         distance_upper_bound=p.pos_tol)

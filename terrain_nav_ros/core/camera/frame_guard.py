@@ -1,0 +1,50 @@
+"""Camera frames that must not become fixes: repeated stamps and frozen images.
+
+A camera driver that hangs often keeps publishing its last image with new stamps, and a bag
+spliced or replayed twice repeats stamps. Either way the matcher would localise the same
+ground again and again and the filter would be pulled back to where the aircraft was, a
+silently wrong answer. A real sensor's frames always differ (photon and read noise), so two
+bit-identical consecutive frames mean a frozen source, and a stamp that does not move
+forward means a repeated or out-of-order frame. :class:`FrameGuard` tells both apart from
+good frames, for camera_ingest to answer them with a no-fix and its reason.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class FrameGuard:
+    """Checks each camera frame against the previous one.
+
+    Parameters
+    ----------
+    max_frozen_report : int
+        Identical frames in a row after which the reason stops counting them (it still
+        says frozen).
+    """
+
+    def __init__(self, max_frozen_report: int = 1000):
+        self.max_frozen_report = max_frozen_report
+        self._stamp: float | None = None
+        self._image: np.ndarray | None = None
+        self.frozen_run = 0
+
+    def check(self, stamp: float, image: np.ndarray) -> str:
+        """Why the frame at ``stamp`` [s] must not be used, or "" when it is a new frame.
+
+        Only a frame that passes becomes the image the next ones are compared with, so a
+        frozen source is caught for as long as it repeats it.
+        """
+        if self._stamp is not None and not stamp > self._stamp:
+            return (f"frame repeated or out of order: stamp {stamp:.3f} s is not after the "
+                    f"previous frame's {self._stamp:.3f} s")
+        if (self._image is not None and image.shape == self._image.shape
+                and image.dtype == self._image.dtype and np.array_equal(image, self._image)):
+            self.frozen_run = min(self.frozen_run + 1, self.max_frozen_report)
+            self._stamp = stamp
+            return (f"camera frozen: the image of the last new frame again, {self.frozen_run} "
+                    "frame(s) in a row (a real sensor's frames always differ)")
+        self.frozen_run = 0
+        self._stamp, self._image = stamp, image.copy()
+        return ""

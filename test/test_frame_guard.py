@@ -1,0 +1,41 @@
+"""FrameGuard: a frozen camera (the same image under new stamps) and stamps that do not move
+forward are refused with their reason; new frames pass, and a frozen source is caught for as
+long as it repeats."""
+
+import numpy as np
+
+from terrain_nav_ros.core.camera.frame_guard import FrameGuard
+
+
+def _frames(n, seed=0):
+    rng = np.random.default_rng(seed)
+    return [rng.integers(0, 256, (48, 64), dtype=np.uint8) for _ in range(n)]
+
+
+def test_new_frames_pass_and_a_frozen_camera_is_caught_until_it_moves_again():
+    guard, (a, b, c) = FrameGuard(), _frames(3)
+    assert guard.check(1.0, a) == "" and guard.check(1.1, b) == ""
+    for k, t in enumerate((1.2, 1.3, 1.4), start=1):
+        why = guard.check(t, b.copy())
+        assert why.startswith("camera frozen") and f"{k} frame(s) in a row" in why
+    assert guard.check(1.5, c) == "" and guard.frozen_run == 0
+    b_noisy = b.copy()
+    b_noisy[0, 0] ^= 1                  # one count of noise: a new frame
+    assert guard.check(1.6, b_noisy) == ""
+
+
+def test_repeated_and_out_of_order_stamps_are_refused_and_do_not_move_the_reference():
+    guard, (a, b, c) = FrameGuard(), _frames(3)
+    assert guard.check(2.0, a) == ""
+    for t in (2.0, 1.9):
+        assert guard.check(t, b).startswith("frame repeated or out of order")
+    assert guard.check(2.1, b) == ""          # b was never accepted: it is new
+    assert guard.check(2.2, c) == ""
+
+
+def test_other_shapes_or_encodings_are_new_frames():
+    guard, (a,) = FrameGuard(), _frames(1)
+    assert guard.check(1.0, a) == ""
+    assert guard.check(1.1, a.astype(np.uint16)) == ""
+    assert guard.check(1.2, np.zeros((10, 10), np.uint8)) == ""
+    assert guard.check(1.3, np.zeros((10, 10), np.uint8)).startswith("camera frozen")
