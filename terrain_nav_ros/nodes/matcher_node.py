@@ -25,8 +25,7 @@ relocalisation: the position under the camera found, the height the barometer's 
 measures the height above the unknown terrain, not the aircraft's), the horizontal
 covariance grown by the height above ground x the attitude's assumed sigma, the roll and
 pitch camera_ingest's with that sigma (levelled apart from the filter: what the ekf starts
-from), the heading the registration's. Without a mission
-index it is a no-fix saying so.
+from), the heading the registration's. Without a mission index it is a no-fix saying so.
 
 What the node decides around the matcher is ROS-free in
 :mod:`terrain_nav_ros.core.matching.fix_stream`: the landmark set a camera set is matched in,
