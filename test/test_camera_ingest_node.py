@@ -127,3 +127,139 @@ def test_frames_are_projected_to_the_right_place_and_bad_frames_explained():
     at = cv.stamp_to_sec(projected.header.stamp)
     assert abs(at - 1.75e9) < 1.0
     assert cv.geo_image_sun(projected) == pytest.approx(sun_at(at, *ORIGIN[:2]))
+
+
+def _mission_without_tiles(path, terrain):
+    """A mission index manifest (no tiles: camera_ingest reads only its terrain heights)."""
+    from terrain_nav_ros.core.matching import mission_index as mi
+    from terrain_nav_ros.core.terrain.geodesy import EnuOrigin
+
+    grid = mi.TileGrid.covering((-5000.0, 5000.0, -5000.0, 5000.0), 30.0, 256, 64)
+    manifest = mi.make_manifest(area={"from": "--area"}, origin=EnuOrigin(*ORIGIN), grid=grid,
+                                suns=[(120.0, 40.0)], dems=[], settings=mi.IndexSettings(),
+                                terrain=mi.TerrainHeights(*terrain))
+    path.mkdir()
+    mi.write_manifest(path, manifest)
+    return path
+
+
+def test_a_cold_start_projects_frames_pose_free_until_there_is_odometry(tmp_path):
+    """cold_start: no odometry yet, so each frame is projected at the ENU origin, heading 0,
+    wings level, its height the barometer's above the mission area's median terrain, and
+    marked pose-free with the area's range of terrain planes; without a barometer sample it
+    says so; once odometry comes, frames are projected with it, and pose-free again only
+    when it has stopped for a while."""
+    from sensor_msgs.msg import FluidPressure
+
+    from terrain_nav_ros.core.estimation.baro import altitude_to_pressure
+
+    mission = _mission_without_tiles(tmp_path / "index", (50.0, 100.0, 300.0))
+    node = start_node("camera_ingest", {"gsd": 5.0, "cold_start": True,
+                                        "mission_dir": str(mission),
+                                        "baro_altitude_sigma": 0.0})
+    client = SpinningNode("ingest_cold_client")
+    got = []
+    try:
+        n = client.node
+        n.create_subscription(GeoImage, "/camera/image_ground", got.append, 10)
+        pubs = {t: n.create_publisher(m, t, q) for t, m, q in (
+            ("/camera/image_raw", Image, 10), ("/camera/camera_info", CameraInfo, 10),
+            ("/nav/odometry", Odometry, 10), ("/metamap/tile", DemTile, LATCHED_QOS),
+            ("/baro/pressure", FluidPressure, 10))}
+        assert wait_until(lambda: all(p.get_subscription_count() for p in pubs.values()), 20)
+        stamp = 1_750_000_000 * 10**9
+        info = cv.intrinsics_to_camera_info(np.array([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2],
+                                                      [0, 0, 1]]), [0] * 5, W, H)
+        tile = GeoReference.centred(0.0, 0.0, 20.0, 200, 200)
+        pubs["/metamap/tile"].publish(cv.dem_tile_to_msg(
+            np.full(tile.shape, 100.0, np.float32), tile, Header(frame_id="map"),
+            enu_origin=ORIGIN))
+
+        sent = [stamp]                         # frames go out 1 ms apart (stamps move on)
+
+        def frame_answered(check, extra=()):
+            """Send frames (and ``extra`` messages at their stamps) until one answer
+            passes ``check``."""
+            def publish():
+                sent.append(sent[-1] + 10**6)
+                frame = _frame(sent[-1])
+                pubs["/camera/camera_info"].publish(info)
+                for topic, msg in extra:
+                    msg.header.stamp = frame.header.stamp
+                    pubs[topic].publish(msg)
+                pubs["/camera/image_raw"].publish(frame)
+                return any(check(m) for m in got)
+            return publish
+
+        assert wait_until(frame_answered(lambda m: "no barometer" in m.reason), 30,
+                          period=0.3), stop(node)
+        baro = FluidPressure(header=Header(frame_id="base_link"),
+                             fluid_pressure=float(altitude_to_pressure(1100.0)))
+        assert wait_until(frame_answered(lambda m: m.pose_free, [("/baro/pressure", baro)]),
+                          30, period=0.3), stop(node)
+        odom = Odometry(header=Header(frame_id="map"))
+        odom.pose = cv.pose_with_covariance(CAMERA, [0, 0, 0, 1], np.eye(6))
+        assert wait_until(frame_answered(lambda m: m.projected and not m.pose_free,
+                                         [("/nav/odometry", odom)]), 30, period=0.3), stop(node)
+        # frames 1 s after the last odometry: a short gap, a no-fix as without cold start;
+        # 3 s after (the filter was reset): pose-free again
+        sent.append(sent[-1] + 10**9)
+        assert wait_until(frame_answered(lambda m: "older than the frame" in m.reason), 30,
+                          period=0.3), stop(node)
+        sent.append(sent[-1] + 2 * 10**9)
+        restarted = sent[-1]
+        assert wait_until(frame_answered(
+            lambda m: m.pose_free and cv.stamp_to_sec(m.header.stamp) > restarted * 1e-9,
+            [("/baro/pressure", baro)]), 30, period=0.3), stop(node)
+        assert node.poll() is None
+    finally:
+        client.close()
+        log = stop(node)
+    cold = next(m for m in got if m.pose_free)
+    position, rotation, plane = cv.get_projection(cold)
+    np.testing.assert_allclose(position, [0.0, 0.0, 1100.0], atol=0.5)
+    assert plane == pytest.approx(100.0)
+    assert cv.get_pose_free(cold) == pytest.approx((50.0, 300.0, np.radians(3.0)))
+    image, georef, _ = cv.msg_to_geo_image(cold)
+    from scipy import ndimage
+
+    labels, count = ndimage.label(image > 150)
+    assert count == 2, log
+    centres = ndimage.center_of_mass(image > 150, labels, [1, 2])
+    ground = sorted(zip(*georef.pixel_to_enu([c for _, c in centres], [r for r, _ in centres]),
+                        strict=True), key=lambda p: -p[1])
+    # under the camera at the origin; 100 px right (the right wing, heading 0 = east) is
+    # 100 px x 1000 m / 500 px = 200 m south
+    np.testing.assert_allclose(ground[0], (0.0, 0.0), atol=2.5)
+    np.testing.assert_allclose(ground[1], (0.0, -200.0), atol=2.5)
+    warm = next(m for m in got if m.projected and not m.pose_free)
+    np.testing.assert_allclose(cv.get_projection(warm)[0], CAMERA)
+
+
+def test_a_cold_start_without_a_mission_index_says_so_for_every_frame():
+    node = start_node("camera_ingest", {"gsd": 5.0, "cold_start": True})
+    client = SpinningNode("ingest_cold_client2")
+    got = []
+    try:
+        n = client.node
+        n.create_subscription(GeoImage, "/camera/image_ground", got.append, 10)
+        image_pub = n.create_publisher(Image, "/camera/image_raw", 10)
+        info_pub = n.create_publisher(CameraInfo, "/camera/camera_info", 10)
+        assert wait_until(lambda: image_pub.get_subscription_count()
+                          and info_pub.get_subscription_count(), 20)
+        info = cv.intrinsics_to_camera_info(np.array([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2],
+                                                      [0, 0, 1]]), [0] * 5, W, H)
+
+        sent = [10**9]
+
+        def publish():
+            sent.append(sent[-1] + 10**6)
+            info_pub.publish(info)
+            image_pub.publish(_frame(sent[-1]))
+            return any("no mission index" in m.reason for m in got)
+
+        assert wait_until(publish, 30, period=0.3), stop(node)
+        assert node.poll() is None
+    finally:
+        client.close()
+        stop(node)

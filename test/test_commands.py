@@ -85,7 +85,8 @@ def test_bag_play_of_a_corrupt_bag_plays_what_it_can_and_fails(bag_dir):
 
 
 @pytest.mark.parametrize("case", ["empty_folder", "broken_mission", "missing_dem", "rate_0",
-                                  "existing_out"])
+                                  "existing_out", "cold_start_without_mission",
+                                  "cold_start_and_lost"])
 def test_replay_checks_its_inputs_before_starting_the_graph(bag_dir, tmp_path, case):
     out = tmp_path / "out"
     bag, extra, words = {
@@ -96,6 +97,12 @@ def test_replay_checks_its_inputs_before_starting_the_graph(bag_dir, tmp_path, c
                         ["/no/such/dem.tif: no such DEM file", "give a readable DEM"]),
         "rate_0": (bag_dir / "whole", ["--rate", 0], ["--rate 0.0: must be > 0"]),
         "existing_out": (bag_dir / "whole", [], ["exists: choose another --out"]),
+        "cold_start_without_mission": (bag_dir / "whole", ["--cold-start"],
+                                       ["--cold-start needs the mission index",
+                                        "--mission"]),
+        "cold_start_and_lost": (bag_dir / "whole", ["--cold-start", "--mission", tmp_path,
+                                                    "--lost", 0, 0],
+                                ["either --cold-start", "not both"]),
     }[case]
     if case == "existing_out":
         (out / "outputs").mkdir(parents=True)

@@ -216,22 +216,32 @@ def test_flight_over_a_real_image_bounds_the_error(tmp_path, shared_data):
     assert fused["rms"] < 0.6 * dr["rms"] and fused["final"] < 0.5 * dr["final"], (fused, dr)
 
 
-def test_a_lost_then_kidnapped_aircraft_finds_itself_in_the_mission_index(tmp_path,
-                                                                         shared_data):
-    """GNSS jammed from take-off and the filter started 10 km east of the truth over
-    N44E005, then, 40 s in, its position set 5 km north of the truth (/ekf/set_pose, a
-    kidnap): each time the tile around the estimate cannot hold the camera view, so after a
-    run of no-fixes the matcher searches the whole mission index (prepared before flight, 40
-    x 40 km) and two agreeing relocalisations move the filter back onto the truth. The bag
-    and the index are made here from ../shared."""
+@pytest.fixture(scope="module")
+def n44_flight(tmp_path_factory, shared_data):
+    """A 90 s survey flight over N44E005 (GNSS denied after 15 s) and the mission index of a
+    40 x 40 km area around it, prepared for the flight's hours: made once from ../shared for
+    the lost, kidnapped and cold-start replays."""
     dem = shared_data / "dem" / "N44E005.hgt"
-    bag, index = tmp_path / "n44", tmp_path / "index"
+    tmp = tmp_path_factory.mktemp("n44")
+    bag, index = tmp / "n44", tmp / "index"
     simulate(SimConfig(dem=str(dem), duration=90.0, pattern="survey", agl=3000.0,
                        camera_hfov=70.0, landmark_gsd=30.0, gnss_denied_after=15.0,
                        start_time="2024-06-21T09:00:00Z", seed=5), bag)
     assert cli.main(["prepare", "--dem", str(dem), "--area", "44.32,5.25,44.68,5.75",
                      "--gsd", "30", "--out", str(index), "--time", "2024-06-21T08:55:00Z",
                      "--hours", "0.2", "--workers", "1"]) == 0
+    return bag, index
+
+
+def test_a_lost_then_kidnapped_aircraft_finds_itself_in_the_mission_index(tmp_path,
+                                                                         n44_flight):
+    """GNSS jammed from take-off and the filter started 10 km east of the truth over
+    N44E005, then, 40 s in, its position set 5 km north of the truth (/ekf/set_pose, a
+    kidnap): each time the tile around the estimate cannot hold the camera view, so after a
+    run of no-fixes the matcher searches the whole mission index (prepared before flight, 40
+    x 40 km) and two agreeing relocalisations move the filter back onto the truth. The bag
+    and the index are made from ../shared (n44_flight)."""
+    bag, index = n44_flight
     result = run_replay(bag, tmp_path / "out", GRAPH, mission_dir=index,
                         lost_offset=(10_000.0, 0.0), kidnap=(40.0, 0.0, 5_000.0))
     _nodes_survived(result)
@@ -247,3 +257,30 @@ def test_a_lost_then_kidnapped_aircraft_finds_itself_in_the_mission_index(tmp_pa
     assert (err[(t >= 30.0) & (t < 40.0)] <= 3 * gsd).all()     # found after the start
     assert (err[t >= 65.0] <= 3 * gsd).all()                    # and after the kidnap
     assert result["fused_error"]["final"] <= 2 * gsd, result["fused_error"]
+
+
+def test_a_cold_start_without_any_pose_finds_itself_in_the_mission_index(tmp_path,
+                                                                         n44_flight):
+    """The same flight with no pose at all: GNSS jammed from take-off, the ekf waiting for
+    two agreeing relocalisations (init_mode fix), camera_ingest projecting the frames
+    pose-free (the barometer's height over the mission area's median terrain, levelled from
+    the accelerometers, heading unknown) and the matcher searching them in the whole index
+    at a ladder of scales. The filter starts from the relocalisations, camera_ingest then
+    projects with its odometry, and the fused error is below 2 GSD within 60 s (issue 24's
+    target; over runs it was there 13-14 s after take-off, as the filter started), then
+    tracks as the graph does on this flight (up to 2.2 GSD in the turn at 60-65 s)."""
+    bag, index = n44_flight
+    result = run_replay(bag, tmp_path / "out", GRAPH, mission_dir=index, cold_start=True)
+    _nodes_survived(result)
+    fixes = result["fixes"]
+    assert fixes["relocalisations"] >= 2, fixes
+    assert fixes["fixes"] >= 0.6 * fixes["frames"], fixes
+    assert fixes["first_after"] <= 10.0, fixes
+    assert any(e.startswith("started from agreeing relocalisations")
+               for e in result["navigation_events"]), result["navigation_events"]
+    gsd = 30.0
+    fused = result["fused_error"]
+    assert fused["first_below_2_gsd_after"] <= 60.0, fused
+    t, err, _ = result["series"]["fused_error"]
+    assert (err[t >= fused["first_below_2_gsd_after"] + 10.0] <= 3 * gsd).all(), fused
+    assert fused["final"] <= 2 * gsd, fused

@@ -18,6 +18,7 @@ from terrain_nav_ros.core.matching.mission_index import (
     build_tile,
     layer_name,
     load_tile,
+    manifest_differences,
     save_tile,
 )
 from terrain_nav_ros.core.render.sun import parse_utc, sun_separation, suns_over_window
@@ -222,6 +223,30 @@ def test_the_nearest_sun_layer_is_picked(mission):
     assert index.load(0, 0, (139.0, 49.0)).sun == SUNS[1]
     with pytest.raises(IndexError):
         index.load(5, 0, 0)
+
+
+def test_the_areas_terrain_heights_are_recorded_and_read_from_an_older_manifest(mission,
+                                                                               tmp_path):
+    """A cold start assumes the area's median terrain and searches the spread: the manifest
+    records them; an index prepared before they were recorded samples its DEMs instead, and
+    is the same request to a rerun."""
+    manifest = json.loads((mission / "manifest.json").read_text())
+    terrain = MissionIndex(mission).terrain()
+    assert manifest["terrain"] == terrain.to_dict()
+    # the Vercors foothills: a few hundred metres to about two kilometres
+    assert 150.0 < terrain.low < terrain.median < terrain.high < 2500.0
+    assert terrain.high - terrain.low > 500.0
+    old = tmp_path / "old"
+    old.mkdir()
+    del manifest["terrain"]
+    (old / "manifest.json").write_text(json.dumps(manifest))
+    again = MissionIndex(old).terrain()
+    assert again.to_dict() == pytest.approx(terrain.to_dict(), abs=1e-6)
+    assert manifest_differences(manifest, json.loads(
+        (mission / "manifest.json").read_text())) == []
+    manifest["dems"][0]["path"] = str(tmp_path / "gone.hgt")
+    (old / "manifest.json").write_text(json.dumps(manifest))
+    assert MissionIndex(old).terrain() is None
 
 
 def test_a_directory_without_an_index_is_no_mission_index(tmp_path):

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from terrain_nav_ros.core.features.minutiae import FeatureExtractor
+from terrain_nav_ros.core.matching.global_search import rescaled_view, scale_ladder
 from terrain_nav_ros.core.matching.mission_index import MissionIndex
 from terrain_nav_ros.core.matching.params import MatchParams
 from terrain_nav_ros.core.matching.relocaliser import MissionSearch, SearchPolicy, tile_in_frame
@@ -134,3 +135,101 @@ def test_a_search_under_a_sun_the_index_was_not_prepared_for_says_so(mission, sh
     assert not found.matched
     assert "prepare it for the flight's hours" in found.reason
     assert search.layer_sun_gap(search.sun_at(evening)) > 90.0
+
+
+def test_a_view_at_the_wrong_scale_is_found_on_the_ladder_of_scales(mission):
+    """A pose-free frame projected from a wrongly assumed height: its ground distances are
+    the true ones / 1.35. One search (+-10 % of scale) cannot register it; the ladder's rung
+    near 1.35 does, at the true place, and pays for its rungs."""
+    index, dem = mission
+    search = MissionSearch(index, MatchParams(threshold=8.6))
+    east, north = 6000.0, -9000.0
+    features = _camera_view(dem, east, north, 40.0, search.sun_at(WHEN), gsd=90.0 * 1.35)
+    # labelled as the camera_ingest would: 90 m pixels, centred under the camera
+    assumed = GeoReference.centred(east + 700.0, north - 400.0, 90.0, 128, 128)
+    m = features.minutiae
+    shrunk = type(m)(m.col, m.row, m.angle, m.kind, m.quality, georef=assumed)
+    anchor = assumed.centre
+    factors = scale_ladder(0.8, 1.6)
+    assert len(factors) == 4
+    views = [rescaled_view(shrunk, features.creases.skeleton(), features.ridges, f, anchor)
+             for f in factors]
+    found, land_georef, k = search.search_ladder([search.matcher.index(*v) for v in views],
+                                                 WHEN, GRAPH_ORIGIN)
+    assert found.matched, found.reason
+    assert abs(factors[k] * found.result.scale - 1.35) < 0.1, (factors, k, found.result.scale)
+    assert found.penalty == pytest.approx(math.log10(len(index.tiles()) * len(factors)))
+    # the view's centre (under the camera) at the true place
+    view_georef = views[k][0].georef
+    c, r = view_georef.enu_to_pixel(*anchor)
+    col, row = found.result.apply(c, r)
+    got = land_georef.pixel_to_enu(col, row)
+    assert math.hypot(got[0] - east, got[1] - north) < 2.0 * index.gsd
+    # without the ladder, the shrunk view is not found
+    alone, _ = search.search(search.matcher.index(shrunk, features.creases.skeleton(),
+                                                  features.ridges), WHEN, GRAPH_ORIGIN)
+    assert not alone.matched
+
+
+# ---------------------------------------------------------------- the matcher node, cold start
+def _first_answer_of_a_matcher(mission_dir: str, msg):
+    """The first PvaFix a matcher node (with ``mission_dir``) answers ``msg`` with, and its
+    log."""
+    from ros_helpers import SpinningNode, start_node, stop, wait_until
+
+    from terrain_nav_msgs.msg import MinutiaArray, PvaFix
+
+    node = start_node("matcher", {"mission_dir": mission_dir, "landmark_sigma": 0.0})
+    client = SpinningNode("matcher_cold_client")
+    fixes = []
+    try:
+        client.node.create_subscription(PvaFix, "/nav/pva_fix", fixes.append, 10)
+        pub = client.node.create_publisher(MinutiaArray, "/camera/minutiae", 10)
+        assert wait_until(lambda: pub.get_subscription_count() > 0, 30), stop(node)
+        pub.publish(msg)
+        assert wait_until(lambda: bool(fixes), 120), stop(node)
+    finally:
+        client.close()
+        log = stop(node)
+    return fixes[0], log
+
+
+def test_the_matcher_relocalises_a_pose_free_frame_on_its_ladder_of_scales(mission):
+    """A camera set projected without any pose (camera_ingest's cold start) at the graph's
+    origin, heading 0, 3000 m above an assumed plane, the terrain truly 900 m lower (its
+    ground distances / 1.3): the matcher node searches it in the mission index at the
+    scales the plane range allows and publishes a relocalisation at the true place, its
+    height the barometer's, its covariance holding the height above ground x the tilt
+    sigma. A matcher without a mission index says why it cannot."""
+    from terrain_nav_msgs.msg import MinutiaArray, PvaFix
+    from terrain_nav_ros.core.camera.camera_mount import camera_rotation
+    from terrain_nav_ros.nodes import conversions as cv
+
+    index, dem = mission
+    search = MissionSearch(index, MatchParams(threshold=8.6))
+    east, north = 6000.0, -9000.0
+    features = _camera_view(dem, east, north, 40.0, search.sun_at(WHEN), gsd=90.0 * 1.3)
+    m = features.minutiae
+    camera = type(m)(m.col, m.row, m.angle, m.kind, m.quality,
+                     georef=GeoReference.centred(0.0, 0.0, 90.0, 128, 128))
+    msg = cv.minutiae_to_msg(camera, cv.make_header(int(WHEN * 1e9), "map"),
+                             MinutiaArray.SOURCE_CAMERA,
+                             (GRAPH_ORIGIN.lat, GRAPH_ORIGIN.lon, GRAPH_ORIGIN.alt),
+                             creases=features.creases.skeleton(), ridges=features.ridges)
+    cv.set_projection(msg, [0.0, 0.0, 3500.0], camera_rotation([0, 0, 0, 1]), 500.0)
+    tilt = math.radians(2.0)
+    cv.set_pose_free(msg, -600.0, 1500.0, tilt)
+    for mission_dir in (str(index.path), ""):
+        fix, log = _first_answer_of_a_matcher(mission_dir, msg)
+        if not mission_dir:
+            assert fix.status == PvaFix.STATUS_NO_FIX and "mission_dir" in fix.reason, log
+            continue
+        assert fix.status == PvaFix.STATUS_POSITION_ATTITUDE and fix.relocalisation, \
+            f"{fix.reason}\n{log}"
+        p = fix.pose.pose.position
+        assert math.hypot(p.x - east, p.y - north) < 2.0 * index.gsd, (p, log)
+        assert p.z == pytest.approx(3500.0)
+        cov = cv.covariance_to_array(fix.pose.covariance, 6)
+        # the tilt's allowance at the measured 3900 m above ground, inflated as every fix's
+        assert cov[0, 0] > (3500.0 * math.tan(tilt)) ** 2
+        assert "at scale" in log and "4 scales" in log

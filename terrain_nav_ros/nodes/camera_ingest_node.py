@@ -11,6 +11,20 @@ calibration, camera above the horizon, undecodable image, a frozen camera repeat
 last image or a stamp that does not move forward) is still published, as a GeoImage
 without an image whose ``reason`` says why, so that the matcher answers it with a no-fix; a
 throttled log line says so too, and ``/camera_ingest/diagnostics`` counts each reason.
+
+Cold start (``cold_start: true``, with the ``mission_dir`` the matcher searches): while
+there is no estimate at a frame's stamp (the ekf publishes none before it is initialised),
+the frame is projected without a pose (:mod:`..core.camera.pose_free`): at the ENU origin,
+heading 0, the roll and pitch of ``/imu/data``'s orientation when it carries one, else of
+its accelerometers levelled in straight flight (frames in a turn are not projected), the
+camera at the barometer's altitude (``/baro/pressure``, ISA), on a plane at the mission
+area's median terrain height (no orthorectification: the place is unknown). The GeoImage is
+marked ``pose_free`` with the range of planes the area's terrain allows and the attitude's
+sigma, so the matcher searches it in the whole mission index at the scales they allow. As
+soon as the ekf publishes odometry, frames are projected with it (and pose-free again only
+when it stops for ``COLD_START_GAP`` s). Without a barometer sample, the mission index, its
+terrain heights or a DEM tile (it carries the ENU origin), the frame is a no-fix saying
+which.
 """
 
 from __future__ import annotations
@@ -23,7 +37,7 @@ from collections import Counter
 import numpy as np
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, FluidPressure, Image, Imu
 
 from terrain_nav_msgs.msg import DemTile, GeoImage
 
@@ -38,6 +52,9 @@ from ..core.camera.ground_projection import (
 )
 from ..core.camera.orthorectify import heights_on, orthorectify
 from ..core.camera.pose_buffer import PoseBuffer, StampedPose
+from ..core.camera.pose_free import CruiseAttitude, pose_free_view
+from ..core.estimation.baro import SEA_LEVEL_PRESSURE, pressure_to_altitude
+from ..core.matching.mission_index import MissionIndex, MissionIndexError
 from ..core.render.sun import sun_at
 from ..core.terrain.georef import GeoReference
 from . import conversions as cv
@@ -52,6 +69,10 @@ from .ros_common import (
     publish_diagnostics,
     run,
 )
+
+# cold start: frames this long after the last odometry are projected pose-free again (the
+# filter was reset); within it, a frame without a pose is a no-fix as without cold start (s)
+COLD_START_GAP = 2.0
 
 
 class CameraIngestNode(Node):
@@ -78,7 +99,42 @@ class CameraIngestNode(Node):
         self.orthorectify = declare(self, "orthorectify", True,
                                     "use the DEM tile's height for every ground pixel (true "
                                     "ortho) instead of one mean terrain plane")
+        self.cold_start = declare(
+            self, "cold_start", False,
+            "project frames without a navigation pose while there is none (a live graph "
+            "started without GNSS; needs mission_dir, the barometer and init_mode fix)")
+        mission_dir = declare(self, "mission_dir", "",
+                              "cold start: the mission index (terrain-nav prepare) whose "
+                              "terrain heights a pose-free frame assumes; the matcher's")
+        tilt_sigma = declare(self, "cold_start_tilt_sigma", 3.0,
+                             "cold start: 1-sigma of the wings-level attitude assumed "
+                             "before any IMU message [deg]", min_value=0.0)
+        levelled_sigma = declare(self, "cold_start_levelled_sigma", 1.0,
+                                 "cold start: 1-sigma of the roll and pitch levelled from "
+                                 "the accelerometers in straight flight [deg]",
+                                 min_value=0.0)
+        turn_rate = declare(self, "cold_start_max_turn_rate", 3.0,
+                            "cold start: frames whose last second turned faster than this "
+                            "are not projected (bank unknown) [deg/s]", min_value=0.0)
+        self.sea_level_pressure = declare(self, "sea_level_pressure", SEA_LEVEL_PRESSURE,
+                                          "cold start: ISA reference pressure [Pa]",
+                                          min_value=1.0)
+        self.baro_altitude_sigma = declare(
+            self, "baro_altitude_sigma", 50.0,
+            "cold start: 1-sigma of the pressure altitude against the DEM's heights (the "
+            "day's sea-level pressure) [m]", min_value=0.0)
+        self.max_baro_age = declare(self, "max_baro_age", 2.0,
+                                    "cold start: largest time between a frame and the "
+                                    "barometer sample used [s]", min_value=0.0)
         self.r_body_optical = mount_rotation(*mount)
+        self.attitude = CruiseAttitude(math.radians(tilt_sigma), math.radians(turn_rate),
+                                       levelled_sigma=math.radians(levelled_sigma))
+        self.baro: tuple[float, float] | None = None     # (stamp s, pressure Pa)
+        self._odometry_span: tuple[float, float] | None = None   # first, last stamp (s)
+        self.pose_free_published = 0
+        self.terrain, self.terrain_problem = None, ""
+        if self.cold_start:
+            self.terrain, self.terrain_problem = self._area_terrain(mission_dir)
         self.poses = PoseBuffer(horizon=5.0, max_extrapolation=self.max_pose_gap)
         self.frames = FrameGuard()
         self.intrinsics: CameraIntrinsics | None = None
@@ -107,10 +163,47 @@ class CameraIngestNode(Node):
         self.create_subscription(CameraInfo, "/camera/camera_info", self.on_info, SENSOR_QOS)
         self.create_subscription(Odometry, "/nav/odometry", self.on_odometry, RELIABLE_QOS)
         self.create_subscription(DemTile, "/metamap/tile", self.on_tile, LATCHED_QOS)
+        if self.cold_start:
+            self.create_subscription(FluidPressure, "/baro/pressure", self.on_baro, SENSOR_QOS)
+            self.create_subscription(Imu, "/imu/data", self.on_imu, SENSOR_QOS)
         publish_diagnostics(self, "/camera_ingest/diagnostics", diagnostics_period,
                             self.diagnostics)
 
+    def _area_terrain(self, mission_dir: str):
+        """The mission area's terrain heights for a cold start, or None and why not (said
+        for every pose-free frame, not a failure at start-up: the graph still runs once the
+        ekf has a pose)."""
+        if not mission_dir:
+            return None, ("cold start: no mission index (camera_ingest's mission_dir) for the "
+                          "area's terrain heights")
+        try:
+            terrain = MissionIndex(mission_dir).terrain()
+        except MissionIndexError as err:
+            self.get_logger().error(f"cold start impossible: {err}")
+            return None, f"cold start: {err}"
+        if terrain is None:
+            self.get_logger().error(f"cold start impossible: {mission_dir} records no terrain "
+                                    "heights and its DEMs cannot be read")
+            return None, ("cold start: the mission index holds no terrain heights and its DEMs "
+                          "cannot be read: prepare it again")
+        self.get_logger().info(
+            f"cold start: terrain of the mission area {terrain.low:.0f} / {terrain.median:.0f}"
+            f" / {terrain.high:.0f} m (2nd percentile / median / 98th)")
+        return terrain, ""
+
     # -- inputs ----------------------------------------------------------------------------
+    @contained
+    def on_baro(self, msg: FluidPressure) -> None:
+        stamp, pressure, _ = cv.fluid_pressure_to_sample(msg)
+        if math.isfinite(pressure) and pressure > 0 and math.isfinite(stamp):
+            self.baro = (stamp, pressure)
+
+    @contained
+    def on_imu(self, msg: Imu) -> None:
+        stamp, gyro, accel = cv.imu_to_sample(msg)
+        orientation = cv.imu_orientation(msg)
+        self.attitude.add(stamp, gyro, accel, *(orientation or (None, None)))
+
     @contained
     def on_info(self, msg: CameraInfo) -> None:
         try:
@@ -125,6 +218,12 @@ class CameraIngestNode(Node):
     def on_odometry(self, msg: Odometry) -> None:
         stamp, p, q, cov = cv.odometry_to_arrays(msg)
         reason = self.poses.add(StampedPose(stamp * 1e-9, p, q, cov))
+        if not reason:
+            t = stamp * 1e-9
+            first, last = self._odometry_span or (t, t)
+            if t < last - self.poses.horizon:      # time went backwards: start again
+                first, last = t, t
+            self._odometry_span = (min(first, t), max(last, t))
         if reason:
             self.get_logger().warning(f"odometry ignored: {reason}", throttle_duration_sec=5.0)
 
@@ -190,6 +289,10 @@ class CameraIngestNode(Node):
             self.drop(self.calibration_problem or "no CameraInfo", header)
             return
         pose, reason = self.poses.at(cv.stamp_to_sec(header.stamp))
+        if pose is None and self.cold_start and self._without_odometry(
+                cv.stamp_to_sec(header.stamp)):
+            self._project_pose_free(image, encoding, header)
+            return
         if pose is None:
             self.drop(reason, header)
             return
@@ -232,6 +335,70 @@ class CameraIngestNode(Node):
         self.pub.publish(out)
         self.published += 1
 
+    def _without_odometry(self, stamp: float) -> bool:
+        """Whether a frame at ``stamp`` has no navigation estimate to wait for: none yet, the
+        frame taken before the filter started, or the odometry stopped (a filter reset)
+        ``COLD_START_GAP`` s before it. A shorter gap is a no-fix, as without cold start."""
+        if self._odometry_span is None:
+            return True
+        first, last = self._odometry_span
+        return stamp < first or stamp > last + COLD_START_GAP
+
+    def _project_pose_free(self, image: np.ndarray, encoding: str, header) -> None:
+        """A frame with no navigation pose at its stamp, projected pose-free (cold start)."""
+        stamp = cv.stamp_to_sec(header.stamp)
+        if self.terrain is None:
+            self.drop(self.terrain_problem, header)
+            return
+        if self.tile is None:
+            self.drop("cold start: no DEM tile yet (it carries the graph's ENU origin)", header)
+            return
+        if self.baro is None:
+            self.drop("cold start: no barometer pressure yet (/baro/pressure)", header)
+            return
+        if abs(self.baro[0] - stamp) > self.max_baro_age:
+            self.drop(f"cold start: the last barometer sample is {self.baro[0] - stamp:+.1f} s "
+                      "from the frame", header)
+            return
+        attitude, why = self.attitude.at(stamp)
+        if attitude is None:
+            self.drop(why, header)
+            return
+        roll, pitch, tilt_sigma = attitude
+        t = self.terrain
+        view, why = pose_free_view(
+            float(pressure_to_altitude(self.baro[1], self.sea_level_pressure)), t.low,
+            t.median, t.high, self.tile_origin[2], roll=roll, pitch=pitch,
+            tilt_sigma=tilt_sigma, altitude_sigma=self.baro_altitude_sigma,
+            r_body_optical=self.r_body_optical)
+        if view is None:
+            self.drop(why, header)
+            return
+        camera, plane = view.pose, view.plane
+        max_range = self.max_range_factor * view.height_above_ground
+        georef = footprint_georef(self.intrinsics, camera, plane, self.gsd, max_range)
+        if georef is None:
+            self.drop("camera is pointing at or above the horizon", header)
+            return
+        georef = self._capped(georef)
+        ground = project_to_ground(image, self.intrinsics, camera, plane, georef,
+                                   bgr=encoding.startswith("bgr"), max_range=max_range)
+        if ground.image is None:
+            self.drop(ground.reason, header)
+            return
+        out = cv.geo_image_to_msg(ground.image, georef,
+                                  cv.make_header(header.stamp, self.frame_id), ground.valid,
+                                  self.tile_origin, sun=self.sun_at_frame(header.stamp))
+        cv.set_projection(out, camera.position, camera.rotation, plane)
+        cv.set_pose_free(out, view.plane_min, view.plane_max, view.tilt_sigma)
+        self.pub.publish(out)
+        self.published += 1
+        self.pose_free_published += 1
+        self.get_logger().info(
+            f"frame projected pose-free (cold start): {view.height_above_ground:.0f} m above "
+            f"the area's median terrain, planes {view.plane_min:.0f}..{view.plane_max:.0f} m",
+            throttle_duration_sec=5.0)
+
     def sun_at_frame(self, stamp) -> tuple[float, float] | None:
         """The sun over the tile's origin at the frame's stamp; None before a tile (no
         origin yet) or with the sun below the horizon."""
@@ -265,7 +432,8 @@ class CameraIngestNode(Node):
             level = DIAG_WARN
             problems.append(f"{new_dropped} frame(s) not projected, none projected: "
                             f"{self.drops.most_common(1)[0][0]}")
-        values = {"projected": self.published, "not_projected": not_projected,
+        values = {"projected": self.published, "projected_pose_free": self.pose_free_published,
+                  "not_projected": not_projected,
                   "frames_since_last_report": new_projected + new_dropped,
                   "time_since_last_frame": since}
         values.update({f"not projected: {k}": n for k, n in self.drops.most_common()})

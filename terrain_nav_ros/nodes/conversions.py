@@ -389,11 +389,33 @@ def get_projection(msg) -> tuple[np.ndarray, np.ndarray, float] | None:
     return np.array([p.x, p.y, p.z]), rotation, float(msg.projection_plane_height)
 
 
+def set_pose_free(msg, plane_min: float, plane_max: float, tilt_sigma: float) -> None:
+    """Mark a projected GeoImage/MinutiaArray as pose-free (cold start), with the range of
+    terrain planes and the attitude sigma it leaves open (call after set_projection)."""
+    msg.pose_free = True
+    msg.projection_plane_min = float(plane_min)
+    msg.projection_plane_max = float(plane_max)
+    msg.projection_tilt_sigma = float(tilt_sigma)
+
+
+def get_pose_free(msg) -> tuple[float, float, float] | None:
+    """(plane min, plane max, tilt sigma) of a pose-free projection, or None (a frame
+    projected with the navigation estimate, or not projected)."""
+    if not (msg.projected and msg.pose_free):
+        return None
+    return (float(msg.projection_plane_min), float(msg.projection_plane_max),
+            float(msg.projection_tilt_sigma))
+
+
 def copy_projection(source, target) -> None:
     """Carry the projection fields from a GeoImage to the MinutiaArray made from it."""
     target.projected = source.projected
     target.projection_pose = source.projection_pose
     target.projection_plane_height = source.projection_plane_height
+    target.pose_free = source.pose_free
+    target.projection_plane_min = source.projection_plane_min
+    target.projection_plane_max = source.projection_plane_max
+    target.projection_tilt_sigma = source.projection_tilt_sigma
 
 
 # ---------------------------------------------------------------------------------------------
@@ -494,6 +516,17 @@ def imu_to_sample(msg: Imu) -> tuple[float, tuple, tuple]:
     """
     w, a = msg.angular_velocity, msg.linear_acceleration
     return stamp_to_sec(msg.header.stamp), (w.x, w.y, w.z), (a.x, a.y, a.z)
+
+
+def imu_orientation(msg: Imu) -> tuple[np.ndarray, float] | None:
+    """The orientation an Imu message carries (quaternion ``[x, y, z, w]``, body -> its
+    frame) and the larger of its roll and pitch variances (rad^2), or None when it carries
+    none (REP 145: ``orientation_covariance[0] == -1``)."""
+    cov = msg.orientation_covariance
+    if cov[0] < 0:
+        return None
+    o = msg.orientation
+    return np.array([o.x, o.y, o.z, o.w], float), float(max(cov[0], cov[4]))
 
 
 def sample_to_imu(header: Header, gyro, accel) -> Imu:

@@ -18,6 +18,15 @@ is measured too (``STATUS_POSITION_ATTITUDE``, roll and pitch with a 10-degree s
 leaves the filter's own untouched); otherwise only the position (``STATUS_POSITION``, rotation
 covariance -1).
 
+A pose-free camera set (camera_ingest's cold start: projected without any navigation pose)
+is always searched in the mission index, at the ladder of scales its range of terrain planes
+needs (:func:`.core.matching.global_search.relocalise_ladder`), and its fix is a
+relocalisation: the position under the camera found, the height the barometer's (the scale
+measures the height above the unknown terrain, not the aircraft's), the horizontal
+covariance grown by the height above ground x the attitude's assumed sigma, the roll and
+pitch camera_ingest's with that sigma (levelled apart from the filter: what the ekf starts
+from), the heading the registration's. Without a mission index it is a no-fix saying so.
+
 What the node decides around the matcher is ROS-free in
 :mod:`terrain_nav_ros.core.matching.fix_stream`: the landmark set a camera set is matched in,
 the fix's tilt allowance, attitude and velocity, and the diagnostics' tallies.
@@ -37,13 +46,16 @@ from terrain_nav_msgs.msg import DemTile, MinutiaArray, PvaFix
 
 from ..core.camera.camera_mount import mount_rotation
 from ..core.camera.ground_projection import CameraIntrinsics, CameraPose, ground_to_image
+from ..core.camera.pose_free import scale_range
 from ..core.matching.fix_stream import (
+    UNOBSERVED_TILT_VAR,
     AnswerTally,
     FixVelocity,
     LandmarkSets,
     add_prior_tilt,
     fix_attitude,
 )
+from ..core.matching.global_search import rescaled_view, scale_ladder
 from ..core.matching.matcher import Matcher, warm_up
 from ..core.matching.mission_index import MissionIndex, MissionIndexError
 from ..core.matching.params import MatchParams
@@ -130,6 +142,10 @@ class MatcherNode(Node):
         after_no_fixes = declare(self, "relocalise_after_no_fixes", 5,
                                  "no-fixes in a row in the landmark tile after which frames "
                                  "are searched in the whole mission index", min_value=1)
+        self.pose_free_height_sigma = declare(
+            self, "pose_free_height_sigma", 50.0,
+            "cold start: height sigma of a pose-free frame's fix, whose height is the "
+            "barometer's [m]", min_value=0.0)
         check_parameters_known(self)  # before the matcher is built and its kernels loaded
         self.add_on_set_parameters_callback(reject_all_changes)
         self.r_body_optical = mount_rotation(*mount)
@@ -227,6 +243,11 @@ class MatcherNode(Node):
         if projection is None:
             self.publish_no_fix(msg.header.stamp, "camera minutiae carry no projection pose")
             return
+        pose_free = cv.get_pose_free(msg)
+        if pose_free is not None:
+            self._relocalise_pose_free(msg, camera, camera_creases, camera_ridges, projection,
+                                       pose_free)
+            return
         landmark = self.landmarks.holding(*camera.georef.centre)
         covered = landmark is not None and landmark[1] is not None
         why = self.policy.reason_to_search(covered) if self.mission is not None else ""
@@ -284,6 +305,51 @@ class MatcherNode(Node):
                                f"{found.score:.1f} over {found.searched} tiles")
         self.publish_fix(msg.header.stamp, stamp, fix, origin)
 
+    def _relocalise_pose_free(self, msg: MinutiaArray, camera, camera_creases,
+                              camera_ridges, projection, pose_free) -> None:
+        """A relocalisation, or a no-fix, of a camera set projected without any pose (cold
+        start): searched in the mission index at the scales its terrain range allows."""
+        if self.mission is None:
+            self.publish_no_fix(msg.header.stamp, "pose-free frame (cold start) without a "
+                                "mission index to search: set the matcher's mission_dir")
+            return
+        position, rotation, plane = projection
+        plane_min, plane_max, tilt_sigma = pose_free
+        try:
+            factors = scale_ladder(*scale_range(position[2], plane, plane_min, plane_max))
+        except ValueError as err:
+            self.publish_no_fix(msg.header.stamp, f"pose-free frame: {err}")
+            return
+        views = [rescaled_view(camera, camera_creases, camera_ridges, f, position[:2])
+                 for f in factors]
+        origin = cv.enu_origin_of(msg.georef)
+        stamp = cv.stamp_to_sec(msg.header.stamp)
+        found, land_georef, k = self.mission.search_ladder(
+            [self.mission.matcher.index(*v) for v in views], stamp, EnuOrigin(*origin))
+        if not found.matched:
+            self.publish_no_fix(msg.header.stamp,
+                                f"relocalisation (pose-free, cold start): {found.reason}")
+            return
+        # the view at rung k is the frame seen from factors[k] times its assumed height
+        agl = factors[k] * (position[2] - plane)
+        prior = np.array([position[0], position[1], plane + agl])
+        fix = fix_from_ground_match(found.result, views[k][0].georef, land_georef, prior,
+                                    rotation, plane, landmark_sigma=self.landmark_sigma)
+        if not fix.valid:
+            self.publish_no_fix(msg.header.stamp, f"relocalisation: {fix.reason}", fix)
+            return
+        measured_agl = float(fix.position[2] - plane)
+        fix.position[2] = position[2]
+        fix.covariance[2, 2] = self.pose_free_height_sigma ** 2
+        add_prior_tilt(fix, measured_agl, tilt_sigma)
+        fix.relocalisation = True
+        self.get_logger().info(
+            f"relocalised a pose-free frame in tile {found.tile.key} at scale "
+            f"{factors[k]:.2f} ({len(factors)} scales), {measured_agl:.0f} m above ground, "
+            f"area score {found.score:.1f} over {found.searched} tile searches")
+        # its roll and pitch are camera_ingest's, measured apart from the filter
+        self.publish_fix(msg.header.stamp, stamp, fix, origin, tilt_variance=tilt_sigma ** 2)
+
     def _ground_fix(self, result, camera_georef, landmark_georef,
                     projection) -> PvaFixEstimate:
         """The fix of a registration of the ground-projected camera set in a landmark
@@ -329,9 +395,11 @@ class MatcherNode(Node):
         self.tally.no_fix(reason)
         self.get_logger().info(f"no fix: {reason}", throttle_duration_sec=2.0)
 
-    def publish_fix(self, stamp, stamp_s: float, fix: PvaFixEstimate, origin) -> None:
+    def publish_fix(self, stamp, stamp_s: float, fix: PvaFixEstimate, origin,
+                    tilt_variance: float = UNOBSERVED_TILT_VAR) -> None:
         inflate_covariance(fix, self.covariance_scale)
-        r_enu_body = fix_attitude(fix, self.r_body_optical, self.use_heading, self.heading_floor)
+        r_enu_body = fix_attitude(fix, self.r_body_optical, self.use_heading, self.heading_floor,
+                                  tilt_variance)
         quaternion = Rotation.from_matrix(r_enu_body).as_quat()
         out = PvaFix(header=cv.make_header(stamp, self.frame_id), status=fix.status,
                      reason=fix.reason, similarity=float(fix.similarity),

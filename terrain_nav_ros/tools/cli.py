@@ -92,7 +92,8 @@ def _cmd_replay(args) -> int:
     out = Path(args.out) if args.out else REPO / "out" / f"replay-{bag.name}-{_now()}"
     result = run_replay(bag, out, args.config, rate=args.rate, verbose=args.verbose,
                         enable=args.enable or (), mission_dir=args.mission,
-                        lost_offset=args.lost, kidnap=args.kidnap)
+                        lost_offset=args.lost, kidnap=args.kidnap,
+                        cold_start=args.cold_start)
     if "stopped" in result["partial"]:
         return 130
     return 0 if result["graph_status"] == 0 and not result["died"] else 1
@@ -370,6 +371,10 @@ def build_parser() -> argparse.ArgumentParser:
         job.add_argument("--lost", type=float, nargs=2, metavar=("E", "N"),
                          help="GNSS jammed from the start: the filter starts at the bag's "
                               "true initial state moved by E, N metres (a lost aircraft)")
+        job.add_argument("--cold-start", action="store_true",
+                         help="GNSS jammed from the start and no pose at all: camera_ingest "
+                              "projects frames pose-free and the ekf starts from two "
+                              "agreeing relocalisations in the --mission index")
         job.add_argument("--kidnap", type=float, nargs=3, metavar=("T", "E", "N"),
                          help="T s into the bag, set the filter's position to the truth "
                               "moved by E, N metres (/ekf/set_pose: a kidnapped aircraft)")

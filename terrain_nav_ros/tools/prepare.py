@@ -245,6 +245,7 @@ def plan_index(req: PrepareRequest, parameters=GRAPH_PARAMETERS) -> IndexPlan:
     dems = _open_dems(req.dems)
     try:
         area, origin, extent = _area(req, dems)
+        terrain = mi.area_terrain(MetaMap(dems, origin), extent)
     finally:
         for d in dems:
             d.close()
@@ -256,7 +257,8 @@ def plan_index(req: PrepareRequest, parameters=GRAPH_PARAMETERS) -> IndexPlan:
     area_record.update({"from": "--area" if req.area else "DEM extent",
                         "enu_extent": [float(v) for v in extent]})
     manifest = mi.make_manifest(area=area_record, origin=origin, grid=grid, suns=suns,
-                                dems=paths, settings=settings, sun_source=sun_source)
+                                dems=paths, settings=settings, sun_source=sun_source,
+                                terrain=terrain)
     return IndexPlan(manifest, grid, np.asarray(suns, float), paths, origin, settings)
 
 

@@ -91,6 +91,19 @@ def _lost_parameters(bag: Path, offset) -> dict:
             "initial_rpy": [float(v) for v in roll_pitch_yaw]}
 
 
+def _cold_start_parameters(mission_dir: Path, mission: dict) -> dict[str, dict]:
+    """Parameters of a cold start: no pose at all (GNSS jammed from the start, the replay
+    leaves ``/gnss/fix`` out), the ekf started from two agreeing relocalisations
+    (``init_mode: fix``), the frames before them projected pose-free by camera_ingest
+    (``cold_start``, the mission index's terrain heights). The barometer's pressure
+    altitude is taken as the height above the geoid (as camera_ingest does): the ekf's
+    ``baro_offset`` is minus the ENU origin's altitude, set rather than learnt (it is learnt
+    only from a vertical sigma of 10 m, which fixes alone do not give)."""
+    origin = mission.get("origin") or [0.0, 0.0, 0.0]
+    return {"ekf": {"init_mode": "fix", "baro_offset": -float(origin[2])},
+            "camera_ingest": {"cold_start": True, "mission_dir": str(mission_dir)}}
+
+
 def _kidnapped(bag: Path, copy: Path, at: float, east: float, north: float) -> Path:
     """A copy of ``bag`` (and its mission.yaml) with one ``/ekf/set_pose`` ``at`` s after
     its first message: the true position then, moved by (``east``, ``north``) metres, with a
@@ -186,7 +199,7 @@ def check_inputs(bag: Path, out_dir: Path, rate: float) -> tuple[dict, bags.BagH
 def run_replay(bag: str | Path, out_dir: str | Path, graph_config: str | Path,
                rate: float = 1.0, drain: float = 5.0, startup_timeout: float = 60.0,
                verbose: bool = False, enable=(), mission_dir: str | Path | None = None,
-               lost_offset=None, kidnap=None) -> dict:
+               lost_offset=None, kidnap=None, cold_start: bool = False) -> dict:
     """Replay ``bag`` through the graph; return the report's metrics (see :mod:`.report`).
 
     The inputs are checked first (:func:`check_inputs`); a damaged bag is replayed as far
@@ -194,8 +207,16 @@ def run_replay(bag: str | Path, out_dir: str | Path, graph_config: str | Path,
     the graph file disables to run too (e.g. ``autopilot_bridge``, whose outputs are then
     recorded). ``mission_dir`` is the mission index the matcher searches when lost;
     ``lost_offset`` (east, north metres) replays a lost aircraft (:func:`_lost_parameters`);
-    ``kidnap`` (seconds, east, north metres) a kidnapped one (:func:`_kidnapped`).
+    ``kidnap`` (seconds, east, north metres) a kidnapped one (:func:`_kidnapped`);
+    ``cold_start`` one with no pose at all, found from the mission index alone
+    (:func:`_cold_start_parameters`).
     """
+    if cold_start and mission_dir is None:
+        raise InputError("--cold-start needs the mission index to search: give --mission "
+                         "MISSION_DIR")
+    if cold_start and lost_offset is not None:
+        raise InputError("give either --cold-start (no pose at all) or --lost E N (a wrong "
+                         "one), not both")
     bag, out_dir = Path(bag).resolve(), Path(out_dir).resolve()
     mission, health = check_inputs(bag, out_dir, rate)
     spec = load_graph(graph_config, enable)
@@ -209,6 +230,11 @@ def run_replay(bag: str | Path, out_dir: str | Path, graph_config: str | Path,
         overrides.setdefault("matcher", {})["mission_dir"] = str(Path(mission_dir).resolve())
     if lost_offset is not None:
         overrides.setdefault("ekf", {}).update(_lost_parameters(bag, lost_offset))
+    if cold_start:
+        for node, values in _cold_start_parameters(Path(mission_dir).resolve(),
+                                                   mission).items():
+            overrides.setdefault(node, {}).update(values)
+    if lost_offset is not None or cold_start:
         input_topics = [t for t in input_topics if t != "/gnss/fix"]
     for node in spec.nodes:
         node.parameters.update(overrides.get(node.name, {}))
@@ -261,8 +287,8 @@ def run_replay(bag: str | Path, out_dir: str | Path, graph_config: str | Path,
         if stopped_by:   # stopped before the recorder wrote anything: no report to write
             raise KeyboardInterrupt
         raise RuntimeError(f"the recorder wrote no bag (graph status {status}, died: {died})")
-    result = report.analyse(bag, output_bag, usage,
-                            denied_after=0.0 if lost_offset is not None else None)
+    result = report.analyse(bag, output_bag, usage, denied_after=0.0 if (
+        lost_offset is not None or cold_start) else None)
     result["graph_status"], result["died"] = status, died
     result["input_damaged"] = health.problem
     result["partial"] = _cut_short(stopped_by, status, died)

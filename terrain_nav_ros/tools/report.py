@@ -202,6 +202,7 @@ def analyse(input_bag, output_bag, usage: dict | None = None,
         idx = np.clip(np.searchsorted(t_truth, t_fix), 0, len(t_truth) - 1)
         err = np.hypot(*(p_fix[:, :2] - p_truth[idx, :2]).T)
         sigma = np.sqrt([max(np.trace(f["cov_xy"]), 0.0) for f in good])
+        result["fixes"]["first_after"] = float(t_fix.min() - t0)
         result["fix_error"] = {"median": float(np.median(err)),
                                "p95": float(np.percentile(err, 95)),
                                "max": float(err.max()),
@@ -210,9 +211,14 @@ def analyse(input_bag, output_bag, usage: dict | None = None,
     if len(t_fused):
         te, err = _horizontal_error(t_fused, p_fused, t_truth[window], p_truth[window])
         result["fused_error"] = _stats(err)
+        if len(te):
+            result["fused_error"]["first_after"] = float(te[0] - t0)
         if mission.get("landmark_gsd") and len(te):
-            result["fused_error"]["below_2_gsd_after"] = settled_after(
-                te - t0, err, 2.0 * float(mission["landmark_gsd"]))
+            bound = 2.0 * float(mission["landmark_gsd"])
+            result["fused_error"]["below_2_gsd_after"] = settled_after(te - t0, err, bound)
+            reached = np.flatnonzero(err <= bound)
+            result["fused_error"]["first_below_2_gsd_after"] = \
+                float(te[reached[0]] - t0) if len(reached) else math.nan
         result["series"]["fused_error"] = (te - t0, err,
                                            3 * np.sqrt(np.interp(te, t_fused, var_fused)))
     origin = mission.get("origin")
@@ -251,6 +257,8 @@ def format_report(r: dict, gsd: float | None = None) -> str:
                      "answer (lost on the way to camera_ingest, or the graph fell behind)")
     for reason, count in f["reasons"]:
         lines.append(f"  no fix x{count}: {reason}")
+    if "first_after" in f:
+        lines.append(f"  first fix {f['first_after']:.0f} s after the start")
     for event in r.get("navigation_events", []):
         lines.append(f"ekf found: {event}")
     if "fix_error" in r:
@@ -267,10 +275,13 @@ def format_report(r: dict, gsd: float | None = None) -> str:
                 extra = f" = {e['rms'] / gsd:.1f} GSD" if gsd and key == "fused_error" else ""
                 lines.append(f"  {label:26s} RMS {e['rms']:8.1f} m{extra}, max {e['max']:8.1f} m,"
                              f" final {e['final']:8.1f} m")
+                if key == "fused_error" and e.get("first_after", 0.0) > 1.0:
+                    lines.append(f"  first estimate {e['first_after']:.0f} s after the start")
                 if key == "fused_error" and "below_2_gsd_after" in e:
                     settled = e["below_2_gsd_after"]
                     lines.append(f"  fused error at or below 2 GSD from {settled:.0f} s "
-                                 "after the start on")
+                                 f"after the start on (first {e['first_below_2_gsd_after']:.0f}"
+                                 " s after it)")
     else:
         lines.append("no /ground_truth/odometry in the input bag: errors not computed")
     if r["latency"]:

@@ -77,7 +77,7 @@ def add_prior_tilt(fix: PvaFixEstimate, height_above_ground: float,
 
 
 def fix_attitude(fix: PvaFixEstimate, r_body_optical: np.ndarray, use_heading: bool,
-                 heading_floor: float) -> np.ndarray:
+                 heading_floor: float, tilt_variance: float = UNOBSERVED_TILT_VAR) -> np.ndarray:
     """The body attitude ``R_enu_body`` a fix reports, with its status and attitude
     covariance set in place.
 
@@ -87,12 +87,14 @@ def fix_attitude(fix: PvaFixEstimate, r_body_optical: np.ndarray, use_heading: b
     prior attitude is turned about Up by the registration's rotation; roll and pitch are not
     seen by a nadir ground match and get a variance that leaves the filter's alone
     (:data:`UNOBSERVED_TILT_VAR`), the yaw variance at least ``heading_floor`` (rad) squared.
+    A projection whose roll and pitch were measured apart from the filter (a pose-free
+    frame's, levelled from the accelerometers) gives their variance as ``tilt_variance``.
     """
     r_enu_body = fix.rotation @ r_body_optical.T
     if fix.status == STATUS_POSITION and use_heading and fix.yaw_variance >= 0:
         r_enu_body = Rotation.from_rotvec([0.0, 0.0, fix.yaw_correction]).as_matrix() \
             @ r_enu_body
-        fix.covariance[3:, 3:] = np.diag([UNOBSERVED_TILT_VAR, UNOBSERVED_TILT_VAR,
+        fix.covariance[3:, 3:] = np.diag([tilt_variance, tilt_variance,
                                           fix.yaw_variance + heading_floor ** 2])
         fix.covariance[:3, 3:] = fix.covariance[3:, :3] = 0.0
         fix.status = STATUS_POSITION_ATTITUDE

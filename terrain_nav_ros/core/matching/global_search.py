@@ -17,6 +17,11 @@ Two things differ from a search in one tile:
   runner-up at another place within ``ambiguity_margin`` decades of the best makes the answer
   ambiguous, and no relocalisation is claimed.
 
+* **A frame projected without any pose** (cold start: its height above the unknown terrain is
+  uncertain beyond the search's +-10 % of scale) is searched at a short ladder of scales
+  (:func:`scale_ladder`, :func:`rescaled_view`, :func:`relocalise_ladder`): each rung is one
+  more search of the area, so the significance pays ``log10(tiles x rungs)``.
+
 The filter still does not trust one relocalisation: it resets only when two frames agree
 (:mod:`~terrain_nav_ros.core.estimation.ekf`).
 """
@@ -27,12 +32,19 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 
+from ..features.creases import skeletonize_creases
+from ..features.minutia_set import MinutiaSet
 from ..terrain.georef import GeoReference
 from .index import MinutiaIndex
 from .matcher import Decision, Matcher, MatchResult
 from .params import MatchParams
+
+# ratio between the scales of two rungs of a ladder: the view search covers +-10 % of scale
+# about each (1.2 = 1.095^2, with a little overlap)
+LADDER_STEP = 1.2
 
 # side (px) of the landmark regions the graph's view-search work bound was set for (a
 # 256 px camera footprint plus 3 sigma): a mission tile's bound grows with its area
@@ -74,7 +86,8 @@ class Relocalisation:
         ``result.score - penalty``: the significance over the whole area searched (without
         a relocalisation: the best seen, for logs).
     penalty : float
-        ``log10`` of the number of tiles searched (see the module notes).
+        ``log10`` of the number of tiles searched times the searches of the same frame (the
+        rungs of a ladder of scales; see the module notes).
     position : tuple of float
         ENU (east, north) of the camera view's centre, NaN without a registration.
     runner_up : float
@@ -136,7 +149,8 @@ def _search_order(tiles: Sequence[SearchTile], near) -> list[int]:
 
 def relocalise(matcher: Matcher, camera: MinutiaIndex, tiles: Sequence[SearchTile], *,
                view_centre=None, near=None, certain_score: float = math.inf,
-               ambiguity_margin: float = 2.0, same_place_px: float = 10.0) -> Relocalisation:
+               ambiguity_margin: float = 2.0, same_place_px: float = 10.0,
+               searches: int = 1) -> Relocalisation:
     """Search a camera view in every tile of an area; the best registration, if it is
     significant over the whole area and unambiguous.
 
@@ -162,6 +176,9 @@ def relocalise(matcher: Matcher, camera: MinutiaIndex, tiles: Sequence[SearchTil
         answer ambiguous.
     same_place_px : float
         View centres closer than this (px of the tiles' GSD) are the same place.
+    searches : int
+        The searches of the area this frame gets in all (the rungs of a ladder of scales,
+        :func:`relocalise_ladder`): the penalty is ``log10(len(tiles) * searches)``.
 
     Returns
     -------
@@ -170,7 +187,7 @@ def relocalise(matcher: Matcher, camera: MinutiaIndex, tiles: Sequence[SearchTil
     if not tiles:
         return Relocalisation(MatchResult(Decision.NO_DECISION, reason="no tiles to search"),
                               reason="no tiles to search")
-    penalty = math.log10(len(tiles))
+    penalty = math.log10(len(tiles) * max(int(searches), 1))
     threshold = matcher.params.threshold
     col, row = _view_centre(camera, view_centre)
     found = []   # (area score, tile position, result, east, north)
@@ -212,3 +229,92 @@ def _verdict(found, tiles, penalty: float, searched: int, margin: float,
                   f"more than {same_place_m:.0f} m apart")
     return Relocalisation(result, tiles[k], score, penalty, (east, north), runner_up, searched,
                           reason, candidates=found)
+
+
+# --------------------------------------------------------------------------- ladder of scales
+def scale_ladder(smallest: float, largest: float, step: float = LADDER_STEP) -> list[float]:
+    """Scale factors whose ranges ``f / sqrt(step) .. f * sqrt(step)`` cover ``smallest`` ..
+    ``largest``, geometric and centred on the range; ``[1.0]`` when one search's own scale
+    range (about +-10 %) around 1 covers it."""
+    if not 0 < smallest <= largest or not step > 1:
+        raise ValueError(f"scale_ladder: need 0 < {smallest:g} <= {largest:g} and step "
+                         f"{step:g} > 1")
+    half = math.sqrt(step)
+    if smallest >= 1.0 / half and largest <= half:
+        return [1.0]
+    span = math.log(largest / smallest)
+    n = max(1, math.ceil(span / math.log(step) - 1e-9))
+    centre = 0.5 * math.log(smallest * largest)
+    return [math.exp(centre + (k - 0.5 * (n - 1)) * math.log(step)) for k in range(n)]
+
+
+def _rescaled_skeleton(skeleton, shape) -> np.ndarray | None:
+    if skeleton is None:
+        return None
+    resized = cv2.resize(np.asarray(skeleton, np.float32), (shape[1], shape[0]),
+                         interpolation=cv2.INTER_LINEAR)
+    return skeletonize_creases(resized > 0.0)
+
+
+def rescaled_view(minutiae: MinutiaSet, creases, ridges, factor: float,
+                  anchor) -> tuple[MinutiaSet, np.ndarray | None, np.ndarray | None]:
+    """A ground-projected camera set as it would be were its ground distances ``factor``
+    times larger about the ENU point ``anchor`` (the point under the camera): the minutiae
+    moved exactly, the crease and ridge skeletons resampled and thinned again, the raster
+    (same GSD) grown or shrunk with them.
+
+    A frame projected from a wrongly assumed height above ground is the true ground image
+    shrunk about the nadir point by assumed over true height: ``factor`` = true over assumed
+    restores it (:func:`~terrain_nav_ros.core.camera.pose_free.scale_range`)."""
+    g = minutiae.georef
+    if g is None:
+        raise ValueError("rescaled_view: the camera set has no georeference")
+    if factor == 1.0:
+        return minutiae, creases, ridges
+    ax, ay = float(anchor[0]), float(anchor[1])
+    width, height = max(1, int(round(g.width * factor))), max(1, int(round(g.height * factor)))
+    west, _, _, north = g.extent
+    new = GeoReference(ax + (west - ax) * factor, ay + (north - ay) * factor, g.gsd, width,
+                       height)
+    east, north_ = g.pixel_to_enu(minutiae.col, minutiae.row)
+    col, row = new.enu_to_pixel(ax + (east - ax) * factor, ay + (north_ - ay) * factor)
+    moved = MinutiaSet(col, row, minutiae.angle, minutiae.kind, minutiae.quality,
+                       georef=new, reason=minutiae.reason)
+    return (moved, _rescaled_skeleton(creases, new.shape),
+            _rescaled_skeleton(ridges, new.shape))
+
+
+def relocalise_ladder(matcher: Matcher, cameras: Sequence[MinutiaIndex],
+                      tiles: Sequence[SearchTile], *, ambiguity_margin: float = 2.0,
+                      same_place_px: float = 10.0) -> tuple[Relocalisation, int]:
+    """Search one frame's views at several scales (:func:`rescaled_view` at the factors of
+    :func:`scale_ladder`) in every tile; the best registration over all of them if it is
+    significant and unambiguous, and the index of its view (-1 without one).
+
+    Every view is one more search of the area, so the area score pays ``log10(tiles x
+    views)`` (:func:`relocalise`'s ``searches``); registrations at other places in any view
+    within ``ambiguity_margin`` decades of the best make the answer ambiguous."""
+    if not cameras:
+        raise ValueError("relocalise_ladder: no camera views")
+    n = len(cameras)
+    union, rung, searched, best_seen = [], {}, 0, -np.inf
+    penalty = 0.0
+    for i, camera in enumerate(cameras):
+        found = relocalise(matcher, camera, tiles, ambiguity_margin=ambiguity_margin,
+                           same_place_px=same_place_px, searches=n)
+        if not tiles:
+            return found, -1
+        searched += found.searched
+        penalty = found.penalty
+        best_seen = max(best_seen, found.score)
+        for candidate in found.candidates:
+            rung[id(candidate[2])] = i
+            union.append(candidate)
+    if not union:
+        reason = (f"no significant match in the mission area (best {best_seen:.1f} < "
+                  f"{matcher.params.threshold:g} over {len(tiles)} tiles at {n} scales)")
+        return Relocalisation(MatchResult(Decision.NO_MATCH, reason=reason), score=best_seen,
+                              penalty=penalty, searched=searched, reason=reason), -1
+    found = _verdict(union, tiles, penalty, searched, ambiguity_margin,
+                     same_place_px * tiles[0].georef.gsd)
+    return found, rung[id(found.result)]

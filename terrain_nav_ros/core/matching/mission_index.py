@@ -21,6 +21,11 @@ before flight (``terrain-nav prepare``), tile by tile:
 * **Reading it**: :class:`MissionIndex` opens a ``MISSION_DIR``, checks its manifest, lists
   the tiles and their ENU bounds, picks the sun layer nearest a given sun and loads a layer
   (:func:`load_tile`) when asked.
+* **The area's terrain heights** (:class:`TerrainHeights`, the manifest's ``terrain``): the
+  median and the 2nd and 98th percentiles of the DEM over the area, for a cold start that
+  projects its first frames without any estimate (camera_ingest's ``cold_start``). Manifests
+  written before they were recorded are still read: :meth:`MissionIndex.terrain` then samples
+  the DEMs the manifest names.
 
 This module only builds and reads; the parallel preparation over tiles (Dask) is the
 ``prepare`` tool's.
@@ -48,7 +53,8 @@ from ..terrain.georef import GeoReference
 from ..terrain.metamap import DemTile, MetaMap, OutsideDemError
 
 __all__ = ["FORMAT_VERSION", "IndexSettings", "MissionIndex", "MissionIndexError",
-           "TileBuilder", "TileGrid", "TileLayer", "build_tile", "file_fingerprint",
+           "TerrainHeights", "TileBuilder", "TileGrid", "TileLayer", "area_terrain",
+           "build_tile", "file_fingerprint",
            "layer_name", "load_tile", "make_manifest", "manifest_differences", "save_tile",
            "write_manifest"]
 
@@ -58,6 +64,12 @@ MANIFEST = "manifest.json"
 TILES = "tiles"
 TEMPORARY = ".tmp"   # suffix of a file being written
 LAYER_FILE = TILES + "/r{row:03d}_c{col:03d}_s{sun:02d}.npz"
+# the area's terrain is summarised from this many samples a side (at most one per DEM cell
+# matters: the spread of heights, not their detail)
+TERRAIN_SAMPLES = 256
+# manifest keys derived from the DEMs, not asked for: an index prepared before they were
+# recorded is the same request
+_DERIVED_KEYS = ("terrain",)
 
 
 class MissionIndexError(ValueError):
@@ -150,6 +162,52 @@ class TileGrid:
     @classmethod
     def from_dict(cls, values: dict) -> TileGrid:
         return cls(**values)
+
+
+# --------------------------------------------------------------------------- the terrain
+@dataclass(frozen=True)
+class TerrainHeights:
+    """The spread of terrain heights over a mission area (metres above the geoid, the
+    DEM's own heights).
+
+    Attributes
+    ----------
+    low, median, high : float
+        The 2nd percentile, the median and the 98th percentile of the DEM over the area.
+    """
+
+    low: float
+    median: float
+    high: float
+
+    def to_dict(self) -> dict:
+        return {"low": self.low, "median": self.median, "high": self.high}
+
+    @classmethod
+    def from_dict(cls, values: dict) -> TerrainHeights:
+        return cls(float(values["low"]), float(values["median"]), float(values["high"]))
+
+
+def area_terrain(metamap: MetaMap, extent,
+                 samples: int = TERRAIN_SAMPLES) -> TerrainHeights | None:
+    """The :class:`TerrainHeights` of the ENU ``extent`` (west, east, south, north) from a
+    ``samples`` x ``samples`` grid of ``metamap``'s heights (its ``heights`` convention);
+    None when the DEMs hold no height there."""
+    west, east, south, north = map(float, extent)
+    gsd = max(east - west, north - south) / samples
+    if not gsd > 0:
+        return None
+    georef = GeoReference(west, north, gsd, max(1, int(round((east - west) / gsd))),
+                          max(1, int(round((north - south) / gsd))))
+    try:
+        tile = metamap.tile(georef)
+    except OutsideDemError:
+        return None
+    heights = tile.elevation[~tile.nodata & np.isfinite(tile.elevation)]
+    if not heights.size:
+        return None
+    low, median, high = np.percentile(heights, [2.0, 50.0, 98.0])
+    return TerrainHeights(float(low), float(median), float(high))
 
 
 # --------------------------------------------------------------------------- settings
@@ -358,7 +416,8 @@ def file_fingerprint(path) -> dict:
 
 
 def make_manifest(*, area: dict, origin: EnuOrigin, grid: TileGrid, suns, dems,
-                  settings: IndexSettings, sun_source: dict | None = None) -> dict:
+                  settings: IndexSettings, sun_source: dict | None = None,
+                  terrain: TerrainHeights | None = None) -> dict:
     """The manifest of a mission index (JSON-ready).
 
     Parameters
@@ -376,6 +435,8 @@ def make_manifest(*, area: dict, origin: EnuOrigin, grid: TileGrid, suns, dems,
     settings : IndexSettings
     sun_source : dict, optional
         How the suns were chosen (the flight window, the step), for the record.
+    terrain : TerrainHeights, optional
+        The area's terrain heights (:func:`area_terrain`), for a cold start.
     """
     manifest = {
         "format": FORMAT, "version": FORMAT_VERSION,
@@ -390,6 +451,8 @@ def make_manifest(*, area: dict, origin: EnuOrigin, grid: TileGrid, suns, dems,
         "settings": settings.to_dict(),
         "layer_files": LAYER_FILE,
     }
+    if terrain is not None:
+        manifest["terrain"] = terrain.to_dict()
     return json.loads(json.dumps(manifest))   # as it reads back: lists, not tuples
 
 
@@ -400,8 +463,10 @@ def write_manifest(mission_dir, manifest: dict) -> None:
 
 
 def manifest_differences(old: dict, new: dict) -> list[str]:
-    """The top-level keys in which two manifests differ (empty: the same index)."""
-    keys = sorted(set(old) | set(new))
+    """The top-level keys in which two manifests differ (empty: the same index); keys
+    derived from the DEMs (the terrain heights) count only when both have them."""
+    keys = sorted((set(old) | set(new)) - {k for k in _DERIVED_KEYS
+                                           if k not in old or k not in new})
     return [k for k in keys if old.get(k) != new.get(k)]
 
 
@@ -464,6 +529,26 @@ class MissionIndex:
     @property
     def gsd(self) -> float:
         return self.grid.gsd
+
+    def terrain(self) -> TerrainHeights | None:
+        """The area's terrain heights: the manifest's, else (an index prepared before they
+        were recorded) sampled from the DEMs it names; None when those are gone too."""
+        if "terrain" in self.manifest:
+            return TerrainHeights.from_dict(self.manifest["terrain"])
+        from ..terrain.dem_io import DemError, open_dem
+
+        try:
+            dems = [open_dem(d["path"]) for d in self.manifest.get("dems", [])]
+        except (DemError, OSError):
+            return None
+        if not dems:
+            return None
+        try:
+            extent = self.manifest.get("area", {}).get("enu_extent") or self.grid.extent
+            return area_terrain(MetaMap(dems, self.origin), extent)
+        finally:
+            for d in dems:
+                d.close()
 
     def tiles(self) -> list[IndexTile]:
         """Every tile, row by row from the north-west."""

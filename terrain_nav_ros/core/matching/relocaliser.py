@@ -14,7 +14,13 @@ from dataclasses import replace
 from ..render.sun import sun_at, sun_separation
 from ..terrain.geodesy import EnuOrigin
 from ..terrain.georef import GeoReference
-from .global_search import Relocalisation, SearchTile, relocalisation_matcher, relocalise
+from .global_search import (
+    Relocalisation,
+    SearchTile,
+    relocalisation_matcher,
+    relocalise,
+    relocalise_ladder,
+)
 from .index import MinutiaIndex
 from .matcher import Decision, MatchResult
 from .mission_index import MissionIndex
@@ -138,19 +144,17 @@ class MissionSearch:
         stop repeating and the search will find little."""
         return sun_separation(sun, self.mission.suns[self.mission.nearest_sun(sun)])
 
-    def search(self, camera: MinutiaIndex, unix_seconds: float,
-               frame_origin: EnuOrigin) -> tuple[Relocalisation, GeoReference | None]:
-        """Relocalise a camera set (built with :attr:`matcher`) taken at ``unix_seconds``;
-        with a relocalisation, its tile's georeference in the ENU frame of
-        ``frame_origin`` (the camera set's)."""
+    def _refusal(self, camera: MinutiaIndex) -> Relocalisation | None:
+        """A no-relocalisation when the camera set is not at the index's GSD."""
         gsd = camera.set.georef.gsd if camera.set.georef is not None else float("nan")
-        if not abs(gsd / self.mission.gsd - 1.0) < 0.01:
-            reason = (f"the camera set's GSD {gsd:g} m is not the mission index's "
-                      f"{self.mission.gsd:g} m: prepare the index at the graph's gsd")
-            return Relocalisation(MatchResult(Decision.NO_DECISION, reason=reason),
-                                  reason=reason), None
-        sun = self.sun_at(unix_seconds)
-        found = relocalise(self.matcher, camera, self.tiles_for(sun))
+        if abs(gsd / self.mission.gsd - 1.0) < 0.01:
+            return None
+        reason = (f"the camera set's GSD {gsd:g} m is not the mission index's "
+                  f"{self.mission.gsd:g} m: prepare the index at the graph's gsd")
+        return Relocalisation(MatchResult(Decision.NO_DECISION, reason=reason), reason=reason)
+
+    def _answer(self, found: Relocalisation, sun,
+                frame_origin: EnuOrigin) -> tuple[Relocalisation, GeoReference | None]:
         if not found.matched:
             gap = self.layer_sun_gap(sun)
             if gap > _SUN_GAP_WARNING:
@@ -159,3 +163,30 @@ class MissionSearch:
             return found, None
         return found, tile_in_frame(found.tile.georef, *found.position, self.mission.origin,
                                     frame_origin)
+
+    def search(self, camera: MinutiaIndex, unix_seconds: float,
+               frame_origin: EnuOrigin) -> tuple[Relocalisation, GeoReference | None]:
+        """Relocalise a camera set (built with :attr:`matcher`) taken at ``unix_seconds``;
+        with a relocalisation, its tile's georeference in the ENU frame of
+        ``frame_origin`` (the camera set's)."""
+        refused = self._refusal(camera)
+        if refused is not None:
+            return refused, None
+        sun = self.sun_at(unix_seconds)
+        return self._answer(relocalise(self.matcher, camera, self.tiles_for(sun)), sun,
+                            frame_origin)
+
+    def search_ladder(self, cameras: list[MinutiaIndex], unix_seconds: float,
+                      frame_origin: EnuOrigin
+                      ) -> tuple[Relocalisation, GeoReference | None, int]:
+        """:meth:`search` for the views of one frame at several scales
+        (:func:`~.global_search.relocalise_ladder`): also the index of the view found
+        (-1 without a relocalisation)."""
+        for camera in cameras:
+            refused = self._refusal(camera)
+            if refused is not None:
+                return refused, None, -1
+        sun = self.sun_at(unix_seconds)
+        found, k = relocalise_ladder(self.matcher, cameras, self.tiles_for(sun))
+        found, georef = self._answer(found, sun, frame_origin)
+        return found, georef, (k if georef is not None else -1)
