@@ -93,9 +93,7 @@ def frozen_camera(bag: Path, dest: Path, start: float, seconds: float) -> Path:
     cameras = ("/camera/image_raw", "/camera/image_raw/compressed")
     first, frozen = None, None
     with bags.BagWriter(dest, compress=True) as writer:
-        for t in bags.topics(bag):
-            writer.add_topic(t.topic, t.msgtype, bags.qos_profile(t.reliable,
-                                                                 t.transient_local))
+        writer.add_topics_of(bag)
         for m in bags.read(bag):
             first = m.timestamp_ns if first is None else first
             at = (m.timestamp_ns - first) * 1e-9

@@ -141,6 +141,11 @@ class BagWriter:
         self._connections[topic] = self._writer.add_connection(
             topic, msgtype, typestore=store, offered_qos_profiles=[qos or qos_profile()])
 
+    def add_topics_of(self, bag: str | Path) -> None:
+        """Declare every topic of ``bag``, with its QoS (to write an edited copy of it)."""
+        for t in topics(bag):
+            self.add_topic(t.topic, t.msgtype, qos_profile(t.reliable, t.transient_local))
+
     def write(self, topic: str, timestamp_ns: int, rawdata: bytes) -> None:
         """Append one CDR-serialized message (topic must have been added)."""
         self._writer.write(self._connections[topic], int(timestamp_ns), rawdata)

@@ -114,9 +114,7 @@ def _kidnapped(bag: Path, copy: Path, at: float, east: float, north: float) -> P
     store = bags.typestore().types
     start, injected = None, False
     with bags.BagWriter(copy, compress=True) as writer:
-        for t in bags.topics(bag):
-            writer.add_topic(t.topic, t.msgtype, bags.qos_profile(t.reliable,
-                                                                 t.transient_local))
+        writer.add_topics_of(bag)
         for m in bags.read(bag):
             start = m.timestamp_ns if start is None else start
             if not injected and m.topic == "/ground_truth/odometry" and \
