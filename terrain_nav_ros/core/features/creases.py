@@ -62,6 +62,8 @@ __all__ = [
 
 POLARITIES = ("valley", "ridge", "both")
 SOURCES = ("image", "dem")
+# a frame without any contrast: what a camera sees of it
+NO_DRAINAGE_CONSTANT = "no drainage: image is constant (cloud, water, haze or a covered lens)"
 
 # Central first / second differences, applied separably by cv2.sepFilter2D.
 _D1 = np.array([-0.5, 0.0, 0.5], np.float32)
@@ -343,7 +345,7 @@ def prepare_input(image, valid_mask=None, source: str = "image", gsd: float = 1.
         if hi - lo <= 0:
             lo, hi = float(values.min()), float(values.max())
         if hi - lo <= 0:
-            return np.zeros(img.shape, np.float32), valid, 0.0, "no drainage: image is constant"
+            return np.zeros(img.shape, np.float32), valid, 0.0, NO_DRAINAGE_CONSTANT
         scale = 1.0 / (hi - lo)
         work -= np.float32(lo)  # work is this function's own copy
         quant = 1.0 if integer else 0.0
@@ -351,7 +353,7 @@ def prepare_input(image, valid_mask=None, source: str = "image", gsd: float = 1.
     # Voids hold copies of valid values, so the range over all pixels is the valid range.
     span = float(work.max() - work.min())
     if span == 0.0:
-        return work, valid, 0.0, "no drainage: image is constant"
+        return work, valid, 0.0, NO_DRAINAGE_CONSTANT
     noise = estimate_noise(work, valid, scratch=scratch)
     # Quantisation noise (step/sqrt(12)) is a floor: a smooth integer image is not noiseless.
     noise = max(noise, quant * scale / np.sqrt(12.0), 1e-6 * span)
@@ -881,6 +883,7 @@ class CreaseDetector:
         length = sum(int(s.sum()) for s in skels.values())
         if length < p.min_crease_fraction * sum(work.shape):
             reason = (f"no drainage: {length} crease px above {p.contrast_snr:g} x noise "
-                      f"(need {p.min_crease_fraction * sum(work.shape):.0f})")
+                      f"(need {p.min_crease_fraction * sum(work.shape):.0f}): flat terrain, "
+                      "water, cloud or haze")
         return CreaseResult(work, valid, noise, diffused, creaseness, contrast, masks, skels,
                             reason, t)

@@ -310,7 +310,8 @@ class Matcher:
             n_crease = (len(a.crease_samples), b.crease_field.n)
             if min(n_crease) < p.min_crease_pixels:
                 base.reason = (f"too little drainage ({n_crease[0]}, {n_crease[1]} crease "
-                               f"px); at least {p.min_crease_pixels} needed in each set")
+                               f"px; at least {p.min_crease_pixels} needed in each set): flat "
+                               "terrain, water, cloud or haze")
                 return base
         else:
             needed = max(p.min_minutiae_creases if use_creases else p.min_minutiae, 2)
