@@ -324,16 +324,26 @@ class CameraIngestNode(Node):
         else:
             ground = project_to_ground(image, self.intrinsics, camera, plane, georef, bgr=bgr,
                                        max_range=max_range)
+        self._publish_ground(ground, georef, camera, plane, header)
+
+    def _publish_ground(self, ground, georef: GeoReference, camera: CameraPose, plane: float,
+                        header, pose_free: tuple[float, float, float] | None = None) -> bool:
+        """Publish a projected frame as a GeoImage with its projection (and, for a cold
+        start, ``pose_free``: the range of planes and the tilt sigma it leaves open), or
+        drop it with the projection's reason; whether it was published."""
         if ground.image is None:
             self.drop(ground.reason, header)
-            return
+            return False
         out = cv.geo_image_to_msg(ground.image, georef, cv.make_header(header.stamp,
                                                                        self.frame_id),
                                   ground.valid, self.tile_origin,
                                   sun=self.sun_at_frame(header.stamp))
         cv.set_projection(out, camera.position, camera.rotation, plane)
+        if pose_free is not None:
+            cv.set_pose_free(out, *pose_free)
         self.pub.publish(out)
         self.published += 1
+        return True
 
     def _without_odometry(self, stamp: float) -> bool:
         """Whether a frame at ``stamp`` has no navigation estimate to wait for: none yet, the
@@ -383,16 +393,9 @@ class CameraIngestNode(Node):
         georef = self._capped(georef)
         ground = project_to_ground(image, self.intrinsics, camera, plane, georef,
                                    bgr=encoding.startswith("bgr"), max_range=max_range)
-        if ground.image is None:
-            self.drop(ground.reason, header)
+        if not self._publish_ground(ground, georef, camera, plane, header,
+                                    (view.plane_min, view.plane_max, view.tilt_sigma)):
             return
-        out = cv.geo_image_to_msg(ground.image, georef,
-                                  cv.make_header(header.stamp, self.frame_id), ground.valid,
-                                  self.tile_origin, sun=self.sun_at_frame(header.stamp))
-        cv.set_projection(out, camera.position, camera.rotation, plane)
-        cv.set_pose_free(out, view.plane_min, view.plane_max, view.tilt_sigma)
-        self.pub.publish(out)
-        self.published += 1
         self.pose_free_published += 1
         self.get_logger().info(
             f"frame projected pose-free (cold start): {view.height_above_ground:.0f} m above "

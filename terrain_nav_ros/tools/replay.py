@@ -215,6 +215,7 @@ def run_replay(bag: str | Path, out_dir: str | Path, graph_config: str | Path,
     if cold_start and lost_offset is not None:
         raise InputError("give either --cold-start (no pose at all) or --lost E N (a wrong "
                          "one), not both")
+    gnss_jammed = lost_offset is not None or cold_start   # the replay leaves /gnss/fix out
     bag, out_dir = Path(bag).resolve(), Path(out_dir).resolve()
     mission, health = check_inputs(bag, out_dir, rate)
     spec = load_graph(graph_config, enable)
@@ -232,7 +233,7 @@ def run_replay(bag: str | Path, out_dir: str | Path, graph_config: str | Path,
         for node, values in _cold_start_parameters(Path(mission_dir).resolve(),
                                                    mission).items():
             overrides.setdefault(node, {}).update(values)
-    if lost_offset is not None or cold_start:
+    if gnss_jammed:
         input_topics = [t for t in input_topics if t != "/gnss/fix"]
     for node in spec.nodes:
         node.parameters.update(overrides.get(node.name, {}))
@@ -285,8 +286,8 @@ def run_replay(bag: str | Path, out_dir: str | Path, graph_config: str | Path,
         if stopped_by:   # stopped before the recorder wrote anything: no report to write
             raise KeyboardInterrupt
         raise RuntimeError(f"the recorder wrote no bag (graph status {status}, died: {died})")
-    result = report.analyse(bag, output_bag, usage, denied_after=0.0 if (
-        lost_offset is not None or cold_start) else None)
+    result = report.analyse(bag, output_bag, usage,
+                            denied_after=0.0 if gnss_jammed else None)
     result["graph_status"], result["died"] = status, died
     result["input_damaged"] = health.problem
     result["partial"] = _cut_short(stopped_by, status, died)

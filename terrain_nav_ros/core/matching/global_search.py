@@ -296,16 +296,15 @@ def relocalise_ladder(matcher: Matcher, cameras: Sequence[MinutiaIndex],
     within ``ambiguity_margin`` decades of the best make the answer ambiguous."""
     if not cameras:
         raise ValueError("relocalise_ladder: no camera views")
+    if not tiles:
+        return relocalise(matcher, cameras[0], tiles), -1
     n = len(cameras)
     union, rung, searched, best_seen = [], {}, 0, -np.inf
-    penalty = 0.0
     for i, camera in enumerate(cameras):
         found = relocalise(matcher, camera, tiles, ambiguity_margin=ambiguity_margin,
                            same_place_px=same_place_px, searches=n)
-        if not tiles:
-            return found, -1
         searched += found.searched
-        penalty = found.penalty
+        penalty = found.penalty   # the same for every view: log10(tiles x views)
         best_seen = max(best_seen, found.score)
         for candidate in found.candidates:
             rung[id(candidate[2])] = i
