@@ -183,9 +183,10 @@ def test_pva_fix_round_trip(with_velocity):
     vel, vcov = ([30.0, -1.0, 0.5], np.eye(3) * 0.25) if with_velocity else (None, None)
     msg = cv.arrays_to_pva_fix(cv.make_header(5_000_000_000, "map"), PvaFix.STATUS_POSITION,
                                [1.0, 2.0, 3.0], [0.0, 0.0, 0.0, 1.0], cov, vel, vcov,
-                               relocalisation=with_velocity)
+                               relocalisation=with_velocity, projection_height=2500.0)
     fix = cv.pva_fix_to_arrays(msg)
     assert fix.stamp == 5.0 and fix.status == PvaFix.STATUS_POSITION
+    assert fix.projection_height == 2500.0
     assert msg.relocalisation is with_velocity and fix.relocalisation is with_velocity
     np.testing.assert_array_equal(fix.position, [1.0, 2.0, 3.0])
     np.testing.assert_array_equal(fix.quaternion, [0.0, 0.0, 0.0, 1.0])

@@ -55,9 +55,11 @@ def _fix(status=STATUS_POSITION, yaw_variance=0.01, yaw_correction=0.1):
 
 def test_the_prior_tilt_widens_a_valid_fix_only():
     fix = _fix()
+    fix.projection_height = 500.0
     add_prior_tilt(fix, 500.0, math.radians(0.2))
     expected = 4.0 + (500.0 * math.radians(0.2)) ** 2
     np.testing.assert_allclose(np.diag(fix.covariance)[:3], [expected, expected, 9.0])
+    assert fix.projection_height == 0.0     # the filter must not model it a second time
     none = PvaFixEstimate(STATUS_NO_FIX, "no match")
     add_prior_tilt(none, 500.0, 1.0)                      # nothing to widen, no error
     assert np.isnan(none.covariance).all()

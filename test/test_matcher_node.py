@@ -111,6 +111,9 @@ def test_matcher_publishes_the_true_position_and_explains_no_fix():
     np.testing.assert_allclose(position, TRUE_XY, atol=GSD / 2)
     cov = cv.covariance_to_array(fix.pose.covariance, 6)
     assert 0 < cov[0, 0] < GSD**2 and cov[3, 3] > cov[5, 5] > 0  # heading measured, tilt not
+    # a ground match: the estimate's tilt error moves it over the 2500 m to the plane, which
+    # the ekf models (so the covariance leaves it out)
+    assert fix.projection_height == 2500.0
     assert fix.num_pairings >= 10 and abs(fix.latitude - 36.5) < 0.01
     no_fix = [f for f in fixes[before:] if f.status == PvaFix.STATUS_NO_FIX]
     assert len(no_fix) >= 3 and all(f.reason for f in no_fix)

@@ -66,6 +66,7 @@ def test_ground_match_fix_recovers_position_and_heading():
     assert np.all(np.linalg.eigvalsh(fix.covariance[:2, :2]) > 0)
     assert np.all(np.diag(fix.covariance)[3:] == -1)
     assert fix.num_pairings == result.n_pairings > 10
+    assert fix.projection_height == 900.0    # the prior's tilt acts over the camera's height
 
 
 @pytest.fixture(scope="module")
@@ -183,6 +184,12 @@ def test_a_pnp_pose_far_from_the_ground_match_is_dropped():
     assert checked_pnp(None, ground, 3.0) is ground
     assert checked_pnp(PvaFixEstimate(STATUS_NO_FIX, "x"), ground, 3.0) is ground
     assert checked_pnp(near, PvaFixEstimate(STATUS_NO_FIX, "y"), 3.0) is near
+    # a ground match carries the prior's tilt error over its height: the check allows for it
+    tilted = _estimate(0.0, 0.0, 30.0)
+    tilted.projection_height = 3000.0
+    wide = _estimate(200.0, 0.0, 30.0)
+    assert checked_pnp(wide, tilted, gate=3.0) is tilted
+    assert checked_pnp(wide, tilted, gate=3.0, tilt_sigma=np.radians(1.0)) is wide
     nan_cov = _estimate(10.0, 0.0, 10.0)
     nan_cov.covariance[:2, :2] = np.nan
     assert horizontal_disagreement(nan_cov, ground) == float("inf")

@@ -555,6 +555,7 @@ class PvaFixArrays(NamedTuple):
     velocity: np.ndarray | None        # (3,) when velocity_valid
     velocity_covariance: np.ndarray | None
     relocalisation: bool = False       # found by a mission-wide search, independent of the prior
+    projection_height: float = 0.0     # m over which the estimate's tilt error moves the fix
 
 
 def pva_fix_to_arrays(msg: PvaFix) -> PvaFixArrays:
@@ -567,15 +568,16 @@ def pva_fix_to_arrays(msg: PvaFix) -> PvaFixArrays:
     return PvaFixArrays(stamp_to_sec(msg.header.stamp), int(msg.status),
                         np.array([p.x, p.y, p.z]), np.array([o.x, o.y, o.z, o.w]),
                         covariance_to_array(msg.pose.covariance, 6), vel, vcov,
-                        bool(msg.relocalisation))
+                        bool(msg.relocalisation), float(msg.projection_height))
 
 
 def arrays_to_pva_fix(header: Header, status: int, position, quaternion, covariance,
                       velocity=None, velocity_covariance=None, reason: str = "",
-                      relocalisation: bool = False) -> PvaFix:
+                      relocalisation: bool = False, projection_height: float = 0.0) -> PvaFix:
     """Arrays -> terrain_nav_msgs/PvaFix (position-only fixes: -1 on the rotation diagonal)."""
     msg = PvaFix(header=header, status=int(status), reason=reason,
                  relocalisation=bool(relocalisation),
+                 projection_height=float(projection_height),
                  pose=pose_with_covariance(position, quaternion, covariance))
     if velocity is not None:
         msg.velocity_valid = True

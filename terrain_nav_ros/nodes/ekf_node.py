@@ -529,7 +529,8 @@ class EkfNode(Node):
                              with_attitude)
         out = self.ekf.process_fix(fix.stamp, position, cov, velocity=fix.velocity,
                                    quaternion=q_body, source="fix",
-                                   relocalisation=fix.relocalisation)
+                                   relocalisation=fix.relocalisation,
+                                   projection_height=fix.projection_height)
         self._report("fix", out, fix.stamp)
         self._navigation_state(self.ekf.diagnostics)
 

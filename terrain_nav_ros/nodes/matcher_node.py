@@ -100,11 +100,15 @@ class MatcherNode(Node):
         self.tilt_sigma = math.radians(declare(
             self, "prior_tilt_sigma", 0.2,
             "prior attitude error assumed by the ground projection [deg]; times the height "
-            "above ground it is added to the fix covariance", min_value=0.0))
+            "above ground it is added to the covariance of a relocalisation (the ekf models "
+            "it for the other ground matches) and allowed for by the PnP check",
+            min_value=0.0))
         self.covariance_scale = declare(
-            self, "fix_covariance_scale", 3.5,
-            "factor on the position and attitude variances of every fix: the PnP covariance "
-            "treats the minutiae's errors as independent, which they are not", min_value=1.0)
+            self, "fix_covariance_scale", 1.5,
+            "factor on the position and attitude variances of every fix: a margin for errors "
+            "that persist from frame to frame, which the ekf takes as independent (3.5 suits "
+            "method pnp, whose covariance takes its minutiae's errors as independent)",
+            min_value=1.0)
         self.pnp_gate = declare(
             self, "pnp_gate_sigma", 3.0,
             "a PnP pose farther than this from the ground match of the same registration, in "
@@ -112,10 +116,12 @@ class MatcherNode(Node):
         velocity_gap = declare(self, "velocity_max_gap", 5.0,
                                "largest time between two fixes that give a velocity [s]",
                                min_value=0.0)
-        self.method = declare(self, "method", "pnp",
-                              "pnp: camera pose by PnP over the paired minutiae's DEM points "
-                              "(needs CameraInfo and the DEM tile; falls back to ground); "
-                              "ground: shift of the ground-projected frame only")
+        self.method = declare(self, "method", "ground",
+                              "ground: the ground point the estimate put below the camera, "
+                              "moved by the registration (the ekf models the estimate's tilt "
+                              "error in it); pnp: camera pose by PnP over the paired "
+                              "minutiae's DEM points where it agrees with the ground match "
+                              "(needs CameraInfo and the DEM tile)")
         if self.method not in ("pnp", "ground"):
             raise ValueError(f"method must be 'pnp' or 'ground', not {self.method!r}")
         self.use_heading = declare(self, "publish_heading", True,
@@ -276,7 +282,7 @@ class MatcherNode(Node):
         if result.matched and self.method == "pnp":
             position, rotation, _ = projection
             fix = checked_pnp(self.pnp_fix(result, camera, land_minutiae, position, rotation),
-                              fix, self.pnp_gate)
+                              fix, self.pnp_gate, self.tilt_sigma)
         if not fix.valid:
             self.publish_no_fix(msg.header.stamp, fix.reason, fix)
             return False
@@ -300,6 +306,8 @@ class MatcherNode(Node):
         if not fix.valid:
             self.publish_no_fix(msg.header.stamp, f"relocalisation: {fix.reason}", fix)
             return
+        # the ekf holds relocalisations and compares them by their covariances alone
+        add_prior_tilt(fix, fix.projection_height, self.tilt_sigma)
         fix.relocalisation = True
         self.get_logger().info(f"relocalised ({why}) in tile {found.tile.key}, area score "
                                f"{found.score:.1f} over {found.searched} tiles")
@@ -353,12 +361,11 @@ class MatcherNode(Node):
     def _ground_fix(self, result, camera_georef, landmark_georef,
                     projection) -> PvaFixEstimate:
         """The fix of a registration of the ground-projected camera set in a landmark
-        raster, with the prior tilt's allowance."""
+        raster. Its shift by the projection attitude's tilt error is left to the ekf, whose
+        attitude that is (``projection_height``)."""
         position, rotation, plane = projection
-        fix = fix_from_ground_match(result, camera_georef, landmark_georef, position,
-                                    rotation, plane, landmark_sigma=self.landmark_sigma)
-        add_prior_tilt(fix, position[2] - plane, self.tilt_sigma)
-        return fix
+        return fix_from_ground_match(result, camera_georef, landmark_georef, position,
+                                     rotation, plane, landmark_sigma=self.landmark_sigma)
 
     def pnp_fix(self, result, camera, landmark, position, rotation) -> PvaFixEstimate | None:
         """Camera pose by PnP: raw-frame pixels of the camera minutiae against the DEM points
@@ -407,6 +414,7 @@ class MatcherNode(Node):
                      num_camera_minutiae=fix.num_camera_minutiae,
                      num_landmark_minutiae=fix.num_landmark_minutiae,
                      relocalisation=bool(fix.relocalisation),
+                     projection_height=float(fix.projection_height),
                      pose=cv.pose_with_covariance(fix.position, quaternion, fix.covariance))
         lat, lon, alt = EnuOrigin(*origin).enu_to_geodetic(*fix.position)
         out.latitude, out.longitude, out.altitude = float(lat), float(lon), float(alt)

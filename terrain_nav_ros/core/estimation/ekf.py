@@ -105,7 +105,7 @@ from .strapdown import (
 )
 
 __all__ = ["EkfDiagnostics", "EkfParams", "NavState", "Outcome", "Reason", "TerrainEkf",
-           "UpdateRecord"]
+           "UpdateRecord", "tilt_lever"]
 
 
 class Reason(StrEnum):
@@ -302,6 +302,7 @@ class _Measurement:
     outcome: Outcome | None = None
     reset: bool = False      # apply as a position reset instead of a gated update
     relocalisation: bool = False   # found by a mission-wide search, independent of the prior
+    attitude_lever: np.ndarray | None = None   # (m, 3): how dtheta moves the measured rows
 
     @property
     def key(self):
@@ -726,7 +727,8 @@ class TerrainEkf:
 
     # ------------------------------------------------------------------ measurements
     def process_fix(self, stamp: float, position, covariance, velocity=None, quaternion=None,
-                    source: str = "fix", relocalisation: bool = False) -> Outcome:
+                    source: str = "fix", relocalisation: bool = False,
+                    projection_height: float = 0.0) -> Outcome:
         """Position fix (optionally with velocity and/or attitude), e.g. a terrain PvaFix.
 
         Parameters
@@ -754,11 +756,21 @@ class TerrainEkf:
             (:mod:`~.relocalisation`). Its velocity, if any, is ignored: a difference from a
             fix searched around the estimate it contradicts. It never counts towards
             ``reset_after_rejections`` nor becomes an armed reset.
+        projection_height : float
+            For a fix from a frame projected onto the ground with the filter's own attitude
+            (a ground match): the camera's height (m) above the projection plane. Such a fix
+            registers the ground point the prior attitude put straight below the camera, so
+            its horizontal position carries that attitude's tilt error times this height
+            (:func:`tilt_lever`); the update models it instead of treating it as noise, which
+            a stream of fixes with one tilt error would average into a position bias. 0: the
+            fix does not depend on the filter's attitude (PnP, GNSS, pose-free frames).
 
         Returns
         -------
         Outcome
         """
+        if not (math.isfinite(projection_height) and projection_height >= 0.0):
+            return self._refuse(source, Reason.NON_FINITE)
         parts = [np.asarray(position, dtype=float)]
         rows = [np.arange(0, 3)]
         if velocity is not None and not relocalisation:
@@ -778,8 +790,12 @@ class TerrainEkf:
             rows.append(np.arange(6, 9))
         if any(p.shape != (3,) for p in parts):
             return self._refuse(source, Reason.BAD_SHAPE)
+        lever = None
+        if projection_height > 0.0:
+            lever = np.zeros((3 * len(parts), 3))
+            lever[:3] = tilt_lever(projection_height)
         return self._submit(stamp, source, np.concatenate(parts), covariance,
-                            np.concatenate(rows), att, relocalisation)
+                            np.concatenate(rows), att, relocalisation, lever=lever)
 
     def set_position(self, stamp: float, position, covariance) -> Outcome:
         """Put the position at ``position`` (ENU, m; 3x3 covariance) at ``stamp``, whatever
@@ -811,7 +827,7 @@ class TerrainEkf:
                             None)
 
     def _submit(self, stamp, source, z, covariance, rows, attitude,
-                relocalisation: bool = False, reset: bool = False) -> Outcome:
+                relocalisation: bool = False, reset: bool = False, lever=None) -> Outcome:
         """Validate, log and apply (now, queued or in the past) one measurement; with
         ``reset``, as a position reset (not gated)."""
         m = len(z)
@@ -823,7 +839,8 @@ class TerrainEkf:
         if not _is_pd(R):
             return self._refuse(source, Reason.BAD_COVARIANCE)
         meas = _Measurement(float(stamp), next(self._seq), source, z.copy(), 0.5 * (R + R.T),
-                            rows, attitude, relocalisation=relocalisation, reset=reset)
+                            rows, attitude, relocalisation=relocalisation, reset=reset,
+                            attitude_lever=lever)
         if not self.initialized:
             if relocalisation and source == self.params.init_mode:
                 return self._init_from_relocalisation(meas)
@@ -916,15 +933,16 @@ class TerrainEkf:
             z[-3:] = attitude_error(meas.attitude, self.q)
         H = np.zeros((len(z), DIM_ERR))
         H[np.arange(len(z)), meas.rows] = 1.0
+        if meas.attitude_lever is not None:
+            H[:, IDX_TH] += meas.attitude_lever
         return z, H
 
     def _gate_test(self, meas: _Measurement):
         """``(z, H, nis, gate)`` of a measurement at the current filter time, or None when
         its innovation covariance is not positive definite."""
         z, H = self._innovation(meas)
-        P = self.kf.P
-        y = z - self._x[meas.rows]
-        S = P[np.ix_(meas.rows, meas.rows)] + meas.R
+        y = z - H @ self._x
+        S = H @ self.kf.P @ H.T + meas.R
         try:
             L = np.linalg.cholesky(S)
         except np.linalg.LinAlgError:
@@ -1015,6 +1033,19 @@ class TerrainEkf:
     def _refuse(self, source: str, reason: Reason) -> Outcome:
         self._diag.input_rejections[f"{source}:{reason.value}"] += 1
         return Outcome(False, reason)
+
+
+def tilt_lever(height: float) -> np.ndarray:
+    """How a ground-projected fix's position moves with the projection attitude's error.
+
+    The fix is the ground point the attitude used put straight below the camera, at
+    ``height`` (m) above the projection plane. With the true attitude ``Exp(dtheta)`` times
+    the one used (``dtheta`` about the ENU axes), the ray believed vertical really points
+    along ``dtheta x (0, 0, -height)``, so the fix lands ``(-height * dtheta_n, height *
+    dtheta_e)`` from the camera, and heading errors do not move it. Returns the (3, 3)
+    Jacobian of the fixed position with respect to ``dtheta``.
+    """
+    return float(height) * np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
 
 
 def _is_pd(R: np.ndarray) -> bool:

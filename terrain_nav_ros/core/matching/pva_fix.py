@@ -67,6 +67,13 @@ class PvaFixEstimate:
         True when the fix was found by a search of the whole mission area (a global query),
         independent of the navigation estimate; False for a fix searched around the estimate.
         The filter resets onto relocalisations only when several agree.
+    projection_height : float
+        For a ground match: the camera's height (m) above the plane the prior projected the
+        frame on. The fix is the ground point the prior attitude put below the camera, so a
+        tilt error of that attitude moves it by about this height times the error; the
+        covariance leaves that out for the filter, which knows its own attitude error, to
+        model (``TerrainEkf.process_fix``). 0 when the tilt error is in the covariance
+        (:func:`~.fix_stream.add_prior_tilt`) or does not apply (PnP).
     """
 
     status: int
@@ -81,6 +88,7 @@ class PvaFixEstimate:
     num_camera_minutiae: int = 0
     num_landmark_minutiae: int = 0
     relocalisation: bool = False
+    projection_height: float = 0.0
 
     @property
     def valid(self) -> bool:
@@ -143,7 +151,8 @@ def fix_from_ground_match(result: MatchResult, camera_georef: GeoReference,
     Returns
     -------
     PvaFixEstimate
-        Status :data:`STATUS_POSITION`; the heading correction is in ``yaw_correction``.
+        Status :data:`STATUS_POSITION`; the heading correction is in ``yaw_correction``, the
+        height the prior's tilt error acts over in ``projection_height``.
     """
     if result.decision != Decision.MATCH:
         return _no_fix(result, f"no terrain match: {result.reason or result.decision.value}")
@@ -180,7 +189,8 @@ def fix_from_ground_match(result: MatchResult, camera_georef: GeoReference,
         result.covariance).all() else -1.0
     fix = PvaFixEstimate(STATUS_POSITION, "", np.array([float(east), float(north), z]),
                          np.asarray(prior_rotation, float).reshape(3, 3), cov,
-                         yaw_correction=float(result.rotation), yaw_variance=yaw_var)
+                         yaw_correction=float(result.rotation), yaw_variance=yaw_var,
+                         projection_height=float(agl))
     return _fill_match(fix, result)
 
 
@@ -313,12 +323,15 @@ def fix_from_pnp(result: MatchResult, camera_pixels, landmark_enu, landmark_heig
     return _fill_match(fix, result)
 
 
-def horizontal_disagreement(a: PvaFixEstimate, b: PvaFixEstimate) -> float:
+def horizontal_disagreement(a: PvaFixEstimate, b: PvaFixEstimate,
+                            extra_variance: float = 0.0) -> float:
     """Mahalanobis distance (sigma) between two fixes' horizontal positions under the sum of
-    their covariances: two estimates of one camera position (e.g. PnP and the ground match)
-    that should agree within their uncertainties; inf when either lacks a covariance."""
+    their covariances (plus ``extra_variance`` m^2 on each axis): two estimates of one camera
+    position (e.g. PnP and the ground match) that should agree within their uncertainties;
+    inf when either lacks a covariance."""
     d = np.asarray(a.position[:2], float) - np.asarray(b.position[:2], float)
-    cov = np.asarray(a.covariance[:2, :2], float) + np.asarray(b.covariance[:2, :2], float)
+    cov = np.asarray(a.covariance[:2, :2], float) + np.asarray(b.covariance[:2, :2], float) \
+        + extra_variance * np.eye(2)
     if not (np.isfinite(d).all() and np.isfinite(cov).all()):
         return math.inf
     try:
@@ -328,9 +341,11 @@ def horizontal_disagreement(a: PvaFixEstimate, b: PvaFixEstimate) -> float:
 
 
 def checked_pnp(pnp: PvaFixEstimate | None, ground: PvaFixEstimate,
-                gate: float) -> PvaFixEstimate:
+                gate: float, tilt_sigma: float = 0.0) -> PvaFixEstimate:
     """The PnP fix when it agrees with the ground match within ``gate`` sigma
-    (:func:`horizontal_disagreement`), else the ground match with the reason.
+    (:func:`horizontal_disagreement`, the ground match's shift by a prior tilt error of
+    ``tilt_sigma`` rad over its ``projection_height`` included), else the ground match with
+    the reason.
 
     A PnP pose from a few nearly collinear pairings (minutiae along parallel ridges) seen
     from kilometres up trades tilt against translation: it can land a kilometre off with a
@@ -342,7 +357,7 @@ def checked_pnp(pnp: PvaFixEstimate | None, ground: PvaFixEstimate,
         return ground
     if not ground.valid:
         return pnp
-    sigma = horizontal_disagreement(pnp, ground)
+    sigma = horizontal_disagreement(pnp, ground, (ground.projection_height * tilt_sigma) ** 2)
     if sigma <= gate:
         return pnp
     note = (f"PnP pose {sigma:.1f} sigma from the ground match "
