@@ -675,4 +675,4 @@ def test_a_ground_match_fix_is_modelled_with_the_filters_tilt_error():
     assert modelled_tilt < 0.5 * plain_tilt, (modelled_tilt, plain_tilt)
     refused = TerrainEkf(EkfParams()).process_fix(0.0, np.zeros(3), np.eye(3),
                                                   projection_height=-1.0)
-    assert not refused.accepted and refused.reason == Reason.NON_FINITE
+    assert not refused.accepted and refused.reason == Reason.BAD_PROJECTION_HEIGHT

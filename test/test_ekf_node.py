@@ -37,6 +37,7 @@ GNSS_UNTIL = 20.0
 FIX_DELAY = 0.3
 OUTLIER_TIMES = (30.0, 44.0)
 NON_PD_TIME = 25.0
+BAD_HEIGHT_TIME = 27.0    # a fix whose projection height is negative
 NAN_IMU_TIME = 35.005
 BAD_STAMPS = {"past": (40.005, -5.0), "future": (42.005, 3600.0)}   # arrival, stamp offset
 LOOP_S = 8.0
@@ -75,6 +76,7 @@ def _events(truth, imu, rng):
     for t in np.arange(2.0, truth.t[-1] + 1e-9, 2.0):
         ev.append((t + FIX_DELAY, 2, int(truth.at(t))))
     ev.append((NON_PD_TIME + FIX_DELAY + 0.05, 2, "non_pd"))
+    ev.append((BAD_HEIGHT_TIME + FIX_DELAY, 2, "bad_height"))
     for t in np.arange(0.1, truth.t[-1] + 1e-9, 0.1):
         ev.append((t, 3, int(truth.at(t))))
     ev.sort(key=lambda e: (e[0], e[1]))
@@ -164,15 +166,18 @@ def flight():
                 np.diag([1.5**2, 1.5**2, 3.0**2])))
         elif kind == 2:
             cov = np.diag([400.0, 400.0, 400.0, -1, -1, -1])
+            height = 0.0
             if k == "non_pd":
                 k = int(truth.at(NON_PD_TIME))
                 cov = np.diag([400.0, -400.0, 400.0, -1, -1, -1])
-            p = truth.position[k] + rng.normal(0, 20.0, 3)
+            elif k == "bad_height":   # refused: drawing no noise leaves the flight's as it was
+                k, height = int(truth.at(BAD_HEIGHT_TIME)), -1.0
+            p = truth.position[k] + (rng.normal(0, 20.0, 3) if height == 0.0 else 0.0)
             if not replay and any(abs(truth.t[k] - o) < 1e-6 for o in OUTLIER_TIMES):
                 p[:2] += 500.0 * np.array([0.6, -0.8])
             pubs["fix"].publish(cv.arrays_to_pva_fix(
                 cv.make_header(_stamp(truth.t[k]), "map"), PvaFix.STATUS_POSITION, p,
-                [0, 0, 0, 1], cov))
+                [0, 0, 0, 1], cov, projection_height=height))
         else:
             alt = truth.position[k, 2] + 250.0 + rng.normal(0, 1.5)
             pubs["baro"].publish(FluidPressure(
@@ -199,7 +204,8 @@ def flight():
     time.sleep(1.2)                     # a diagnostics report of the finished flight
     diag_flight = rec.filter_status()
     # Bag loop: the first LOOP_S seconds again (GNSS re-initialises the filter), no outliers.
-    loop = [e for e in _events(truth, imu, rng) if e[0] <= LOOP_S and e[2] != "non_pd"]
+    loop = [e for e in _events(truth, imu, rng)
+            if e[0] <= LOOP_S and e[2] not in ("non_pd", "bad_height")]
     play(loop, replay=True)
     wait_until(lambda: rec.odom and _sec(rec.odom[-1].header.stamp) > LOOP_S - 0.5, 10)
     time.sleep(1.2)
@@ -304,6 +310,7 @@ def test_bad_input_is_refused_and_the_node_survives(flight):
     _, filt = diag["ekf: filter"]
     assert int(filt["rejected_input/imu:non_finite_value"]) == 1
     assert int(filt["rejected_input/fix:covariance_not_positive_definite"]) == 1
+    assert int(filt["rejected_input/fix:projection_height_negative_or_not_finite"]) == 1
     assert "imu refused: non_finite_value" in log
     assert "fix refused: covariance_not_positive_definite" in log
     assert flight["alive"], log

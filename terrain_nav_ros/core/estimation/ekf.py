@@ -122,6 +122,7 @@ class Reason(StrEnum):
     BAD_SHAPE = "bad_shape"
     BAD_COVARIANCE = "covariance_not_positive_definite"
     BAD_QUATERNION = "quaternion_not_unit"
+    BAD_PROJECTION_HEIGHT = "projection_height_negative_or_not_finite"
     DUPLICATE = "duplicate_stamp"
     OUT_OF_ORDER = "out_of_order"
     STALE = "older_than_history"
@@ -770,7 +771,7 @@ class TerrainEkf:
         Outcome
         """
         if not (math.isfinite(projection_height) and projection_height >= 0.0):
-            return self._refuse(source, Reason.NON_FINITE)
+            return self._refuse(source, Reason.BAD_PROJECTION_HEIGHT)
         parts = [np.asarray(position, dtype=float)]
         rows = [np.arange(0, 3)]
         if velocity is not None and not relocalisation:
