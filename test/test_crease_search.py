@@ -533,26 +533,32 @@ def test_a_large_view_is_found_by_the_view_search(region):
             assert abs(r.scale - 1 / 1.07) < 0.03
 
 
-def test_the_view_search_is_the_wider_try_of_a_view_it_fits(region, monkeypatch):
-    """A view the view search fits gets it instead of the sweep of the votes (which would
-    only add chances); one it does not fit (the search off here) still gets the sweep."""
+def test_the_view_search_comes_first_for_a_view_it_fits(region, other_region, monkeypatch):
+    """A view the view search fits is searched densely first; the minutiae's votes are
+    tried only when that is not clear (a view from elsewhere), and their sweep never (it
+    would only add chances); a view it does not fit (the search off here) gets the votes
+    and their sweep."""
     from terrain_nav_ros.core.matching import matcher as matching
     ms, skel = region
     view, _ = _scaled_view(skel, 150, 160, 192, 140.0, 1.07)
+    elsewhere, _ = _scaled_view(other_region[1], 150, 160, 192, 140.0, 1.07)
     rng = np.random.default_rng(5)
     n = 40
     unrelated = MinutiaSet(rng.uniform(0, 191, n), rng.uniform(0, 191, n),
                            rng.uniform(-np.pi, np.pi, n), rng.choice([1, 3], n).astype(np.uint8),
                            np.ones(n, np.float32))
     calls = []
-    sweep, view_try = matching._sweep_try, matching._view_try
-    monkeypatch.setattr(matching, "_sweep_try",
-                        lambda *a, **k: calls.append("sweep") or sweep(*a, **k))
-    monkeypatch.setattr(matching, "_view_try",
-                        lambda *a, **k: calls.append("view") or view_try(*a, **k))
-    for view_search, expected in [(True, ["view"]), (False, ["sweep"])]:
+
+    def counted(tag, f):
+        return lambda *a, **k: calls.append(tag) or f(*a, **k)
+
+    for name, tag in (("_sweep_try", "sweep"), ("_view_try", "view"), ("_votes", "votes")):
+        monkeypatch.setattr(matching, name, counted(tag, getattr(matching, name)))
+    for view_search, creases, expected in [(True, view, ["view"]),
+                                           (True, elsewhere, ["view", "votes"]),
+                                           (False, view, ["votes", "sweep"])]:
         calls.clear()
         matcher = Matcher(view_search=view_search)
         region_index = matcher.index(ms, skel).prepare_as_reference(search=True)
-        matcher.localise(matcher.index(unrelated, view), region_index)
-        assert calls == expected
+        r = matcher.localise(matcher.index(unrelated, creases), region_index)
+        assert calls == expected, (view_search, r.score)

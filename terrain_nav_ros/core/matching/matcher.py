@@ -161,6 +161,11 @@ def _low(best: _Scored | None, n_scored: int, p: MatchParams) -> bool:
                             - math.log10(max(n_scored, 1))) < p.rescue_below
 
 
+def _votes(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> _Votes:
+    """The minutiae's votes for transforms (by root pairs or edge hashes, as B is indexed)."""
+    return _root_votes(a, b, p) if _generator(b, p) == "roots" else _hash_votes(a, b, p)
+
+
 def _registrations(hyps, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, rng):
     """Registrations (c, t, pairings) of the hypotheses that come near the strongest, with
     at least two pairings."""
@@ -330,9 +335,25 @@ class Matcher:
                 base.reason = ("too few minutiae: even a perfect match would score "
                                f"{best_possible:.2f} < threshold {p.threshold:.2f}")
                 return base
-        votes = _root_votes(a, b, p) if _generator(b, p) == "roots" else _hash_votes(a, b, p)
         rng = self._rng
         rng.bit_generator.state = self._rng_start
+        level = _view_search_level(a, b, p) if (
+            localising and use_creases and p.view_search and not search) else None
+        if level is not None:
+            # a view the view search fits: the dense registration of the creases first (it
+            # covers every rotation, scale and translation at the creases' resolution; on
+            # real images the minutiae of albedo edges rarely repeat a render's), the
+            # minutiae's votes only when it is not clear
+            best, n_scored = _view_try(a, b, p, level, None, 0, search_area)
+            if _low(best, n_scored, p):
+                votes = _votes(a, b, p)
+                registered = _registrations(_hypotheses(votes, a, b, p), a, b, p, rng)
+                other, scored = _best_registration(a, b, registered, search_area, p, True)
+                n_scored += len(scored)
+                if other is not None and (best is None or other.score > best.score):
+                    best = other
+            return self._result(a, b, base, best, n_scored, use_creases)
+        votes = _votes(a, b, p)
         registered = _registrations(_hypotheses(votes, a, b, p), a, b, p, rng)
         best, scored = _best_registration(a, b, registered, search_area, p, use_creases)
         n_scored = len(scored)
@@ -346,18 +367,16 @@ class Matcher:
                                               searched, trials, scored=scored)
             n_scored = len(scored)
         elif low:
-            level = _view_search_level(a, b, p) if (
-                localising and use_creases and p.view_search) else None
-            if level is not None:
-                # a view the view search fits: the search is its wider try (as the crease
-                # search is a small set's): it covers every rotation, scale and translation
-                # at the creases' resolution, where the sweep of the minutiae's votes
-                # only adds chances (on real images the minutiae of albedo edges rarely
-                # repeat those of a render, the crease skeleton largely does)
-                best, n_scored = _view_try(a, b, p, level, best, n_scored, search_area)
-            else:
-                best, n_scored = _sweep_try(a, b, p, votes, rng, best, n_scored, search_area,
-                                            use_creases)
+            # (a view the view search fits was searched above: the sweep of the votes would
+            # only add chances to it)
+            best, n_scored = _sweep_try(a, b, p, votes, rng, best, n_scored, search_area,
+                                        use_creases)
+        return self._result(a, b, base, best, n_scored, use_creases)
+
+    def _result(self, a: MinutiaIndex, b: MinutiaIndex, base: MatchResult,
+                best: _Scored | None, n_scored: int, use_creases: bool) -> MatchResult:
+        """The decision on the best registration of ``n_scored``, with its covariance."""
+        p = self.params
         base.decision = Decision.NO_MATCH
         if best is None:
             base.reason = "no consistent transform"

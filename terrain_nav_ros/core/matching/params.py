@@ -115,13 +115,13 @@ class MatchParams:
         than ~80 px in its 3x localisation region is searched coarse, 4-6x faster.
     view_search : bool
         With crease images, a localised set too large for the crease search above (a camera
-        footprint in its landmark region) whose first try stays below ``rescue_below`` is
-        searched, at the finest level (:data:`~.crease_search.LEVELS`) whose work fits
-        ``crease_search_max_work``, over scales as well (``search_scale``): the search is its
-        wider try, instead of the sweep of the votes (which only a set no level fits gets).
-        On real images the minutiae of albedo edges (snow, forest, fields) rarely repeat
-        those of a render, so the minutiae's votes may propose nothing right; the crease
-        skeleton largely repeats.
+        footprint in its landmark region) is searched first, at the finest level
+        (:data:`~.crease_search.LEVELS`) whose work fits ``crease_search_max_work``, over
+        scales as well (``search_scale``); the minutiae's votes are tried only when that
+        stays below ``rescue_below``, and their sweep never (it would only add chances; a
+        set no level fits gets votes and sweep). On real images the minutiae of albedo
+        edges (snow, forest, fields) rarely repeat those of a render, so the votes may
+        propose nothing right; the crease skeleton largely repeats.
     search_scale : float
         Relative scale error the crease searches of a localisation cover (the prior's height
         above ground: 10 % moves the edge of a 256 px view by 13 px, more than a hit's
@@ -153,8 +153,8 @@ class MatchParams:
         and with creases the coarse-to-fine crease ICP below. For a set small enough for
         the crease search (``crease_search_*``) the search is the wider try instead: it
         covers every rotation and translation, and the sweep and the wide ICP would only add
-        chances to unrelated pairs of such small sets; so is the view search for a localised
-        set it fits (``view_search``). The ridges' evidence does not count
+        chances to unrelated pairs of such small sets; a localised set the view search
+        fits (``view_search``) has had it first. The ridges' evidence does not count
         towards this test (it was tuned without them, and they add to chance registrations
         too). A clear match never pays for it;
         ``-inf`` turns it off, the crease search with it. The score's count of transforms
