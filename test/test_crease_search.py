@@ -552,7 +552,7 @@ def test_the_view_search_comes_first_for_a_view_it_fits(region, other_region, mo
     def counted(tag, f):
         return lambda *a, **k: calls.append(tag) or f(*a, **k)
 
-    for name, tag in (("_sweep_try", "sweep"), ("_view_try", "view"), ("_votes", "votes")):
+    for name, tag in (("_sweep_try", "sweep"), ("_view_try", "view"), ("_vote_try", "votes")):
         monkeypatch.setattr(matching, name, counted(tag, getattr(matching, name)))
     for view_search, creases, expected in [(True, view, ["view"]),
                                            (True, elsewhere, ["view", "votes"]),

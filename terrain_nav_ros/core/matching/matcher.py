@@ -161,9 +161,15 @@ def _low(best: _Scored | None, n_scored: int, p: MatchParams) -> bool:
                             - math.log10(max(n_scored, 1))) < p.rescue_below
 
 
-def _votes(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> _Votes:
-    """The minutiae's votes for transforms (by root pairs or edge hashes, as B is indexed)."""
-    return _root_votes(a, b, p) if _generator(b, p) == "roots" else _hash_votes(a, b, p)
+def _vote_try(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, rng, search_area: float,
+              use_creases: bool):
+    """The minutiae's first try: their votes for transforms (by root pairs or edge hashes,
+    as B is indexed), and the best of the registrations the votes' hypotheses give with the
+    registrations scored: ``(votes, best, scored)``."""
+    votes = _root_votes(a, b, p) if _generator(b, p) == "roots" else _hash_votes(a, b, p)
+    registered = _registrations(_hypotheses(votes, a, b, p), a, b, p, rng)
+    best, scored = _best_registration(a, b, registered, search_area, p, use_creases)
+    return votes, best, scored
 
 
 def _registrations(hyps, a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, rng):
@@ -346,16 +352,12 @@ class Matcher:
             # minutiae's votes only when it is not clear
             best, n_scored = _view_try(a, b, p, level, None, 0, search_area)
             if _low(best, n_scored, p):
-                votes = _votes(a, b, p)
-                registered = _registrations(_hypotheses(votes, a, b, p), a, b, p, rng)
-                other, scored = _best_registration(a, b, registered, search_area, p, True)
+                _, other, scored = _vote_try(a, b, p, rng, search_area, use_creases)
                 n_scored += len(scored)
                 if other is not None and (best is None or other.score > best.score):
                     best = other
             return self._result(a, b, base, best, n_scored, use_creases)
-        votes = _votes(a, b, p)
-        registered = _registrations(_hypotheses(votes, a, b, p), a, b, p, rng)
-        best, scored = _best_registration(a, b, registered, search_area, p, use_creases)
+        votes, best, scored = _vote_try(a, b, p, rng, search_area, use_creases)
         n_scored = len(scored)
         low = _low(best, n_scored, p)
         if low and search:
