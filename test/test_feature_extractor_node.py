@@ -1,5 +1,5 @@
 """feature_extractor node: minutiae of a drainage image in another process, an explicit empty
-result for a flat image, and parameter changes validated by the core."""
+result for a flat image and for a clouded one, and parameter changes validated by the core."""
 
 from contextlib import contextmanager
 from types import SimpleNamespace
@@ -24,6 +24,13 @@ HEADER = Header(frame_id="map")
 
 def _drainage_image(azimuth=315.0, elevation=45.0):
     return (255 * hillshade(DEM, azimuth, elevation, gsd=5.0)).astype(np.uint8)
+
+
+def _clouded(image):
+    """``image`` under a thick cloud on all but a 10 % strip (the sensor clips it)."""
+    out = image.copy()
+    out[:, 26:] = 250
+    return out
 
 
 @contextmanager
@@ -66,8 +73,12 @@ def test_minutiae_empty_reasons_and_parameter_validation():
         flat = cv.geo_image_to_msg(np.full((256, 256), 120, np.uint8), GEOREF, HEADER)
         assert wait_until(lambda: (s.cam_pub.publish(flat), bool(s.camera))[1], 30,
                           period=0.5)
+        s.cam_pub.publish(cv.geo_image_to_msg(_clouded(_drainage_image()), GEOREF, HEADER))
+        n_flat = len(s.camera)   # the flat frame may have gone out more than once
+        assert wait_until(lambda: len(s.camera) > n_flat, 20)
         bad = _set(s.client, "crease.epsilon", 5.0)        # must be in (0, 1)
         good = _set(s.client, "crease.epsilon", 0.01)
+        bad_cloud = _set(s.client, "cloud.max_fraction", 1.5)
         assert s.node.poll() is None
     found = cv.msg_to_minutiae(s.landmark[0])
     assert len(found) >= 10 and found.reason == "", s.log
@@ -76,6 +87,9 @@ def test_minutiae_empty_reasons_and_parameter_validation():
     assert len(s.camera[0].minutiae) == 0 and "no drainage" in s.camera[0].reason
     assert not bad.successful and "epsilon" in bad.reason
     assert good.successful
+    # a frame 90 % under a bright, featureless cloud: no minutiae, and the reason is the cloud
+    assert len(s.camera[-1].minutiae) == 0 and s.camera[-1].reason.startswith("mostly cloud")
+    assert not bad_cloud.successful and "max_fraction" in bad_cloud.reason
     # the crease skeleton rides along (attach_creases): every minutia ends or forks one
     creases = cv.msg_to_creases(s.landmark[0])
     assert creases is not None and creases.shape == (256, 256)

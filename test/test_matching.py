@@ -123,6 +123,10 @@ def test_too_few_minutiae_is_no_decision(block):
     r = compare(few, block)
     assert r.decision == Decision.NO_DECISION and "too few" in r.reason
     assert compare(MinutiaSet.empty("flat"), block).decision == Decision.NO_DECISION
+    # a camera set the extractor emptied says why, and localise passes that on
+    clouded = localise(MinutiaSet.empty("mostly cloud: 90 % of the frame"), block)
+    assert clouded.decision == Decision.NO_DECISION
+    assert clouded.reason == "no camera minutiae: mostly cloud: 90 % of the frame"
 
 
 def test_a_set_without_edges_is_no_match_not_a_crash(block):

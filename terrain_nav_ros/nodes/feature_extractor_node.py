@@ -6,6 +6,8 @@ minutiae as ``MinutiaArray`` on ``/camera/minutiae`` and ``/landmark/minutiae`` 
 the source georeference and (``attach_creases``, ``attach_ridges``) the crease and ridge
 skeletons for the matcher's crease and ridge checks, and the crease images on
 ``/camera/creases`` and ``/landmark/creases`` for debugging.
+A camera frame that is mostly cloud (:mod:`~.core.features.clouds`, ``cloud.*``: bright and
+featureless) is answered with an empty array and that reason.
 An image with no drainage (flat, lake, cloud) yields an empty array whose ``reason`` says so,
 and so does every camera frame that has no minutiae for another reason (not projected,
 unusable, extraction failed): the matcher answers each frame.
@@ -32,6 +34,7 @@ from sensor_msgs.msg import Image
 
 from terrain_nav_msgs.msg import GeoImage, MinutiaArray
 
+from ..core.features.clouds import CloudParams, cloud_cover
 from ..core.features.creases import CreaseParams
 from ..core.features.hillshade import check_lighting, extractor_input
 from ..core.features.minutiae import FeatureExtractor, MinutiaParams, warm_up
@@ -60,6 +63,7 @@ class FeatureExtractorNode(Node):
         super().__init__("feature_extractor")
         declare_settings(self, "crease", CreaseParams())
         declare_settings(self, "minutia", MinutiaParams())
+        declare_settings(self, "cloud", CloudParams())
         self.publish_creases = declare(self, "publish_creases", True,
                                        "publish the crease images on the debug topics")
         self.attach_creases = declare(self, "attach_creases", True,
@@ -81,6 +85,7 @@ class FeatureExtractorNode(Node):
         self.without_minutiae = Counter()     # per stream and reason kind
         self.extract_ms = {"camera": [], "landmark": []}   # since the last report
         self.extractor = self._build()
+        self.cloud_params = settings_from_parameters(self, "cloud", CloudParams())
         self.add_on_set_parameters_callback(self.on_set_parameters)
         self.outputs = {}
         for name, source, qos in (("camera", MinutiaArray.SOURCE_CAMERA, RELIABLE_QOS),
@@ -112,12 +117,14 @@ class FeatureExtractorNode(Node):
         try:
             check_lighting(lighting)
             self.extractor = self._build(params, ridges)
+            cloud_params = settings_from_parameters(self, "cloud", CloudParams(), params)
         except (ValueError, TypeError) as err:
             return SetParametersResult(successful=False, reason=str(err))
         self.attach_ridges = ridges
         self.attach_creases = bool(new.get("attach_creases", self.attach_creases))
         self.publish_creases = bool(new.get("publish_creases", self.publish_creases))
         self.lighting = lighting
+        self.cloud_params = cloud_params
         return SetParametersResult(successful=True)
 
     @contained
@@ -153,6 +160,11 @@ class FeatureExtractorNode(Node):
         except cv.ConversionError as err:
             self._no_minutiae(msg, stream, f"unusable {stream} image: {err}")
             return
+        if stream == "camera":   # a render has no cloud
+            cover = cloud_cover(image, valid, self.cloud_params)
+            if cover.reason:
+                self._no_minutiae(msg, stream, cover.reason, log=False)
+                return
         features = self.extractor(self.lighting_normalised(image, valid, msg, stream),
                                   georef, valid)
         minutiae_pub, crease_pub, source = self.outputs[stream]

@@ -30,9 +30,10 @@ landmark render of a co-registered DEM, lit by the image's sun, the way the grap
    known, with 36 rotations without it) and ORB (SIFT with ``--sift``) with RANSAC; they
    always answer, so every answer off the truth is wrong.
 
-A view with too little drainage is answered with a no-fix and its reason by the matcher; it
-is counted apart, not dropped. Outputs: ``report.md``, ``results.json`` and a PNG per scene
-(image beside its landmark render).
+A view with too little drainage, or mostly cloud (:mod:`~.core.features.clouds`, as the
+graph's feature_extractor finds it in a camera frame), is answered with a no-fix and its
+reason; it is counted apart, not dropped. Outputs: ``report.md``, ``results.json`` and a PNG
+per scene (image beside its landmark render).
 """
 
 from __future__ import annotations
@@ -50,7 +51,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ..core.features.clouds import CloudParams, cloud_cover
 from ..core.features.hillshade import extractor_input
+from ..core.features.minutia_set import MinutiaSet
 from ..core.features.minutiae import FeatureExtractor, MinutiaParams
 from ..core.matching.baselines import keypoint_locate, ncc_locate
 from ..core.matching.matcher import Matcher
@@ -66,8 +69,9 @@ MIN_VALID = 0.95
 # Rotation of the views with the heading known (deg), and what the matcher is told.
 KNOWN_HEADING_DEG = 2.0
 KNOWN_HEADING_PRIOR_DEG = 10.0
-# Reasons of a no-fix that mean "this view holds too little drainage", counted apart.
-_TOO_LITTLE = ("too little drainage", "too few minutiae")
+# Reasons of a no-fix that mean "this view holds too little drainage" (or shows too little
+# ground), counted apart.
+_TOO_LITTLE = ("too little drainage", "no drainage", "too few minutiae", "mostly cloud")
 
 
 @dataclass
@@ -362,12 +366,14 @@ class _Extractor:
     is kept: the controls meet the same regions many times), at the matching GSD: a scene
     finer than it is area-averaged first, as camera_ingest resamples a camera to its GSD."""
 
-    def __init__(self, params: MatchParams, match_gsd=None):
+    def __init__(self, params: MatchParams, match_gsd=None,
+                 cloud_params: CloudParams | None = None):
         ridges = params.crease_check and params.ridge_check
         self.view = FeatureExtractor(ridges=ridges)
         self.region = FeatureExtractor(minutia_params=MinutiaParams(max_minutiae=100000),
                                        ridges=ridges)
         self.match_gsd = match_gsd
+        self.cloud_params = cloud_params or CloudParams()
         self._regions = {}
 
     def factor(self, scene: Scene) -> float:
@@ -384,6 +390,10 @@ class _Extractor:
         grey, f = _decimated(grey, self.factor(scene))
         if valid is not None:   # a decimated pixel is observed when all it averages are
             valid = _decimated(valid.astype(np.float32), self.factor(scene))[0] > 0.999
+        if not region:          # as feature_extractor does with a camera frame
+            cover = cloud_cover(grey, valid, self.cloud_params)
+            if cover.reason:
+                return matcher.index(MinutiaSet.empty(cover.reason)), f
         feats = (self.region if region else self.view)(
             extractor_input(grey, "shading", scene.sun), valid_mask=valid)
         ix = matcher.index(feats.minutiae, feats.creases.skeleton(), feats.ridges)

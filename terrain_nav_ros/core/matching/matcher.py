@@ -305,6 +305,10 @@ class Matcher:
         """
         a = _as_index(camera, self.params, crease_camera)
         b = _as_index(landmark, self.params, crease_landmark)
+        if a.n == 0 and a.set.reason and (a.crease_image is None or not a.crease_image.any()):
+            # nothing to match, and the extractor has said why (cloud, no drainage)
+            return MatchResult(Decision.NO_DECISION, n_b=b.n,
+                               reason=f"no camera minutiae: {a.set.reason}")
         return self._match(a, b, max(b.area, 1.0), localising=True)
 
     def _match(self, a: MinutiaIndex, b: MinutiaIndex, search_area: float,
