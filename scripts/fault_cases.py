@@ -338,6 +338,9 @@ def cases() -> list[Case]:
             lambda t: make_bag(t / "whole"), ("--rate", "nan"), "must be > 0")),
         Case("simulate --duration -5", "options", lambda tmp: judge(terrain_nav(
             "simulate", "-o", tmp / "out", "--duration", -5), 2, ("--duration",))),
+        Case("simulate --cloud-cover 1.5", "options", lambda tmp: judge(terrain_nav(
+            "simulate", "-o", tmp / "out", "--duration", 5, "--cloud-cover", 1.5), 2,
+            ("cloud cover",))),
         Case("simulate over an existing output", "options", lambda tmp: judge(terrain_nav(
             "simulate", "-o", tmp, "--duration", 5), 2, ("exists already",))),
         Case("prepare of an area beyond its DEM", "options", _prepare(

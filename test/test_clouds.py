@@ -63,6 +63,16 @@ def test_an_auto_exposed_frame_under_cloud_is_mid_grey_and_still_mostly_cloud():
     assert cloud_cover(np.full((100, 100), 165, np.uint8)).fraction == 0.0
 
 
+def test_the_edge_of_the_camera_footprint_is_not_texture():
+    """A ground-projected frame is a tilted quadrilateral of valid pixels in a zero frame:
+    under full cloud, all of it is cloud, its edge included."""
+    valid = np.zeros((200, 200), bool)
+    valid[30:170, 20:180] = True
+    frame = np.where(valid, 230, 0).astype(np.uint8)
+    frame[90:110, 90:110] = TERRAIN[90:110, 90:110]   # a small hole onto the ground
+    assert cloud_cover(frame, valid).fraction > 0.95
+
+
 def test_bright_texture_and_small_bright_spots_are_not_cloud():
     rng = np.random.default_rng(1)
     textured = TERRAIN.copy()

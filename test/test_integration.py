@@ -177,6 +177,36 @@ def test_flight_over_flat_terrain_says_why_there_is_no_fix(tmp_path):
     assert "no drainage" in _no_fix_reasons(result) or "minutiae" in _no_fix_reasons(result)
 
 
+def test_a_flight_under_overcast_says_so_and_coasts(tmp_path):
+    """90 % cloud cover between the camera and the ground (simulate --cloud-cover): every
+    projected frame is answered with a "mostly cloud" no-fix, none with a fix, and the
+    filter coasts on the IMU as it would with the camera off."""
+    bag = tmp_path / "overcast"
+    simulate(SimConfig(duration=32.0, gnss_denied_after=16.0, cloud_cover=0.9, seed=3), bag)
+    result = run_replay(bag, tmp_path / "out", GRAPH)
+    _nodes_survived(result)
+    fixes = result["fixes"]
+    assert fixes["frames"] >= fixes["in_bag"] - 1 and fixes["fixes"] == 0, fixes
+    clouded = sum(n for reason, n in fixes["reasons"] if "mostly cloud" in reason)
+    projected = fixes["frames"] - sum(n for reason, n in fixes["reasons"]
+                                      if "not projected" in reason)
+    assert clouded >= 0.8 * projected > 0, fixes
+    assert result["fused_error"]["final"] <= result["dr_error"]["final"] + GSD
+
+
+def test_a_flight_under_broken_cloud_keeps_fixing(tmp_path):
+    """40 % cloud cover and its shadows: most frames still get a fix, none outside its
+    covariance, and the fused error stays within a GSD."""
+    bag = tmp_path / "broken"
+    simulate(SimConfig(duration=40.0, gnss_denied_after=15.0, cloud_cover=0.4, seed=3), bag)
+    result = run_replay(bag, tmp_path / "out", GRAPH)
+    _nodes_survived(result)
+    fixes = result["fixes"]
+    assert fixes["fixes"] >= 15, fixes                     # 21 of 30 projected frames
+    assert result["fix_error"]["within_3_sigma"] >= 0.95, result["fix_error"]
+    assert result["fused_error"]["rms"] <= GSD, result["fused_error"]   # 5.7 m
+
+
 def test_raw_camera_images_are_answered_like_jpeg(tmp_path):
     """A bag of raw sensor_msgs/Image frames (rgb8, 590 KB each: what most camera drivers
     publish) reaches camera_ingest frame by frame, as JPEG bags do: before the graph's Fast

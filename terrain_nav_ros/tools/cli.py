@@ -415,6 +415,12 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--start-time", dest="start_time", metavar="ISO8601",
                      help="bag time of the start, UTC (with --albedo: the image's "
                           "acquisition, so the landmarks get its sun)")
+    sim.add_argument("--cloud-cover", dest="cloud_cover", type=float, metavar="FRACTION",
+                     help="broken cloud over this fraction of the sky, in [0, 1) (default 0)")
+    sim.add_argument("--cloud-base", dest="cloud_base", type=float, metavar="M",
+                     help="its height above the terrain under the flight [m] (default 1500)")
+    sim.add_argument("--cloud-size", dest="cloud_size", type=float, metavar="M",
+                     help="typical cloud diameter [m] (default 1500)")
     sim.set_defaults(func=_cmd_simulate)
 
     prep = sub.add_parser("prepare", help="the mission index: every tile of the area "

@@ -21,7 +21,9 @@ made to look like a camera rather than a landmark: another sun, another albedo, 
 exposure, blur, vignetting, lens distortion (published in CameraInfo) and sensor noise
 (:mod:`.core.render.camera_effects`). With ``albedo`` a real orthoimage is draped over the terrain
 instead and shown as it is (its own sun, snow, forest, fields and roads), and ``start_time``
-puts the bag at the image's acquisition, so the landmarks are lit by its sun. GNSS is denied
+puts the bag at the image's acquisition, so the landmarks are lit by its sun. With
+``cloud_cover`` a sheet of broken cloud drifts with the wind between the camera and the
+ground, shadows included (:mod:`.core.render.cloud_layer`). GNSS is denied
 from a configurable time. Everything is deterministic given the seed. A ``mission.yaml``
 beside the MCAP file records the DEM, the ENU origin and the camera mount, so the replay
 configures the graph to match.
@@ -44,6 +46,7 @@ from ..core.estimation.baro import altitude_to_pressure
 from ..core.estimation.ekf_params import EkfParams
 from ..core.estimation.strapdown import quat_conjugate, quat_rotate
 from ..core.render.camera_effects import CameraEffects, apply_camera_effects, distortion_maps
+from ..core.render.cloud_layer import CloudLayer
 from ..core.render.renderer import (
     AlbedoRamp,
     LandmarkRenderer,
@@ -109,6 +112,10 @@ class SimConfig:
     start_time: str = ""             # ISO 8601 UTC bag time of t = 0 (with --albedo: the
     #                                  image's acquisition, so landmarks get its sun);
     #                                  "" = 2026-06-21T13:30:00Z
+    cloud_cover: float = 0.0         # fraction of the sky under broken cloud, [0, 1)
+    cloud_base: float = 1500.0       # m, height of the cloud sheet above the median terrain
+    #                                  under the flight (drifts with the wind)
+    cloud_size: float = 1500.0       # m, typical cloud diameter
     effects: CameraEffects = field(default_factory=CameraEffects)
 
 
@@ -278,6 +285,7 @@ def _progress(done: int, total: int, started: float, what: str) -> None:
 def simulate(cfg: SimConfig, output: str | Path) -> dict:
     """Fly ``cfg`` and write the bag to ``output`` (a new directory); return a summary."""
     output = Path(output)
+    _cloud_layer(cfg, 0.0)   # bad cloud settings fail before the flight is flown
     rng = np.random.default_rng(cfg.seed)
     metamap, dem_name = _open_metamap(cfg)
     truth, ground_low = fly(cfg, metamap)
@@ -429,6 +437,15 @@ def _solar(origin: EnuOrigin, t_ns: int) -> tuple[float, float]:
     return az, el
 
 
+def _cloud_layer(cfg: SimConfig, ground_height: float) -> CloudLayer:
+    """The flight's cloud sheet, ``cloud_base`` m above ``ground_height`` (ENU m)."""
+    try:
+        return CloudLayer(cover=cfg.cloud_cover, base=ground_height + cfg.cloud_base,
+                          size=cfg.cloud_size, wind=tuple(cfg.wind), seed=cfg.seed)
+    except ValueError as err:
+        raise SimInputError(str(err)) from None
+
+
 def _render_frames(cfg, metamap, truth, t_ns, msgs, rng, sun):
     cam = pinhole(cfg)
     dist = cfg.effects.distortion
@@ -449,13 +466,16 @@ def _render_frames(cfg, metamap, truth, t_ns, msgs, rng, sun):
     renderer.set_terrain(heights, box)
     if cfg.albedo:
         renderer.set_photo(drape_photo(cfg.albedo, cfg.albedo_band, metamap, box))
+    clouds = _cloud_layer(cfg, float(np.median(heights)))
     out = []
     started = time.monotonic()
     for n, k in enumerate(idx):
         r = camera_rotation(truth.quaternion[k])
         result = renderer.render_perspective(cam, truth.position[k], r, sun=sun)
-        distance = np.linalg.norm(result.hit_enu - truth.position[k], axis=-1)
-        rgb = apply_camera_effects(result.rgb, distance, cfg.effects, rng, maps)
+        ground = result.hit_enu
+        distance = np.linalg.norm(ground - truth.position[k], axis=-1)
+        radiance, _ = clouds.apply(result.rgb, truth.position[k], ground, sun, truth.t[k])
+        rgb = apply_camera_effects(radiance, distance, cfg.effects, rng, maps)
         msgtype, image = msgs.image(t_ns[k], rgb, cfg.image_format, cfg.jpeg_quality)
         topic = "/camera/image_raw/compressed" if cfg.image_format == "jpeg" \
             else "/camera/image_raw"

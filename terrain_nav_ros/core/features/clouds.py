@@ -31,8 +31,11 @@ import numpy as np
 
 __all__ = ["CloudParams", "CloudCover", "full_scale", "cloud_mask", "cloud_cover"]
 
-# A cloud outshines this percentile of the frame's textured pixels (terrain, cloud edges).
-_TERRAIN_PERCENTILE = 90.0
+# A cloud's core outshines this percentile of the frame's textured pixels (the ground and
+# the cloud's edges: an auto-exposed camera makes a frame that is mostly cloud mid-grey) ...
+_CLOUD_PERCENTILE = 90.0
+# ... and the rest of the cloud, featureless, this one.
+_GROUND_PERCENTILE = 50.0
 
 
 def _check(cond: bool, msg: str):
@@ -49,9 +52,10 @@ class CloudParams:
     enabled : bool
         False: no pixel is taken for cloud.
     bright_level : float
-        A cloud pixel is at least this fraction of the full scale, in (0, 1], or at least
-        as bright as 90 % of the frame's textured pixels, when that is lower: an
-        auto-exposed camera makes a frame that is mostly cloud mid-grey.
+        A cloud's core is at least this fraction of the full scale, in (0, 1], or at least
+        as bright as 90 % of the frame's textured pixels when that is lower (an
+        auto-exposed camera makes a frame that is mostly cloud mid-grey); the rest of the
+        cloud is featureless and brighter than half of them.
     max_texture : float
         ... and its local standard deviation (Gaussian window ``texture_sigma``) at most this
         fraction of the full scale: terrain under the sun shows shading at the crease scale,
@@ -138,16 +142,19 @@ def cloud_mask(image: np.ndarray, valid: np.ndarray | None = None,
     level = img.astype(np.float32) * np.float32(1.0 / full_scale(img))
     ok = ok & np.isfinite(level)
     level[~ok] = 0.0
-    mean = cv2.GaussianBlur(level, (0, 0), p.texture_sigma)
-    var = cv2.GaussianBlur(level * level, (0, 0), p.texture_sigma) - mean * mean
-    featureless = var <= np.float32(p.max_texture) ** 2
-    bright = (level >= min(p.bright_level, _terrain_ceiling(level, ok & ~featureless))) & ok
+    featureless = _local_variance(level, ok, p.texture_sigma) <= np.float32(p.max_texture) ** 2
+    textured = ok & ~featureless
+    high, low = (min(p.bright_level, _terrain_level(level, textured, q))
+                 for q in (_CLOUD_PERCENTILE, _GROUND_PERCENTILE))
+    bright = ok & (level >= high)
     core = bright & featureless
     if not core.any():
         return core
-    # a cloud is a bright region with a featureless core: its edge, where the window
-    # straddles the ground, is bright but not featureless
-    n, labels = cv2.connectedComponents(bright.astype(np.uint8), connectivity=8)
+    # A cloud is a bright region with a featureless core. Its edge, where the window
+    # straddles the ground, is bright but not featureless; the rest of it may be dimmer
+    # (vignetting, a thinner part) but stays featureless and above most of the ground.
+    cloudy = bright | (ok & featureless & (level >= low))
+    n, labels = cv2.connectedComponents(cloudy.astype(np.uint8), connectivity=8)
     area = np.bincount(labels.ravel(), minlength=n)
     cored = np.bincount(labels[core], minlength=n) > 0
     keep = cored & (area >= p.min_area)
@@ -160,14 +167,22 @@ def cloud_mask(image: np.ndarray, valid: np.ndarray | None = None,
     return mask & ok
 
 
-def _terrain_ceiling(level: np.ndarray, textured: np.ndarray) -> float:
-    """The level that the frame's textured pixels (terrain, and a cloud's edges) seldom
-    exceed: an auto-exposed camera makes a frame that is mostly cloud mid-grey, but its
-    cloud still outshines its ground."""
+def _local_variance(level: np.ndarray, ok: np.ndarray, sigma: float) -> np.ndarray:
+    """Variance of ``level`` in a Gaussian window, over the valid pixels only (the edge of
+    the camera's footprint is not texture)."""
+    w = cv2.GaussianBlur(ok.astype(np.float32), (0, 0), sigma)
+    w = np.maximum(w, np.float32(1e-6))
+    mean = cv2.GaussianBlur(level, (0, 0), sigma) / w
+    return cv2.GaussianBlur(level * level, (0, 0), sigma) / w - mean * mean
+
+
+def _terrain_level(level: np.ndarray, textured: np.ndarray, percentile: float) -> float:
+    """The ``percentile`` of the frame's textured pixels (its ground, and a cloud's edges);
+    infinite when too few are textured to say."""
     n = int(np.count_nonzero(textured))
     if n < 0.02 * level.size:
         return math.inf
-    return float(np.percentile(level[textured][:: max(1, n // 20000)], _TERRAIN_PERCENTILE))
+    return float(np.percentile(level[textured][:: max(1, n // 20000)], percentile))
 
 
 def cloud_cover(image: np.ndarray, valid: np.ndarray | None = None,
