@@ -32,9 +32,9 @@ import numpy as np
 __all__ = ["CloudParams", "CloudCover", "full_scale", "cloud_mask", "cloud_cover"]
 
 # A cloud's core outshines this percentile of the frame's textured pixels (the ground and
-# the cloud's edges: an auto-exposed camera makes a frame that is mostly cloud mid-grey) ...
+# the cloud's edges: an auto-exposed camera makes a frame that is mostly cloud mid-grey).
 _CLOUD_PERCENTILE = 90.0
-# ... and the rest of the cloud, featureless, this one.
+# The ground's level: this percentile of the textured pixels.
 _GROUND_PERCENTILE = 50.0
 
 
@@ -55,7 +55,12 @@ class CloudParams:
         A cloud's core is at least this fraction of the full scale, in (0, 1], or at least
         as bright as 90 % of the frame's textured pixels when that is lower (an
         auto-exposed camera makes a frame that is mostly cloud mid-grey); the rest of the
-        cloud is featureless and brighter than half of them.
+        cloud is featureless and connected to such a core.
+    min_contrast : float
+        ... and brighter than the median of the frame's textured pixels (its ground) by at
+        least this fraction of the full scale, in [0, 1); the rest of the cloud by half of
+        it. A hazy frame of smooth terrain (oversampled, or low sun) is featureless at the
+        creases' scale too, but has no distinctly brighter population.
     max_texture : float
         ... and its local standard deviation (Gaussian window ``texture_sigma``) at most this
         fraction of the full scale: terrain under the sun shows shading at the crease scale,
@@ -76,6 +81,7 @@ class CloudParams:
 
     enabled: bool = True
     bright_level: float = 0.78
+    min_contrast: float = 0.1
     max_texture: float = 0.025
     texture_sigma: float = 2.0
     min_area: int = 64
@@ -84,6 +90,7 @@ class CloudParams:
 
     def __post_init__(self):
         _check(0.0 < self.bright_level <= 1.0, "bright_level must be in (0, 1]")
+        _check(0.0 <= self.min_contrast < 1.0, "min_contrast must be in [0, 1)")
         _check(0.0 < self.max_texture < 1.0, "max_texture must be in (0, 1)")
         _check(0.3 <= self.texture_sigma <= 20.0, "texture_sigma must be in [0.3, 20] px")
         _check(self.min_area >= 1, "min_area must be >= 1 px")
@@ -144,8 +151,10 @@ def cloud_mask(image: np.ndarray, valid: np.ndarray | None = None,
     level[~ok] = 0.0
     featureless = _local_variance(level, ok, p.texture_sigma) <= np.float32(p.max_texture) ** 2
     textured = ok & ~featureless
-    high, low = (min(p.bright_level, _terrain_level(level, textured, q))
-                 for q in (_CLOUD_PERCENTILE, _GROUND_PERCENTILE))
+    ground = _terrain_level(level, textured, _GROUND_PERCENTILE)
+    high = min(p.bright_level, max(_terrain_level(level, textured, _CLOUD_PERCENTILE),
+                                   ground + p.min_contrast))
+    low = min(p.bright_level, ground + 0.5 * p.min_contrast)
     bright = ok & (level >= high)
     core = bright & featureless
     if not core.any():
