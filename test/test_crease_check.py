@@ -392,3 +392,45 @@ def test_ridges_that_disagree_neither_pull_far_nor_lower_the_score(region, other
     assert math.hypot(col - (48 - dx), row - (48 - dy)) < 2.0
     assert with_ridges.score >= valleys.score
     assert with_ridges.creases.fraction > 0.9
+
+
+def test_a_runner_up_whose_ridges_agree_is_chosen_over_a_leader_whose_do_not(region,
+                                                                             other_region):
+    """The choice among the registrations scored weighs the ridges of the leader and its
+    runners-up: the right registration, trailing on the valleys and minutiae (as albedo
+    edges make it on real images), leads once its ridges count; the leader's ridges add
+    nothing."""
+    from dataclasses import replace
+
+    from terrain_nav_ros.core.matching.matcher import _with_ridges_chosen
+    from terrain_nav_ros.core.matching.registration import _pair
+    from terrain_nav_ros.core.matching.scoring import _scored
+
+    ms, skel = region
+    ridges = other_region[1]
+    x0, y0, size, dx, dy = 200, 180, 96, 7, -5
+    big = 2 * size
+
+    def window(image, x, y, side=size):
+        return image[y:y + side, x:x + side]
+
+    matcher = Matcher(ridge_check_below=16)   # the ridges score only the chosen one
+    p = matcher.params
+    a = matcher.index(crop_set(ms, x0, y0, size, size), window(skel, x0, y0),
+                      window(ridges, x0, y0))
+    bx, by = x0 - dx - 40, y0 - dy - 40
+    b = matcher.index(crop_set(ms, bx, by, big, big), window(skel, bx, by, big),
+                      window(ridges, bx, by, big))
+    assert min(a.n, b.n) >= p.ridge_check_below
+    t_true = complex(x0 - bx, -(y0 - by))          # math frame: z = col - 1j * row
+    right = _scored(a, b, 1 + 0j, t_true, _pair(a, b, 1 + 0j, t_true, p), b.area, a.radius,
+                    p, True)
+    t_wrong = t_true + (23 - 31j)
+    wrong = _scored(a, b, 1 + 0j, t_wrong, _pair(a, b, 1 + 0j, t_wrong, p), b.area,
+                    a.radius, p, True)
+    leader = replace(wrong, score=right.score + 5.0)   # ahead on the other evidence
+    chosen = _with_ridges_chosen(a, b, leader, [leader, right], b.area, p)
+    assert abs(chosen.t - t_true) < 1.5 and chosen.ridges.score > 10
+    assert chosen.score >= right.score + chosen.ridges.score - 1e-9
+    alone = _with_ridges_chosen(a, b, leader, [leader], b.area, p)   # no runner-up to weigh
+    assert alone.t == t_wrong and alone.ridges.score < 2

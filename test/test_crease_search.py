@@ -562,3 +562,26 @@ def test_the_view_search_comes_first_for_a_view_it_fits(region, other_region, mo
         region_index = matcher.index(ms, skel).prepare_as_reference(search=True)
         r = matcher.localise(matcher.index(unrelated, creases), region_index)
         assert calls == expected, (view_search, r.score)
+
+
+def test_a_small_set_is_localised_by_agreement_not_density(region):
+    """The crease search of a set with few minutiae in its localisation region counts hits
+    above the region's local crease density, as the view search does: a patch of dense
+    lines elsewhere in the region (fields' edges) does not draw the registration."""
+    ms, skel = region
+    view_ms, view_skel, truth = _turned_view(ms, skel, 330, 90, 12.0, (3.0, -2.0))
+    few = view_ms.subset(np.arange(2))
+    truth_in_region = truth + np.array([[0, 0, 330], [0, 0, 90]])
+    noisy = skel.copy()
+    rng = np.random.default_rng(3)
+    for x0, y0 in rng.integers(20, 260, (500, 2)):
+        a = rng.uniform(0.0, np.pi)
+        cv2.line(noisy, (int(x0), int(y0 + 220)),
+                 (int(x0 + 30 * np.cos(a)), int(y0 + 220 + 30 * np.sin(a))), 1, 1)
+
+    def error(matcher):
+        r = matcher.localise(matcher.index(few, view_skel), matcher.index(ms, noisy))
+        return _centre_error(r, truth_in_region) if r.decision == Decision.MATCH else np.inf
+
+    assert error(Matcher()) < 1.5
+    assert error(Matcher(view_search_background=0.0)) > 20.0

@@ -33,7 +33,11 @@ Pipeline (same for block-vs-block :func:`compare` and camera-in-region :func:`lo
    repeating), a brute-force FFT search over rotations and translations of the crease
    skeletons proposes more registrations, refined and scored by the crease check like the
    others. A search too large for the fine level (a block in its localisation region) runs
-   at the coarse one, its proposals pulled onto the creases by the coarse-to-fine ICP.
+   at the coarse one, its proposals pulled onto the creases by the coarse-to-fine ICP. In a
+   localisation it counts hits above the region's local crease density, as the view search
+   does.
+8. **Ridges** (when both sets carry ridge skeletons): the leader and its runners-up get their
+   ridges' agreement added, and the best total wins; the best-of-n term pays for the choice.
 
 All internal geometry is in the math frame ``z = col - 1j*row`` (see :mod:`.descriptors`);
 results are reported in pixel coordinates.
@@ -41,7 +45,7 @@ results are reported in pixel coordinates.
 This module is the front end (:class:`Matcher`, :func:`compare`, :func:`localise`) and the
 choice among registrations; the steps live beside it: the settings in :mod:`.params`, the
 prepared sets in :mod:`.index`, step 1 in :mod:`.proposals`, 2 in :mod:`.consensus`, 3 and 4
-in :mod:`.registration`, 5 in :mod:`.significance` and :mod:`.scoring` (with 6), 7 in
+in :mod:`.registration`, 5 in :mod:`.significance` and :mod:`.scoring` (with 6 and 8), 7 in
 :mod:`.crease_proposals`.
 """
 
@@ -57,13 +61,18 @@ import numpy as np
 from ..features.minutia_set import MinutiaSet
 from .consensus import _hypotheses
 from .crease_check import CreaseEvidence, crease_covariance
-from .crease_proposals import _crease_search_registrations, _searches_creases, _view_search_level
+from .crease_proposals import (
+    _crease_search_registrations,
+    _same_transform,
+    _searches_creases,
+    _view_search_level,
+)
 from .crease_search import SearchLevel
 from .index import MinutiaIndex, _as_index, _generator
 from .params import MatchParams
 from .proposals import _hash_votes, _root_votes, _Votes
 from .registration import _covariance, _pixel_transform, _refine, _register
-from .scoring import _refined_on_creases, _Scored, _scored, with_ridge_evidence
+from .scoring import _has_ridges, _refined_on_creases, _Scored, _scored, with_ridge_evidence
 from .significance import _best_possible_score, _log10_transforms
 
 
@@ -212,35 +221,64 @@ def _best_registration(a: MinutiaIndex, b: MinutiaIndex, registered, search_area
 
 
 def _sweep_try(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, votes: _Votes, rng,
-               best: _Scored | None, n_scored: int, search_area: float,
-               use_creases: bool) -> tuple[_Scored | None, int]:
+               best: _Scored | None, scored: list, search_area: float,
+               use_creases: bool) -> _Scored | None:
     """The wider try of the minutiae's votes: hypotheses from every rotation cell, and the
-    coarse-to-fine crease ICP of the best so far. Returns the best registration and the
-    count scored, both updated."""
+    coarse-to-fine crease ICP of the best so far. Returns the best registration; the ones
+    scored are added to ``scored``."""
     wider = _registrations(_hypotheses(votes, a, b, p, sweep=True), a, b, p, rng)
     other, other_scored = _best_registration(a, b, wider, search_area, p, use_creases)
-    n_scored += len(other_scored)
+    scored += other_scored
     if other is not None and (best is None or other.score > best.score):
         best = other
     if best is not None and use_creases:
         best = _refined_on_creases(a, b, best, search_area, a.radius, p,
                                    radii=p.crease_rescue_radii)
-    return best, n_scored
+    return best
+
+
+# Registrations whose ridge agreement is weighed before the best is chosen: the leader on
+# the other evidence and this many runners-up.
+_RIDGE_RUNNERS_UP = 3
+
+
+def _with_ridges_chosen(a: MinutiaIndex, b: MinutiaIndex, best: _Scored, scored: list,
+                        search_area: float, p: MatchParams) -> _Scored:
+    """``best`` or one of the runners-up among ``scored`` (refined on B's creases), whichever
+    scores most with its ridge agreement added (:func:`~.scoring.with_ridge_evidence`).
+
+    On real imagery the ridges often carry what the valleys and minutiae of a view lack
+    (albedo edges dilute both), so a registration at the right place can trail a chance one
+    on those alone and lead once its ridges count. The choice stays among the registrations
+    scored, which the best-of-n term pays for. Nothing changes where the ridges scored every
+    registration already (small sets) or are not there.
+    """
+    if best.ridges is not None or not _has_ridges(a, b, p):
+        return best
+    chosen = [best]
+    for other in sorted(scored, key=lambda s: -s.score):
+        if len(chosen) > _RIDGE_RUNNERS_UP:
+            break
+        if not any(_same_transform(a, other.c, other.t, c.c, c.t, 2.0) for c in chosen):
+            chosen.append(other)
+    top = max((with_ridge_evidence(a, b, c, p) for c in chosen), key=lambda s: s.score)
+    if top.c == best.c and top.t == best.t:
+        return top
+    # a runner-up that leads: moved onto B's creases as the leader was, and weighed again
+    moved = _refined_on_creases(a, b, replace(top, ridges=None, score=top.score
+                                              - top.ridges.score), search_area, a.radius, p)
+    return max(top, with_ridge_evidence(a, b, moved, p), key=lambda s: s.score)
 
 
 def _view_try(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, level: SearchLevel,
-              best: _Scored | None, n_scored: int,
-              search_area: float) -> tuple[_Scored | None, int]:
+              scored: list, search_area: float) -> _Scored | None:
     """The view search's try at ``level`` (:func:`_view_search_level`): its proposals, moved
-    onto B's creases and scored. Returns the best registration and the count scored, both
-    updated."""
+    onto B's creases and scored (added to ``scored``). Returns the best registration."""
     searched, trials = _crease_search_registrations(
         a, b, p, level, p.search_scale, p.view_search_background)
     view, view_scored = _best_registration(a, b, [], search_area, p, True, searched, trials)
-    n_scored += len(view_scored)
-    if view is not None and (best is None or view.score > best.score):
-        best = view
-    return best, n_scored
+    scored += view_scored
+    return view
 
 
 class Matcher:
@@ -354,42 +392,46 @@ class Matcher:
             # covers every rotation, scale and translation at the creases' resolution; on
             # real images the minutiae of albedo edges rarely repeat a render's), the
             # minutiae's votes only when it is not clear
-            best, n_scored = _view_try(a, b, p, level, None, 0, search_area)
-            if _low(best, n_scored, p):
-                _, other, scored = _vote_try(a, b, p, rng, search_area, use_creases)
-                n_scored += len(scored)
+            scored = []
+            best = _view_try(a, b, p, level, scored, search_area)
+            if _low(best, len(scored), p):
+                _, other, vote_scored = _vote_try(a, b, p, rng, search_area, use_creases)
+                scored += vote_scored
                 if other is not None and (best is None or other.score > best.score):
                     best = other
-            return self._result(a, b, base, best, n_scored, use_creases)
+            return self._result(a, b, base, best, scored, use_creases, search_area)
         votes, best, scored = _vote_try(a, b, p, rng, search_area, use_creases)
-        n_scored = len(scored)
-        low = _low(best, n_scored, p)
+        low = _low(best, len(scored), p)
         if low and search:
             # the wider try of a set small enough for the crease search: it covers every
             # rotation and translation at the crease resolution (a sweep or a wide ICP would
             # only add chances to unrelated pairs); chosen together with the first try's
-            searched, trials = _crease_search_registrations(a, b, p, None, scale_change)
+            # (a localisation counts hits above the region's local crease density, as the
+            # view search does: dense drainage elsewhere in the region would outvote it)
+            background = p.view_search_background if localising else 0.0
+            searched, trials = _crease_search_registrations(a, b, p, None, scale_change,
+                                                            background)
             best, scored = _best_registration(a, b, [], search_area, p, use_creases,
                                               searched, trials, scored=scored)
-            n_scored = len(scored)
         elif low:
             # (a view the view search fits was searched above: the sweep of the votes would
             # only add chances to it)
-            best, n_scored = _sweep_try(a, b, p, votes, rng, best, n_scored, search_area,
-                                        use_creases)
-        return self._result(a, b, base, best, n_scored, use_creases)
+            best = _sweep_try(a, b, p, votes, rng, best, scored, search_area, use_creases)
+        return self._result(a, b, base, best, scored, use_creases, search_area)
 
     def _result(self, a: MinutiaIndex, b: MinutiaIndex, base: MatchResult,
-                best: _Scored | None, n_scored: int, use_creases: bool) -> MatchResult:
-        """The decision on the best registration of ``n_scored``, with its covariance."""
+                best: _Scored | None, scored: list, use_creases: bool,
+                search_area: float) -> MatchResult:
+        """The decision on the best registration of the ``scored`` ones, with its
+        covariance."""
         p = self.params
         base.decision = Decision.NO_MATCH
         if best is None:
             base.reason = "no consistent transform"
             return base
         if use_creases:
-            best = with_ridge_evidence(a, b, best, p)
-            best = replace(best, score=best.score - math.log10(n_scored))   # best of n
+            best = _with_ridges_chosen(a, b, best, scored, search_area, p)
+            best = replace(best, score=best.score - math.log10(max(len(scored), 1)))  # of n
         c, t, pairs, score = best.c, best.t, best.pairs, best.score
         n_ao, n_bo = best.n_overlap
         cov, rms = _covariance(a.z[pairs[:, 0]], b.z[pairs[:, 1]], c, t, p.estimate_scale,
