@@ -78,7 +78,7 @@ def test_a_brighter_part_of_smooth_terrain_is_not_cloud():
     """Oversampled terrain under haze (the demo's 5 m frames of a 90 m DEM) is featureless
     at the creases' scale almost everywhere and grows brighter across the frame, with a few
     textured spots of the same levels: its bright half is no brighter than its ground, so
-    it is not cloud (without ``min_contrast`` it would be)."""
+    it is not cloud (without ``min_ratio`` it would be)."""
     rng = np.random.default_rng(0)
     cols = np.mgrid[0:240, 0:240][1]
     hazy = 130.0 + 50.0 * cols / 239.0
@@ -87,7 +87,7 @@ def test_a_brighter_part_of_smooth_terrain_is_not_cloud():
     textured = cv2.dilate(spots, np.ones((7, 7), np.uint8)).astype(bool)
     hazy = np.where(textured, 130.0 + 50.0 * rng.random(hazy.shape), hazy).astype(np.uint8)
     assert cloud_cover(hazy).fraction == 0.0
-    assert cloud_cover(hazy, params=CloudParams(min_contrast=0.0)).fraction > 0.3
+    assert cloud_cover(hazy, params=CloudParams(min_ratio=1.0)).fraction > 0.3
 
 
 def test_bright_texture_and_small_bright_spots_are_not_cloud():
@@ -121,7 +121,7 @@ def test_switched_off_and_bad_settings():
     frame = _clouded(_cloud_cover_of(0.9))
     assert not cloud_mask(frame, params=CloudParams(enabled=False)).any()
     assert cloud_cover(frame, params=CloudParams(enabled=False)).reason == ""
-    for bad in ({"bright_level": 0.0}, {"max_texture": 1.5}, {"min_area": 0}, {"min_contrast": 1.0},
+    for bad in ({"bright_level": 0.0}, {"max_texture": 1.5}, {"min_area": 0}, {"min_ratio": 0.5},
                 {"max_fraction": 0.0}, {"margin": -1}, {"texture_sigma": 0.0}):
         with pytest.raises(ValueError):
             CloudParams(**bad)

@@ -34,8 +34,9 @@ __all__ = ["CloudParams", "CloudCover", "full_scale", "cloud_mask", "cloud_cover
 # A cloud's core outshines this percentile of the frame's textured pixels (the ground and
 # the cloud's edges: an auto-exposed camera makes a frame that is mostly cloud mid-grey).
 _CLOUD_PERCENTILE = 90.0
-# The ground's level: this percentile of the textured pixels.
-_GROUND_PERCENTILE = 50.0
+# The ground's level: this percentile of the textured pixels (the darker quarter: under
+# overcast, most textured pixels are the cloud's own edges).
+_GROUND_PERCENTILE = 25.0
 
 
 def _check(cond: bool, msg: str):
@@ -52,15 +53,17 @@ class CloudParams:
     enabled : bool
         False: no pixel is taken for cloud.
     bright_level : float
-        A cloud's core is at least this fraction of the full scale, in (0, 1], or at least
-        as bright as 90 % of the frame's textured pixels when that is lower (an
-        auto-exposed camera makes a frame that is mostly cloud mid-grey); the rest of the
-        cloud is featureless and connected to such a core.
-    min_contrast : float
-        ... and brighter than the median of the frame's textured pixels (its ground) by at
-        least this fraction of the full scale, in [0, 1); the rest of the cloud by half of
-        it. A hazy frame of smooth terrain (oversampled, or low sun) is featureless at the
-        creases' scale too, but has no distinctly brighter population.
+        A cloud's core is at least this fraction of the full scale, in (0, 1], or, when that
+        is lower, at least as bright as 90 % of the frame's textured pixels and ``min_ratio``
+        times its ground (an auto-exposed camera makes a frame that is mostly cloud
+        mid-grey); the rest of the cloud is featureless and connected to such a core.
+    min_ratio : float
+        How many times brighter than the frame's ground (the darker quarter of its textured
+        pixels) a cloud's core is at least, >= 1; the rest of the cloud the square root of
+        it. Clouds reflect 0.6-0.9 of the light, terrain 0.05-0.3: 3-10 times more, 1.6-2.8
+        times the grey level after a display gamma of 2.2. A hazy frame of smooth terrain
+        (oversampled, or under a low sun) is featureless at the creases' scale too, but its
+        bright slopes are not twice its dark ones.
     max_texture : float
         ... and its local standard deviation (Gaussian window ``texture_sigma``) at most this
         fraction of the full scale: terrain under the sun shows shading at the crease scale,
@@ -81,7 +84,7 @@ class CloudParams:
 
     enabled: bool = True
     bright_level: float = 0.78
-    min_contrast: float = 0.1
+    min_ratio: float = 2.0
     max_texture: float = 0.025
     texture_sigma: float = 2.0
     min_area: int = 64
@@ -90,7 +93,7 @@ class CloudParams:
 
     def __post_init__(self):
         _check(0.0 < self.bright_level <= 1.0, "bright_level must be in (0, 1]")
-        _check(0.0 <= self.min_contrast < 1.0, "min_contrast must be in [0, 1)")
+        _check(self.min_ratio >= 1.0, "min_ratio must be >= 1")
         _check(0.0 < self.max_texture < 1.0, "max_texture must be in (0, 1)")
         _check(0.3 <= self.texture_sigma <= 20.0, "texture_sigma must be in [0.3, 20] px")
         _check(self.min_area >= 1, "min_area must be >= 1 px")
@@ -153,8 +156,8 @@ def cloud_mask(image: np.ndarray, valid: np.ndarray | None = None,
     textured = ok & ~featureless
     ground = _terrain_level(level, textured, _GROUND_PERCENTILE)
     high = min(p.bright_level, max(_terrain_level(level, textured, _CLOUD_PERCENTILE),
-                                   ground + p.min_contrast))
-    low = min(p.bright_level, ground + 0.5 * p.min_contrast)
+                                   p.min_ratio * ground))
+    low = min(p.bright_level, math.sqrt(p.min_ratio) * ground)
     bright = ok & (level >= high)
     core = bright & featureless
     if not core.any():
