@@ -29,6 +29,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .creases import _check
+
 __all__ = ["CloudParams", "CloudCover", "full_scale", "cloud_mask", "cloud_cover"]
 
 # A cloud's core outshines this percentile of the frame's textured pixels (the ground and
@@ -37,11 +39,6 @@ _CLOUD_PERCENTILE = 90.0
 # The ground's level: this percentile of the textured pixels (the darker quarter: under
 # overcast, most textured pixels are the cloud's own edges).
 _GROUND_PERCENTILE = 25.0
-
-
-def _check(cond: bool, msg: str):
-    if not cond:
-        raise ValueError(msg)
 
 
 @dataclass(frozen=True)
