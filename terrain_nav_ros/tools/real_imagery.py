@@ -366,14 +366,13 @@ class _Extractor:
     is kept: the controls meet the same regions many times), at the matching GSD: a scene
     finer than it is area-averaged first, as camera_ingest resamples a camera to its GSD."""
 
-    def __init__(self, params: MatchParams, match_gsd=None,
-                 cloud_params: CloudParams | None = None):
+    def __init__(self, params: MatchParams, match_gsd=None):
         ridges = params.crease_check and params.ridge_check
         self.view = FeatureExtractor(ridges=ridges)
         self.region = FeatureExtractor(minutia_params=MinutiaParams(max_minutiae=100000),
                                        ridges=ridges)
         self.match_gsd = match_gsd
-        self.cloud_params = cloud_params or CloudParams()
+        self.cloud_params = CloudParams()   # the graph's defaults
         self._regions = {}
 
     def factor(self, scene: Scene) -> float:

@@ -261,12 +261,12 @@ def _with_ridges_chosen(a: MinutiaIndex, b: MinutiaIndex, best: _Scored, scored:
             break
         if not any(_same_transform(a, other.c, other.t, c.c, c.t, 2.0) for c in chosen):
             chosen.append(other)
-    top = max((with_ridge_evidence(a, b, c, p) for c in chosen), key=lambda s: s.score)
-    if top.c == best.c and top.t == best.t:
+    top, plain = max(((with_ridge_evidence(a, b, c, p), c) for c in chosen),
+                     key=lambda weighed: weighed[0].score)
+    if plain is best:
         return top
     # a runner-up that leads: moved onto B's creases as the leader was, and weighed again
-    moved = _refined_on_creases(a, b, replace(top, ridges=None, score=top.score
-                                              - top.ridges.score), search_area, a.radius, p)
+    moved = _refined_on_creases(a, b, plain, search_area, a.radius, p)
     return max(top, with_ridge_evidence(a, b, moved, p), key=lambda s: s.score)
 
 
