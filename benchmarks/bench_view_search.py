@@ -92,23 +92,23 @@ def _instrument():
             setattr(crease_search, name, _timed("search", getattr(crease_search, name)))
 
 
-def _localise(matcher, extractor, scene, case, region_index, size):
-    """One localisation: (error px, score, times by part)."""
+def _localise(matcher, extractor, scene, case, region_index):
+    """One localisation: (error in matching px, as the study counts it; score; times by
+    part; the view's index)."""
     _PARTS.clear()
     clock = _CLOCK[0]
     t0 = clock()
     # at the scene's own GSD, observed where the scene is
-    view, _ = extractor.index(matcher, case.view, scene, valid=case.valid)
+    view, f_view = extractor.index(matcher, case.view, scene, valid=case.valid)
     t1 = clock()
-    r = matcher.localise(view, region_index)
+    region, f_region = region_index
+    r = matcher.localise(view, region)
     t2 = clock()
-    c = 0.5 * (size - 1)
-    est = r.apply(c, c) if np.isfinite(r.transform).all() else (math.nan, math.nan)
-    err = float(np.hypot(est[0] - case.truth[0], est[1] - case.truth[1]))
+    err = ri.view_error(r, case, f_view, f_region) / extractor.factor(scene)
     parts = {"extract": t1 - t0, "search": _PARTS["search"], "icp": _PARTS["icp"]}
     parts["votes+score"] = (t2 - t1) - parts["search"] - parts["icp"]
     parts["total"] = t2 - t0
-    return (err if math.isfinite(err) else math.inf), float(r.score), parts, view
+    return err, float(r.score), parts, view
 
 
 def main():
@@ -158,11 +158,11 @@ def main():
             rec = defaultdict(list)
             for k, case in enumerate(cases):
                 t0 = _CLOCK[0]()
-                region, _ = extractor.region_index(matcher, scene, case.region)
+                region = extractor.region_index(matcher, scene, case.region)
                 rec["prep"].append(_CLOCK[0]() - t0)
                 if prof:
                     prof.enable()
-                runs = [_localise(matcher, extractor, scene, case, region, size)
+                runs = [_localise(matcher, extractor, scene, case, region)
                         for _ in range(args.repeat)]
                 err, score, parts, view = min(runs, key=lambda r: r[2]["total"])
                 if prof:

@@ -585,3 +585,84 @@ def test_a_small_set_is_localised_by_agreement_not_density(region):
 
     assert error(Matcher()) < 1.5
     assert error(Matcher(view_search_background=0.0)) > 20.0
+
+
+def _coarse_miss(truth: np.ndarray, turn: float, shift: complex) -> tuple[complex, complex]:
+    """The math-frame transform ``truth`` (pixel affine, view -> region) turned by ``turn``
+    (rad) about the view's centre and shifted by ``shift`` px: a coarse level's peak."""
+    c = complex(truth[0, 0], -truth[1, 0])
+    t = complex(truth[0, 2], -truth[1, 2])
+    centre = complex(0.5 * (SIZE - 1), -0.5 * (SIZE - 1))
+    c2 = c * np.exp(1j * turn)
+    return c2, t + (c - c2) * centre + shift
+
+
+@pytest.mark.parametrize("numba", [True, False])
+def test_local_peaks_move_a_coarse_peak_onto_the_view(region, monkeypatch, numba):
+    """A coarse peak a rotation step and a few pixels off the view's place is moved onto it
+    by the fine level's local search, with more hits than where it was."""
+    from terrain_nav_ros.core.matching import _matching_kernels
+    from terrain_nav_ros.core.matching.crease_search import local_peaks
+
+    if not numba:
+        monkeypatch.setattr(_matching_kernels, "HAVE_NUMBA", False)
+    ms, skel = region
+    _, view_skel, truth = _turned_view(ms, skel, 200, 180, 37.0, (5.0, -4.0))
+    truth_in_region = truth + np.array([[0, 0, 60], [0, 0, 60]])
+    samples = CreaseSamples.from_image(view_skel)
+    reference = CreaseSearchReference(CreaseField(skel[120:312, 140:332]), resolution=0.5)
+    step = 3.0 / 28.0
+    missed = _coarse_miss(truth_in_region, step, complex(3.0, 2.0))
+    stay = local_peaks(samples, reference, [(*missed, 0.0)], 0.0, span=0)
+    (c, t, hits), = local_peaks(samples, reference, [(*missed, 0.0)], step, span=3)
+    assert _centre_error(missed, truth_in_region) > 3.0
+    assert _centre_error((c, t), truth_in_region) < 1.5
+    assert hits > 1.2 * stay[0][2]
+
+
+def test_local_peaks_kernel_agrees_with_the_numpy_path(region, monkeypatch):
+    """The kernel's hits are the numpy path's (summed in another order: equal to ~1e-9),
+    at the same transforms."""
+    from terrain_nav_ros.core.matching import _matching_kernels
+    from terrain_nav_ros.core.matching.crease_search import local_peaks
+
+    if not _matching_kernels.HAVE_NUMBA:
+        pytest.skip("numba not installed: the numpy path is the only one")
+    ms, skel = region
+    _, view_skel, truth = _turned_view(ms, skel, 200, 180, -20.0, (2.0, 3.0))
+    samples = CreaseSamples.from_image(view_skel)
+    reference = CreaseSearchReference(CreaseField(skel[120:312, 140:332]), resolution=0.5,
+                                      background=6.0)
+    truth_in_region = truth + np.array([[0, 0, 60], [0, 0, 60]])
+    # near the view, and off the reference's edge (its shifts cross the padding)
+    proposals = [(*_coarse_miss(truth_in_region, 0.1, complex(-2.0, 1.0)), 0.0),
+                 (1j, complex(-20.0, 10.0), 0.0)]
+    fast = local_peaks(samples, reference, proposals, 0.1, 0.05, span=3)
+    monkeypatch.setattr(_matching_kernels, "HAVE_NUMBA", False)
+    slow = local_peaks(samples, reference, proposals, 0.1, 0.05, span=3)
+    for (c, t, h), (c2, t2, h2) in zip(fast, slow, strict=True):
+        assert c == c2 and t == t2 and h == pytest.approx(h2, rel=1e-9)
+
+
+def test_the_fine_level_ranks_a_coarse_search_s_candidates(region):
+    """Among a coarse level's candidates, the one near the view's place comes first once
+    each is searched again at the fine level, though it came last; places far from the
+    view's are not kept twice."""
+    from terrain_nav_ros.core.matching.crease_proposals import _finer_proposals
+    from terrain_nav_ros.core.matching.crease_search import COARSE, FINE
+
+    ms, skel = region
+    view_ms, view_skel, truth = _turned_view(ms, skel, 330, 90, -17.0, (4.0, 2.0))
+    truth_in_region = truth + np.array([[0, 0, 330], [0, 0, 90]])
+    matcher = Matcher()
+    a, b = matcher.index(view_ms, view_skel), matcher.index(ms, skel)
+    rng = np.random.default_rng(3)
+    chance = [(np.exp(1j * rng.uniform(-np.pi, np.pi)),
+               complex(rng.uniform(50, 450), -rng.uniform(50, 450)), 100.0) for _ in range(20)]
+    near = (*_coarse_miss(truth_in_region, 0.08, complex(-3.0, 2.5)), 1.0)
+    rotations, scales = a.crease_search_transforms(math.pi, FINE, 0.1)
+    found = _finer_proposals(a, b, chance + [near], COARSE, rotations, scales, 3.0, 3)
+    assert len(found) == 3
+    # on the fine level's grid (2 px): the crease ICP takes it from there
+    assert _centre_error(found[0][:2], truth_in_region) < 2.5
+    assert all(_centre_error(f[:2], truth_in_region) > 10.0 for f in found[1:])

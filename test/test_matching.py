@@ -1,5 +1,9 @@
 """Behaviour of the minutiae descriptors and matcher on synthetic drainage-like sets."""
 
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 from synthetic_minutiae import (
@@ -513,15 +517,20 @@ def test_rotation_sweep_finds_the_rotation_the_histogram_buries(block):
 
 
 def test_warm_up_loads_every_kernel():
-    from terrain_nav_ros.core.matching import _matching_kernels
-    from terrain_nav_ros.core.matching.matcher import warm_up
-
-    warm_up()
-    if _matching_kernels.HAVE_NUMBA:
-        kernels = {k: getattr(_matching_kernels, k) for k in dir(_matching_kernels)
-                   if not k.startswith("_") and hasattr(getattr(_matching_kernels, k),
-                                                        "signatures")}
-        assert kernels and not [k for k, f in kernels.items() if not f.signatures]
+    """In a fresh process (this one's kernels may have run in other tests already): a node
+    that warms up meets no kernel to load or compile at its first frame."""
+    code = """
+from terrain_nav_ros.core.matching import _matching_kernels
+from terrain_nav_ros.core.matching.matcher import warm_up
+warm_up()
+kernels = {k: getattr(_matching_kernels, k) for k in dir(_matching_kernels)
+           if not k.startswith("_") and hasattr(getattr(_matching_kernels, k), "signatures")}
+assert not _matching_kernels.HAVE_NUMBA or kernels
+print(sorted(k for k, f in kernels.items() if not f.signatures))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, cwd=Path(__file__).resolve().parents[1])
+    assert out.stdout.strip() == "[]", out.stdout
 
 
 def test_prepare_as_reference_builds_what_matching_builds_lazily(region, block):

@@ -429,14 +429,21 @@ def _localise(matcher: Matcher, extractor: _Extractor, scene: Scene, case: _Case
     ref, f_region = region_index
     r = matcher.localise(view, ref)
     dt = time.perf_counter() - t0
+    return {"score": float(r.score), "err": view_error(r, case, f_view, f_region),
+            "time": dt, "reason": r.reason,
+            "too_little": any(k in r.reason for k in _TOO_LITTLE), "view_index": view}
+
+
+def view_error(result, case: _Case, f_view: float, f_region: float) -> float:
+    """Distance (scene pixels; inf without a transform) from the case's true place of the
+    view's centre where ``result`` (a localisation in the region's matching pixels) puts
+    it. ``f_view`` and ``f_region`` are the matching pixels' sizes in scene pixels."""
     centre = 0.5 * (np.array(case.view.shape[::-1]) / f_view - 1.0)   # in matching pixels
-    est = np.array(r.apply(*centre), float) if np.isfinite(r.transform).all() \
+    est = np.array(result.apply(*centre), float) if np.isfinite(result.transform).all() \
         else np.full(2, np.nan)
     est = (est + 0.5) * f_region - 0.5           # matching pixels -> scene pixels
     e = float(np.hypot(*(est - case.truth)))
-    return {"score": float(r.score), "err": e if math.isfinite(e) else math.inf, "time": dt,
-            "reason": r.reason, "too_little": any(k in r.reason for k in _TOO_LITTLE),
-            "view_index": view}
+    return e if math.isfinite(e) else math.inf
 
 
 def _baseline(method: str, case: _Case, region: np.ndarray, heading_known: bool,

@@ -29,7 +29,9 @@
   footprint counts keep, of :mod:`.crease_search`, without numpy's whole-array
   temporaries;
 * :func:`rasterise_transformed`: the crease search query's direction-channel rasters, one
-  transform at a time, with the pixels' places.
+  transform at a time, with the pixels' places;
+* :func:`local_shift_hits`: the fine level's look-ups around a coarse peak
+  (``crease_search.local_peaks``), each sample placed once per transform.
 
 They are used when numba is importable and ``TERRAIN_NAV_NO_NUMBA`` is not set, and compute
 the same floating-point operations in the same order as the numpy path (no ``fastmath``:
@@ -45,7 +47,9 @@ of A may be ranked in another order than the k-d tree ranks them; :func:`rasteri
 turns the direction weights by angle sums instead of numpy's cosines (~1e-16 apart), and its
 scalar complex products of the pixels' places may round differently from numpy's (fused
 multiply-adds): a pixel could land on the next search pixel only where its place is within
-~1e-13 px of a half pixel.
+~1e-13 px of a half pixel; :func:`local_shift_hits` sums its samples in their order, not
+numpy's pairwise order (hits equal to ~1e-12), and turns their weights as
+:func:`rasterise_transformed` does.
 """
 
 from __future__ import annotations
@@ -877,3 +881,69 @@ def rasterise_transformed(z, c, col0, row0, direction, turn, h, w):
                 for x in range(w):
                     out[r, k, y, x] = acc[k, y, x]
     return out
+
+
+@njit(**_JIT)
+def local_shift_hits(padded, pad, z, direction, c, t, span):
+    """``crease_search.local_peaks``' hits: per transform ``(c[m], t[m])`` (search pixels),
+    the direction-consistent hits of the samples ``z`` (math frame, search pixels) on the
+    reference's channels ``padded`` (4, h + 2 pad, w + 2 pad; zero beyond the reference) at
+    every shift within ``span`` (<= ``pad``) search pixels, the best (the first of equals)
+    and its shift ``(dx, dy)``. A sample weighs on two channels, ``max(0, +-cos 2d)`` and
+    ``max(0, +-sin 2d)`` (turned by angle sums, as :func:`rasterise_transformed`'s
+    weights): its two look-ups are placed once per transform, and each shift is then a sum
+    over the samples at an offset of those places (sample order, float64; a sample whose
+    shifts would leave the padding counts none)."""
+    h, w = padded.shape[1] - 2 * pad, padded.shape[2] - 2 * pad
+    row_len = padded.shape[2]
+    plane = padded.shape[1] * row_len
+    flat = padded.ravel()
+    n = z.size
+    c2d, s2d = np.cos(2.0 * direction), np.sin(2.0 * direction)
+    side = 2 * span + 1
+    best = np.empty(c.size)
+    best_dx = np.empty(c.size, np.intp)
+    best_dy = np.empty(c.size, np.intp)
+    at_cos = np.empty(n, np.intp)
+    at_sin = np.empty(n, np.intp)
+    w_cos = np.empty(n)
+    w_sin = np.empty(n)
+    for m in range(c.size):
+        turn = np.angle(c[m])
+        c2t, s2t = np.cos(2.0 * turn), np.sin(2.0 * turn)
+        for i in range(n):
+            q = c[m] * z[i] + t[m]
+            col = np.intp(np.rint(q.real))
+            row = np.intp(np.rint(-q.imag))
+            base = (row + pad) * row_len + col + pad
+            if col < span - pad or col > w - 1 + pad - span or row < span - pad \
+                    or row > h - 1 + pad - span:
+                at_cos[i], at_sin[i], w_cos[i], w_sin[i] = pad * row_len + pad, 0, 0.0, 0.0
+                at_sin[i] = at_cos[i]
+                continue
+            cos2 = c2d[i] * c2t - s2d[i] * s2t
+            sin2 = s2d[i] * c2t + c2d[i] * s2t
+            if cos2 >= 0.0:
+                at_cos[i], w_cos[i] = base, cos2
+            else:
+                at_cos[i], w_cos[i] = 2 * plane + base, -cos2
+            if sin2 >= 0.0:
+                at_sin[i], w_sin[i] = plane + base, sin2
+            else:
+                at_sin[i], w_sin[i] = 3 * plane + base, -sin2
+        top = 0.0
+        k_best = -1
+        for dy in range(-span, span + 1):
+            for dx in range(-span, span + 1):
+                offset = dy * row_len + dx
+                hits = 0.0
+                for i in range(n):
+                    hits += w_cos[i] * flat[at_cos[i] + offset] \
+                        + w_sin[i] * flat[at_sin[i] + offset]
+                if k_best < 0 or hits > top:
+                    top = hits
+                    k_best = (dy + span) * side + dx + span
+        best[m] = top
+        best_dy[m] = k_best // side - span
+        best_dx[m] = k_best % side - span
+    return best, best_dx, best_dy

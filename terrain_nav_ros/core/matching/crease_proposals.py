@@ -7,12 +7,17 @@ reference's creases.
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
+
 from .crease_check import CreaseSamples, refine_on_creases
 from .crease_search import (
     COARSE,
     FINE,
     LEVELS,
     SearchLevel,
+    local_peaks,
     min_search_work,
     search_transforms,
 )
@@ -75,16 +80,26 @@ def _crease_search_registrations(a: MinutiaIndex, b: MinutiaIndex, p: MatchParam
     coarse = level != FINE
     fine_rotations, fine_scales = a.crease_search_transforms(p.max_rotation, FINE,
                                                              scale_change)
+    n_best = p.crease_search_proposals * (2 if coarse else 1)
+    # the coarse level's peaks are ranked again at the fine level (a pyramid)
+    pyramid = level == COARSE
     found = search_transforms(
         a.crease_search_query(p.max_rotation, level, scale_change),
         b.crease_search(level, background),
-        n_best=p.crease_search_proposals * (2 if coarse else 1), hit_radius=p.crease_radius,
-        distinct_rotations=len(fine_rotations) * len(fine_scales))
+        n_best=n_best, hit_radius=p.crease_radius,
+        distinct_rotations=len(fine_rotations) * len(fine_scales),
+        n_out=p.crease_search_candidates if pyramid else None)
+    proposals = found.proposals
+    radii = p.crease_rescue_radii if coarse else (3.0,)
+    if pyramid:
+        # placed at the fine level: refined and scored as a fine search's proposals
+        proposals = _finer_proposals(a, b, proposals, level, fine_rotations, fine_scales,
+                                     background, n_best)
+        radii = (3.0,)
     out, reached = [], []
     ridges = _ridge_channel(a, b, p)
     scale = (1.0 - scale_change, 1.0 + scale_change) if scale_change > 0 else None
-    radii = p.crease_rescue_radii if coarse else (3.0,)
-    for c, t, _ in found.proposals:
+    for c, t, _ in proposals:
         for k, radius in enumerate(radii):
             c, t = refine_on_creases(_icp_samples(a, radius), b.crease_field, c, t,
                                      radius=radius, angle_tol=p.crease_angle_tol,
@@ -98,6 +113,54 @@ def _crease_search_registrations(a: MinutiaIndex, b: MinutiaIndex, p: MatchParam
         else:
             out.append((c, t, _pair(a, b, c, t, p)))
     return out, found.log10_transforms
+
+
+def _finer_proposals(a: MinutiaIndex, b: MinutiaIndex, proposals, level: SearchLevel,
+                     fine_rotations, fine_scales, background: float, n_best: int):
+    """A coarse search's ``n_best`` proposals: its candidates searched again near their
+    place at the fine level (:func:`~.crease_search.local_peaks`), the most hits first,
+    one per place.
+
+    Every candidate over the fine rotations and scales next to its own and the shifts
+    within half a coarse cell, then the best few again around their best, within a fine
+    pixel (the two steps reach two fine steps of rotation and scale off). A large query's
+    samples are thinned to a few hundred, evenly along its creases; the background keeps
+    its extent in image pixels.
+    """
+    reference = b.crease_search(FINE, background * FINE.resolution / level.resolution)
+    stride = math.ceil(len(a.crease_samples) / _FINE_LEVEL_SAMPLES)
+    samples = a.crease_samples_strided(stride) if stride > 1 else a.crease_samples
+    rotation_step, scale_step = _step(fine_rotations), _step(fine_scales)
+    span = int(math.ceil(0.5 * level.rotation_tolerance * FINE.resolution))
+    placed = local_peaks(samples, reference, proposals, rotation_step, scale_step, span=span)
+    best = _strongest_distinct(a, placed, _FINE_RECHECKED * n_best)
+    return _strongest_distinct(
+        a, local_peaks(samples, reference, best, rotation_step, scale_step, span=1), n_best)
+
+
+# Candidates per proposal that the fine level's second step searches again.
+_FINE_RECHECKED = 2
+# The fine level looks up at most about this many of a query's crease samples (every k-th):
+# a few hundred place a view (the ICP and the score then take them all), and the hits of 48
+# candidates at 225 transforms each cost ~1 ns a sample; fewer vary too much from one
+# thinning to the next.
+_FINE_LEVEL_SAMPLES = 600
+
+
+def _step(values: np.ndarray) -> float:
+    """The step of evenly spaced ``values`` (0 for one)."""
+    return float(np.ptp(values)) / max(len(values) - 1, 1)
+
+
+def _strongest_distinct(a: MinutiaIndex, proposals, n: int) -> list:
+    """The ``n`` proposals with the most hits, one per place (2 px apart)."""
+    out = []
+    for c, t, hits in sorted(proposals, key=lambda f: -f[2]):
+        if not any(_same_transform(a, c, t, c2, t2, 2.0) for c2, t2, _ in out):
+            out.append((c, t, hits))
+            if len(out) == n:
+                break
+    return out
 
 
 # The crease ICP at a pairing radius of at least _SPARSE_ICP_RADIUS px (the wide radii that
@@ -119,5 +182,5 @@ def _same_transform(a: MinutiaIndex, c: complex, t: complex, c2: complex, t2: co
                     tolerance: float = 1.0) -> bool:
     """Whether two transforms of A map its crease pixels within ``tolerance`` px of each
     other (at the crease reach from their mean)."""
-    centre = a.crease_samples.z.mean()
-    return abs(c - c2) * a.crease_reach + abs((c - c2) * centre + t - t2) <= tolerance
+    return abs(c - c2) * a.crease_reach + abs((c - c2) * a.crease_centre + t - t2) \
+        <= tolerance

@@ -25,9 +25,15 @@ such transforms by brute force, cheaply, with FFTs:
   pixels over the reference, are the proposals. The matcher then refines each on the creases
   and scores it like any other registration (:mod:`.crease_check`).
 
-The search runs at one of two levels (:class:`SearchLevel`): :data:`FINE` (half the pixel
-resolution, rotations 3 px apart at the query's reach) or :data:`COARSE` (a quarter, 6 px:
-an eighth of the work), whose proposals need the coarse-to-fine ICP to reach the creases.
+The search runs at one of three levels (:class:`SearchLevel`): :data:`FINE` (half the pixel
+resolution, rotations 3 px apart at the query's reach), :data:`COARSE` (a quarter, 6 px: an
+eighth of the work) or :data:`COARSER` (an eighth, 12 px; large views). A coarse level
+blurs each peak over its cell, too coarsely to rank them: its strongest few dozen are
+searched again near their place at the fine level (:func:`local_peaks`, the next level of
+a pyramid: the rotations, scales and shifts of the fine grid within the coarse cell, by
+direct look-ups of the fine reference, a few milliseconds for all), and the proposals are
+those with the most hits there. The coarser level's proposals (large views) instead go to
+the coarse-to-fine ICP of the matcher.
 
 Geometry in the math frame ``z = col - 1j*row`` of :mod:`.descriptors`; ``z_b = c z_a + t``.
 """
@@ -177,6 +183,14 @@ class CreaseSearchReference:
         for _ in range(quarter_turns % 4):
             offset, h, w = -1j * offset + (h - 1), w, h
         return offset
+
+    def padded(self, margin: int) -> tuple[np.ndarray, int]:
+        """The channels with a zero border of at least ``margin`` pixels, and its width
+        (cached; :func:`local_peaks` looks them up at offsets without bounds tests)."""
+        if getattr(self, "_padded", (None, -1))[1] < margin:
+            pad = max(margin, 8)
+            self._padded = (np.pad(self.channels, ((0, 0), (pad, pad), (pad, pad))), pad)
+        return self._padded
 
     def turned_spectra(self, shape: tuple[int, int], n_turns: int):
         """Channel spectra, zero-padded to ``shape``, of this reference turned 0 ..
@@ -642,6 +656,12 @@ def _largest_positive(values: np.ndarray, n: int) -> np.ndarray:
         bound = float(np.partition(sample, len(sample) - n)[len(sample) - n])
     # ``>=``: the n-th largest may equal the bound
     candidates = np.flatnonzero(v >= bound) if bound > 0 else np.flatnonzero(v > 0)
+    if len(candidates) > n:
+        # the n largest, ties at the n-th by index, before sorting only those
+        values = v[candidates]
+        nth = np.partition(values, len(values) - n)[len(values) - n]
+        above = candidates[values > nth]
+        candidates = np.concatenate([above, candidates[values == nth][:n - len(above)]])
     return candidates[np.lexsort((candidates, -v[candidates]))[:n]]
 
 
@@ -657,7 +677,7 @@ def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference
                       n_best: int = 3, min_inside: float = 0.5,
                       hit_radius: float = 1.5,
                       distinct_rotations: int | None = None,
-                      shortlist: int = 8) -> CreaseSearchResult:
+                      shortlist: int = 8, n_out: int | None = None) -> CreaseSearchResult:
     """Transforms A -> B under which most of A's crease pixels fall on B's creases.
 
     Parameters
@@ -685,6 +705,9 @@ def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference
         localisations of gredos 25 m blocks, the planes of the proposals ranked at most 18th
         of 64-76 at half the resolution, the full-resolution best at most 12th. 0
         correlates every rotation in full.
+    n_out : int, optional
+        Proposals returned when more than ``n_best`` (a coarse level's, for
+        :func:`local_peaks` to rank): from the same rotations as ``n_best``'s.
 
     Returns
     -------
@@ -730,26 +753,124 @@ def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference
     rots, sub = planes[strongest], flat[strongest]
     step = 2.0 * np.ptp(query.rotations) / max(len(query.rotations) - 1, 1)
     hb, wb = reference.shape
-    out = []
-    for idx in _largest_positive(sub, 50 * n_best):
-        i, k = divmod(int(idx), sub.shape[1])
-        h = float(sub[i, k])
-        r = int(rots[i])
-        turn, q = divmod(r, query.n_rastered)
-        dy, dx = divmod(k, shape[1])
-        dy = dy - shape[0] if dy > hb - 1 else dy
-        dx = dx - shape[1] if dx > wb - 1 else dx
-        c = complex(query.c[r])
-        # A pixel (ci, ri) of rotation q lands on pixel (ci + dx, ri + dy) of B turned
-        # ``turn`` times clockwise, in search pixels; turned back: a turn more of A
-        t = complex(dx - query.col0[q], -(dy - query.row0[q]))
-        t = _QUARTER_TURNS[turn] * (t - reference.turn_offset(turn)) / scale
-        # the same transform: as close in rotation, and mapping the query's centre as close
-        # (its origin, a corner, moves 4 px per rotation step at the query's reach)
-        if any(abs(math.remainder(np.angle(c) - np.angle(c2), 2 * math.pi)) <= step
-               and abs((c - c2) * query.centre + t - t2) <= 4.0 for c2, t2, _ in out):
-            continue
-        out.append((c, t, h))
-        if len(out) == n_best:
-            break
+    idx = _largest_positive(sub, 50 * max(n_out or n_best, n_best))
+    i, k = np.divmod(idx, sub.shape[1])
+    r = rots[i]
+    turn, q = np.divmod(r, query.n_rastered)
+    dy, dx = np.divmod(k, shape[1])
+    dy = np.where(dy > hb - 1, dy - shape[0], dy)
+    dx = np.where(dx > wb - 1, dx - shape[1], dx)
+    c = query.c[r]
+    # A pixel (ci, ri) of rotation q lands on pixel (ci + dx, ri + dy) of B turned ``turn``
+    # times clockwise, in search pixels; turned back: a turn more of A
+    t = (dx - query.col0[q]) - 1j * (dy - query.row0[q])
+    offsets = np.array([reference.turn_offset(j) for j in range(4)])
+    t = np.array(_QUARTER_TURNS)[turn] * (t - offsets[turn]) / scale
+    keep = _distinct_peaks(c, t, query.centre, step, max(n_out or n_best, n_best))
+    out = [(complex(c[j]), complex(t[j]), float(sub[i[j], k[j]])) for j in keep]
     return CreaseSearchResult(out, log10_transforms)
+
+
+def _distinct_peaks(c: np.ndarray, t: np.ndarray, centre: complex, step: float, n: int) -> list:
+    """Indices of the first ``n`` transforms ``(c, t)`` none of which is the same as one
+    before it: as close in rotation (``step``), and mapping ``centre`` within 4 px (the
+    query's origin, a corner, moves 4 px per rotation step at the query's reach)."""
+    angle = np.angle(c)
+    placed = c * centre + t    # (c - c') centre + t - t' is the difference of these
+    alive = np.ones(len(c), bool)
+    keep = []
+    for j in range(len(c)):
+        if not alive[j]:
+            continue
+        keep.append(j)
+        if len(keep) == n:
+            break
+        near = np.flatnonzero(np.abs(placed[j + 1:] - placed[j]) <= 4.0) + (j + 1)
+        turn = np.abs(np.remainder(angle[near] - angle[j] + math.pi, 2 * math.pi) - math.pi)
+        alive[near[turn <= step]] = False
+    return keep
+
+
+def local_peaks(samples: CreaseSamples, reference: CreaseSearchReference, proposals,
+                rotation_step: float, scale_step: float = 0.0, steps: int = 1,
+                span: int = 3) -> list[tuple[complex, complex, float]]:
+    """The next level of the search's pyramid: the best transform near each proposal of a
+    coarser level, on a finer ``reference``.
+
+    A coarse level blurs each peak over a cell of its resolution and rotation step (4-12 px),
+    too coarsely to rank its peaks: in the 3x regions of real 128 px views the right place
+    ranked 4th to 42nd among the coarse proposals, and first once each proposal was searched
+    again at half the pixel resolution within its cell. Around each proposal: rotations and
+    scales within ``steps`` steps of ``rotation_step`` and ``scale_step`` (turned about the
+    query's centroid, which the coarse shift placed), each at the shifts within ``span`` of
+    the reference's pixels.
+
+    Parameters
+    ----------
+    samples : CreaseSamples
+        Query creases (A), image pixels.
+    reference : CreaseSearchReference
+        Reference creases (B) at the finer level's resolution.
+    proposals : sequence of (c, t, hits)
+        The coarser level's proposals (:func:`search_transforms`).
+    rotation_step, scale_step : float
+        The finer level's steps (rad; relative scale): 0 searches none.
+
+    Returns
+    -------
+    list of (c, t, hits)
+        Per proposal, in their order, the best transform near it and its direction-consistent
+        hits on ``reference``.
+    """
+    if not proposals or len(samples) == 0:
+        return [(c, t, 0.0) for c, t, _ in proposals]
+    res = reference.resolution
+    centre = complex(samples.z.mean())
+    k = np.arange(-steps, steps + 1)
+    scales = 1.0 + scale_step * k if scale_step > 0 else np.ones(1)
+    turns = np.exp(1j * rotation_step * k) if rotation_step > 0 else np.ones(1)
+    near = (scales[:, None] * turns[None, :]).ravel()
+    c0 = np.array([p[0] for p in proposals], complex)
+    t0 = np.array([p[1] for p in proposals], complex)
+    c = (c0[:, None] * near[None, :]).ravel()
+    # turned about the centroid: the coarse shift placed it
+    t = (t0[:, None] + (c0[:, None] - c.reshape(len(c0), -1)) * centre).ravel()
+    hits, dx, dy = _local_shift_hits(reference, samples, c, t * res, span)
+    out = []
+    for i, best in enumerate(np.argmax(hits.reshape(len(c0), -1), axis=1)):
+        m = i * len(near) + best
+        out.append((complex(c[m]), complex(t[m] + complex(dx[m], -dy[m]) / res),
+                    float(hits[m])))
+    return out
+
+
+def _local_shift_hits(reference: CreaseSearchReference, samples: CreaseSamples,
+                      c: np.ndarray, t: np.ndarray, span: int):
+    """Per transform ``(c, t)`` (``t`` in search pixels), the most direction-consistent hits
+    of ``samples`` on ``reference`` at the shifts within ``span`` search pixels (the first
+    of equals, rows then columns), and that shift (dx, dy) in search pixels (columns,
+    rows)."""
+    padded, pad = reference.padded(span)
+    z = samples.z * reference.resolution
+    if _kernels.HAVE_NUMBA:
+        return _kernels.local_shift_hits(padded, pad, z, samples.direction.astype(np.float64),
+                                         c, t, span)
+    h, w = reference.shape
+    shifts = np.arange(-span, span + 1)
+    hits = np.empty(len(c))
+    best_dx, best_dy = np.empty(len(c), np.intp), np.empty(len(c), np.intp)
+    for m in range(len(c)):
+        q = c[m] * z + t[m]
+        col, row = np.rint(q.real).astype(np.intp), np.rint(-q.imag).astype(np.intp)
+        weights = _channel_weights(np.mod(samples.direction + np.angle(c[m]), np.pi))
+        # a sample whose shifts would leave the padding counts none (as the kernel)
+        weights[:, (col < span - pad) | (col > w - 1 + pad - span) | (row < span - pad)
+                | (row > h - 1 + pad - span)] = 0.0
+        col, row = np.clip(col, span - pad, w - 1 + pad - span), \
+            np.clip(row, span - pad, h - 1 + pad - span)
+        acc = np.array([[sum(float(weights[k] @ padded[k, row + dy + pad, col + dx + pad])
+                             for k in range(4)) for dx in shifts] for dy in shifts])
+        best = int(np.argmax(acc))
+        hits[m] = acc.flat[best]
+        best_dy[m], best_dx[m] = divmod(best, 2 * span + 1)
+    return hits, best_dx - span, best_dy - span

@@ -174,11 +174,18 @@ class MinutiaIndex:
         return self._crease_search.get(key)
 
     @functools.cached_property
+    def crease_centre(self) -> complex:
+        """Mean of the crease pixels (math frame): the pivot of a rotation or scale step
+        in the crease search."""
+        z = self.crease_samples.z if self.crease_samples is not None else np.zeros(0)
+        return complex(z.mean()) if len(z) else 0j
+
+    @functools.cached_property
     def crease_reach(self) -> float:
         """90th percentile of the crease pixels' distance from their mean (px): the lever
         arm of a rotation or scale step in the crease search."""
         z = self.crease_samples.z if self.crease_samples is not None else np.zeros(0)
-        return float(np.percentile(np.abs(z - z.mean()), 90)) if len(z) else 0.0
+        return float(np.percentile(np.abs(z - self.crease_centre), 90)) if len(z) else 0.0
 
     def crease_search_transforms(self, max_rotation: float, level: SearchLevel = FINE,
                                  max_scale_change: float = 0.0) -> tuple[np.ndarray,

@@ -490,3 +490,9 @@ def warm_up(params: MatchParams | None = None) -> None:
     few = matcher.index(ms.subset(np.arange(2)), crease)
     matcher.compare(few, full)          # the crease search and the crease covariance
     matcher.localise(few, full)         # ... over scales, and the ICP with the scale
+    # ... at the coarse level, whose peaks the fine level ranks again
+    coarse = Matcher(matcher.params, crease_search_fine_work=0)
+    coarse.localise(coarse.index(ms.subset(np.arange(2)), crease), coarse.index(ms, crease))
+    # the sweep of the votes: the wider try of sets too large for the crease search
+    wide = Matcher(matcher.params, crease_search_below=0)
+    wide.compare(wide.index(ms, crease), wide.index(*other))

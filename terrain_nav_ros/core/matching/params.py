@@ -106,11 +106,16 @@ class MatchParams:
         3x localisation region; a camera frame in a landmark region never is.
     crease_search_proposals : int
         Transforms the search proposes (twice as many at the coarse level).
+    crease_search_candidates : int
+        Peaks a search at a coarse level takes; each is searched again near its place at
+        the fine level (:func:`~.crease_search.local_peaks`), and the proposals are those
+        with the most hits there.
     crease_search_fine_work : int
         A search whose work at the fine level (:data:`~.crease_search.FINE`: half the pixel
         resolution, rotations 3 px apart at the query's reach) exceeds this runs at the
         coarse level (:data:`~.crease_search.COARSE`: a quarter, 6 px; an eighth of the
-        work) and its proposals get the coarse-to-fine ICP (``crease_rescue_radii``). The
+        work) and its peaks are ranked again at the fine level (``crease_search_candidates``).
+        The
         default keeps block-vs-block searches of blocks up to ~130 px fine; a block of more
         than ~80 px in its 3x localisation region is searched coarse, 4-6x faster.
     view_search : bool
@@ -216,6 +221,7 @@ class MatchParams:
     crease_search_max_work: int = 12_000_000
     crease_search_proposals: int = 3
     crease_search_fine_work: int = 4_000_000
+    crease_search_candidates: int = 48
     view_search: bool = True
     search_scale: float = 0.1
     view_search_background: float = 3.0
@@ -237,7 +243,8 @@ class MatchParams:
                          "crease_angle_tol", "crease_spacing"), (POSITIVE, None)),
         **dict.fromkeys(("k_query", "k_ref", "n_hypotheses", "n_rotation_peaks",
                          "ransac_iterations", "k_roots", "crease_search_max_side",
-                         "crease_search_max_work", "crease_search_proposals"), (1, None)),
+                         "crease_search_max_work", "crease_search_proposals",
+                         "crease_search_candidates"), (1, None)),
         **dict.fromkeys(("edge_min", "roots_above", "min_minutiae", "min_minutiae_creases",
                          "pos_floor", "angle_floor", "crease_exclude_radius",
                          "crease_search_below", "crease_search_fine_work",
