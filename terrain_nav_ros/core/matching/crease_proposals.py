@@ -70,19 +70,21 @@ def _view_search_level(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> Sear
 
 def _crease_search_registrations(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams,
                                  level: SearchLevel | None = None,
-                                 scale_change: float = 0.0, background: float = 0.0):
+                                 scale_change: float = 0.0, background: float = 0.0,
+                                 pyramid: bool = True):
     """Registrations (c, t, pairings) proposed by the crease search, each moved onto B's
     creases (they may have fewer than two minutiae pairings), and log10 of the transforms
     searched (at the fine level's rotations and scales: a coarse proposal is refined over
     them). ``level`` defaults to :func:`_search_level`'s; ``scale_change`` and
-    ``background`` are the view search's (:class:`~.params.MatchParams`)."""
+    ``background`` are the view search's (:class:`~.params.MatchParams`). With ``pyramid``
+    a coarse level's peaks are ranked again at the fine level (:func:`_finer_proposals`);
+    without, its proposals get the coarse-to-fine ICP."""
     level = level or _search_level(a, b, p, scale_change)
     coarse = level != FINE
     fine_rotations, fine_scales = a.crease_search_transforms(p.max_rotation, FINE,
                                                              scale_change)
     n_best = p.crease_search_proposals * (2 if coarse else 1)
-    # the coarse level's peaks are ranked again at the fine level (a pyramid)
-    pyramid = level == COARSE
+    pyramid = pyramid and level == COARSE
     found = search_transforms(
         a.crease_search_query(p.max_rotation, level, scale_change),
         b.crease_search(level, background),

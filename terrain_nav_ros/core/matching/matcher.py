@@ -273,9 +273,13 @@ def _with_ridges_chosen(a: MinutiaIndex, b: MinutiaIndex, best: _Scored, scored:
 def _view_try(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, level: SearchLevel,
               scored: list, search_area: float) -> _Scored | None:
     """The view search's try at ``level`` (:func:`_view_search_level`): its proposals, moved
-    onto B's creases and scored (added to ``scored``). Returns the best registration."""
+    onto B's creases and scored (added to ``scored``). Returns the best registration.
+
+    A coarse level's proposals get the coarse-to-fine ICP, not the fine level's ranking of
+    a small set's search: a view's thousands of crease pixels rank its coarse peaks well
+    enough, and the fine level's look-ups would add ~10 ms to every camera frame."""
     searched, trials = _crease_search_registrations(
-        a, b, p, level, p.search_scale, p.view_search_background)
+        a, b, p, level, p.search_scale, p.view_search_background, pyramid=False)
     view, view_scored = _best_registration(a, b, [], search_area, p, True, searched, trials)
     scored += view_scored
     return view
