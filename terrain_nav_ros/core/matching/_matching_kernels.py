@@ -915,12 +915,13 @@ def local_shift_hits(padded, pad, z, direction, c, t, span):
             q = c[m] * z[i] + t[m]
             col = np.intp(np.rint(q.real))
             row = np.intp(np.rint(-q.imag))
-            base = (row + pad) * row_len + col + pad
             if col < span - pad or col > w - 1 + pad - span or row < span - pad \
                     or row > h - 1 + pad - span:
-                at_cos[i], at_sin[i], w_cos[i], w_sin[i] = pad * row_len + pad, 0, 0.0, 0.0
-                at_sin[i] = at_cos[i]
+                # no weight, at a place whose shifts stay in the array
+                at_cos[i] = at_sin[i] = pad * row_len + pad
+                w_cos[i] = w_sin[i] = 0.0
                 continue
+            base = (row + pad) * row_len + col + pad
             cos2 = c2d[i] * c2t - s2d[i] * s2t
             sin2 = s2d[i] * c2t + c2d[i] * s2t
             if cos2 >= 0.0:

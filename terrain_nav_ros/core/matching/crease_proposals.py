@@ -92,12 +92,11 @@ def _crease_search_registrations(a: MinutiaIndex, b: MinutiaIndex, p: MatchParam
         distinct_rotations=len(fine_rotations) * len(fine_scales),
         n_out=p.crease_search_candidates if pyramid else None)
     proposals = found.proposals
-    radii = p.crease_rescue_radii if coarse else (3.0,)
     if pyramid:
-        # placed at the fine level: refined and scored as a fine search's proposals
         proposals = _finer_proposals(a, b, proposals, level, fine_rotations, fine_scales,
                                      background, n_best)
-        radii = (3.0,)
+    # a proposal placed at the fine level needs the fine ICP only
+    radii = p.crease_rescue_radii if coarse and not pyramid else (3.0,)
     out, reached = [], []
     ridges = _ridge_channel(a, b, p)
     scale = (1.0 - scale_change, 1.0 + scale_change) if scale_change > 0 else None

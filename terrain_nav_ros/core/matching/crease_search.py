@@ -753,7 +753,8 @@ def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference
     rots, sub = planes[strongest], flat[strongest]
     step = 2.0 * np.ptp(query.rotations) / max(len(query.rotations) - 1, 1)
     hb, wb = reference.shape
-    idx = _largest_positive(sub, 50 * max(n_out or n_best, n_best))
+    n_out = max(n_out or n_best, n_best)
+    idx = _largest_positive(sub, 50 * n_out)
     i, k = np.divmod(idx, sub.shape[1])
     r = rots[i]
     turn, q = np.divmod(r, query.n_rastered)
@@ -766,7 +767,7 @@ def search_transforms(query: CreaseSearchQuery, reference: CreaseSearchReference
     t = (dx - query.col0[q]) - 1j * (dy - query.row0[q])
     offsets = np.array([reference.turn_offset(j) for j in range(4)])
     t = np.array(_QUARTER_TURNS)[turn] * (t - offsets[turn]) / scale
-    keep = _distinct_peaks(c, t, query.centre, step, max(n_out or n_best, n_best))
+    keep = _distinct_peaks(c, t, query.centre, step, n_out)
     out = [(complex(c[j]), complex(t[j]), float(sub[i[j], k[j]])) for j in keep]
     return CreaseSearchResult(out, log10_transforms)
 
