@@ -16,6 +16,7 @@ from .crease_search import (
     COARSE,
     FINE,
     LEVELS,
+    CreaseSearchResult,
     SearchLevel,
     local_peaks,
     min_search_work,
@@ -70,33 +71,58 @@ def _view_search_level(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams) -> Sear
 
 def _crease_search_registrations(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams,
                                  level: SearchLevel | None = None,
-                                 scale_change: float = 0.0, background: float = 0.0,
-                                 pyramid: bool = True):
+                                 scale_change: float = 0.0, background: float = 0.0):
     """Registrations (c, t, pairings) proposed by the crease search, each moved onto B's
     creases (they may have fewer than two minutiae pairings), and log10 of the transforms
     searched (at the fine level's rotations and scales: a coarse proposal is refined over
     them). ``level`` defaults to :func:`_search_level`'s; ``scale_change`` and
-    ``background`` are the view search's (:class:`~.params.MatchParams`). With ``pyramid``
-    a coarse level's peaks are ranked again at the fine level (:func:`_finer_proposals`);
-    without, its proposals get the coarse-to-fine ICP."""
+    ``background`` are the view search's (:class:`~.params.MatchParams`). A COARSE level's
+    candidates are ranked again at the fine level (:func:`_fine_level_registrations`)."""
     level = level or _search_level(a, b, p, scale_change)
-    coarse = level != FINE
+    found = _crease_search(a, b, p, level, scale_change, background)
+    if level == COARSE:
+        registered = _fine_level_registrations(a, b, p, found, scale_change, background)
+    else:
+        registered = _registered(a, b, p, found.proposals, level, scale_change)
+    return registered, found.log10_transforms
+
+
+def _crease_search(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, level: SearchLevel,
+                   scale_change: float, background: float) -> CreaseSearchResult:
+    """The crease search of A in B at ``level``: its proposals, strongest first (a coarse
+    level's twice as many; at the COARSE level ``crease_search_candidates`` of them, the
+    first of which are those, for the fine level to rank)."""
     fine_rotations, fine_scales = a.crease_search_transforms(p.max_rotation, FINE,
                                                              scale_change)
-    n_best = p.crease_search_proposals * (2 if coarse else 1)
-    pyramid = pyramid and level == COARSE
-    found = search_transforms(
+    return search_transforms(
         a.crease_search_query(p.max_rotation, level, scale_change),
         b.crease_search(level, background),
-        n_best=n_best, hit_radius=p.crease_radius,
+        n_best=_n_proposals(level, p), hit_radius=p.crease_radius,
         distinct_rotations=len(fine_rotations) * len(fine_scales),
-        n_out=p.crease_search_candidates if pyramid else None)
-    proposals = found.proposals
-    if pyramid:
-        proposals = _finer_proposals(a, b, proposals, level, fine_rotations, fine_scales,
-                                     background, n_best)
-    # a proposal placed at the fine level needs the fine ICP only
-    radii = p.crease_rescue_radii if coarse and not pyramid else (3.0,)
+        n_out=p.crease_search_candidates if level == COARSE else None)
+
+
+def _fine_level_registrations(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams,
+                              found: CreaseSearchResult, scale_change: float,
+                              background: float) -> list:
+    """A COARSE search's candidates (``found``) ranked again at the fine level
+    (:func:`_finer_proposals`), the best moved onto B's creases by the fine ICP."""
+    rotations, scales = a.crease_search_transforms(p.max_rotation, FINE, scale_change)
+    proposals = _finer_proposals(a, b, found.proposals, COARSE, rotations, scales,
+                                 background, _n_proposals(COARSE, p))
+    return _registered(a, b, p, proposals, FINE, scale_change)
+
+
+def _n_proposals(level: SearchLevel, p: MatchParams) -> int:
+    """Proposals a search at ``level`` refines: twice as many at a coarse level."""
+    return p.crease_search_proposals * (2 if level != FINE else 1)
+
+
+def _registered(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, proposals,
+                level: SearchLevel, scale_change: float) -> list:
+    """``proposals`` (c, t, hits), placed at ``level``, moved onto B's creases with their
+    pairings: by the fine ICP, after the wider radii when placed at a coarse level."""
+    radii = p.crease_rescue_radii if level != FINE else (3.0,)
     out, reached = [], []
     ridges = _ridge_channel(a, b, p)
     scale = (1.0 - scale_change, 1.0 + scale_change) if scale_change > 0 else None
@@ -113,7 +139,7 @@ def _crease_search_registrations(a: MinutiaIndex, b: MinutiaIndex, p: MatchParam
                 reached.append((c, t))
         else:
             out.append((c, t, _pair(a, b, c, t, p)))
-    return out, found.log10_transforms
+    return out
 
 
 def _finer_proposals(a: MinutiaIndex, b: MinutiaIndex, proposals, level: SearchLevel,

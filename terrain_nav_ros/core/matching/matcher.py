@@ -62,12 +62,16 @@ from ..features.minutia_set import MinutiaSet
 from .consensus import _hypotheses
 from .crease_check import CreaseEvidence, crease_covariance
 from .crease_proposals import (
+    _crease_search,
     _crease_search_registrations,
+    _fine_level_registrations,
+    _n_proposals,
+    _registered,
     _same_transform,
     _searches_creases,
     _view_search_level,
 )
-from .crease_search import SearchLevel
+from .crease_search import COARSE, SearchLevel
 from .index import MinutiaIndex, _as_index, _generator
 from .params import MatchParams
 from .proposals import _hash_votes, _root_votes, _Votes
@@ -229,8 +233,7 @@ def _sweep_try(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, votes: _Votes, 
     wider = _registrations(_hypotheses(votes, a, b, p, sweep=True), a, b, p, rng)
     other, other_scored = _best_registration(a, b, wider, search_area, p, use_creases)
     scored += other_scored
-    if other is not None and (best is None or other.score > best.score):
-        best = other
+    best = _better(best, other)
     if best is not None and use_creases:
         best = _refined_on_creases(a, b, best, search_area, a.radius, p,
                                    radii=p.crease_rescue_radii)
@@ -275,14 +278,33 @@ def _view_try(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, level: SearchLev
     """The view search's try at ``level`` (:func:`_view_search_level`): its proposals, moved
     onto B's creases and scored (added to ``scored``). Returns the best registration.
 
-    A coarse level's proposals get the coarse-to-fine ICP, not the fine level's ranking of
-    a small set's search: a view's thousands of crease pixels rank its coarse peaks well
-    enough, and the fine level's look-ups would add ~10 ms to every camera frame."""
-    searched, trials = _crease_search_registrations(
-        a, b, p, level, p.search_scale, p.view_search_background, pyramid=False)
-    view, view_scored = _best_registration(a, b, [], search_area, p, True, searched, trials)
+    A coarse level's proposals get the coarse-to-fine ICP: a view's thousands of crease
+    pixels rank its coarse peaks well enough, most of the time, and the fine level's
+    ranking of its candidates (as a small set's search has) would add ~10 ms to every
+    camera frame. It runs only when the ICP's best is not clear: a view of a hundred pixels
+    with as many minutiae as a large one may place its coarse peak at the truth behind
+    chance peaks, or a few pixels off, out of the ICP's reach."""
+    found = _crease_search(a, b, p, level, p.search_scale, p.view_search_background)
+    searched = _registered(a, b, p, found.proposals[:_n_proposals(level, p)], level,
+                           p.search_scale)
+    view, view_scored = _best_registration(a, b, [], search_area, p, True, searched,
+                                           found.log10_transforms)
     scored += view_scored
+    if level == COARSE and _low(view, len(scored), p):
+        finer = _fine_level_registrations(a, b, p, found, p.search_scale,
+                                          p.view_search_background)
+        other, other_scored = _best_registration(a, b, [], search_area, p, True, finer,
+                                                 found.log10_transforms)
+        scored += other_scored
+        view = _better(view, other)
     return view
+
+
+def _better(best: _Scored | None, other: _Scored | None) -> _Scored | None:
+    """The one of two registrations (either may be None) that scores more."""
+    if other is not None and (best is None or other.score > best.score):
+        return other
+    return best
 
 
 class Matcher:
@@ -401,8 +423,7 @@ class Matcher:
             if _low(best, len(scored), p):
                 _, other, vote_scored = _vote_try(a, b, p, rng, search_area, use_creases)
                 scored += vote_scored
-                if other is not None and (best is None or other.score > best.score):
-                    best = other
+                best = _better(best, other)
             return self._result(a, b, base, best, scored, use_creases, search_area)
         votes, best, scored = _vote_try(a, b, p, rng, search_area, use_creases)
         low = _low(best, len(scored), p)

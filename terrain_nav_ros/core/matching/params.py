@@ -107,9 +107,10 @@ class MatchParams:
     crease_search_proposals : int
         Transforms the search proposes (twice as many at the coarse level).
     crease_search_candidates : int
-        Peaks a search at a coarse level takes; each is searched again near its place at
+        Peaks a search at the coarse level takes; each is searched again near its place at
         the fine level (:func:`~.crease_search.local_peaks`), and the proposals are those
-        with the most hits there.
+        with the most hits there. The view search does so only when the coarse-to-fine ICP
+        of its proposals leaves the best below ``rescue_below``.
     crease_search_fine_work : int
         A search whose work at the fine level (:data:`~.crease_search.FINE`: half the pixel
         resolution, rotations 3 px apart at the query's reach) exceeds this runs at the
