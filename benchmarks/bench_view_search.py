@@ -98,7 +98,7 @@ def _localise(matcher, extractor, scene, case, region_index):
     _PARTS.clear()
     clock = _CLOCK[0]
     t0 = clock()
-    # at the scene's own GSD, observed where the scene is
+    # at the matching GSD (the DEM's cell), observed where the scene is
     view, f_view = extractor.index(matcher, case.view, scene, valid=case.valid)
     t1 = clock()
     region, f_region = region_index
@@ -139,7 +139,7 @@ def main():
     warm_up(params)
     _instrument()
     matcher = Matcher(params, threshold=-1e9, max_rotation=math.pi)
-    extractor = ri._Extractor(params)
+    extractor = ri._Extractor(params, "dem")   # matched at the DEM's cell, as the study does
     rng = np.random.default_rng(args.seed)
     prof = cProfile.Profile(_CLOCK[0]) if args.profile else None
     totals = defaultdict(lambda: defaultdict(int))
