@@ -52,7 +52,8 @@ class LandmarkRendererNode(Node):
                             "[deg]", min_value=0.0, max_value=360.0),
                     declare(self, "sun_elevation", 45.0, "sun elevation [deg]",
                             min_value=1.0, max_value=90.0))
-        self.shadows = declare(self, "shadows", False, "cast shadows (3-4x slower on a CPU)")
+        self.shadows = declare(self, "shadows", True,
+                               "cast shadows, as a camera sees them (a second ray per pixel)")
         albedo = AlbedoRamp(
             tree_line=declare(self, "tree_line", 2400.0, "vegetation -> rock elevation [m]"),
             snow_line=declare(self, "snow_line", 3400.0, "rock -> snow elevation [m]"))

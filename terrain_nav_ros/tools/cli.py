@@ -227,7 +227,9 @@ def _cmd_evaluate_imagery(args) -> int:
                                          controls_per_case=args.controls,
                                          false_match_rate=args.false_match_rate,
                                          threshold=_graph_threshold() if args.threshold
-                                         is None else args.threshold)
+                                         is None else args.threshold,
+                                         shadows=bool(_graph_parameter("landmark_renderer",
+                                                                       "shadows")))
     except (ValueError, OSError, KeyError) as err:
         print(f"terrain-nav evaluate: {err}", file=sys.stderr)
         return 2
@@ -236,12 +238,17 @@ def _cmd_evaluate_imagery(args) -> int:
     return 0
 
 
-def _graph_threshold() -> float:
-    """The matcher's ``match.threshold`` in the graph's parameters file."""
+def _graph_parameter(node: str, name: str):
+    """A node's parameter ``name`` in the graph's parameters file."""
     import yaml
 
     doc = yaml.safe_load((REPO / "config" / "terrain_nav.yaml").read_text())
-    return float(doc["matcher"]["ros__parameters"]["match.threshold"])
+    return doc[node]["ros__parameters"][name]
+
+
+def _graph_threshold() -> float:
+    """The matcher's ``match.threshold`` in the graph's parameters file."""
+    return float(_graph_parameter("matcher", "match.threshold"))
 
 
 def _pair(text: str, option: str) -> tuple[float, float]:

@@ -295,12 +295,13 @@ def load_scenes(path, data_dir=None) -> list[Scene]:
     return scenes
 
 
-def render_landmark(scenes: list[Scene]) -> None:
-    """Render each scene's landmark (nadir, its sun) into ``scene.landmark``."""
+def render_landmark(scenes: list[Scene], shadows: bool = True) -> None:
+    """Render each scene's landmark (nadir, its sun, with cast shadows unless ``shadows``
+    is False, as the graph's landmark_renderer) into ``scene.landmark``."""
     from ..core.render.renderer import LandmarkRenderer, create_headless_context
     ctx = create_headless_context()
     for s in scenes:
-        renderer = LandmarkRenderer(ctx)
+        renderer = LandmarkRenderer(ctx, shadows=shadows)
         renderer.set_terrain(s.elevation, s.georef)
         s.landmark = renderer.render_nadir(s.georef, sun=s.sun).grey_u8
         renderer.release()
@@ -487,7 +488,7 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
                            headings=("unknown", "known"), baselines=("ncc", "orb"),
                            controls_per_case: int = 2, n_rotations: int = 36,
                            match_params: MatchParams | None = None, match_gsd="dem",
-                           log=print) -> dict:
+                           shadows: bool = True, log=print) -> dict:
     """Localise views of real images in landmark renders of their DEMs (module docstring).
 
     Parameters
@@ -509,6 +510,10 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
         averaged, as camera_ingest resamples a camera to its GSD); "dem" (default): each
         scene's DEM cell, since a render holds no terrain finer than it, while the camera's
         albedo detail grows finer; None: each scene's own GSD.
+    shadows : bool
+        Landmarks with cast shadows (the graph's landmark_renderer ``shadows``; the command
+        passes the graph's): a real image has them where the terrain is steeper than the
+        sun is high.
 
     Returns
     -------
@@ -520,7 +525,7 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
     thr = params.threshold if threshold is None else float(threshold)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    render_landmark(scenes)
+    render_landmark(scenes, shadows)
     extractor = _Extractor(params, match_gsd)
     rng = np.random.default_rng(seed)
     study = _StudyRun(scenes, extractor, thr, success_px, region_factor, controls_per_case,
@@ -564,7 +569,8 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
                   "threshold": thr, "false_match_rate": false_match_rate,
                   "headings": list(headings), "baselines": list(baselines),
                   "n_rotations": n_rotations, "match_gsd": match_gsd,
-                  "match_gsd_m": {s.name: s.gsd * extractor.factor(s) for s in scenes}},
+                  "match_gsd_m": {s.name: s.gsd * extractor.factor(s) for s in scenes},
+                  "shadows": bool(shadows)},
         "rows": rows,
         "non_pva": {"comparisons": int(len(non)),
                     "accepted": int((non >= thr).sum()),
@@ -745,7 +751,8 @@ def _report(summary: dict, pngs: list[str]) -> str:
                if any(m in r for r in summary["rows"])]
     lines = ["# Real-imagery study", "",
              f"Views cut from real images, localised in a region {st['region_factor']:g}x "
-             f"their side of the landmark render of the scene's DEM at the scene's sun; "
+             f"their side of the landmark render of the scene's DEM at the scene's sun "
+             f"({'with' if st['shadows'] else 'without'} cast shadows); "
              f"success = centre within {st['success_px']:g} px of the GSD matched at; threshold "
              f"{st['threshold']:g}; scale +-10 %; heading unknown = rotation +-180 deg "
              f"(NCC with {st['n_rotations']} rotations), known = +-{KNOWN_HEADING_DEG:g} deg "

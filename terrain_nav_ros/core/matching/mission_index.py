@@ -224,7 +224,7 @@ class IndexSettings:
     ridges: bool = True
     lighting: str = "shading"
     max_steps: int = 256
-    shadows: bool = False
+    shadows: bool = True
     tree_line: float = 2400.0
     snow_line: float = 3400.0
     interpolation: str = "spline"
