@@ -156,6 +156,9 @@ def test_study_on_real_scenes(tmp_path, shared_data):
     saved = json.loads((out / "results.json").read_text())
     assert saved["non_pva"]["comparisons"] == non["comparisons"]
     assert "Controls (non-PVA)" in (out / "report.md").read_text()
+    # the landmarks are rendered as the graph's landmark_renderer does: with cast shadows
+    assert saved["setup"]["shadows"] is True
+    assert "with cast shadows" in (out / "report.md").read_text()
 
 
 def test_a_scene_finer_than_its_dem_is_matched_at_the_dem_cell(tmp_path, shared_data):
