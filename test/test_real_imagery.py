@@ -212,37 +212,46 @@ def test_a_views_nodata_makes_no_creases(tmp_path):
     assert masked.n > 0
 
 
-def test_a_small_view_with_a_large_view_s_minutiae_is_found_behind_chance_peaks(shared_data):
-    """A 128 px view of Costa Rica's volcano with 65 minutiae goes through the view search
-    (a large view's path), whose coarse crease peak at the view's place trails chance peaks:
-    when the ICP's best is not clear, the fine level ranks the coarse candidates again, and
-    the view is localised (it scored -0.5, 25 px off, without)."""
+def _localise_view(scene, m, size: int) -> dict:
+    """The study's localisation (graph's settings, matched at the DEM's cell) of the
+    ``size`` px view of ``scene`` that ``m`` (view px -> scene px) cuts, in the whole scene."""
     import cv2
 
     from terrain_nav_ros.core.matching.matcher import Matcher
     from terrain_nav_ros.core.matching.params import MatchParams
     from terrain_nav_ros.tools import real_imagery as ri
+
+    ri.render_landmark([scene])
+    flags = cv2.WARP_INVERSE_MAP
+    view = cv2.warpAffine(scene.image, m, (size, size), flags=flags | cv2.INTER_LINEAR)
+    valid = cv2.warpAffine(scene.valid.astype(np.uint8), m, (size, size),
+                           flags=flags | cv2.INTER_NEAREST).astype(bool)
+    centre = m[:, :2] @ np.full(2, 0.5 * (size - 1)) + m[:, 2]
+    h, w = scene.image.shape
+    case = ri._Case(view, (0, 0, w, h), centre, valid)
+    params = MatchParams()
+    matcher = Matcher(params, threshold=-1e9)
+    extractor = ri._Extractor(params, "dem")
+    return ri._localise(matcher, extractor, scene, case,
+                        extractor.region_index(matcher, scene, case.region))
+
+
+def test_a_small_view_with_a_large_view_s_minutiae_is_found_behind_chance_peaks(shared_data):
+    """A 128 px view of Costa Rica's volcano with 65 minutiae goes through the view search
+    (a large view's path), whose coarse crease peak at the view's place trails chance peaks:
+    when the ICP's best is not clear, the fine level ranks the coarse candidates again, and
+    the view is localised (it scored -0.5, 25 px off, without)."""
+    from terrain_nav_ros.core.matching.params import MatchParams
     from terrain_nav_ros.tools.cli import _graph_threshold
 
     scene = load_scene(shared_data / "imagery" / "costarica_barva_l5_20010114.tif",
                        shared_data / "imagery" / "costarica_barva_astergdem_4326.tif",
                        band=4, when="2001-01-14T15:30:00Z")
-    ri.render_landmark([scene])
     # view px -> scene px: turned by 170 deg, 3 % smaller (the study's case, seed 1)
     m = np.array([[-0.95424341, 0.17135961, 182.01848094],
                   [-0.17135961, -0.95424341, 143.40288659]])
-    flags = cv2.WARP_INVERSE_MAP
-    view = cv2.warpAffine(scene.image, m, (128, 128), flags=flags | cv2.INTER_LINEAR)
-    valid = cv2.warpAffine(scene.valid.astype(np.uint8), m, (128, 128),
-                           flags=flags | cv2.INTER_NEAREST).astype(bool)
-    centre = m[:, :2] @ np.array([63.5, 63.5]) + m[:, 2]
-    case = ri._Case(view, (0, 0, 213, 167), centre, valid)
-    params = MatchParams()
-    matcher = Matcher(params, threshold=-1e9)
-    extractor = ri._Extractor(params, "dem")
-    result = ri._localise(matcher, extractor, scene, case,
-                          extractor.region_index(matcher, scene, case.region))
-    assert result["view_index"].n >= params.crease_search_below
+    result = _localise_view(scene, m, 128)
+    assert result["view_index"].n >= MatchParams().crease_search_below
     # within 3 px: the DEM is ~2 px off the image (the imagery README)
     assert result["score"] >= _graph_threshold() and result["err"] <= 3.0
 
@@ -252,30 +261,14 @@ def test_a_view_whose_rotation_ranks_low_at_half_resolution_is_found(shared_data
     has twice any other's crease hits in full but ranks 49th of 228 at half the
     resolution, where the view search shortlists its rotations; 16 per proposal keep it
     (8 did not: the view scored 1.0, 54 px off)."""
-    import cv2
-
-    from terrain_nav_ros.core.matching.matcher import Matcher
-    from terrain_nav_ros.core.matching.params import MatchParams
-    from terrain_nav_ros.tools import real_imagery as ri
     from terrain_nav_ros.tools.cli import _graph_threshold
 
     scene = load_scene(shared_data / "imagery" / "pa_ridgevalley_l7_20021125.tif",
                        shared_data / "imagery" / "pa_ridgevalley_dem30m_utm18.tif",
                        band=4, sun=(159.5, 26.2), gsd=15.0)
-    ri.render_landmark([scene])
     # view px -> scene px: turned by 5 deg, 9 % smaller (the study's case, seed 3)
     m = np.array([[0.90278673, -0.07841006, 124.35610959],
                   [0.07841006, 0.90278673, 56.71157536]])
-    flags = cv2.WARP_INVERSE_MAP
-    view = cv2.warpAffine(scene.image, m, (512, 512), flags=flags | cv2.INTER_LINEAR)
-    valid = cv2.warpAffine(scene.valid.astype(np.uint8), m, (512, 512),
-                           flags=flags | cv2.INTER_NEAREST).astype(bool)
-    centre = m[:, :2] @ np.array([255.5, 255.5]) + m[:, 2]
-    case = ri._Case(view, (0, 0, 600, 600), centre, valid)
-    params = MatchParams()
-    matcher = Matcher(params, threshold=-1e9)
-    extractor = ri._Extractor(params, "dem")
-    result = ri._localise(matcher, extractor, scene, case,
-                          extractor.region_index(matcher, scene, case.region))
+    result = _localise_view(scene, m, 512)
     # 3 px at the matching GSD (30 m) are 6 of the scene's 15 m pixels
     assert result["score"] >= _graph_threshold() and result["err"] <= 6.0
