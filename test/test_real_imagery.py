@@ -215,17 +215,12 @@ def test_a_views_nodata_makes_no_creases(tmp_path):
 def _localise_view(scene, m, size: int) -> dict:
     """The study's localisation (graph's settings, matched at the DEM's cell) of the
     ``size`` px view of ``scene`` that ``m`` (view px -> scene px) cuts, in the whole scene."""
-    import cv2
-
     from terrain_nav_ros.core.matching.matcher import Matcher
     from terrain_nav_ros.core.matching.params import MatchParams
     from terrain_nav_ros.tools import real_imagery as ri
 
     ri.render_landmark([scene])
-    flags = cv2.WARP_INVERSE_MAP
-    view = cv2.warpAffine(scene.image, m, (size, size), flags=flags | cv2.INTER_LINEAR)
-    valid = cv2.warpAffine(scene.valid.astype(np.uint8), m, (size, size),
-                           flags=flags | cv2.INTER_NEAREST).astype(bool)
+    view, valid = ri.view_at(scene, m, size)
     centre = m[:, :2] @ np.full(2, 0.5 * (size - 1)) + m[:, 2]
     h, w = scene.image.shape
     case = ri._Case(view, (0, 0, w, h), centre, valid)

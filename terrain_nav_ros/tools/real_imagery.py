@@ -323,7 +323,6 @@ def _cut_cases(scene: Scene, size: int, n: int, heading_known: bool, region_fact
     c = 0.5 * (size - 1)
     corners = np.array([[0, 0, 1], [size - 1, 0, 1], [0, size - 1, 1], [size - 1, size - 1, 1]],
                        float)
-    valid_u8 = scene.valid.astype(np.uint8)
     half = int(round(0.5 * region_factor * size))
     cases = []
     for _ in range(200 * n):
@@ -339,16 +338,23 @@ def _cut_cases(scene: Scene, size: int, n: int, heading_known: bool, region_fact
         xy = corners @ m.T
         if xy.min() < 0 or (xy[:, 0] > w - 1).any() or (xy[:, 1] > h - 1).any():
             continue
-        flags = cv2.WARP_INVERSE_MAP
-        valid = cv2.warpAffine(valid_u8, m, (size, size), flags=flags | cv2.INTER_NEAREST)
+        view, valid = view_at(scene, m, size)
         if valid.mean() < MIN_VALID:
             continue
-        view = cv2.warpAffine(scene.image, m, (size, size), flags=flags | cv2.INTER_LINEAR)
         x0, y0 = max(int(cx) - half, 0), max(int(cy) - half, 0)
         x1, y1 = min(int(cx) + half, w), min(int(cy) + half, h)
-        cases.append(_Case(view, (x0, y0, x1, y1), np.array([cx - x0, cy - y0]),
-                           valid.astype(bool)))
+        cases.append(_Case(view, (x0, y0, x1, y1), np.array([cx - x0, cy - y0]), valid))
     return cases
+
+
+def view_at(scene: Scene, m: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``size`` px view of ``scene`` that the affine ``m`` (2 x 3, view px -> scene px)
+    cuts, and its observed pixels (bool)."""
+    flags = cv2.WARP_INVERSE_MAP
+    valid = cv2.warpAffine(scene.valid.view(np.uint8), m, (size, size),
+                           flags=flags | cv2.INTER_NEAREST)
+    view = cv2.warpAffine(scene.image, m, (size, size), flags=flags | cv2.INTER_LINEAR)
+    return view, valid.astype(bool)
 
 
 def _decimated(grey: np.ndarray, factor: float) -> tuple[np.ndarray, np.ndarray]:
