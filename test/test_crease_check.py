@@ -1,6 +1,7 @@
 """Crease-skeleton verification of registrations (core.crease_check) and its use by the matcher."""
 
 import math
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -9,8 +10,10 @@ from skimage.morphology import skeletonize
 from synthetic_minutiae import crop_set
 
 from terrain_nav_ros.core.matching.crease_check import (
+    CreaseEvidence,
     CreaseField,
     CreaseSamples,
+    conditioned_on,
     crease_directions,
     crease_evidence,
     refine_on_creases,
@@ -184,6 +187,50 @@ def test_ridges_fix_the_shift_that_parallel_valleys_leave_free():
     assert abs(t - t_true) < 0.2 and abs(np.angle(c)) < 0.01
 
 
+def test_ridges_count_given_the_valleys():
+    """Ridge evidence whose hit fraction rose and fell with the valleys' over the shifted
+    transforms adds only what the valleys do not already say; evidence that varied apart
+    keeps its score; valleys at or below chance lend nothing."""
+    k = np.arange(24)
+    swing = 0.1 + 0.04 * np.cos(2 * np.pi * k / 12)
+    valleys = CreaseEvidence(10.0, 0.4, 0.1, 300, swing)
+    following = CreaseEvidence(8.0, 0.4, 0.1, 250, swing + 0.005 * np.sin(2 * np.pi * k / 5))
+    apart = CreaseEvidence(8.0, 0.4, 0.1, 250, 0.1 + 0.04 * np.sin(2 * np.pi * k / 12))
+    given = conditioned_on(following, valleys)
+    assert given.dependence > 0.8 and given.score < 1.0
+    assert conditioned_on(apart, valleys) == apart
+    assert conditioned_on(following, CreaseEvidence(0.0, 0.1, 0.1, 300, swing)) == following
+    assert conditioned_on(following, None) == following
+    # fewer than 8 shifts seen by both: no dependence can be measured
+    sparse = np.where(k < 6, swing, np.nan)
+    assert conditioned_on(replace(following, null_fractions=sparse), valleys) == following
+
+
+def test_ridges_midway_between_parallel_valleys_add_little(region):
+    """Valleys all running East-West with ridges midway: wherever the valleys align the
+    ridges do too, so given the valleys the ridges' agreement adds little; an unrelated
+    ridge pattern beside the same valleys keeps most of its own."""
+    valleys = np.zeros((160, 160), np.uint8)
+    ridges = np.zeros((160, 160), np.uint8)
+    for row in range(12, 160, 20):
+        cv2.line(valleys, (0, row), (159, row), 1, 1)
+        cv2.line(ridges, (0, row + 10), (159, row + 10), 1, 1)
+    window = (slice(40, 104), slice(30, 94))   # view px (col, row) -> (col + 30, row + 40)
+    t_true = 30 - 40j
+
+    def agreement(skeleton):
+        return crease_evidence(CreaseSamples.from_image(skeleton[window]),
+                               CreaseField(skeleton), 1 + 0j, t_true)
+
+    v, r = agreement(valleys), agreement(ridges)
+    assert v.score > 20 and r.score > 20
+    given = conditioned_on(r, v)
+    assert given.dependence > 0.8 and given.score < 0.5 * r.score
+    unrelated = agreement(region[1][:160, :160])
+    assert unrelated.score > 10
+    assert conditioned_on(unrelated, v).score > 0.75 * unrelated.score
+
+
 def test_with_creases_a_few_minutiae_are_enough_to_decide(region):
     ms, skel = region
     x0, y0, size, dx, dy = 200, 180, 64, 7, -5
@@ -264,6 +311,8 @@ def test_numba_kernels_agree_with_the_numpy_path(region, other_region, monkeypat
     slow = run()
     for f, s in zip(fast, slow, strict=True):
         assert f[0] == s[0] and f[1] == s[1]
+        for k in (0, 1):   # the local null shift by shift, which the ridges are conditioned on
+            np.testing.assert_array_equal(f[k].null_fractions, s[k].null_fractions)
         for k in (2, 3, 4):
             assert abs(f[k][0] - s[k][0]) < 1e-12 and abs(f[k][1] - s[k][1]) < 1e-9
         for got, want in zip(f[5], s[5], strict=True):

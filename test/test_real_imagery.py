@@ -212,23 +212,25 @@ def test_a_views_nodata_makes_no_creases(tmp_path):
     assert masked.n > 0
 
 
-def _localise_view(scene, m, size: int) -> dict:
+def _localise_view(scene, m, size: int, region_scene=None, box=None) -> dict:
     """The study's localisation (graph's settings, matched at the DEM's cell) of the
-    ``size`` px view of ``scene`` that ``m`` (view px -> scene px) cuts, in the whole scene."""
+    ``size`` px view of ``scene`` that ``m`` (view px -> scene px) cuts, in the whole scene
+    or in the landmark region ``box`` (x0, y0, x1, y1) of ``region_scene``."""
     from terrain_nav_ros.core.matching.matcher import Matcher
     from terrain_nav_ros.core.matching.params import MatchParams
     from terrain_nav_ros.tools import real_imagery as ri
 
-    ri.render_landmark([scene])
+    region_scene = region_scene or scene
+    ri.render_landmark([region_scene])
     view, valid = ri.view_at(scene, m, size)
     centre = m[:, :2] @ np.full(2, 0.5 * (size - 1)) + m[:, 2]
-    h, w = scene.image.shape
-    case = ri._Case(view, (0, 0, w, h), centre, valid)
+    h, w = region_scene.image.shape
+    case = ri._Case(view, box or (0, 0, w, h), centre, valid)
     params = MatchParams()
     matcher = Matcher(params, threshold=-1e9)
     extractor = ri._Extractor(params, "dem")
     return ri._localise(matcher, extractor, scene, case,
-                        extractor.region_index(matcher, scene, case.region))
+                        extractor.region_index(matcher, region_scene, case.region))
 
 
 def test_a_small_view_with_a_large_view_s_minutiae_is_found_behind_chance_peaks(shared_data):
@@ -267,3 +269,27 @@ def test_a_view_whose_rotation_ranks_low_at_half_resolution_is_found(shared_data
     result = _localise_view(scene, m, 512)
     # 3 px at the matching GSD (30 m) are 6 of the scene's 15 m pixels
     assert result["score"] >= _graph_threshold() and result["err"] <= 6.0
+
+
+def test_parallel_ridges_aligned_where_the_valleys_are_do_not_count_twice(shared_data):
+    """A 128 px view of PA November's parallel ridges at 15 m (64 px at the DEM's cell, 6
+    minutiae) against an Athabasca region, a control: at the best transform a third of its
+    valleys and a third of its ridges land on the region's (chance: a tenth each), and
+    summed as independent they passed the threshold at 11.0. Ridges lie between valleys,
+    and the shifted transforms show the two agreements rise and fall together: the ridges
+    count given the valleys, and the pair is no match."""
+    from terrain_nav_ros.tools.cli import _graph_threshold
+
+    view_scene = load_scene(shared_data / "imagery" / "pa_ridgevalley_l7_20021125.tif",
+                            shared_data / "imagery" / "pa_ridgevalley_dem30m_utm18.tif",
+                            band=4, sun=(159.5, 26.2), gsd=15.0)
+    region_scene = load_scene(shared_data / "imagery" / "athabasca_hls_l30_20200816.tif",
+                              shared_data / "imagery" / "athabasca_dem30m_utm11.tif",
+                              band=4, when="2020-08-16T18:50:00Z")
+    # view px -> scene px: turned by -10 deg, 9 % larger (the study's case, seed 4)
+    m = np.array([[1.07715138, 0.19368372, 361.987693],
+                  [-0.19368372, 1.07715138, 309.266114]])
+    result = _localise_view(view_scene, m, 128, region_scene, (0, 0, 215, 205))
+    ridges = result["ridges"]
+    assert ridges is not None and ridges.dependence > 0.2
+    assert result["score"] < _graph_threshold()

@@ -438,7 +438,8 @@ def _localise(matcher: Matcher, extractor: _Extractor, scene: Scene, case: _Case
     dt = time.perf_counter() - t0
     return {"score": float(r.score), "err": view_error(r, case, f_view, f_region),
             "time": dt, "reason": r.reason,
-            "too_little": any(k in r.reason for k in _TOO_LITTLE), "view_index": view}
+            "too_little": any(k in r.reason for k in _TOO_LITTLE), "view_index": view,
+            "ridges": r.ridges}
 
 
 def view_error(result, case: _Case, f_view: float, f_region: float) -> float:

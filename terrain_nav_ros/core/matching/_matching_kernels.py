@@ -532,12 +532,12 @@ def crease_hit_counts(z, direction, keep, c, t, turn, near, field_dir, angle_tol
                       stride):
     """Counts of ``crease_check.crease_evidence``: the kept samples mapped by ``c z + t``
     (directions turned by ``turn``) inside the field and hits among them (``near``: the
-    field's :func:`near_mask` at the hit radius), then the same for every ``stride``-th
-    inside sample moved by each of ``shifts`` (the local null)."""
+    field's :func:`near_mask` at the hit radius), then the same per shift for every
+    ``stride``-th inside sample moved by each of ``shifts`` (the local null)."""
     n_in = 0
     n_hit = 0
-    null_in = 0
-    null_hit = 0
+    null_in = np.zeros(shifts.size, np.int64)
+    null_hit = np.zeros(shifts.size, np.int64)
     for i in range(z.size):
         if not keep[i]:
             continue
@@ -549,8 +549,8 @@ def crease_hit_counts(z, direction, keep, c, t, turn, near, field_dir, angle_tol
         if n_in % stride == 0:
             for s in range(shifts.size):
                 g = _near_test(zi + shifts[s], di, near, field_dir, angle_tol)
-                null_in += g != -1
-                null_hit += g == 1
+                null_in[s] += g != -1
+                null_hit[s] += g == 1
         n_in += 1
         n_hit += f
     return n_in, n_hit, null_in, null_hit

@@ -14,7 +14,9 @@ directions must agree after the same transform. This module scores that agreemen
   transform shifted by 6-10 px in 12 directions (so the density and the dominant directions of
   this pair's drainage set the null, not a global assumption), and the hit count is scored by
   a binomial tail over ``n / spacing`` effectively independent samples (neighbouring skeleton
-  pixels of one crease are not independent).
+  pixels of one crease are not independent);
+* :func:`conditioned_on`: a second skeleton's evidence (the ridges) given the first's (the
+  valleys), with their dependence measured over the same shifted transforms.
 
 Geometry in the math frame ``z = col - 1j*row`` of :mod:`.descriptors`; crease directions are
 axial (mod pi).
@@ -23,12 +25,13 @@ axial (mod pi).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from dataclasses import field as dataclass_field
 
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.special import betainc
+from scipy.special import betainc, log_ndtr, ndtri
 
 from . import _matching_kernels as _kernels
 from .descriptors import to_complex
@@ -189,6 +192,56 @@ class CreaseEvidence:
     fraction: float = 0.0     # hits / samples inside the reference
     chance: float = 0.0       # hit fraction at the shifted transforms (the local null)
     n_inside: int = 0
+    # hit fraction at each shifted transform (NaN where no sample fell inside)
+    null_fractions: np.ndarray | None = dataclass_field(default=None, repr=False,
+                                                        compare=False)
+    dependence: float = 0.0   # correlation with the evidence it is conditioned on
+
+
+def conditioned_on(evidence: CreaseEvidence, given: CreaseEvidence | None) -> CreaseEvidence:
+    """``evidence`` with its score given the agreement ``given`` already scored.
+
+    Ridges lie between valleys: where a view's valleys are aligned with a region's, its
+    ridges often are too, most of all in parallel drainage, and a sum of the two scores
+    counts one alignment twice. The dependence is measured at the local null's shifted
+    transforms (the correlation of the two hit fractions over them), and the two agreements
+    are taken as jointly normal z-scores with that correlation: the ridges' z-score given the
+    valleys' is ``(z_r - rho z_v) / sqrt(1 - rho^2)``. Independent channels keep their score;
+    a valley agreement below chance (z_v < 0) lends the ridges nothing.
+    """
+    if given is None or evidence.score <= 0.0 or given.score <= 0.0:
+        return evidence
+    rho = _shift_correlation(evidence.null_fractions, given.null_fractions)
+    if rho <= 0.0:
+        return evidence
+    z = _z_score(evidence.score)
+    z_given = _z_score(given.score)
+    z_left = (z - rho * z_given) / math.sqrt(1.0 - rho * rho)
+    score = max(0.0, float(-log_ndtr(-z_left) / math.log(10.0)))
+    return replace(evidence, score=min(score, evidence.score), dependence=rho)
+
+
+def _z_score(score: float) -> float:
+    """The standard normal deviate with upper tail ``10**-score``."""
+    return float(-ndtri(10.0 ** -min(score, 300.0)))
+
+
+def _shift_correlation(x, y, max_rho: float = 0.95) -> float:
+    """Correlation of two channels' hit fractions over the shifted transforms both see, at
+    its one-sigma lower bound (Fisher's z; 0 below it): a dependence the few shifts cannot
+    tell from noise is not discounted."""
+    if x is None or y is None:
+        return 0.0
+    both = np.isfinite(x) & np.isfinite(y)
+    n = int(both.sum())
+    if n < 8:
+        return 0.0
+    x, y = x[both] - x[both].mean(), y[both] - y[both].mean()
+    norm = math.sqrt(float(x @ x) * float(y @ y))
+    if norm <= 0.0:
+        return 0.0
+    r = min(float(x @ y) / norm, max_rho)
+    return max(0.0, math.tanh(math.atanh(r) - 1.0 / math.sqrt(n - 3)))
 
 
 def crease_evidence(samples: CreaseSamples, field: CreaseField, c: complex, t: complex, *,
@@ -231,8 +284,10 @@ def crease_evidence(samples: CreaseSamples, field: CreaseField, c: complex, t: c
                                                  angle_tol)
     if n_in < min_samples:
         return CreaseEvidence(n_inside=n_in)
-    chance = float(np.clip((null_hit + 1.0) / (null_in + 2.0), 1e-3, 0.999))
+    chance = float(np.clip((null_hit.sum() + 1.0) / (null_in.sum() + 2.0), 1e-3, 0.999))
     fraction = n_hit / n_in
+    with np.errstate(invalid="ignore", divide="ignore"):
+        null_fractions = np.where(null_in > 0, null_hit / null_in, np.nan)
     n_eff = n_in / spacing
     k = fraction * n_eff
     score = 0.0
@@ -240,26 +295,28 @@ def crease_evidence(samples: CreaseSamples, field: CreaseField, c: complex, t: c
         # continuous binomial upper tail P(K >= k), K ~ Bin(n_eff, chance)
         tail = betainc(k, n_eff - k + 1.0, chance)
         score = float(-math.log10(max(tail, 1e-300)))
-    return CreaseEvidence(score, fraction, chance, n_in)
+    return CreaseEvidence(score, fraction, chance, n_in, null_fractions)
 
 
 def _hit_counts(field: CreaseField, samples: CreaseSamples, keep, c, t, radius, angle_tol):
-    """Kept samples mapped inside the field and hits among them; the same for every 4th
-    inside sample at the shifted transforms (the local null: one sample per crease spacing
-    is plenty for a rate over 24 shifts, at a quarter of the cost)."""
+    """Kept samples mapped inside the field and hits among them; per shifted transform the
+    same for every 4th inside sample (the local null: one sample per crease spacing is
+    plenty for a rate over 24 shifts, at a quarter of the cost)."""
     if _kernels.HAVE_NUMBA:
-        counts = _kernels.crease_hit_counts(samples.z, samples.direction, keep, complex(c),
-                                            complex(t), float(np.angle(c)),
-                                            field.near(radius), field.direction, angle_tol,
-                                            _NULL_SHIFTS, 4)
-        return tuple(int(n) for n in counts)
+        n_in, n_hit, null_in, null_hit = _kernels.crease_hit_counts(
+            samples.z, samples.direction, keep, complex(c), complex(t), float(np.angle(c)),
+            field.near(radius), field.direction, angle_tol, _NULL_SHIFTS, 4)
+        return int(n_in), int(n_hit), null_in, null_hit
     z = c * samples.z[keep] + t
     direction = samples.direction[keep] + np.angle(c)
     inside, hit = field.hits(z, direction, radius, angle_tol)
     z_in, dir_in = z[inside][::4], direction[inside][::4]
     shifted = (z_in[None, :] + _NULL_SHIFTS[:, None]).ravel()
     ins, hs = field.hits(shifted, np.tile(dir_in, len(_NULL_SHIFTS)), radius, angle_tol)
-    return int(inside.sum()), int(hit.sum()), int(ins.sum()), int(hs.sum())
+    per_shift = np.repeat(np.arange(len(_NULL_SHIFTS)), len(z_in))[ins]
+    return (int(inside.sum()), int(hit.sum()),
+            np.bincount(per_shift, minlength=len(_NULL_SHIFTS)),
+            np.bincount(per_shift, weights=hs, minlength=len(_NULL_SHIFTS)).astype(np.int64))
 
 
 def refine_on_creases(samples: CreaseSamples, field: CreaseField, c: complex, t: complex, *,

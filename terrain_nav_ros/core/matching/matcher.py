@@ -38,6 +38,8 @@ Pipeline (same for block-vs-block :func:`compare` and camera-in-region :func:`lo
    does.
 8. **Ridges** (when both sets carry ridge skeletons): the leader and its runners-up get their
    ridges' agreement added, and the best total wins; the best-of-n term pays for the choice.
+   The ridges count given the valleys (:func:`~.crease_check.conditioned_on`): ridges lie
+   between valleys, and in parallel drainage one alignment moves both.
 
 All internal geometry is in the math frame ``z = col - 1j*row`` (see :mod:`.descriptors`);
 results are reported in pixel coordinates.

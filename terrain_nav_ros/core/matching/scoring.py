@@ -1,9 +1,9 @@
 """A registration scored and moved onto the creases (steps 5 and 6 of :mod:`.matcher`).
 
 The minutiae significance (:mod:`.significance`) of the pairings in the overlap of the two
-footprints, plus the crease and ridge agreement of the crease check (:mod:`.crease_check`);
-and the registration refined on the reference's creases (point-to-line ICP), kept when it
-scores better.
+footprints, plus the crease agreement of the crease check (:mod:`.crease_check`) and the
+ridges' given it; and the registration refined on the reference's creases (point-to-line
+ICP), kept when it scores better.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from . import _matching_kernels as _kernels
-from .crease_check import CreaseEvidence, crease_evidence, refine_on_creases
+from .crease_check import CreaseEvidence, conditioned_on, crease_evidence, refine_on_creases
 from .index import MinutiaIndex
 from .params import MatchParams
 from .registration import _pair, _residuals
@@ -80,7 +80,8 @@ def _scored(a: MinutiaIndex, b: MinutiaIndex, c, t, pairs, search_area: float,
         score += creases.score
         ridge_channel = _ridge_channel(a, b, p)
         if ridge_channel is not None:
-            ridges = crease_evidence(*ridge_channel, c, t, **p.crease_tolerances)
+            ridges = conditioned_on(crease_evidence(*ridge_channel, c, t,
+                                                    **p.crease_tolerances), creases)
             score += ridges.score
     return _Scored(c, t, pairs, score, lam, (n_ao, n_bo), creases, ridges=ridges)
 
@@ -106,13 +107,13 @@ def with_ridge_evidence(a: MinutiaIndex, b: MinutiaIndex, best: _Scored,
     Minutiae counts stand in for the evidence a set carries, and on real imagery they do not:
     albedo edges (fields, roads, forest margins) add minutiae that pair with nothing in a
     render, while the valleys' and ridges' skeletons still agree. The chosen registration
-    was picked on the other evidence alone, so its ridge agreement is an independent check
-    that adds no search (no Bonferroni term), at the cost of one evaluation (~0.2 ms).
+    was picked on the other evidence alone, so its ridge agreement (given the valleys') is a
+    check that adds no search (no Bonferroni term), at the cost of one evaluation (~0.2 ms).
     """
     if best.ridges is not None or not _has_ridges(a, b, p):
         return best
-    ridges = crease_evidence(a.ridge_samples, b.ridge_field, best.c, best.t,
-                             **p.crease_tolerances)
+    ridges = conditioned_on(crease_evidence(a.ridge_samples, b.ridge_field, best.c, best.t,
+                                            **p.crease_tolerances), best.creases)
     return replace(best, score=best.score + ridges.score, ridges=ridges)
 
 
