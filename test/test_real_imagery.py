@@ -155,6 +155,11 @@ def test_study_on_real_scenes(tmp_path, shared_data):
     assert {"report.md", "results.json", "scores.png"} <= {p.name for p in out.iterdir()}
     saved = json.loads((out / "results.json").read_text())
     assert saved["non_pva"]["comparisons"] == non["comparisons"]
+    # each case says what its score is made of: valleys, and ridges given the valleys
+    for case in (c for r in saved["rows"] for c in r["cases"]):
+        if case["err_px"] <= 3.0:
+            assert case["valleys_score"] > 0 and case["ridges_score"] >= 0
+            assert 0 <= case["ridges_dependence"] < 1
     assert "Controls (non-PVA)" in (out / "report.md").read_text()
     # the landmarks are rendered as the graph's landmark_renderer does: with cast shadows
     assert saved["setup"]["shadows"] is True

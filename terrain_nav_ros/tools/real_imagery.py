@@ -439,7 +439,15 @@ def _localise(matcher: Matcher, extractor: _Extractor, scene: Scene, case: _Case
     return {"score": float(r.score), "err": view_error(r, case, f_view, f_region),
             "time": dt, "reason": r.reason,
             "too_little": any(k in r.reason for k in _TOO_LITTLE), "view_index": view,
-            "ridges": r.ridges}
+            "creases": r.creases, "ridges": r.ridges}
+
+
+def _evidence_parts(creases, ridges) -> dict:
+    """A case's crease and ridge scores (the ridges' given the valleys', with the
+    dependence measured between them) for ``results.json``; None where not scored."""
+    return {"valleys_score": creases.score if creases else None,
+            "ridges_score": ridges.score if ridges else None,
+            "ridges_dependence": ridges.dependence if ridges else None}
 
 
 def view_error(result, case: _Case, f_view: float, f_region: float) -> float:
@@ -638,7 +646,8 @@ def _study_cases(study: _StudyRun, scene: Scene, per_scene: dict, size: int, hea
         rec["time"].append(r["time"])
         rec["few"].append(r["too_little"] and not r["score"] >= thr)
         rec["cases"].append({"err_px": r["err"], "err_m": r["err"] * per_px * scene.gsd,
-                             "score": r["score"], "reason": r["reason"]})
+                             "score": r["score"], "reason": r["reason"],
+                             **_evidence_parts(r["creases"], r["ridges"])})
         pva_scores.append((scene.name, size, heading, r["score"], r["err"] <= success_px))
         for method in study.baselines:
             e, dt = _baseline(method, case, region, known, study.n_rotations)
