@@ -45,12 +45,26 @@ def _write_pair(tmp_path, *, geographic: bool, nodata_hole: bool = False):
     return paths
 
 
+def _warped(path, crs, out):
+    """``path`` reprojected to ``crs`` (its own resolution there) as ``out``."""
+    import rasterio
+    from rasterio.warp import Resampling, calculate_default_transform, reproject
+
+    with rasterio.open(path) as src:
+        transform, w, h = calculate_default_transform(src.crs, crs, src.width, src.height,
+                                                      *src.bounds)
+        profile = src.profile | {"crs": crs, "transform": transform, "width": w, "height": h}
+        with rasterio.open(out, "w", **profile) as dst:
+            reproject(rasterio.band(src, 1), rasterio.band(dst, 1),
+                      resampling=Resampling.bilinear)
+    return out
+
+
 def test_a_pair_in_degrees_is_put_on_a_utm_grid(tmp_path):
     image, dem = _write_pair(tmp_path, geographic=True, nodata_hole=True)
     scene = load_scene(image, dem, when="2021-06-21T10:00:00Z")
-    # 0.0003 deg of latitude is ~33 m: the image's cell in metres, about its own size
-    assert 30.0 < scene.gsd < 36.0
     # 0.0003 x 0.0003 deg at 45 N: 33 m by 24 m, the side of its area 28 m
+    assert 27.0 < scene.gsd < 30.0
     assert 27.0 < scene.dem_cell < 30.0
     assert scene.image.dtype == np.uint8 and scene.image.shape == scene.elevation.shape
     h, w = scene.valid.shape
@@ -59,6 +73,71 @@ def test_a_pair_in_degrees_is_put_on_a_utm_grid(tmp_path):
     # the sun of a June morning in the Alps: in the south-east, well up
     az, el = scene.sun
     assert 90.0 < az < 180.0 and 40.0 < el < 70.0
+
+
+@pytest.mark.parametrize("crs", ["EPSG:3857", "+proj=utm +zone=32 +datum=WGS84 +units=us-ft"])
+def test_a_grid_whose_units_are_not_ground_metres_is_put_on_utm(tmp_path, crs):
+    """Web Mercator's metres are 1/cos(latitude) too short on the ground (1.41 at 45 N);
+    a US state plane grid is in feet. Either pair, read at face value, would be matched at
+    the wrong GSD and its render's slopes scaled wrong."""
+    (tmp_path / "utm").mkdir()
+    image, dem = _write_pair(tmp_path, geographic=False)     # 30 m, UTM 32N, at 45 N
+    image = _warped(image, crs, tmp_path / "image_warped.tif")
+    dem = _warped(dem, crs, tmp_path / "dem_warped.tif")
+    scene = load_scene(image, dem, sun=(150.0, 40.0))
+    assert scene.gsd == pytest.approx(30.0, rel=0.03)
+    assert scene.dem_cell == pytest.approx(30.0, rel=0.03)
+    h, w = scene.valid.shape
+    assert scene.valid[h // 4:-h // 4, w // 4:-w // 4].all()
+    assert abs(h - 160) < 12 and abs(w - 160) < 12          # the same ground, not 1.4x
+    utm = load_scene(*_write_pair(tmp_path / "utm", geographic=False), sun=(150.0, 40.0))
+    # the same relief: the DEM is not stretched by the grid's units
+    assert np.ptp(scene.elevation) == pytest.approx(np.ptp(utm.elevation), rel=0.05)
+
+
+def test_a_dem_s_undeclared_voids_are_voids_not_pits(tmp_path):
+    """SRTM's -32768 in a GeoTIFF that declares no nodata: read as the graph reads it, as
+    voids; a small void is filled, a large one is never observed and renders no cliff."""
+    import rasterio
+
+    image, dem = _write_pair(tmp_path, geographic=False)
+    with rasterio.open(dem) as ds:
+        profile, z = ds.profile, ds.read(1)
+    z[60:100, 60:100] = -32768.0     # 1600 cells: large
+    z[20:24, 120:124] = -32768.0     # 16 cells: small
+    with rasterio.open(dem, "w", **profile) as ds:
+        ds.write(z, 1)
+    scene = load_scene(image, dem, sun=(150.0, 40.0))
+    assert "impossible on Earth" in scene.dem_warning
+    assert not scene.valid[62:98, 62:98].any()
+    assert scene.valid[18:26, 118:126].all()
+    intact = z[z > -1000]
+    assert intact.min() - 1.0 < scene.elevation.min() and scene.elevation.max() < intact.max() + 1.0
+
+
+def test_an_integer_image_s_undeclared_zeros_are_fill(tmp_path):
+    """Landsat 7's SLC-off gaps and a footprint's edge are DN 0 in products that often
+    declare no nodata; a gap's edge would be read as a valley. Zeros of an integer image
+    without a nodata value, mask or alpha are nodata; a declared nodata value keeps them."""
+    import rasterio
+
+    image, dem = _write_pair(tmp_path, geographic=False)
+    with rasterio.open(image) as ds:
+        profile, grey = ds.profile, ds.read(1)
+    dn = np.clip(grey, 1, 255).astype(np.uint8)
+    gaps = np.zeros(dn.shape, bool)
+    for r in range(10, 160, 33):
+        gaps[r:r + 6] = True
+    gaps[:, :12] = True              # outside the footprint
+    dn[gaps] = 0
+    profile.update(dtype="uint8", nodata=None)
+    with rasterio.open(image, "w", **profile) as ds:
+        ds.write(dn, 1)
+    scene = load_scene(image, dem, sun=(150.0, 40.0))
+    assert not scene.valid[gaps].any() and scene.valid[~gaps].mean() > 0.99
+    with rasterio.open(image, "r+") as ds:
+        ds.nodata = 255               # declared: its zeros are data
+    assert load_scene(image, dem, sun=(150.0, 40.0)).valid[gaps].all()
 
 
 def test_a_study_gsd_resamples_both(tmp_path):
@@ -234,8 +313,9 @@ def _localise_view(scene, m, size: int, region_scene=None, box=None) -> dict:
     params = MatchParams()
     matcher = Matcher(params, threshold=-1e9)
     extractor = ri._Extractor(params, "dem")
-    return ri._localise(matcher, extractor, scene, case,
-                        extractor.region_index(matcher, region_scene, case.region))
+    region_index = extractor.region_index(matcher, region_scene, case.region)
+    return ri._localise(matcher, extractor, scene, case, region_index) | {
+        "region_index": region_index[0]}
 
 
 def test_a_small_view_with_a_large_view_s_minutiae_is_found_behind_chance_peaks(shared_data):
@@ -283,6 +363,8 @@ def test_parallel_ridges_aligned_where_the_valleys_are_do_not_count_twice(shared
     summed as independent they passed the threshold at 11.0. Ridges lie between valleys,
     and the shifted transforms show the two agreements rise and fall together: the ridges
     count given the valleys, and the pair is no match."""
+    from terrain_nav_ros.core.matching.crease_check import conditioned_on, crease_evidence
+    from terrain_nav_ros.core.matching.params import MatchParams
     from terrain_nav_ros.tools.cli import _graph_threshold
 
     view_scene = load_scene(shared_data / "imagery" / "pa_ridgevalley_l7_20021125.tif",
@@ -295,6 +377,15 @@ def test_parallel_ridges_aligned_where_the_valleys_are_do_not_count_twice(shared
     m = np.array([[1.07715138, 0.19368372, 361.987693],
                   [-0.19368372, 1.07715138, 309.266114]])
     result = _localise_view(view_scene, m, 128, region_scene, (0, 0, 215, 205))
-    ridges = result["ridges"]
-    assert ridges is not None and ridges.dependence > 0.2
     assert result["score"] < _graph_threshold()
+    # The transform the search accepted at 11.0 (matching px; the region's DEM void was then
+    # filled with its median height, now inpainted, and the search ends elsewhere). Both
+    # channels agree there at ~3.7 times chance, and the ridges add little given the valleys.
+    view, region = result["view_index"], result["region_index"]
+    c, t = complex(-0.65438996, -0.65147304), complex(211.49851162, -52.98177501)
+    tolerances = MatchParams().crease_tolerances
+    valleys = crease_evidence(view.crease_samples, region.crease_field, c, t, **tolerances)
+    ridges = crease_evidence(view.ridge_samples, region.ridge_field, c, t, **tolerances)
+    assert valleys.fraction > 3 * valleys.chance and ridges.fraction > 3 * ridges.chance
+    given = conditioned_on(ridges, valleys)
+    assert given.dependence > 0.2 and given.score < 0.5 * ridges.score

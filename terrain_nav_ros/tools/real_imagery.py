@@ -5,9 +5,12 @@ camera views from a real satellite or aerial image and localises them in the pro
 landmark render of a co-registered DEM, lit by the image's sun, the way the graph would:
 
 1. **Scene.** The image (one band, or a grey mix of the first three) and the DEM are put on
-   one north-up metric grid: the DEM is reprojected onto the image's grid (both onto the
-   local UTM zone first when the image is in degrees), then both are resampled to the study
-   GSD. Nodata and cloud-masked pixels (the image's nodata value) are invalid. A scene
+   one north-up metric grid: the DEM, read as the graph's metamap reads it (impossible
+   heights are voids, small voids filled), is reprojected onto the image's grid (both onto
+   the local UTM zone first when the image's grid is not in metres on the ground: degrees,
+   feet, Web Mercator), then both are resampled to the study GSD. Nodata and cloud-masked
+   pixels (the image's nodata value; an integer image's zeros when it declares none) and
+   pixels over the DEM's large voids are invalid. A scene
    finer than its DEM's cell is matched at that cell (views and regions area averaged):
    the render holds no terrain finer, and the camera's albedo detail (fields, roads, tree
    crowns) would outnumber the drainage the two share.
@@ -60,6 +63,7 @@ from ..core.matching.matcher import Matcher
 from ..core.matching.params import MatchParams
 from ..core.matching.significance import calibrate_threshold
 from ..core.render.sun import parse_utc, solar_position
+from ..core.terrain.dem_io import fill_voids, open_dem
 from ..core.terrain.georef import GeoReference
 
 __all__ = ["Scene", "load_scene", "load_scenes", "run_real_imagery_study"]
@@ -91,6 +95,7 @@ class Scene:
     centre_latlon: tuple[float, float]
     place: str = ""   # scenes of one place (one DEM) are never each other's controls
     dem_cell: float = math.nan   # the DEM's own cell [m] (before resampling to ``gsd``)
+    dem_warning: str | None = None   # what is wrong with the DEM's heights (read as voids)
     landmark: np.ndarray | None = field(default=None, repr=False)
 
     @property
@@ -133,11 +138,23 @@ def _read_band(ds, band) -> np.ndarray:
         if not 1 <= b <= ds.count:
             raise ValueError(f"{ds.name}: band {b} does not exist (the file has {ds.count})")
         bands = [b]
-    a = ds.read(bands, masked=True).astype(np.float32)
+    a = ds.read(bands, masked=True)
     mask = np.ma.getmaskarray(a).any(axis=0)
-    out = a.filled(np.nan).mean(axis=0)
+    if _zero_is_fill(ds):
+        mask |= (np.ma.getdata(a) == 0).all(axis=0)
+    out = a.astype(np.float32).filled(np.nan).mean(axis=0)
     out[mask] = np.nan
     return out
+
+
+def _zero_is_fill(ds) -> bool:
+    """Whether an integer image's zeros are its fill: it declares no nodata, mask or alpha.
+    Landsat's DN products reserve 0 for fill (outside the scene's footprint, Landsat 7's
+    SLC-off gaps) and many exports drop the tag; a gap's edge would be a dark line, the
+    very thing read as a valley, while true zeros in a natural scene are few."""
+    from rasterio.enums import MaskFlags
+    return (ds.nodata is None and np.issubdtype(np.dtype(ds.dtypes[0]), np.integer)
+            and all(flags == [MaskFlags.all_valid] for flags in ds.mask_flag_enums))
 
 
 def _utm_crs(lon: float, lat: float):
@@ -146,14 +163,51 @@ def _utm_crs(lon: float, lat: float):
     return CRS.from_epsg((32600 if lat >= 0 else 32700) + zone)
 
 
-def _centre_lonlat(crs, transform, shape) -> tuple[float, float]:
+def _lonlat(crs, transform, cols, rows) -> tuple[np.ndarray, np.ndarray]:
+    """Longitudes and latitudes of fractional pixel positions (corner convention)."""
     from pyproj import Transformer
-    x = transform.c + transform.a * shape[1] / 2.0
-    y = transform.f + transform.e * shape[0] / 2.0
+    x, y = transform @ (np.asarray(cols, float), np.asarray(rows, float))
     if crs.is_geographic:
-        return float(x), float(y)
+        return np.asarray(x, float), np.asarray(y, float)
     lon, lat = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(x, y)
+    return np.asarray(lon, float), np.asarray(lat, float)
+
+
+def _centre_lonlat(crs, transform, shape) -> tuple[float, float]:
+    lon, lat = _lonlat(crs, transform, shape[1] / 2.0, shape[0] / 2.0)
     return float(lon), float(lat)
+
+
+def _ground_steps(crs, transform, shape) -> tuple[float, float]:
+    """Ground length (m, on the WGS84 ellipsoid) of one pixel step along the rows and along
+    the columns at the raster's centre."""
+    from pyproj import Geod
+    c, r = shape[1] / 2.0, shape[0] / 2.0
+    lon, lat = _lonlat(crs, transform, [c, c + 1.0, c], [r, r, r + 1.0])
+    geod = Geod(ellps="WGS84")
+    _, _, steps = geod.inv(lon[[0, 0]], lat[[0, 0]], lon[1:], lat[1:])
+    return float(steps[0]), float(steps[1])
+
+
+def _cell_metres(crs, transform, shape) -> float:
+    """Side (m) of the square of a raster cell's area: as its transform says on a metric
+    grid (:func:`_is_metric_grid`), else on the ground at the raster's centre."""
+    if _is_metric_grid(crs, transform, shape):
+        return math.sqrt(abs(transform.a * transform.e))
+    return math.sqrt(math.prod(_ground_steps(crs, transform, shape)))
+
+
+def _is_metric_grid(crs, transform, shape, tolerance: float = 0.01) -> bool:
+    """Whether a raster's grid is north-up with square-metre cells as long on the ground as
+    its transform says (UTM, national transverse Mercators): the study measures the GSD,
+    the render's slopes and the views' scale in the grid's units. Degrees, feet and Web
+    Mercator (1/cos(latitude) too long) are not; such a grid is put on the local UTM zone."""
+    if crs.is_geographic or transform.b or transform.d or transform.a <= 0 \
+            or transform.e >= 0:
+        return False
+    along_row, along_col = _ground_steps(crs, transform, shape)
+    return (abs(along_row / transform.a - 1.0) < tolerance
+            and abs(along_col / -transform.e - 1.0) < tolerance)
 
 
 @contextlib.contextmanager
@@ -174,14 +228,6 @@ def _reproject(src, src_transform, src_crs, dst_shape, dst_transform, dst_crs, r
                   src_nodata=np.nan, dst_transform=dst_transform, dst_crs=dst_crs,
                   dst_nodata=np.nan, resampling=resampling)
     return out
-
-
-def _cell_metres(transform, crs, lat: float) -> float:
-    """Side of a square of a raster cell's area, in metres."""
-    dx, dy = abs(transform.a), abs(transform.e)
-    if crs.is_geographic:
-        dx, dy = dx * 111_320.0 * math.cos(math.radians(lat)), dy * 110_574.0
-    return math.sqrt(dx * dy)
 
 
 def _parse_sun(sun, when, lat: float, lon: float) -> tuple[float, float]:
@@ -220,6 +266,7 @@ def load_scene(image, dem, *, band=None, gsd: float | None = None, sun=None, whe
         Default: the image's file stem.
     """
     import rasterio
+    from rasterio.crs import CRS
     from rasterio.warp import Resampling, calculate_default_transform
 
     image, dem = Path(image), Path(dem)
@@ -230,25 +277,27 @@ def load_scene(image, dem, *, band=None, gsd: float | None = None, sun=None, whe
         with rasterio.open(image) as ds:
             img = _read_band(ds, band)
             transform, crs = ds.transform, ds.crs
-        with rasterio.open(dem) as ds:
-            z_src = ds.read(1, masked=True).astype(np.float32).filled(np.nan)
-            z_transform, z_crs = ds.transform, ds.crs
     except rasterio.errors.RasterioError as err:
         raise ValueError(f"cannot read the scene: {err}") from err
+    # the DEM as the graph's metamap reads it: impossible heights (undeclared nodata) are
+    # voids, and the small voids are filled
+    with open_dem(dem) as d:
+        z_src, _ = fill_voids(d.read())
+        z_transform, z_crs, dem_warning = d.transform, d.crs, d.warning
     if crs is None or z_crs is None:
         raise ValueError(f"{image.name if crs is None else dem.name} has no CRS: the image and "
                          "DEM must be georeferenced to be co-registered")
+    z_crs = CRS.from_wkt(z_crs.to_wkt())
     lon, lat = _centre_lonlat(crs, transform, img.shape)
-    if crs.is_geographic:
+    if not _is_metric_grid(crs, transform, img.shape):
         utm = _utm_crs(lon, lat)
         h, w = img.shape
-        bounds = (transform.c, transform.f + transform.e * h, transform.c + transform.a * w,
-                  transform.f)   # west, south, east, north
-        # the image's own cell in metres, unless a GSD is asked for
-        cell = gsd or abs(transform.e) * 111_320.0
+        xs, ys = transform @ (np.array([0, w, 0, w]), np.array([0, 0, h, h]))
+        # the image's own ground cell, unless a GSD is asked for
+        cell = gsd or _cell_metres(crs, transform, img.shape)
         with _rasterio_quiet():
-            dst_transform, w, h = calculate_default_transform(crs, utm, w, h, *bounds,
-                                                              resolution=cell)
+            dst_transform, w, h = calculate_default_transform(
+                crs, utm, w, h, xs.min(), ys.min(), xs.max(), ys.max(), resolution=cell)
         img = _reproject(img, transform, crs, (h, w), dst_transform, utm, Resampling.bilinear)
         transform, crs = dst_transform, utm
     native = abs(transform.a)
@@ -269,10 +318,13 @@ def load_scene(image, dem, *, band=None, gsd: float | None = None, sun=None, whe
                          "of the image: are they of the same place?")
     lo, hi = np.percentile(img[valid], [1.0, 99.0])
     grey = np.where(valid, np.clip((img - lo) / max(hi - lo, 1e-6) * 255.0, 0, 255), 0)
-    elevation = np.where(np.isfinite(z), z, np.nanmedian(z)).astype(np.float32)
+    # the DEM's large voids and the land beyond it: inpainted smooth, so the render makes no
+    # cliffs there (no creases), and never observed
+    elevation = fill_voids(z, max_area=z.size, fill_border=True)[0]
     return Scene(name or image.stem, grey.astype(np.uint8), valid, elevation, gsd,
                  _parse_sun(sun, when, lat, lon), (lat, lon), place=str(dem.resolve()),
-                 dem_cell=_cell_metres(z_transform, z_crs, lat))
+                 dem_cell=_cell_metres(z_crs, z_transform, z_src.shape),
+                 dem_warning=dem_warning)
 
 
 def load_scenes(path, data_dir=None) -> list[Scene]:
