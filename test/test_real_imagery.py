@@ -113,6 +113,11 @@ def test_a_dem_s_undeclared_voids_are_voids_not_pits(tmp_path):
     assert scene.valid[18:26, 118:126].all()
     intact = z[z > -1000]
     assert intact.min() - 1.0 < scene.elevation.min() and scene.elevation.max() < intact.max() + 1.0
+    summary = run_real_imagery_study([scene], sizes=(64,), cases=2, headings=("unknown",),
+                                     baselines=(), controls_per_case=0,
+                                     out_dir=tmp_path / "study", log=lambda *a: None)
+    assert "impossible on Earth" in summary["setup"]["scenes"][0]["dem_warning"]
+    assert "DEM warnings" in (tmp_path / "study" / "report.md").read_text()
 
 
 def test_an_integer_image_s_undeclared_zeros_are_fill(tmp_path):

@@ -630,7 +630,8 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
         "setup": {"scenes": [{"name": s.name, "shape": list(s.image.shape), "gsd_m": s.gsd,
                               "dem_cell_m": s.dem_cell,
                               "sun": list(s.sun), "centre_latlon": list(s.centre_latlon),
-                              "valid": float(s.valid.mean())} for s in scenes],
+                              "valid": float(s.valid.mean()),
+                              "dem_warning": s.dem_warning} for s in scenes],
                   "sizes": list(sizes), "cases": cases, "seed": seed,
                   "region_factor": region_factor, "success_px": success_px,
                   "threshold": thr, "false_match_rate": false_match_rate,
@@ -832,6 +833,10 @@ def _report(summary: dict, pngs: list[str]) -> str:
         lines.append(f"| {s['name']} | {s['gsd_m']:g} | {s['dem_cell_m']:.0f} | "
                      f"{st['match_gsd_m'][s['name']]:.0f} | {s['shape'][1]}x{s['shape'][0]} | "
                      f"{s['sun'][0]:.1f} / {s['sun'][1]:.1f} | {100 * s['valid']:.0f} % |")
+    dem_notes = [f"- {s['name']}: {s['dem_warning']}" for s in st["scenes"]
+                 if s.get("dem_warning")]
+    if dem_notes:
+        lines += ["", "DEM warnings:", ""] + dem_notes
     head = "| scene | view px | heading | cases | " + " | ".join(
         f"{m} ok / wrong / ms" for m in methods) + " | minutiae: too little drainage |"
     lines += ["", "## Localisation", "", head, "|" + "---|" * (5 + len(methods))]
