@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Fault cases through the real commands (issue 22): prints a GOOD / POOR / BAD table.
 
-Each case makes one bad input (a DEM, a bag, an option, a parameter, an IMU stamp), feeds
+Each case makes one bad input (a DEM, an image, a bag, an option, a parameter, an IMU stamp), feeds
 it to the real ``terrain-nav`` command, node executable or EKF core and judges the answer:
 
 * GOOD: the expected clear answer (exit status, one line naming the fault, no traceback) in
@@ -173,6 +173,26 @@ def nodata_geotiff(path: Path) -> Path:
     return path
 
 
+def scene_image(path: Path, dem: Path, *, crs: str | None = "EPSG:32611",
+                east: float = 0.0) -> Path:
+    """A uint8 image of ``dem`` (a :func:`relief_geotiff`): its hillshade, in ``crs`` (None:
+    none), moved ``east`` metres."""
+    import numpy as np
+    import rasterio
+    from affine import Affine
+
+    from terrain_nav_ros.core.features.hillshade import hillshade
+
+    with rasterio.open(dem) as ds:
+        z = np.nan_to_num(ds.read(1).astype(np.float32).clip(0, 9000))
+    grey = (hillshade(z, 160.0, 40.0, gsd=30.0) * 200.0 + 20.0).astype(np.uint8)
+    with rasterio.open(path, "w", driver="GTiff", width=128, height=128, count=1,
+                       dtype="uint8", crs=crs, nodata=255,
+                       transform=Affine(30, 0, 4e5 + east, 0, -30, 3.8e6)) as ds:
+        ds.write(grey, 1)
+    return path
+
+
 def corrupt_header(path: Path) -> Path:
     data = bytearray(path.read_bytes())
     data[8:200] = bytes((i * 37) % 256 for i in range(192))
@@ -238,6 +258,19 @@ def _bag_info(change, *words) -> Callable:
 def _replay(make_bag_dir: Callable[[Path], Path], extra: tuple, *words) -> Callable:
     return lambda tmp: judge(terrain_nav("replay", "--bag", make_bag_dir(tmp), "--out",
                                          tmp / "replay", *extra), 2, words)
+
+
+def _evaluate(image: Callable[[Path, Path], Path], dem: Callable[[Path], Path], expect: int,
+              *words, stream: str = "stderr") -> Callable:
+    """``evaluate --image`` of a scene made by ``image(tmp, dem_path)`` and ``dem(tmp)``."""
+    def run(tmp: Path):
+        dem_path = dem(tmp)
+        return judge(terrain_nav("evaluate", "--image", image(tmp, dem_path), "--dem", dem_path,
+                                 "--sun", "160,40", "--sizes", 32, "--cases", 2, "--controls",
+                                 0, "--no-baselines", "--heading", "unknown", "--out",
+                                 tmp / "study"), expect, words, timeout=120, stream=stream,
+                     one_line=expect != 0)
+    return run
 
 
 def _node_params(yaml_text: str, *words, node: str = "ekf") -> Callable:
@@ -315,6 +348,20 @@ def cases() -> list[Case]:
         Case("DEM across the antimeridian (179.5..180.5)", "dem", _simulate_ok(
             lambda t: antimeridian_geotiff(t / "am.tif"),
             ("--start-time", "2024-06-21T00:00:00Z"), "stdout", "wrote")),
+        Case("evaluate: image and DEM of different places", "imagery", _evaluate(
+            lambda t, d: scene_image(t / "far.tif", d, east=50_000.0),
+            lambda t: relief_geotiff(t / "dem.tif"), 2, "are they of the same place?")),
+        Case("evaluate: image without a CRS", "imagery", _evaluate(
+            lambda t, d: scene_image(t / "nocrs.tif", d, crs=None),
+            lambda t: relief_geotiff(t / "dem.tif"), 2, "has no CRS")),
+        Case("evaluate: DEM pixels overwritten with -1e30", "imagery", _evaluate(
+            lambda t, d: scene_image(t / "image.tif", d),
+            lambda t: relief_geotiff(t / "garbage.tif", -1e30), 2, "impossible on Earth"),
+             ci=True),
+        Case("evaluate: DEM with undeclared -32768 voids", "imagery", _evaluate(
+            lambda t, d: scene_image(t / "image.tif", d),
+            lambda t: relief_geotiff(t / "voids.tif", -32768.0, slice(4000, 4400)), 0,
+            "warning", "400 of 16384 heights", "read as voids")),
         Case("bag cut to 50 %", "bag", _bag_info(cut_half, "cut short"), ci=True),
         Case("bag with corrupted bytes", "bag", _bag_info(corrupt_chunk, "corrupt data")),
         Case("bag without metadata.yaml", "bag", _bag_info(None, "metadata.yaml")),

@@ -213,6 +213,9 @@ def _cmd_evaluate_imagery(args) -> int:
             gsd = None if args.gsd in (None, "native") else float(args.gsd)
             scenes = [load_scene(args.image, args.dem, band=args.band, gsd=gsd, sun=sun,
                                  when=args.time)]
+        for scene in scenes:
+            if scene.dem_warning:
+                print(f"terrain-nav evaluate: warning: {scene.dem_warning}", file=sys.stderr)
         sizes = tuple(int(x) for x in args.sizes.split(","))
         if min(sizes) < 16 or args.cases < 1 or args.controls < 0:
             raise ValueError("--sizes must be >= 16 px, --cases >= 1 and --controls >= 0")

@@ -804,7 +804,8 @@ def _score_histogram(out: Path, rows, non: np.ndarray, thr: float, success_px: f
     ax.axvline(thr, color="k", ls="--", lw=1, label=f"threshold {thr:g}")
     ax.set_xlabel("score")
     ax.set_ylabel("count")
-    ax.set_yscale("log")
+    if finite:   # (a log axis of no counts warns)
+        ax.set_yscale("log")
     ax.legend(fontsize=8)
     return save_figure(fig, out / "scores.png")
 
