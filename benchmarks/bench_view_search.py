@@ -17,7 +17,10 @@ view's side around its true place. Prints per scene and size (no assertions):
   over rotations x scales, with the query's rasters), and the crease ICP;
 * the landmark region's preparation (``prepare_as_reference(search=True)``: once per region,
   it serves many frames), reported apart;
-* non-PVA controls: the same views against regions of other places.
+* non-PVA controls: the same views against regions of other places;
+* with ``--truth``, the views lost at 8.6 split by what lost them: the search (the view
+  scores at least 8.6 at its true transform, :meth:`~.core.matching.matcher.Matcher.score_at`)
+  or its evidence (it does not).
 
 With ``--repeat N`` each view is extracted and localised N times and the fastest run kept
 (the load of other jobs on a shared host only adds time).
@@ -94,7 +97,7 @@ def _instrument():
 
 def _localise(matcher, extractor, scene, case, region_index):
     """One localisation: (error in matching px, as the study counts it; score; times by
-    part; the view's index)."""
+    part; the view's index and its pixel size in scene px)."""
     _PARTS.clear()
     clock = _CLOCK[0]
     t0 = clock()
@@ -108,7 +111,7 @@ def _localise(matcher, extractor, scene, case, region_index):
     parts = {"extract": t1 - t0, "search": _PARTS["search"], "icp": _PARTS["icp"]}
     parts["votes+score"] = (t2 - t1) - parts["search"] - parts["icp"]
     parts["total"] = t2 - t0
-    return err, float(r.score), parts, view
+    return err, float(r.score), parts, (view, f_view)
 
 
 def main():
@@ -120,6 +123,8 @@ def main():
     ap.add_argument("--cases", type=int, default=8)
     ap.add_argument("--controls", type=int, default=1, help="other-place regions per view")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--truth", action="store_true",
+                    help="score each lost view at its true transform too")
     ap.add_argument("--profile", default="")
     ap.add_argument("--verbose", action="store_true", help="one line per view")
     ap.add_argument("--wall", action="store_true", help="wall time, not CPU time")
@@ -164,11 +169,17 @@ def main():
                     prof.enable()
                 runs = [_localise(matcher, extractor, scene, case, region)
                         for _ in range(args.repeat)]
-                err, score, parts, view = min(runs, key=lambda r: r[2]["total"])
+                err, score, parts, (view, f_view) = min(runs, key=lambda r: r[2]["total"])
                 if prof:
                     prof.disable()
                 rec["err"].append(err)
                 rec["score"].append(score)
+                lost = not (score >= GRAPH_THRESHOLD and err <= 3.0)
+                if args.truth and lost:
+                    at_truth = matcher.score_at(view, region[0],
+                                                case.true_transform(f_view, region[1])).score
+                    rec["lost_search" if at_truth >= GRAPH_THRESHOLD
+                        else "lost_evidence"].append(at_truth)
                 for key, v in parts.items():
                     rec[key].append(v)
                 if args.verbose:
@@ -182,6 +193,13 @@ def main():
                     ref, _ = extractor.region_index(matcher, other,
                                                     oc[(k + j) % len(oc)].region)
                     rec["control"].append(float(matcher.localise(view, ref).score))
+            if args.truth:
+                totals[size]["lost_search"] += len(rec["lost_search"])
+                totals[size]["lost_evidence"] += len(rec["lost_evidence"])
+                print(f"    {scene.name} {size}: lost by the search {len(rec['lost_search'])},"
+                      f" by the evidence {len(rec['lost_evidence'])} (scores at the truth "
+                      + ", ".join(f"{x:.1f}" for x in sorted(rec["lost_search"]
+                                                          + rec["lost_evidence"])) + ")")
             err, score = np.array(rec["err"]), np.array(rec["score"])
             line = [scene.name, size]
             for thr in (GRAPH_THRESHOLD, STUDY_THRESHOLD):
@@ -213,7 +231,9 @@ def main():
               f"({t[(size, STUDY_THRESHOLD)]['wrong']} wrong); median "
               f"{1e3 * np.median(all_times[size]):.0f} ms; controls "
               f"{t[size]['controls']}, accepted at 5.0 {t[size]['ctl_accepted']}, "
-              f"max {t[size]['ctl_max']:.2f}")
+              f"max {t[size]['ctl_max']:.2f}"
+              + (f"; lost by the search {t[size]['lost_search']}, by the evidence "
+                 f"{t[size]['lost_evidence']}" if args.truth else ""))
     if prof:
         prof.dump_stats(args.profile)
         print(f"profile: {args.profile}")

@@ -314,7 +314,7 @@ def _localise_view(scene, m, size: int, region_scene=None, box=None) -> dict:
     view, valid = ri.view_at(scene, m, size)
     centre = m[:, :2] @ np.full(2, 0.5 * (size - 1)) + m[:, 2]
     h, w = region_scene.image.shape
-    case = ri._Case(view, box or (0, 0, w, h), centre, valid)
+    case = ri._Case(view, box or (0, 0, w, h), centre, valid, m)
     params = MatchParams()
     matcher = Matcher(params, threshold=-1e9)
     extractor = ri._Extractor(params, "dem")
@@ -394,3 +394,37 @@ def test_parallel_ridges_aligned_where_the_valleys_are_do_not_count_twice(shared
     assert valleys.fraction > 3 * valleys.chance and ridges.fraction > 3 * ridges.chance
     given = conditioned_on(ridges, valleys)
     assert given.dependence > 0.2 and given.score < 0.5 * ridges.score
+
+
+def test_a_view_scored_at_its_true_place_shows_the_evidence_it_holds(shared_data):
+    """``Matcher.score_at`` scores the view's true transform as the search would have: for
+    a view the search localises, about its answer; a quarter turn off, nothing."""
+    import math
+
+    from terrain_nav_ros.core.matching.matcher import Matcher
+    from terrain_nav_ros.core.matching.params import MatchParams
+    from terrain_nav_ros.tools import real_imagery as ri
+
+    scene = load_scene(shared_data / "imagery" / "athabasca_hls_l30_20200816.tif",
+                       shared_data / "imagery" / "athabasca_dem30m_utm11.tif",
+                       band=4, when="2020-08-16T18:50:00Z")
+    ri.render_landmark([scene])
+    rng = np.random.default_rng(3)
+    case = ri._cut_cases(scene, 128, 1, False, 3.0, rng)[0]
+    params = MatchParams()
+    matcher, extractor = Matcher(params, threshold=-1e9), ri._Extractor(params, "dem")
+    view, f_view = extractor.index(matcher, case.view, scene, valid=case.valid)
+    region, f_region = extractor.region_index(matcher, scene, case.region)
+    truth = case.true_transform(f_view, f_region)
+    centre = 0.5 * (np.array(case.view.shape[::-1]) - 1.0)
+    assert np.allclose(truth @ [*centre, 1.0], case.truth)
+    found = matcher.localise(view, region)
+    assert ri.view_error(found, case, f_view, f_region) < 3.0
+    at_truth = matcher.score_at(view, region, truth)
+    assert np.allclose(at_truth.apply(*centre), case.truth, atol=3.0)
+    assert abs(at_truth.score - found.score) < 3.0
+    quarter = np.array([[0.0, 1.0], [-1.0, 0.0]])     # a quarter turn about the centre
+    turned = np.column_stack([truth[:, :2] @ quarter,
+                              truth @ [*centre, 1.0] - truth[:, :2] @ quarter @ centre])
+    assert matcher.score_at(view, region, turned).score < found.score - 10.0
+    assert math.isfinite(at_truth.score)

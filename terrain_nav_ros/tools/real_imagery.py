@@ -365,6 +365,16 @@ class _Case:
     region: tuple[int, int, int, int]  # x0, y0, x1, y1 in the scene
     truth: np.ndarray                 # the view's centre in region pixels (col, row)
     valid: np.ndarray | None = None   # the view's observed pixels (nodata, cloud masks)
+    cut: np.ndarray | None = None     # 2 x 3: view px -> scene px (:func:`view_at`)
+
+    def true_transform(self, f_view, f_region) -> np.ndarray:
+        """The view's true place as a matcher's transform (2 x 3, view px -> region px, at
+        the matching pixels: ``f_view`` and ``f_region`` scene px each, per axis)."""
+        fv, fr = np.broadcast_to(f_view, 2), np.broadcast_to(f_region, 2)
+        rot = self.cut[:, :2] * fv[None, :] / fr[:, None]
+        shift = (self.cut[:, :2] @ (0.5 * fv - 0.5) + self.cut[:, 2]
+                 - np.asarray(self.region[:2], float) + 0.5) / fr - 0.5
+        return np.column_stack([rot, shift])
 
 
 def _cut_cases(scene: Scene, size: int, n: int, heading_known: bool, region_factor: float,
@@ -395,7 +405,7 @@ def _cut_cases(scene: Scene, size: int, n: int, heading_known: bool, region_fact
             continue
         x0, y0 = max(int(cx) - half, 0), max(int(cy) - half, 0)
         x1, y1 = min(int(cx) + half, w), min(int(cy) + half, h)
-        cases.append(_Case(view, (x0, y0, x1, y1), np.array([cx - x0, cy - y0]), valid))
+        cases.append(_Case(view, (x0, y0, x1, y1), np.array([cx - x0, cy - y0]), valid, m))
     return cases
 
 

@@ -73,7 +73,7 @@ from .crease_proposals import (
     _searches_creases,
     _view_search_level,
 )
-from .crease_search import COARSE, SearchLevel
+from .crease_search import COARSE, FINE, SearchLevel
 from .index import MinutiaIndex, _as_index, _generator
 from .params import MatchParams
 from .proposals import _hash_votes, _root_votes, _Votes
@@ -376,6 +376,38 @@ class Matcher:
             return MatchResult(Decision.NO_DECISION, n_b=b.n,
                                reason=f"no camera minutiae: {a.set.reason}")
         return self._match(a, b, max(b.area, 1.0), localising=True)
+
+    def score_at(self, camera, landmark, transform) -> MatchResult:
+        """What :meth:`localise` would answer had its crease search proposed ``transform``
+        alone: the transform moved onto the landmark's creases by the fine ICP and scored
+        as a searched registration, paying for every transform the search covers.
+
+        A diagnostic: the evidence a view holds at a place (its true one), apart from
+        whether the search finds it. A view lost although it scores above the threshold
+        here is lost by the search; one below it, by its evidence.
+
+        Parameters
+        ----------
+        camera, landmark : MinutiaSet or MinutiaIndex
+            With creases (the crease search's input).
+        transform : array_like, shape (2, 3)
+            Camera px -> landmark px, of the form of :attr:`MatchResult.transform`.
+        """
+        p = self.params
+        a = _as_index(camera, p)
+        b = _as_index(landmark, p)
+        base = MatchResult(Decision.NO_DECISION, n_a=a.n, n_b=b.n)
+        if a.crease_image is None or b.crease_image is None or not len(a.crease_samples):
+            base.reason = "no creases to score"
+            return base
+        m = np.asarray(transform, float)
+        c, t = complex(m[0, 0], m[0, 1]), complex(m[0, 2], -m[1, 2])
+        _, trials = _crease_search_registrations(a, b, p, None, p.search_scale,
+                                                 p.view_search_background)
+        moved = _registered(a, b, p, [(c, t, 0.0)], FINE, p.search_scale)
+        search_area = max(b.area, 1.0)
+        best, scored = _best_registration(a, b, [], search_area, p, True, moved, trials)
+        return self._result(a, b, base, best, scored, True, search_area)
 
     def _match(self, a: MinutiaIndex, b: MinutiaIndex, search_area: float,
                localising: bool) -> MatchResult:
