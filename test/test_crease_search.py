@@ -649,7 +649,6 @@ def test_the_fine_level_ranks_a_coarse_search_s_candidates(region):
     each is searched again at the fine level, though it came last; places far from the
     view's are not kept twice."""
     from terrain_nav_ros.core.matching.crease_proposals import _finer_proposals
-    from terrain_nav_ros.core.matching.crease_search import COARSE, FINE
 
     ms, skel = region
     view_ms, view_skel, truth = _turned_view(ms, skel, 330, 90, -17.0, (4.0, 2.0))
@@ -660,8 +659,7 @@ def test_the_fine_level_ranks_a_coarse_search_s_candidates(region):
     chance = [(np.exp(1j * rng.uniform(-np.pi, np.pi)),
                complex(rng.uniform(50, 450), -rng.uniform(50, 450)), 100.0) for _ in range(20)]
     near = (*_coarse_miss(truth_in_region, 0.08, complex(-3.0, 2.5)), 1.0)
-    rotations, scales = a.crease_search_transforms(math.pi, FINE, 0.1)
-    found = _finer_proposals(a, b, chance + [near], COARSE, rotations, scales, 3.0, 3)
+    found = _finer_proposals(a, b, matcher.params, chance + [near], 0.1, 3.0, 3)
     assert len(found) == 3
     # on the fine level's grid (2 px): the crease ICP takes it from there
     assert _centre_error(found[0][:2], truth_in_region) < 2.5

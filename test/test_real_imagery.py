@@ -428,3 +428,19 @@ def test_a_view_scored_at_its_true_place_shows_the_evidence_it_holds(shared_data
                               truth @ [*centre, 1.0] - truth[:, :2] @ quarter @ centre])
     assert matcher.score_at(view, region, turned).score < found.score - 10.0
     assert math.isfinite(at_truth.score)
+
+
+def test_a_large_view_between_two_of_the_coarser_level_s_scales_is_found(shared_data):
+    """A 256 px view of PA November at 30 m, 3.5 % smaller than the view search's nearest
+    scale at its coarser level (8 % apart): from there the coarse-to-fine ICP drifted along
+    the parallel creases to a scale 5 % off (8.5, 2.8 px off); placed at the coarse level
+    first, the proposal reaches its truth (77)."""
+    from terrain_nav_ros.tools.cli import _graph_threshold
+
+    scene = load_scene(shared_data / "imagery" / "pa_ridgevalley_l7_20021125.tif",
+                       shared_data / "imagery" / "pa_ridgevalley_dem30m_utm18.tif",
+                       band=4, sun=(159.5, 26.2))
+    # view px -> scene px (the view-search bench's case, seed 0)
+    m = np.array([[0.0222, -0.965, 272.4367], [0.965, 0.0222, 6.8043]])
+    result = _localise_view(scene, m, 256)
+    assert result["err"] < 1.0 and result["score"] > _graph_threshold() + 30.0

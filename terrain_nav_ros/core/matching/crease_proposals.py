@@ -107,9 +107,8 @@ def _fine_level_registrations(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams,
                               background: float) -> list:
     """A COARSE search's candidates (``found``) ranked again at the fine level
     (:func:`_finer_proposals`), the best moved onto B's creases by the fine ICP."""
-    rotations, scales = a.crease_search_transforms(p.max_rotation, FINE, scale_change)
-    proposals = _finer_proposals(a, b, found.proposals, COARSE, rotations, scales,
-                                 background, _n_proposals(COARSE, p))
+    proposals = _finer_proposals(a, b, p, found.proposals, scale_change, background,
+                                 _n_proposals(COARSE, p))
     return _registered(a, b, p, proposals, FINE, scale_change)
 
 
@@ -142,27 +141,38 @@ def _registered(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, proposals,
     return out
 
 
-def _finer_proposals(a: MinutiaIndex, b: MinutiaIndex, proposals, level: SearchLevel,
-                     fine_rotations, fine_scales, background: float, n_best: int):
-    """A coarse search's ``n_best`` proposals: its candidates searched again near their
-    place at the fine level (:func:`~.crease_search.local_peaks`), the most hits first,
-    one per place.
+def _finer_proposals(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, proposals,
+                     scale_change: float, background: float, n_best: int):
+    """A COARSE search's ``n_best`` proposals: its candidates searched again near their
+    place at the fine level (:func:`placed_finer`), the most hits first, one per place.
 
     Every candidate over the fine rotations and scales next to its own and the shifts
     within half a coarse cell, then the best few again around their best, within a fine
-    pixel (the two steps reach two fine steps of rotation and scale off). A large query's
-    samples are thinned to a few hundred, evenly along its creases; the background keeps
-    its extent in image pixels.
+    pixel (the two steps reach two fine steps of rotation and scale off).
     """
-    reference = b.crease_search(FINE, background * FINE.resolution / level.resolution)
+    placed = placed_finer(a, b, p, proposals, COARSE, FINE, scale_change, background)
+    best = _strongest_distinct(a, placed, _FINE_RECHECKED * n_best)
+    return _strongest_distinct(a, placed_finer(a, b, p, best, COARSE, FINE, scale_change,
+                                               background, span=1), n_best)
+
+
+def placed_finer(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, proposals,
+                 level: SearchLevel, finer: SearchLevel, scale_change: float,
+                 background: float, span: int | None = None) -> list:
+    """Each of the proposals of a search at ``level`` at the best transform near it at the
+    ``finer`` level (:func:`~.crease_search.local_peaks`): the finer level's rotations and
+    scales next to its own, at the shifts within half of ``level``'s cell (or within
+    ``span`` of the finer level's pixels). A large query's samples are thinned to a few
+    hundred, evenly along its creases; the background (in ``level``'s pixels, as the
+    search's) keeps its extent in image pixels."""
+    rotations, scales = a.crease_search_transforms(p.max_rotation, finer, scale_change)
     stride = math.ceil(len(a.crease_samples) / _FINE_LEVEL_SAMPLES)
     samples = a.crease_samples_strided(stride) if stride > 1 else a.crease_samples
-    rotation_step, scale_step = _step(fine_rotations), _step(fine_scales)
-    span = int(math.ceil(0.5 * level.rotation_tolerance * FINE.resolution))
-    placed = local_peaks(samples, reference, proposals, rotation_step, scale_step, span=span)
-    best = _strongest_distinct(a, placed, _FINE_RECHECKED * n_best)
-    return _strongest_distinct(
-        a, local_peaks(samples, reference, best, rotation_step, scale_step, span=1), n_best)
+    reference = b.crease_search(finer, background * finer.resolution / level.resolution)
+    if span is None:
+        span = int(math.ceil(0.5 * level.rotation_tolerance * finer.resolution))
+    return local_peaks(samples, reference, proposals, _step(rotations), _step(scales),
+                       span=span)
 
 
 # Candidates per proposal that the fine level's second step searches again.

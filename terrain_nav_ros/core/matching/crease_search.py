@@ -32,8 +32,9 @@ blurs each peak over its cell, too coarsely to rank them: its strongest few doze
 searched again near their place at the fine level (:func:`local_peaks`, the next level of
 a pyramid: the rotations, scales and shifts of the fine grid within the coarse cell, by
 direct look-ups of the fine reference, a few milliseconds for all), and the proposals are
-those with the most hits there. The coarser level's proposals (large views) instead go to
-the coarse-to-fine ICP of the matcher.
+those with the most hits there. The coarser level's proposals (large views) are placed
+at the coarse level likewise, one step of the pyramid, and go on to the coarse-to-fine ICP
+of the matcher.
 
 Geometry in the math frame ``z = col - 1j*row`` of :mod:`.descriptors`; ``z_b = c z_a + t``.
 """
