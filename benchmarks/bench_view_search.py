@@ -20,7 +20,8 @@ view's side around its true place. Prints per scene and size (no assertions):
 * non-PVA controls: the same views against regions of other places;
 * with ``--truth``, the views lost at 8.6 split by what lost them: the search (the view
   scores at least 8.6 at its true transform, :meth:`~.core.matching.matcher.Matcher.score_at`)
-  or its evidence (it does not).
+  or its evidence (it does not), apart from those with no creases to score (too little
+  drainage, a no-fix counted apart).
 
 With ``--repeat N`` each view is extracted and localised N times and the fastest run kept
 (the load of other jobs on a shared host only adds time).
@@ -178,8 +179,9 @@ def main():
                 if args.truth and lost:
                     at_truth = matcher.score_at(view, region[0],
                                                 case.true_transform(f_view, region[1])).score
-                    rec["lost_search" if at_truth >= GRAPH_THRESHOLD
-                        else "lost_evidence"].append(at_truth)
+                    # no creases to score: a no-fix for too little drainage, counted apart
+                    rec["lost_search" if at_truth >= GRAPH_THRESHOLD else "lost_evidence"
+                        if math.isfinite(at_truth) else "lost_no_creases"].append(at_truth)
                 for key, v in parts.items():
                     rec[key].append(v)
                 if args.verbose:
@@ -196,8 +198,10 @@ def main():
             if args.truth:
                 totals[size]["lost_search"] += len(rec["lost_search"])
                 totals[size]["lost_evidence"] += len(rec["lost_evidence"])
+                totals[size]["lost_no_creases"] += len(rec["lost_no_creases"])
                 print(f"    {scene.name} {size}: lost by the search {len(rec['lost_search'])},"
-                      f" by the evidence {len(rec['lost_evidence'])} (scores at the truth "
+                      f" by the evidence {len(rec['lost_evidence'])}, no creases "
+                      f"{len(rec['lost_no_creases'])} (scores at the truth "
                       + ", ".join(f"{x:.1f}" for x in sorted(rec["lost_search"]
                                                           + rec["lost_evidence"])) + ")")
             err, score = np.array(rec["err"]), np.array(rec["score"])
@@ -233,7 +237,8 @@ def main():
               f"{t[size]['controls']}, accepted at 5.0 {t[size]['ctl_accepted']}, "
               f"max {t[size]['ctl_max']:.2f}"
               + (f"; lost by the search {t[size]['lost_search']}, by the evidence "
-                 f"{t[size]['lost_evidence']}" if args.truth else ""))
+                 f"{t[size]['lost_evidence']}, no creases {t[size]['lost_no_creases']}"
+                 if args.truth else ""))
     if prof:
         prof.dump_stats(args.profile)
         print(f"profile: {args.profile}")
