@@ -120,10 +120,11 @@ def test_a_dem_s_undeclared_voids_are_voids_not_pits(tmp_path):
     assert "DEM warnings" in (tmp_path / "study" / "report.md").read_text()
 
 
-def test_an_integer_image_s_undeclared_zeros_are_fill(tmp_path):
+def test_an_image_s_undeclared_zeros_are_fill(tmp_path):
     """Landsat 7's SLC-off gaps and a footprint's edge are DN 0 in products that often
-    declare no nodata; a gap's edge would be read as a valley. Zeros of an integer image
-    without a nodata value, mask or alpha are nodata; a declared nodata value keeps them."""
+    declare no nodata; a gap's edge would be read as a valley. Zeros of an image without a
+    nodata value, mask or alpha are nodata (a GDAL warp's float border too); a declared
+    nodata value keeps them."""
     import rasterio
 
     image, dem = _write_pair(tmp_path, geographic=False)
@@ -143,6 +144,12 @@ def test_an_integer_image_s_undeclared_zeros_are_fill(tmp_path):
     with rasterio.open(image, "r+") as ds:
         ds.nodata = 255               # declared: its zeros are data
     assert load_scene(image, dem, sun=(150.0, 40.0)).valid[gaps].all()
+    warped = np.where(gaps, 0.0, grey).astype(np.float32)
+    profile.update(dtype="float32", nodata=None)
+    with rasterio.open(image, "w", **profile) as ds:
+        ds.write(warped, 1)
+    scene = load_scene(image, dem, sun=(150.0, 40.0))
+    assert not scene.valid[gaps].any() and scene.valid[~gaps].mean() > 0.99
 
 
 def test_a_study_gsd_resamples_both(tmp_path):

@@ -9,7 +9,7 @@ landmark render of a co-registered DEM, lit by the image's sun, the way the grap
    heights are voids, small voids filled), is reprojected onto the image's grid (both onto
    the local UTM zone first when the image's grid is not in metres on the ground: degrees,
    feet, Web Mercator), then both are resampled to the study GSD. Nodata and cloud-masked
-   pixels (the image's nodata value; an integer image's zeros when it declares none) and
+   pixels (the image's nodata value; its zeros when it declares none) and
    pixels over the DEM's large voids are invalid. A scene
    finer than its DEM's cell is matched at that cell (views and regions area averaged):
    the render holds no terrain finer, and the camera's albedo detail (fields, roads, tree
@@ -148,13 +148,14 @@ def _read_band(ds, band) -> np.ndarray:
 
 
 def _zero_is_fill(ds) -> bool:
-    """Whether an integer image's zeros are its fill: it declares no nodata, mask or alpha.
-    Landsat's DN products reserve 0 for fill (outside the scene's footprint, Landsat 7's
-    SLC-off gaps) and many exports drop the tag; a gap's edge would be a dark line, the
-    very thing read as a valley, while true zeros in a natural scene are few."""
+    """Whether an image's zeros (in every band read) are its fill: it declares no nodata,
+    mask or alpha. Landsat's DN products reserve 0 for fill (outside the scene's footprint,
+    Landsat 7's SLC-off gaps), GDAL's warps fill with 0 unless told otherwise, and many
+    exports drop the tag; a gap's edge would be a dark line, the very thing read as a
+    valley, while exact zeros in a natural scene are few."""
     from rasterio.enums import MaskFlags
-    return (ds.nodata is None and np.issubdtype(np.dtype(ds.dtypes[0]), np.integer)
-            and all(flags == [MaskFlags.all_valid] for flags in ds.mask_flag_enums))
+    return ds.nodata is None and all(flags == [MaskFlags.all_valid]
+                                     for flags in ds.mask_flag_enums)
 
 
 def _utm_crs(lon: float, lat: float):
