@@ -144,21 +144,21 @@ def _registered(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, proposals,
 def _finer_proposals(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, proposals,
                      scale_change: float, background: float, n_best: int):
     """A COARSE search's ``n_best`` proposals: its candidates searched again near their
-    place at the fine level (:func:`placed_finer`), the most hits first, one per place.
+    place at the fine level (:func:`_placed_finer`), the most hits first, one per place.
 
     Every candidate over the fine rotations and scales next to its own and the shifts
     within half a coarse cell, then the best few again around their best, within a fine
     pixel (the two steps reach two fine steps of rotation and scale off).
     """
-    placed = placed_finer(a, b, p, proposals, COARSE, FINE, scale_change, background)
+    placed = _placed_finer(a, b, p, proposals, COARSE, FINE, scale_change, background)
     best = _strongest_distinct(a, placed, _FINE_RECHECKED * n_best)
-    return _strongest_distinct(a, placed_finer(a, b, p, best, COARSE, FINE, scale_change,
-                                               background, span=1), n_best)
+    return _strongest_distinct(a, _placed_finer(a, b, p, best, COARSE, FINE, scale_change,
+                                                background, span=1), n_best)
 
 
-def placed_finer(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, proposals,
-                 level: SearchLevel, finer: SearchLevel, scale_change: float,
-                 background: float, span: int | None = None) -> list:
+def _placed_finer(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, proposals,
+                  level: SearchLevel, finer: SearchLevel, scale_change: float,
+                  background: float, span: int | None = None) -> list:
     """Each of the proposals of a search at ``level`` at the best transform near it at the
     ``finer`` level (:func:`~.crease_search.local_peaks`): the finer level's rotations and
     scales next to its own, at the shifts within half of ``level``'s cell (or within

@@ -68,11 +68,11 @@ from .crease_proposals import (
     _crease_search_registrations,
     _fine_level_registrations,
     _n_proposals,
+    _placed_finer,
     _registered,
     _same_transform,
     _searches_creases,
     _view_search_level,
-    placed_finer,
 )
 from .crease_search import COARSE, COARSER, FINE, SearchLevel
 from .index import MinutiaIndex, _as_index, _generator
@@ -293,8 +293,8 @@ def _view_try(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, level: SearchLev
         # placed at the coarse level first (~1 ms): a proposal between two of the coarser
         # level's scales (8 % apart) can lead the ICP to a scale a few percent off along
         # parallel creases (a 256 px view: 8.5 there, 77 at its truth)
-        proposals = placed_finer(a, b, p, proposals, COARSER, COARSE, p.search_scale,
-                                 p.view_search_background)
+        proposals = _placed_finer(a, b, p, proposals, COARSER, COARSE, p.search_scale,
+                                  p.view_search_background)
     searched = _registered(a, b, p, proposals, level, p.search_scale)
     view, view_scored = _best_registration(a, b, [], search_area, p, True, searched,
                                            found.log10_transforms)
