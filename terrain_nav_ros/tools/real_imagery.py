@@ -9,11 +9,10 @@ landmark render of a co-registered DEM, lit by the image's sun, the way the grap
    heights are voids, small voids filled), is reprojected onto the image's grid (both onto
    the local UTM zone first when the image's grid is not in metres on the ground: degrees,
    feet, Web Mercator), then both are resampled to the study GSD. Nodata and cloud-masked
-   pixels (the image's nodata value; its zeros when it declares none) and
-   pixels over the DEM's large voids are invalid. A scene
-   finer than its DEM's cell is matched at that cell (views and regions area averaged):
-   the render holds no terrain finer, and the camera's albedo detail (fields, roads, tree
-   crowns) would outnumber the drainage the two share.
+   pixels (the image's nodata value; its zeros when it declares none) and pixels over the
+   DEM's large voids are invalid. A scene finer than its DEM's cell is matched at that cell
+   (views and regions area averaged): the render holds no terrain finer, and the camera's
+   albedo detail (fields, roads, tree crowns) would outnumber the drainage the two share.
 2. **Landmark.** :class:`~.core.render.renderer.LandmarkRenderer` renders the DEM nadir with the
    scene's sun (given, or from the acquisition time and the scene's centre).
 3. **Cases.** For each view size, views are cut from the image at random places, with a
