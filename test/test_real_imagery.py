@@ -50,7 +50,9 @@ def _warped(path, crs, out):
     import rasterio
     from rasterio.warp import Resampling, calculate_default_transform, reproject
 
-    with rasterio.open(path) as src:
+    from terrain_nav_ros.tools.real_imagery import _rasterio_quiet
+
+    with rasterio.open(path) as src, _rasterio_quiet():
         transform, w, h = calculate_default_transform(src.crs, crs, src.width, src.height,
                                                       *src.bounds)
         profile = src.profile | {"crs": crs, "transform": transform, "width": w, "height": h}
