@@ -71,6 +71,7 @@ from .crease_proposals import (
     _placed_finer,
     _registered,
     _same_transform,
+    _search_level,
     _searches_creases,
     _view_search_level,
 )
@@ -409,8 +410,10 @@ class Matcher:
             return base
         m = np.asarray(transform, float)
         c, t = complex(m[0, 0], m[0, 1]), complex(m[0, 2], -m[1, 2])
-        _, trials = _crease_search_registrations(a, b, p, None, p.search_scale,
-                                                 p.view_search_background)
+        # the transforms the search covers (its proposals are not wanted here)
+        level = _search_level(a, b, p, p.search_scale)
+        trials = _crease_search(a, b, p, level, p.search_scale,
+                                p.view_search_background).log10_transforms
         moved = _registered(a, b, p, [(c, t, 0.0)], FINE, p.search_scale)
         search_area = max(b.area, 1.0)
         best, scored = _best_registration(a, b, [], search_area, p, True, moved, trials)
