@@ -27,6 +27,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -190,6 +191,40 @@ def scene_image(path: Path, dem: Path, *, crs: str | None = "EPSG:32611",
                        dtype="uint8", crs=crs, nodata=255,
                        transform=Affine(30, 0, 4e5 + east, 0, -30, 3.8e6)) as ds:
         ds.write(grey, 1)
+    return path
+
+
+def image_variant(path: Path, dem: Path, kind: str) -> Path:
+    """A :func:`scene_image` of ``dem`` made faulty: ``"fill"``, int16 reflectances with an
+    undeclared -9999 fill over a third of it; ``"only fill"``, nothing but that fill;
+    ``"gcps"``, georeferenced by control points only; ``"tiny"``, 12 x 12 px."""
+    import numpy as np
+    import rasterio
+    from affine import Affine
+    from rasterio.control import GroundControlPoint
+
+    scene_image(path, dem)
+    with rasterio.open(path) as ds:
+        profile, grey, transform = ds.profile, ds.read(1), ds.transform
+    if kind in ("fill", "only fill"):
+        grey = grey.astype(np.int16) * 40
+        grey[:40 if kind == "fill" else None] = -9999
+        profile.update(dtype="int16", nodata=None)
+    elif kind == "tiny":
+        grey = grey[:12, :12]
+        profile.update(width=12, height=12)
+    elif kind == "gcps":
+        profile.update(crs=None, transform=Affine.identity())
+    with warnings.catch_warnings():
+        # a file without a geotransform is what the "gcps" case is about
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        ds = rasterio.open(path, "w", **profile)
+    with ds:
+        ds.write(grey, 1)
+        if kind == "gcps":
+            h, w = grey.shape
+            ds.gcps = ([GroundControlPoint(r, c, *(transform @ (c, r)))
+                        for r, c in ((0, 0), (0, w), (h, 0), (h, w))], "EPSG:32611")
     return path
 
 
@@ -362,6 +397,19 @@ def cases() -> list[Case]:
             lambda t, d: scene_image(t / "image.tif", d),
             lambda t: relief_geotiff(t / "voids.tif", -32768.0, slice(4000, 4400)), 0,
             "warning", "400 of 16384 heights", "read as voids")),
+        Case("evaluate: image with an undeclared -9999 fill", "imagery", _evaluate(
+            lambda t, d: image_variant(t / "fill.tif", d, "fill"),
+            lambda t: relief_geotiff(t / "dem.tif"), 0, "warning", "hold -9999",
+            "read as no data")),
+        Case("evaluate: image of fill only", "imagery", _evaluate(
+            lambda t, d: image_variant(t / "fill.tif", d, "only fill"),
+            lambda t: relief_geotiff(t / "dem.tif"), 2, "every valid pixel holds -9999")),
+        Case("evaluate: image georeferenced by control points only", "imagery", _evaluate(
+            lambda t, d: image_variant(t / "gcps.tif", d, "gcps"),
+            lambda t: relief_geotiff(t / "dem.tif"), 0, "wrote", stream="stdout")),
+        Case("evaluate: image smaller than every view", "imagery", _evaluate(
+            lambda t, d: image_variant(t / "tiny.tif", d, "tiny"),
+            lambda t: relief_geotiff(t / "dem.tif"), 2, "no view of 32 px fits")),
         Case("bag cut to 50 %", "bag", _bag_info(cut_half, "cut short"), ci=True),
         Case("bag with corrupted bytes", "bag", _bag_info(corrupt_chunk, "corrupt data")),
         Case("bag without metadata.yaml", "bag", _bag_info(None, "metadata.yaml")),

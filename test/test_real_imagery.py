@@ -5,11 +5,11 @@ import json
 import numpy as np
 import pytest
 
+from terrain_nav_ros.core.terrain.ortho_io import nir_band, rasterio_quiet
 from terrain_nav_ros.tools.cli import main
 from terrain_nav_ros.tools.real_imagery import (
     load_scene,
     load_scenes,
-    nir_band,
     run_real_imagery_study,
 )
 
@@ -50,9 +50,7 @@ def _warped(path, crs, out):
     import rasterio
     from rasterio.warp import Resampling, calculate_default_transform, reproject
 
-    from terrain_nav_ros.tools.real_imagery import _rasterio_quiet
-
-    with rasterio.open(path) as src, _rasterio_quiet():
+    with rasterio.open(path) as src, rasterio_quiet():
         transform, w, h = calculate_default_transform(src.crs, crs, src.width, src.height,
                                                       *src.bounds)
         profile = src.profile | {"crs": crs, "transform": transform, "width": w, "height": h}
@@ -119,7 +117,48 @@ def test_a_dem_s_undeclared_voids_are_voids_not_pits(tmp_path):
                                      baselines=(), controls_per_case=0,
                                      out_dir=tmp_path / "study", log=lambda *a: None)
     assert "impossible on Earth" in summary["setup"]["scenes"][0]["dem_warning"]
-    assert "DEM warnings" in (tmp_path / "study" / "report.md").read_text()
+    assert "Input warnings" in (tmp_path / "study" / "report.md").read_text()
+
+
+def test_an_image_s_undeclared_fill_is_no_data_not_the_stretch_s_low_end(tmp_path):
+    """Reflectances with -9999 outside the footprint and no nodata declared: read as they
+    were, the fill took the stretch's 1st percentile and squeezed the terrain into a few
+    grey levels (every view of PA November "too little drainage"), and its edge was a
+    line of full contrast."""
+    import rasterio
+
+    image, dem = _write_pair(tmp_path, geographic=False)
+    clean = load_scene(image, dem, sun=(150.0, 40.0))
+    with rasterio.open(image) as ds:
+        profile, grey = ds.profile, ds.read(1)
+    reflectance = (grey * 40.0).astype(np.int16)
+    reflectance[:40] = -9999
+    profile.update(dtype="int16", nodata=None)
+    with rasterio.open(image, "w", **profile) as ds:
+        ds.write(reflectance, 1)
+    scene = load_scene(image, dem, sun=(150.0, 40.0))
+    assert "hold -9999" in scene.image_warning and "read as no data" in scene.image_warning
+    assert not scene.valid[:40].any() and scene.valid[40:].all()
+    # the terrain keeps its grey levels, as in the image without the fill
+    assert scene.image[40:].std() > 0.9 * clean.image[40:].std()
+    summary = run_real_imagery_study([scene], sizes=(64,), cases=2, headings=("unknown",),
+                                     baselines=(), controls_per_case=0,
+                                     out_dir=tmp_path / "study", log=lambda *a: None)
+    assert "hold -9999" in summary["setup"]["scenes"][0]["image_warning"]
+    assert "hold -9999" in (tmp_path / "study" / "report.md").read_text()
+
+
+def test_a_study_no_view_fits_in_is_a_clear_error(tmp_path):
+    image, dem = _write_pair(tmp_path, geographic=False)
+    scene = load_scene(image, dem, sun=(150.0, 40.0))    # 160 x 160 px
+    with pytest.raises(ValueError, match=r"no view of 256 px fits in image \(160x160 px\)"):
+        run_real_imagery_study([scene], sizes=(256,), cases=2, headings=("unknown",),
+                               baselines=(), out_dir=tmp_path / "study", log=lambda *a: None)
+    summary = run_real_imagery_study([scene], sizes=(64, 256), cases=2, headings=("unknown",),
+                                     baselines=(), controls_per_case=0,
+                                     out_dir=tmp_path / "study", log=lambda *a: None)
+    assert summary["skipped"] == [{"scene": "image", "size": 256, "heading": "unknown"}]
+    assert "Not studied" in summary["report"] and "image 256 px" in summary["report"]
 
 
 def test_an_image_s_undeclared_zeros_are_fill(tmp_path):
@@ -192,8 +231,8 @@ def test_a_scene_without_a_band_takes_the_near_infrared(tmp_path):
         ds.set_band_description(2, "B05 nir")
     scene = load_scene(image, dem, sun=(150.0, 40.0))
     assert scene.image.std() > 20.0   # the shaded band, not the flat one
-    flat = load_scene(image, dem, sun=(150.0, 40.0), band=1)
-    assert flat.image[flat.valid].std() < 1.0
+    with pytest.raises(ValueError, match="every valid pixel holds 50"):   # the flat one
+        load_scene(image, dem, sun=(150.0, 40.0), band=1)
 
 
 @pytest.mark.parametrize("kwargs, message", [
@@ -210,7 +249,7 @@ def test_bad_scene_options_are_clear_errors(tmp_path, kwargs, message):
 def test_a_corrupt_image_is_a_clear_error(tmp_path):
     image, dem = _write_pair(tmp_path, geographic=False)
     image.write_bytes(b"II*\x00" + b"\x00" * 40)
-    with pytest.raises(ValueError, match="cannot read the scene"):
+    with pytest.raises(ValueError, match="cannot read the image"):
         load_scene(image, dem, sun=(150.0, 40.0))
 
 

@@ -214,8 +214,9 @@ def _cmd_evaluate_imagery(args) -> int:
             scenes = [load_scene(args.image, args.dem, band=args.band, gsd=gsd, sun=sun,
                                  when=args.time)]
         for scene in scenes:
-            if scene.dem_warning:
-                print(f"terrain-nav evaluate: warning: {scene.dem_warning}", file=sys.stderr)
+            for warning in (scene.image_warning, scene.dem_warning):
+                if warning:
+                    print(f"terrain-nav evaluate: warning: {warning}", file=sys.stderr)
         sizes = tuple(int(x) for x in args.sizes.split(","))
         if min(sizes) < 16 or args.cases < 1 or args.controls < 0:
             raise ValueError("--sizes must be >= 16 px, --cases >= 1 and --controls >= 0")

@@ -380,29 +380,27 @@ def drape_photo(path: str, band: str, metamap: MetaMap, box: GeoReference) -> np
     stretched between its 1st and 99th percentiles (raw DN or reflectance alike); cells
     it does not cover are its median grey.
 
-    Each band goes through a :class:`MetaMap` of its own with the terrain's origin, the
-    same reprojection as the heights; an image much finer than the grid is first averaged
-    down to it (no aliasing of 2.5 m detail on a 45 m grid).
+    The image is read as the real-imagery study reads it
+    (:class:`~.core.terrain.ortho_io.OrthoImage`: nodata, undeclared fill, palettes, control
+    points). Each band goes through a :class:`MetaMap` of its own with the terrain's origin,
+    the same reprojection as the heights; an image much finer than the grid is first
+    averaged down to it (no aliasing of 2.5 m detail on a 45 m grid).
     """
-    import rasterio
     from affine import Affine
 
+    from ..core.terrain.ortho_io import ImageError, OrthoImage, ground_cell_metres
+
     try:
-        with rasterio.open(path) as ds:
-            if band:
-                b = int(band)
-                if not 1 <= b <= ds.count:
-                    raise SimInputError(f"{path}: band {b} does not exist ({ds.count} bands)")
-                bands = [b] * 3
-            else:
-                bands = [min(k, ds.count) for k in (1, 2, 3)]
-            data = ds.read(bands, masked=True).astype(np.float32).filled(np.nan)
-            transform, crs = ds.transform, ds.crs
-    except rasterio.errors.RasterioError as err:
-        raise SimInputError(f"cannot read the albedo image {path}: {err}") from err
-    if crs is None:
-        raise SimInputError(f"{path}: the albedo image has no CRS, so it cannot be draped")
-    cell_m = abs(transform.a) * (111_320.0 if crs.is_geographic else 1.0)
+        with OrthoImage(path) as src:
+            # one band as grey, or the first three as colours
+            bands = [int(band)] * 3 if band else [min(k, src.count) for k in (1, 2, 3)]
+            data = src.read(bands)
+            transform, crs = src.transform, src.crs
+            if src.warning:
+                print(f"[simulate] warning: {src.warning}", file=sys.stderr, flush=True)
+    except ImageError as err:
+        raise SimInputError(f"the albedo image: {err}") from err
+    cell_m = ground_cell_metres(crs, transform, data.shape[1:])
     factor = int(box.gsd // max(cell_m, 1e-9))
     if factor >= 2:   # average down: the render grid cannot hold finer detail
         rows, cols = data.shape[1:]

@@ -8,9 +8,11 @@ landmark render of a co-registered DEM, lit by the image's sun, the way the grap
    one north-up metric grid: the DEM, read as the graph's metamap reads it (impossible
    heights are voids, small voids filled), is reprojected onto the image's grid (both onto
    the local UTM zone first when the image's grid is not in metres on the ground: degrees,
-   feet, Web Mercator), then both are resampled to the study GSD. Nodata and cloud-masked
-   pixels (the image's nodata value; its zeros when it declares none) and pixels over the
-   DEM's large voids are invalid. A scene finer than its DEM's cell is matched at that cell
+   feet, Web Mercator), then both are resampled to the study GSD. The image's pixels
+   without data (as :class:`~.core.terrain.ortho_io.OrthoImage` reads them: nodata, masks,
+   an undeclared fill value) and pixels over the DEM's large voids are invalid; a paletted
+   image reads as its colours, and one georeferenced by control points only is warped onto
+   a grid first. A scene finer than its DEM's cell is matched at that cell
    (views and regions area averaged): the render holds no terrain finer, and the camera's
    albedo detail (fields, roads, tree crowns) would outnumber the drainage the two share.
 2. **Landmark.** :class:`~.core.render.renderer.LandmarkRenderer` renders the DEM nadir with the
@@ -40,13 +42,10 @@ per scene (image beside its landmark render).
 
 from __future__ import annotations
 
-import contextlib
 import datetime as _dt
 import json
 import math
-import re
 import time
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -64,6 +63,15 @@ from ..core.matching.significance import calibrate_threshold
 from ..core.render.sun import parse_utc, solar_position
 from ..core.terrain.dem_io import fill_voids, open_dem
 from ..core.terrain.georef import GeoReference
+from ..core.terrain.ortho_io import (
+    OrthoImage,
+    centre_lonlat,
+    ground_cell_metres,
+    is_metric_grid,
+    nir_band,
+    rasterio_quiet,
+    utm_crs,
+)
 
 __all__ = ["Scene", "load_scene", "load_scenes", "run_real_imagery_study"]
 
@@ -82,7 +90,7 @@ class Scene:
     """A real image and its DEM on one north-up metric grid.
 
     ``image`` is 8-bit grey (0 where invalid), ``valid`` its mask, ``elevation`` the DEM on
-    the same grid (voids filled with the median), ``sun`` (azimuth, elevation) in degrees.
+    the same grid (voids inpainted), ``sun`` (azimuth, elevation) in degrees.
     """
 
     name: str
@@ -95,6 +103,7 @@ class Scene:
     place: str = ""   # scenes of one place (one DEM) are never each other's controls
     dem_cell: float = math.nan   # the DEM's own cell [m] (before resampling to ``gsd``)
     dem_warning: str | None = None   # what is wrong with the DEM's heights (read as voids)
+    image_warning: str | None = None   # the image's undeclared fill (read as no data)
     landmark: np.ndarray | None = field(default=None, repr=False)
 
     @property
@@ -103,126 +112,20 @@ class Scene:
         return GeoReference(0.0, 0.0, self.gsd, w, h)
 
 
-# Band descriptions that name the near infrared: by name, or the NIR band of Landsat TM /
-# ETM+ (B4), OLI (B5) and Sentinel-2 MSI (B8, B8A) when the sensor is named with it.
-_NIR_NAMES = re.compile(r"\bnir\b|near[- ]?infra[- ]?red", re.IGNORECASE)
-_NIR_BANDS = re.compile(r"\b(?:TM|ETM\+?)\s*B0?4\b|\bOLI\s*B0?5\b|\bMSI\s*B0?8A?\b",
-                        re.IGNORECASE)
-
-
-def nir_band(descriptions) -> int | None:
-    """The 1-based band whose description names the near infrared, or None.
-
-    Under vegetation the red band is absorbed by chlorophyll and carries little of the
-    terrain's shading; the near infrared is bright and shaded like the terrain (Costa Rica's
-    forested volcano: 15 of 24 views of 128 px localised in NIR, 2 of 24 in red).
-    """
-    for pattern in (_NIR_NAMES, _NIR_BANDS):
-        for i, text in enumerate(descriptions or ()):
-            if text and pattern.search(text):
-                return i + 1
-    return None
-
-
-def _read_band(ds, band) -> np.ndarray:
-    """One band (1-based) as float32; ``band=None``: the near-infrared band if the file's
-    band descriptions name one (:func:`nir_band`), else as "grey": the mean of the first
-    three (the only one of a single-band file); nodata as NaN."""
+def _scene_band(src: OrthoImage, band) -> np.ndarray:
+    """One band (1-based) of ``src``, NaN where it holds no data; ``band=None``: the
+    near-infrared band if the file's band descriptions name one (:func:`nir_band`), else as
+    "grey": the mean of the first three (the only one of a single-band file)."""
     if band is None:
-        band = nir_band(ds.descriptions) or "grey"
-    if band in ("grey", "gray"):
-        bands = list(range(1, min(ds.count, 3) + 1))
-    else:
-        b = int(band)
-        if not 1 <= b <= ds.count:
-            raise ValueError(f"{ds.name}: band {b} does not exist (the file has {ds.count})")
-        bands = [b]
-    a = ds.read(bands, masked=True)
-    mask = np.ma.getmaskarray(a).any(axis=0)
-    if _zero_is_fill(ds):
-        mask |= (np.ma.getdata(a) == 0).all(axis=0)
-    out = a.astype(np.float32).filled(np.nan).mean(axis=0)
-    out[mask] = np.nan
-    return out
-
-
-def _zero_is_fill(ds) -> bool:
-    """Whether an image's zeros (in every band read) are its fill: it declares no nodata,
-    mask or alpha. Landsat's DN products reserve 0 for fill (outside the scene's footprint,
-    Landsat 7's SLC-off gaps), GDAL's warps fill with 0 unless told otherwise, and many
-    exports drop the tag; a gap's edge would be a dark line, the very thing read as a
-    valley, while exact zeros in a natural scene are few."""
-    from rasterio.enums import MaskFlags
-    return ds.nodata is None and all(flags == [MaskFlags.all_valid]
-                                     for flags in ds.mask_flag_enums)
-
-
-def _utm_crs(lon: float, lat: float):
-    from rasterio.crs import CRS
-    zone = int((lon + 180.0) // 6.0) % 60 + 1
-    return CRS.from_epsg((32600 if lat >= 0 else 32700) + zone)
-
-
-def _lonlat(crs, transform, cols, rows) -> tuple[np.ndarray, np.ndarray]:
-    """Longitudes and latitudes of fractional pixel positions (corner convention)."""
-    from pyproj import Transformer
-    x, y = transform @ (np.asarray(cols, float), np.asarray(rows, float))
-    if crs.is_geographic:
-        return np.asarray(x, float), np.asarray(y, float)
-    lon, lat = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(x, y)
-    return np.asarray(lon, float), np.asarray(lat, float)
-
-
-def _centre_lonlat(crs, transform, shape) -> tuple[float, float]:
-    lon, lat = _lonlat(crs, transform, shape[1] / 2.0, shape[0] / 2.0)
-    return float(lon), float(lat)
-
-
-def _ground_steps(crs, transform, shape) -> tuple[float, float]:
-    """Ground length (m, on the WGS84 ellipsoid) of one pixel step along the rows and along
-    the columns at the raster's centre."""
-    from pyproj import Geod
-    c, r = shape[1] / 2.0, shape[0] / 2.0
-    lon, lat = _lonlat(crs, transform, [c, c + 1.0, c], [r, r, r + 1.0])
-    geod = Geod(ellps="WGS84")
-    _, _, steps = geod.inv(lon[[0, 0]], lat[[0, 0]], lon[1:], lat[1:])
-    return float(steps[0]), float(steps[1])
-
-
-def _cell_metres(crs, transform, shape) -> float:
-    """Side (m) of the square of a raster cell's area: as its transform says on a metric
-    grid (:func:`_is_metric_grid`), else on the ground at the raster's centre."""
-    if _is_metric_grid(crs, transform, shape):
-        return math.sqrt(abs(transform.a * transform.e))
-    return math.sqrt(math.prod(_ground_steps(crs, transform, shape)))
-
-
-def _is_metric_grid(crs, transform, shape, tolerance: float = 0.01) -> bool:
-    """Whether a raster's grid is north-up with square-metre cells as long on the ground as
-    its transform says (UTM, national transverse Mercators): the study measures the GSD,
-    the render's slopes and the views' scale in the grid's units. Degrees, feet and Web
-    Mercator (1/cos(latitude) too long) are not; such a grid is put on the local UTM zone."""
-    if crs.is_geographic or transform.b or transform.d or transform.a <= 0 \
-            or transform.e >= 0:
-        return False
-    along_row, along_col = _ground_steps(crs, transform, shape)
-    return (abs(along_row / transform.a - 1.0) < tolerance
-            and abs(along_col / -transform.e - 1.0) < tolerance)
-
-
-@contextlib.contextmanager
-def _rasterio_quiet():
-    """rasterio 1.4's warp helpers multiply affines with ``*``, which affine 2.4 deprecates:
-    a warning about rasterio's code, not this one's."""
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", "Use `@` matmul", PendingDeprecationWarning)
-        yield
+        band = nir_band(src.descriptions) or "grey"
+    bands = range(1, min(src.count, 3) + 1) if band in ("grey", "gray") else [band]
+    return src.read(bands).mean(axis=0)
 
 
 def _reproject(src, src_transform, src_crs, dst_shape, dst_transform, dst_crs, resampling):
     from rasterio.warp import reproject
     out = np.full(dst_shape, np.nan, np.float32)
-    with _rasterio_quiet():
+    with rasterio_quiet():
         reproject(np.asarray(src, np.float32), out, src_transform=src_transform,
                   src_crs=src_crs,
                   src_nodata=np.nan, dst_transform=dst_transform, dst_crs=dst_crs,
@@ -254,7 +157,8 @@ def load_scene(image, dem, *, band=None, gsd: float | None = None, sun=None, whe
     Parameters
     ----------
     image, dem : str or Path
-        Any raster rasterio reads, each with its CRS.
+        Any raster rasterio reads, each with its CRS (the image may instead have ground
+        control points; a paletted image reads as its colours).
     band : int, "grey" or None
         1-based band of the image; "grey": the mean of the first three bands; None: the
         near-infrared band where the file names one, else "grey".
@@ -265,7 +169,6 @@ def load_scene(image, dem, *, band=None, gsd: float | None = None, sun=None, whe
     name : str, optional
         Default: the image's file stem.
     """
-    import rasterio
     from rasterio.crs import CRS
     from rasterio.warp import Resampling, calculate_default_transform
 
@@ -273,29 +176,33 @@ def load_scene(image, dem, *, band=None, gsd: float | None = None, sun=None, whe
     for path in (image, dem):
         if not path.is_file():
             raise ValueError(f"no such file: {path}")
-    try:
-        with rasterio.open(image) as ds:
-            img = _read_band(ds, band)
-            transform, crs = ds.transform, ds.crs
-    except rasterio.errors.RasterioError as err:
-        raise ValueError(f"cannot read the scene: {err}") from err
+    with OrthoImage(image) as src:
+        img = _scene_band(src, band)
+        transform, crs, image_warning = src.transform, src.crs, src.warning
     # the DEM as the graph's metamap reads it: impossible heights (undeclared nodata) are
     # voids, and the small voids are filled
     with open_dem(dem) as d:
         z_src, _ = fill_voids(d.read())
         z_transform, z_crs, dem_warning = d.transform, d.crs, d.warning
-    if crs is None or z_crs is None:
-        raise ValueError(f"{image.name if crs is None else dem.name} has no CRS: the image and "
-                         "DEM must be georeferenced to be co-registered")
+    if z_crs is None:
+        raise ValueError(f"{dem.name} has no CRS: the image and DEM must be georeferenced to "
+                         "be co-registered")
+    seen = img[np.isfinite(img)]
+    if not seen.size:
+        raise ValueError(f"{image.name}: no valid pixels (every one is nodata, fill or not a "
+                         "number)")
+    if seen.min() == seen.max():
+        raise ValueError(f"{image.name}: every valid pixel holds {seen[0]:g}: nothing to "
+                         "study (an undeclared fill value?)")
     z_crs = CRS.from_wkt(z_crs.to_wkt())
-    lon, lat = _centre_lonlat(crs, transform, img.shape)
-    if not _is_metric_grid(crs, transform, img.shape):
-        utm = _utm_crs(lon, lat)
+    lon, lat = centre_lonlat(crs, transform, img.shape)
+    if not is_metric_grid(crs, transform, img.shape):
+        utm = utm_crs(lon, lat)
         h, w = img.shape
         xs, ys = transform @ (np.array([0, w, 0, w]), np.array([0, 0, h, h]))
         # the image's own ground cell, unless a GSD is asked for
-        cell = gsd or _cell_metres(crs, transform, img.shape)
-        with _rasterio_quiet():
+        cell = gsd or ground_cell_metres(crs, transform, img.shape)
+        with rasterio_quiet():
             dst_transform, w, h = calculate_default_transform(
                 crs, utm, w, h, xs.min(), ys.min(), xs.max(), ys.max(), resolution=cell)
         img = _reproject(img, transform, crs, (h, w), dst_transform, utm, Resampling.bilinear)
@@ -323,8 +230,8 @@ def load_scene(image, dem, *, band=None, gsd: float | None = None, sun=None, whe
     elevation = fill_voids(z, max_area=z.size, fill_border=True)[0]
     return Scene(name or image.stem, grey.astype(np.uint8), valid, elevation, gsd,
                  _parse_sun(sun, when, lat, lon), (lat, lon), place=str(dem.resolve()),
-                 dem_cell=_cell_metres(z_crs, z_transform, z_src.shape),
-                 dem_warning=dem_warning)
+                 dem_cell=ground_cell_metres(z_crs, z_transform, z_src.shape),
+                 dem_warning=dem_warning, image_warning=image_warning)
 
 
 def load_scenes(path, data_dir=None) -> list[Scene]:
@@ -607,7 +514,7 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
     rng = np.random.default_rng(seed)
     study = _StudyRun(scenes, extractor, thr, success_px, region_factor, controls_per_case,
                       tuple(baselines), n_rotations, rng)
-    rows, pva_scores = [], []
+    rows, pva_scores, skipped = [], [], []
     cv_threads = cv2.getNumThreads()
     cv2.setNumThreads(1)   # single-thread times, comparable across methods
     try:
@@ -621,6 +528,8 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
                 for scene in scenes:
                     if not per_scene[scene.name]:
                         log(f"  {scene.name}: no {size} px view fits ({heading} heading)")
+                        skipped.append({"scene": scene.name, "size": size,
+                                        "heading": heading})
                         continue
                     row = _study_cases(study, scene, per_scene, size, heading, matcher)
                     pva_scores += row.pop("pva_scores")
@@ -632,6 +541,12 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
                         f"{m['time_ms_median']:.0f} ms")
     finally:
         cv2.setNumThreads(cv_threads)
+    if not rows:
+        raise ValueError("no view of " + ", ".join(f"{x:g}" for x in sizes) + " px fits in "
+                         + ", ".join(f"{s.name} ({s.image.shape[1]}x{s.image.shape[0]} px)"
+                                     for s in scenes)
+                         + f": a view must lie, turned, on >= {100 * MIN_VALID:.0f} % valid "
+                         "pixels; give smaller --sizes")
     non_pva = study.non_pva
     non = np.array([x["score"] for x in non_pva], float)
     calibrated = calibrate_threshold(non, false_match_rate) \
@@ -641,7 +556,8 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
                               "dem_cell_m": s.dem_cell,
                               "sun": list(s.sun), "centre_latlon": list(s.centre_latlon),
                               "valid": float(s.valid.mean()),
-                              "dem_warning": s.dem_warning} for s in scenes],
+                              "dem_warning": s.dem_warning,
+                              "image_warning": s.image_warning} for s in scenes],
                   "sizes": list(sizes), "cases": cases, "seed": seed,
                   "region_factor": region_factor, "success_px": success_px,
                   "threshold": thr, "false_match_rate": false_match_rate,
@@ -650,6 +566,7 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
                   "match_gsd_m": {s.name: s.gsd * extractor.factor(s) for s in scenes},
                   "shadows": bool(shadows)},
         "rows": rows,
+        "skipped": skipped,
         "non_pva": {"comparisons": int(len(non)),
                     "accepted": int((non >= thr).sum()),
                     "max_score": float(non.max()) if len(non) else math.nan,
@@ -844,10 +761,10 @@ def _report(summary: dict, pngs: list[str]) -> str:
         lines.append(f"| {s['name']} | {s['gsd_m']:g} | {s['dem_cell_m']:.0f} | "
                      f"{st['match_gsd_m'][s['name']]:.0f} | {s['shape'][1]}x{s['shape'][0]} | "
                      f"{s['sun'][0]:.1f} / {s['sun'][1]:.1f} | {100 * s['valid']:.0f} % |")
-    dem_notes = [f"- {s['name']}: {s['dem_warning']}" for s in st["scenes"]
-                 if s.get("dem_warning")]
-    if dem_notes:
-        lines += ["", "DEM warnings:", ""] + dem_notes
+    notes = [f"- {s['name']}: {s[key]}" for s in st["scenes"]
+             for key in ("image_warning", "dem_warning") if s.get(key)]
+    if notes:
+        lines += ["", "Input warnings (what was read as no data, and why):", ""] + notes
     head = "| scene | view px | heading | cases | " + " | ".join(
         f"{m} ok / wrong / ms" for m in methods) + " | minutiae: too little drainage |"
     lines += ["", "## Localisation", "", head, "|" + "---|" * (5 + len(methods))]
@@ -857,6 +774,10 @@ def _report(summary: dict, pngs: list[str]) -> str:
         lines.append(f"| {r['scene']} | {r['size']} | {r['heading']} | "
                      f"{r['minutiae']['cases']} | " + " | ".join(cells)
                      + f" | {r['minutiae']['no_fix_too_little_drainage']} |")
+    if summary["skipped"]:
+        lines += ["", "Not studied (no view of the size fits in the scene, turned, on valid "
+                  "pixels): " + ", ".join(f"{x['scene']} {x['size']} px ({x['heading']})"
+                                          for x in summary["skipped"]) + "."]
     lines += ["", "Over all scenes, views of 128-512 px:", "",
               "| heading / method | cases | localised | wrong | too little drainage |",
               "|---|---|---|---|---|"]
