@@ -492,3 +492,26 @@ def test_a_large_view_between_two_of_the_coarser_level_s_scales_is_found(shared_
     m = np.array([[0.0222, -0.965, 272.4367], [0.965, 0.0222, 6.8043]])
     result = _localise_view(scene, m, 256)
     assert result["err"] < 1.0 and result["score"] > _graph_threshold() + 30.0
+
+
+@pytest.mark.parametrize("reach, agree", [(None, True), (1, False)])
+def test_a_large_scene_s_landmark_is_rendered_in_blocks_as_in_one_piece(monkeypatch, reach,
+                                                                        agree):
+    """Blocks bound the renderer's memory (~100 bytes per pixel); each carries the terrain
+    that can shade it, so the landmark is the one-piece render (up to a few pixels where
+    the ray march's steps differ). Without that margin the shadows cast from a block's
+    neighbours are missing."""
+    from terrain_nav_ros.core.terrain.synthetic_terrain import synthetic_dem
+    from terrain_nav_ros.tools import real_imagery as ri
+
+    z = synthetic_dem(256, gsd=30.0, seed=4).astype(np.float32)[:200, :240] * 3.0
+    scene = ri.Scene("blocks", np.zeros(z.shape, np.uint8), np.ones(z.shape, bool), z, 30.0,
+                     (135.0, 20.0), (45.0, 7.0))
+    ri.render_landmark([scene])
+    whole = scene.landmark.astype(int)
+    monkeypatch.setattr(ri, "RENDER_BLOCK", 64)
+    if reach is not None:
+        monkeypatch.setattr(ri, "_shadow_reach", lambda s: reach)
+    ri.render_landmark([scene])
+    differ = np.mean(scene.landmark.astype(int) != whole)
+    assert (differ < 0.002) == agree, differ

@@ -254,16 +254,54 @@ def load_scenes(path, data_dir=None) -> list[Scene]:
     return scenes
 
 
+# Side (px) of the blocks a large scene's landmark is rendered in: the renderer holds ~100
+# bytes per output pixel (a 9000 x 9000 px scene in one piece peaked at 9.6 GB).
+RENDER_BLOCK = 2048
+
+
 def render_landmark(scenes: list[Scene], shadows: bool = True) -> None:
     """Render each scene's landmark (nadir, its sun, with cast shadows unless ``shadows``
-    is False, as the graph's landmark_renderer) into ``scene.landmark``."""
+    is False, as the graph's landmark_renderer) into ``scene.landmark``: in blocks of
+    :data:`RENDER_BLOCK` px, each with the terrain around it that can shade it."""
     from ..core.render.renderer import LandmarkRenderer, create_headless_context
     ctx = create_headless_context()
     for s in scenes:
         renderer = LandmarkRenderer(ctx, shadows=shadows)
-        renderer.set_terrain(s.elevation, s.georef)
-        s.landmark = renderer.render_nadir(s.georef, sun=s.sun).grey_u8
-        renderer.release()
+        try:
+            s.landmark = np.empty(s.elevation.shape, np.uint8)
+            margin = _shadow_reach(s) if shadows else 1
+            for rows, cols in _blocks(s.elevation.shape, RENDER_BLOCK):
+                # the block and its margin (clipped to the scene): normals and cast shadows
+                # as the whole scene's
+                around = tuple(slice(max(r.start - margin, 0), r.stop + margin)
+                               for r in (rows, cols))
+                renderer.set_terrain(s.elevation[around], _sub_georef(s, *around))
+                s.landmark[rows, cols] = renderer.render_nadir(
+                    _sub_georef(s, rows, cols), sun=s.sun).grey_u8
+        finally:
+            renderer.release()
+
+
+def _shadow_reach(scene: Scene) -> int:
+    """How far (px) the scene's relief can cast a shadow at its sun."""
+    relief = float(np.ptp(scene.elevation))
+    reach = relief / math.tan(math.radians(scene.sun[1])) / scene.gsd
+    return int(min(math.ceil(reach) + 2, max(scene.elevation.shape)))
+
+
+def _blocks(shape, side: int):
+    """Row and column slices of ``side`` px blocks covering ``shape``."""
+    for r0 in range(0, shape[0], side):
+        for c0 in range(0, shape[1], side):
+            yield slice(r0, min(r0 + side, shape[0])), slice(c0, min(c0 + side, shape[1]))
+
+
+def _sub_georef(scene: Scene, rows: slice, cols: slice) -> GeoReference:
+    """The georeference of ``scene``'s pixels ``rows`` x ``cols`` (clipped to the scene)."""
+    h, w = scene.elevation.shape
+    r0, r1, _ = rows.indices(h)
+    c0, c1, _ = cols.indices(w)
+    return GeoReference(c0 * scene.gsd, -r0 * scene.gsd, scene.gsd, c1 - c0, r1 - r0)
 
 
 @dataclass
