@@ -515,3 +515,30 @@ def test_a_large_scene_s_landmark_is_rendered_in_blocks_as_in_one_piece(monkeypa
     ri.render_landmark([scene])
     differ = np.mean(scene.landmark.astype(int) != whole)
     assert (differ < 0.002) == agree, differ
+
+
+def test_a_scene_reads_only_the_dem_under_its_image(tmp_path, monkeypatch):
+    """A scene of a large mosaic reads a scene's worth of it, with the same heights as
+    from the DEM cut to the image."""
+    import rasterio
+    from affine import Affine
+
+    from terrain_nav_ros.core.terrain import dem_io
+
+    image, dem = _write_pair(tmp_path, geographic=False)
+    with rasterio.open(dem) as ds:
+        profile, z = ds.profile, ds.read(1)
+    big = np.pad(z, 420, mode="reflect")            # 1000 x 1000 cells around the image
+    profile.update(width=1000, height=1000,
+                   transform=profile["transform"] @ Affine.translation(-420, -420))
+    with rasterio.open(tmp_path / "big.tif", "w", **profile) as ds:
+        ds.write(big, 1)
+    read = []
+    original = dem_io.Dem.read
+    monkeypatch.setattr(dem_io.Dem, "read",
+                        lambda self, window=None: read.append(out := original(self, window))
+                        or out)
+    scene = load_scene(image, tmp_path / "big.tif", sun=(150.0, 40.0))
+    assert read and read[-1].size < 1.2 * (160 + 8) ** 2
+    np.testing.assert_allclose(scene.elevation, load_scene(image, dem, sun=(150.0, 40.0))
+                               .elevation, atol=1e-3)

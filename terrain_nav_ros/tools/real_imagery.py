@@ -51,6 +51,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from affine import Affine
 
 from ..core.features.clouds import CloudParams, cloud_cover
 from ..core.features.hillshade import extractor_input
@@ -110,6 +111,28 @@ class Scene:
     def georef(self) -> GeoReference:
         h, w = self.image.shape
         return GeoReference(0.0, 0.0, self.gsd, w, h)
+
+
+def _dem_window(d, dem_crs, crs, transform, shape, margin: int = 4) -> tuple[slice, slice]:
+    """Rows and columns of the DEM ``d`` under an image's footprint (``crs``, ``transform``,
+    ``shape``), and ``margin`` cells around it for the resampling kernels."""
+    from rasterio.warp import transform_bounds
+    h, w = shape
+    xs, ys = transform @ (np.array([0, w, 0, w]), np.array([0, 0, h, h]))
+    with rasterio_quiet():
+        left, bottom, right, top = transform_bounds(crs, dem_crs, xs.min(), ys.min(),
+                                                    xs.max(), ys.max(), densify_pts=21)
+    if not left < right:   # across the antimeridian: the whole DEM
+        return slice(0, d.height), slice(0, d.width)
+    cols, rows = ~d.transform @ (np.array([left, right, left, right]),
+                                 np.array([bottom, bottom, top, top]))
+    r0, r1 = int(np.floor(rows.min())) - margin, int(np.ceil(rows.max())) + margin
+    c0, c1 = int(np.floor(cols.min())) - margin, int(np.ceil(cols.max())) + margin
+    r0, r1, c0, c1 = max(r0, 0), min(r1, d.height), max(c0, 0), min(c1, d.width)
+    if r0 >= r1 or c0 >= c1:
+        raise ValueError(f"{Path(d.name).name} does not reach under the image: are they of "
+                         "the same place?")
+    return slice(r0, r1), slice(c0, c1)
 
 
 def _scene_band(src: OrthoImage, band) -> np.ndarray:
@@ -182,11 +205,16 @@ def load_scene(image, dem, *, band=None, gsd: float | None = None, sun=None, whe
     # the DEM as the graph's metamap reads it: impossible heights (undeclared nodata) are
     # voids, and the small voids are filled
     with open_dem(dem) as d:
-        z_src, _ = fill_voids(d.read())
-        z_transform, z_crs, dem_warning = d.transform, d.crs, d.warning
-    if z_crs is None:
-        raise ValueError(f"{dem.name} has no CRS: the image and DEM must be georeferenced to "
-                         "be co-registered")
+        if d.crs is None:
+            raise ValueError(f"{dem.name} has no CRS: the image and DEM must be georeferenced "
+                             "to be co-registered")
+        z_crs = CRS.from_wkt(d.crs.to_wkt())
+        # only the DEM under the image (a scene of a large mosaic reads a scene's worth)
+        rows, cols = _dem_window(d, z_crs, crs, transform, img.shape)
+        z_src, _ = fill_voids(d.read((rows, cols)))
+        z_transform = d.transform @ Affine.translation(cols.start, rows.start)
+        # the DEM's own cell, at its centre
+        dem_warning, dem_cell = d.warning, ground_cell_metres(z_crs, d.transform, d.shape)
     seen = img[np.isfinite(img)]
     if not seen.size:
         raise ValueError(f"{image.name}: no valid pixels (every one is nodata, fill or not a "
@@ -194,7 +222,6 @@ def load_scene(image, dem, *, band=None, gsd: float | None = None, sun=None, whe
     if seen.min() == seen.max():
         raise ValueError(f"{image.name}: every valid pixel holds {seen[0]:g}: nothing to "
                          "study (an undeclared fill value?)")
-    z_crs = CRS.from_wkt(z_crs.to_wkt())
     lon, lat = centre_lonlat(crs, transform, img.shape)
     if not is_metric_grid(crs, transform, img.shape):
         utm = utm_crs(lon, lat)
@@ -230,7 +257,7 @@ def load_scene(image, dem, *, band=None, gsd: float | None = None, sun=None, whe
     elevation = fill_voids(z, max_area=z.size, fill_border=True)[0]
     return Scene(name or image.stem, grey.astype(np.uint8), valid, elevation, gsd,
                  _parse_sun(sun, when, lat, lon), (lat, lon), place=str(dem.resolve()),
-                 dem_cell=ground_cell_metres(z_crs, z_transform, z_src.shape),
+                 dem_cell=dem_cell,
                  dem_warning=dem_warning, image_warning=image_warning)
 
 
