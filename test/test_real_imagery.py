@@ -542,3 +542,31 @@ def test_a_scene_reads_only_the_dem_under_its_image(tmp_path, monkeypatch):
     assert read and read[-1].size < 1.2 * (160 + 8) ** 2
     np.testing.assert_allclose(scene.elevation, load_scene(image, dem, sun=(150.0, 40.0))
                                .elevation, atol=1e-3)
+
+
+def test_a_dem_finer_than_the_image_is_not_aliased_onto_its_grid(tmp_path):
+    """A 10 m DEM under a 30 m image: point samples would alias relief finer than the grid
+    (a ripple 35 m long becomes a 210 m one of full height, creases no camera sees). The
+    warp's cubic kernel, stretched over the coarser cell when it shrinks (GDAL), keeps
+    under 1 % of it (0.13 m of 14 m rms; a box average of the cells would keep 2.6 m)."""
+    import rasterio
+    from affine import Affine
+
+    x = (np.arange(480) + 0.5) * 10.0                 # cell centres (m)
+    broad = 1000.0 + 200.0 * np.sin(x / 1500.0)
+    fine = (broad + 20.0 * np.sin(2.0 * np.pi * x / 35.0))[None, :].repeat(480, 0)
+    origin = (500000.0, 5000000.0)
+    with rasterio.open(tmp_path / "dem.tif", "w", driver="GTiff", width=480, height=480,
+                       count=1, dtype="float32", crs="EPSG:32632",
+                       transform=Affine(10.0, 0, origin[0], 0, -10.0, origin[1])) as ds:
+        ds.write(fine.astype(np.float32), 1)
+    grey = np.random.default_rng(0).integers(10, 250, (160, 160)).astype(np.uint8)
+    with rasterio.open(tmp_path / "image.tif", "w", driver="GTiff", width=160, height=160,
+                       count=1, dtype="uint8", crs="EPSG:32632", nodata=0,
+                       transform=Affine(30.0, 0, origin[0], 0, -30.0, origin[1])) as ds:
+        ds.write(grey, 1)
+    scene = load_scene(tmp_path / "image.tif", tmp_path / "dem.tif", sun=(150.0, 40.0))
+    assert scene.dem_cell == 10.0
+    centres = (np.arange(160) + 0.5) * 30.0
+    ripple = scene.elevation[2:-2, 2:-2] - (1000.0 + 200.0 * np.sin(centres / 1500.0))[2:-2]
+    assert ripple.std() < 0.05 * 20.0 / np.sqrt(2.0), ripple.std()
