@@ -308,6 +308,17 @@ def _evaluate(image: Callable[[Path, Path], Path], dem: Callable[[Path], Path], 
     return run
 
 
+def _evaluate_scenes(text: str, *words) -> Callable:
+    """``evaluate --scenes`` of a scenes file ``text`` naming a good image and DEM."""
+    def run(tmp: Path):
+        scene_image(tmp / "image.tif", relief_geotiff(tmp / "dem.tif"))
+        (tmp / "scenes.yaml").write_text(text)
+        return judge(terrain_nav("evaluate", "--scenes", tmp / "scenes.yaml", "--sizes", 32,
+                                 "--cases", 2, "--no-baselines", "--out", tmp / "study"), 2,
+                     words, timeout=120)
+    return run
+
+
 def _node_params(yaml_text: str, *words, node: str = "ekf") -> Callable:
     def run(tmp: Path):
         params = tmp / "params.yaml"
@@ -410,6 +421,12 @@ def cases() -> list[Case]:
         Case("evaluate: image smaller than every view", "imagery", _evaluate(
             lambda t, d: image_variant(t / "tiny.tif", d, "tiny"),
             lambda t: relief_geotiff(t / "dem.tif"), 2, "no view of 32 px fits")),
+        Case("evaluate: scenes file with a misspelt key", "imagery", _evaluate_scenes(
+            "scenes: [{image: image.tif, dem: dem.tif, sun: [160, 40], bnad: 1}]",
+            "unknown key bnad")),
+        Case("evaluate: scenes file with a sun of one number", "imagery", _evaluate_scenes(
+            "scenes: [{image: image.tif, dem: dem.tif, sun: [160]}]",
+            "the sun must be two numbers")),
         Case("bag cut to 50 %", "bag", _bag_info(cut_half, "cut short"), ci=True),
         Case("bag with corrupted bytes", "bag", _bag_info(corrupt_chunk, "corrupt data")),
         Case("bag without metadata.yaml", "bag", _bag_info(None, "metadata.yaml")),

@@ -323,6 +323,35 @@ def test_scenes_file_lists_every_dev_pair(shared_data):
             assert (shared_data / "imagery" / entry[key]).is_file(), entry[key]
 
 
+@pytest.mark.parametrize("text, message", [
+    ("scenes: 5", "expected 'scenes:' and a list of scenes"),
+    ("scenes: []", "expected 'scenes:' and a list of scenes"),
+    ("- image.tif", "expected 'scenes:' and a list of scenes"),
+    ("scenes: [image.tif]", "scene 1: expected a mapping"),
+    ("scenes: [{name: a, image: image.tif}]", r"scene 1 \(a\): 'dem' \(a file name\) is missing"),
+    ("scenes: [{image: image.tif, dem: dem.tif, sun: [150, 40], bnad: 4}]",
+     "unknown key bnad"),
+    ("scenes: [{image: image.tif, dem: dem.tif, sun: [150, 40], band: red}]",
+     "band must be a band number"),
+    ("scenes: [{image: image.tif, dem: dem.tif, sun: [150, 40], gsd: [30, thirty]}]",
+     "gsd must be a number of metres"),
+    ("scenes: [{image: image.tif, dem: dem.tif, sun: [150]}]",
+     r"scene 1 \(image\): the sun must be two numbers"),
+])
+def test_a_scenes_file_s_mistakes_are_named(tmp_path, text, message):
+    _write_pair(tmp_path, geographic=False)
+    (tmp_path / "scenes.yaml").write_text(text)
+    with pytest.raises(ValueError, match=message):
+        load_scenes(tmp_path / "scenes.yaml")
+
+
+def test_a_scene_without_a_name_is_named_after_its_image(tmp_path):
+    _write_pair(tmp_path, geographic=False)
+    (tmp_path / "scenes.yaml").write_text(
+        "scenes: [{image: image.tif, dem: dem.tif, sun: [150, 40], gsd: [30, 60]}]")
+    assert [s.name for s in load_scenes(tmp_path / "scenes.yaml")] == ["image@30m", "image@60m"]
+
+
 def test_a_views_nodata_makes_no_creases(tmp_path):
     """A view with a patch of nodata (a cloud mask, the scene's edge) is extracted with its
     mask, as camera_ingest's GeoImage tells the graph's extractor: the patch's edge, a step

@@ -158,7 +158,11 @@ def _reproject(src, src_transform, src_crs, dst_shape, dst_transform, dst_crs, r
 
 def _parse_sun(sun, when, lat: float, lon: float) -> tuple[float, float]:
     if sun is not None:
-        az, el = (float(x) for x in sun)
+        try:
+            az, el = (float(x) for x in sun)
+        except (TypeError, ValueError):
+            raise ValueError(f"the sun must be two numbers, azimuth and elevation in degrees; "
+                             f"got {sun!r}") from None
         if not (0.0 < el <= 90.0 and math.isfinite(az)):
             raise ValueError(f"sun elevation must be in (0, 90] deg, got {el}")
         return az % 360.0, el
@@ -263,22 +267,59 @@ def load_scene(image, dem, *, band=None, gsd: float | None = None, sun=None, whe
 
 def load_scenes(path, data_dir=None) -> list[Scene]:
     """Scenes listed in a YAML file (``scenes: [{name, image, dem, band, gsd, sun, time}]``),
-    file names relative to ``data_dir`` (default: the YAML file's folder)."""
+    file names relative to ``data_dir`` (default: the YAML file's folder). A scene without
+    ``name`` is named after its image; a list of ``gsd`` studies it at each."""
     import yaml
     path = Path(path)
-    doc = yaml.safe_load(path.read_text()) or {}
+    doc = yaml.safe_load(path.read_text())
+    entries = doc.get("scenes") if isinstance(doc, dict) else None
+    if not isinstance(entries, list) or not entries:
+        raise ValueError(f"{path.name}: expected 'scenes:' and a list of scenes, each with image, "
+                         "dem and the sun (sun or time)")
     base = Path(data_dir) if data_dir else path.parent
     scenes = []
-    for entry in doc.get("scenes", []):
+    for k, entry in enumerate(entries):
+        where = f"{path.name}: scene {k + 1}"
+        entry = _scene_entry(entry, where)
         gsds = entry.get("gsd")
+        name = entry.get("name") or Path(entry["image"]).stem
         for g in gsds if isinstance(gsds, list) else [gsds]:
-            name = entry["name"] + (f"@{g:g}m" if isinstance(gsds, list) else "")
-            scenes.append(load_scene(base / entry["image"], base / entry["dem"],
-                                     band=entry.get("band"), gsd=g, sun=entry.get("sun"),
-                                     when=entry.get("time"), name=name))
-    if not scenes:
-        raise ValueError(f"{path}: no scenes listed")
+            try:
+                scenes.append(load_scene(
+                    base / entry["image"], base / entry["dem"], band=entry.get("band"), gsd=g,
+                    sun=entry.get("sun"), when=entry.get("time"),
+                    name=name + (f"@{g:g}m" if isinstance(gsds, list) else "")))
+            except ValueError as err:
+                raise ValueError(f"{where} ({name}): {err}") from err
     return scenes
+
+
+_SCENE_KEYS = ("name", "image", "dem", "band", "gsd", "sun", "time")
+
+
+def _scene_entry(entry, where: str) -> dict:
+    """One scene of a scenes file, checked: the keys it may have, their types."""
+    if not isinstance(entry, dict):
+        raise ValueError(f"{where}: expected a mapping of {', '.join(_SCENE_KEYS)}")
+    where += f" ({entry['name']})" if entry.get("name") else ""
+    unknown = sorted(set(map(str, entry)) - set(_SCENE_KEYS))
+    if unknown:
+        raise ValueError(f"{where}: unknown key {', '.join(unknown)} (known: "
+                         f"{', '.join(_SCENE_KEYS)})")
+    for key in ("image", "dem"):
+        if not isinstance(entry.get(key), str) or not entry[key]:
+            raise ValueError(f"{where}: '{key}' (a file name) is missing")
+    band = entry.get("band")
+    if band is not None and band not in ("grey", "gray") and not (
+            isinstance(band, int) and not isinstance(band, bool) and band >= 1):
+        raise ValueError(f"{where}: band must be a band number (1-based) or 'grey', got "
+                         f"{band!r}")
+    gsds = entry.get("gsd")
+    for g in gsds if isinstance(gsds, list) else [] if gsds is None else [gsds]:
+        if isinstance(g, bool) or not isinstance(g, int | float) or not g > 0:
+            raise ValueError(f"{where}: gsd must be a number of metres > 0 or a list of them, "
+                             f"got {gsds!r}")
+    return entry
 
 
 # Side (px) of the blocks a large scene's landmark is rendered in: the renderer holds ~100
