@@ -4,7 +4,8 @@
 #   2. the CMake-path patch those wheels need,
 #   3. terrain_nav_msgs (and the tf2_msgs / px4_msgs interfaces the wheels lack) built into
 #      the venv,
-#   4. this package installed in development mode, with its ament index entries.
+#   4. this package installed in development mode, with its ament index entries,
+#   5. numba's kernels compiled into their caches (no compiling at a first flight's start).
 # Fast and silent when nothing changed (a stamp of the inputs is kept in the venv).
 # config/ and launch/ are linked into the venv's share/, so editing them needs no re-run.
 # Usage: scripts/setup.sh [--force] [--quiet]
@@ -31,9 +32,12 @@ MSGS_DIGEST="$(digest_of requirements/lock.txt terrain_nav_msgs/CMakeLists.txt \
   vendor/tf2_msgs/CMakeLists.txt vendor/tf2_msgs/package.xml vendor/tf2_msgs/msg/* \
   vendor/px4_msgs/CMakeLists.txt vendor/px4_msgs/package.xml vendor/px4_msgs/msg/*)"
 PKG_DIGEST="$(digest_of setup.py setup.cfg package.xml terrain_nav_ros/executables.py resource/*)"
+KERNELS_DIGEST="$(digest_of requirements/lock.txt terrain_nav_ros/core/_numba.py \
+  terrain_nav_ros/core/features/_crease_kernels.py terrain_nav_ros/core/matching/_matching_kernels.py)"
 stamp_ok() { [[ $FORCE -eq 0 && -f "$VENV/.setup-$1" && "$(cat "$VENV/.setup-$1")" == "$2" ]]; }
 
-if stamp_ok deps "$DEPS_DIGEST" && stamp_ok msgs "$MSGS_DIGEST" && stamp_ok pkg "$PKG_DIGEST"; then
+if stamp_ok deps "$DEPS_DIGEST" && stamp_ok msgs "$MSGS_DIGEST" && stamp_ok pkg "$PKG_DIGEST" &&
+   stamp_ok kernels "$KERNELS_DIGEST"; then
   exit 0
 fi
 
@@ -140,5 +144,14 @@ ln -s "$REPO/launch" "$SHARE/launch"
 "$VPY" -c 'import rclpy, terrain_nav_msgs.msg, terrain_nav_ros' ||
   { say "set-up finished but the imports fail"; exit 1; }
 echo "$PKG_DIGEST" >"$VENV/.setup-pkg"
+fi
+# --- 5. numba's kernels compiled into their caches: else the first flight, demo or test run
+#        compiles them in every node at start-up (~40 s of CPU on this project's 2 cores) ---
+if ! stamp_ok kernels "$KERNELS_DIGEST"; then
+  say "compiling the numba kernels into their caches"
+  "$VPY" -c 'from terrain_nav_ros.core.features.minutiae import warm_up as features
+from terrain_nav_ros.core.matching.matcher import warm_up as matching
+features(); matching()' || { say "the kernels do not compile"; exit 1; }
+  echo "$KERNELS_DIGEST" >"$VENV/.setup-kernels"
 fi
 say "done in $(( $(date +%s) - start )) s"

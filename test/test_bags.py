@@ -97,6 +97,29 @@ def test_play_back_preserves_values_timing_and_remaps(recorded_bag):
     assert clocks, "no /clock published"
 
 
+def test_play_back_waits_for_a_node_to_subscribe_to_its_inputs(recorded_bag):
+    """A node of the graph that is still loading its kernels (it subscribes once they are
+    loaded, seconds later, while its process is already in the graph) gets every message:
+    a replay of a first run must not lose its first frames."""
+    from std_msgs.msg import String
+
+    late = SpinningNode("late_node")     # in the graph at once, subscribing 3 s later
+    got = []
+    try:
+        player = start_node("bag_player", {"bag": str(recorded_bag), "topics": ["/chatter"],
+                                           "wait_for_nodes": ["late_node"],
+                                           "wait_timeout": 60.0})
+        time.sleep(3.0)
+        late.node.create_subscription(String, "/chatter", lambda m: got.append(m.data), 10)
+        log = stop(player, timeout=30) if not wait_until(
+            lambda: player.poll() is not None, 30) else player.communicate()[0]
+        assert player.returncode == 0, log
+        assert wait_until(lambda: len(got) == N, 5), f"got {len(got)} of {N}\n{log}"
+    finally:
+        late.close()
+    assert got == [f"hello {i}" for i in range(N)]
+
+
 def test_missing_and_damaged_bags_raise_bag_error(tmp_path, recorded_bag):
     with pytest.raises(bags.BagError, match="does not exist"):
         bags.topics(tmp_path / "nope")

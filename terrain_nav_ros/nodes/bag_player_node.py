@@ -47,8 +47,13 @@ class BagPlayer(Node):
         self.wait_for_topics = [t for t in declare(
             self, "wait_for_topics", [""],
             "topics that must have a subscriber before playback starts") if t]
+        self.wait_for_nodes = [n for n in declare(
+            self, "wait_for_nodes", [""],
+            "nodes that must have subscribed to their inputs before playback starts (the "
+            "graph's nodes subscribe once their kernels are loaded)") if n]
         self.wait_timeout = declare(self, "wait_timeout", 10.0,
-                                    "longest wait for those subscribers [s]", min_value=0.0)
+                                    "longest wait for those subscribers and nodes [s]",
+                                    min_value=0.0)
         self.start_delay = declare(self, "start_delay", 0.0,
                                    "pause before the first message [s]", min_value=0.0)
         self.exit_when_done = declare(self, "exit_when_done", True,
@@ -103,6 +108,23 @@ class BagPlayer(Node):
             if pub.get_subscription_count() == 0:
                 self.get_logger().warning(f"no subscriber on {topic} after "
                                           f"{self.wait_timeout} s; playing anyway")
+        for name in self.wait_for_nodes:
+            while not self._subscribed(name) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            if not self._subscribed(name):
+                self.get_logger().warning(f"{name} has not subscribed to its inputs after "
+                                          f"{self.wait_timeout} s; playing anyway")
+
+    def _subscribed(self, name: str) -> bool:
+        """Whether node ``name`` subscribes to a topic of its own (not the clock or the
+        parameter events every node may have from its start)."""
+        if name not in self.get_node_names():
+            return False
+        try:
+            topics = self.get_subscriber_names_and_types_by_node(name, "/")
+        except RuntimeError:   # rclpy's "nonexistent node": it left the graph meanwhile
+            return False
+        return any(t not in ("/clock", "/parameter_events") for t, _ in topics)
 
     def _play(self) -> None:
         try:

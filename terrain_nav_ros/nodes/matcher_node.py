@@ -163,15 +163,17 @@ class MatcherNode(Node):
         self.tally = AnswerTally()
         self.last_camera_wall: float | None = None
         self.pub = self.create_publisher(PvaFix, "/nav/pva_fix", RELIABLE_QOS)
+        self.dem = None          # (heights, georef) of the latest DEM tile
+        self.camera_model: CameraIntrinsics | None = None
+        # numba's kernels load on first use (~0.4 s; compiled, tens of seconds): not on the
+        # first frame's clock, and before subscribing, so that a node with subscribers
+        # answers at speed (a replay waits for them)
+        warm_up(self.matcher.params)
         self.create_subscription(MinutiaArray, "/landmark/minutiae", self.on_landmark,
                                  LATCHED_QOS)
         self.create_subscription(MinutiaArray, "/camera/minutiae", self.on_camera, RELIABLE_QOS)
-        self.dem = None          # (heights, georef) of the latest DEM tile
-        self.camera_model: CameraIntrinsics | None = None
         self.create_subscription(DemTile, "/metamap/tile", self.on_tile, LATCHED_QOS)
         self.create_subscription(CameraInfo, "/camera/camera_info", self.on_info, SENSOR_QOS)
-        # numba's kernels load on first use (~0.4 s): not on the first frame's clock
-        warm_up(self.matcher.params)
         self._started_wall = time.monotonic()
         publish_diagnostics(self, "/matcher/diagnostics", diagnostics_period,
                             self.diagnostics)

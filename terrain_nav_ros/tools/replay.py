@@ -239,11 +239,15 @@ def run_replay(bag: str | Path, out_dir: str | Path, graph_config: str | Path,
         node.parameters.update(overrides.get(node.name, {}))
     wait_for = [t for t in ("/imu/data", "/camera/image_raw", "/camera/image_raw/compressed")
                 if t in input_topics]
+    # and for the nodes downstream, which subscribe once their kernels are loaded (compiled
+    # on a first run: tens of seconds in which the first frames would find no one)
+    ready = [n.name for n in spec.nodes if n.name in ("feature_extractor", "matcher")]
     spec.nodes.append(NodeSpec("bag_recorder", "bag_recorder", required=True, parameters={
         "output": str(output_bag), "topics": RECORDED_TOPICS}))
     spec.nodes.append(NodeSpec("bag_player", "bag_player", required=False, parameters={
         "bag": str(bag), "rate": float(rate), "wait_for_topics": wait_for or [""],
-        "wait_timeout": 30.0, "start_delay": 2.0,
+        "wait_for_nodes": ready or [""],
+        "wait_timeout": 120.0, "start_delay": 2.0,
         "topics": [t for t in input_topics if t != "/ground_truth/odometry"]}))
     runner = GraphRunner(spec, {"use_sim_time": True}, log_dir=out_dir / "logs",
                          echo=None if verbose else _echo)
