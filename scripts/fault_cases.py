@@ -86,29 +86,69 @@ def with_mission(bag: Path, dest: Path, text: str) -> Path:
     return dest
 
 
-def frozen_camera(bag: Path, dest: Path, start: float, seconds: float) -> Path:
-    """A copy of ``bag`` whose camera republishes, from ``start`` s for ``seconds``, the
-    frame it took at ``start`` under new stamps (a hung driver)."""
+def changed_bag(bag: Path, dest: Path, change: Callable) -> Path:
+    """A copy of ``bag`` (with its mission.yaml) whose messages go through ``change(topic,
+    seconds since the start, decode)``: None keeps one as it is, ``"drop"`` drops it, a
+    message replaces it (``decode()`` gives the original, decoded)."""
     from terrain_nav_ros.tools import bags
 
-    cameras = ("/camera/image_raw", "/camera/image_raw/compressed")
-    first, frozen = None, None
+    first = None
     with bags.BagWriter(dest, compress=True) as writer:
         writer.add_topics_of(bag)
         for m in bags.read(bag):
             first = m.timestamp_ns if first is None else first
-            at = (m.timestamp_ns - first) * 1e-9
-            if m.topic in cameras and start <= at < start + seconds:
-                msg = bags.decode(m)
-                if frozen is None:
-                    frozen = msg.data
-                else:
-                    msg.data = frozen
-                    writer.write_message(m.topic, m.timestamp_ns, msg, m.msgtype)
-                    continue
-            writer.write(m.topic, m.timestamp_ns, m.rawdata)
+            out = change(m.topic, (m.timestamp_ns - first) * 1e-9,
+                         lambda m=m: bags.decode(m))
+            if out is None:
+                writer.write(m.topic, m.timestamp_ns, m.rawdata)
+            elif not isinstance(out, str):
+                writer.write_message(m.topic, m.timestamp_ns, out, m.msgtype)
     (dest / "mission.yaml").write_bytes((bag / "mission.yaml").read_bytes())
     return dest
+
+
+def frozen_camera(start: float, seconds: float) -> Callable:
+    """A :func:`changed_bag` change: the camera republishes, from ``start`` s for
+    ``seconds``, the frame it took at ``start`` under new stamps (a hung driver)."""
+    cameras = ("/camera/image_raw", "/camera/image_raw/compressed")
+    frozen = []
+
+    def change(topic, at, decode):
+        if topic not in cameras or not start <= at < start + seconds:
+            return None
+        msg = decode()
+        if not frozen:
+            frozen.append(msg.data)
+            return None
+        msg.data = frozen[0]
+        return msg
+
+    return change
+
+
+def nan_imu(topic, at, decode):
+    """IMU samples of 30.0-30.5 s with NaN in an acceleration and a rate (a driver fault)."""
+    if topic != "/imu/data" or not 30.0 <= at < 30.5:
+        return None
+    msg = decode()
+    msg.linear_acceleration.x = msg.angular_velocity.z = float("nan")
+    return msg
+
+
+def imu_gap(topic, at, _decode):
+    """No IMU samples for 3 s (30-33 s): a stalled driver."""
+    return "drop" if topic == "/imu/data" and 30.0 <= at < 33.0 else None
+
+
+def uncalibrated_camera(topic, at, decode):
+    """CameraInfo of 30-40 s with an all-zero K (a driver that lost its calibration)."""
+    if topic != "/camera/camera_info" or not 30.0 <= at < 40.0:
+        return None
+    import numpy as np
+
+    msg = decode()
+    msg.k = np.zeros(9)
+    return msg
 
 
 def geotiff(path: Path) -> Path:
@@ -483,7 +523,12 @@ def cases() -> list[Case]:
             node="matcher")),
         Case("matcher: mission index with a tile layer missing", "parameters",
              _partial_mission),
-        Case("camera frozen for 15 s mid-flight", "flight", _frozen_camera_flight),
+        Case("camera frozen for 15 s mid-flight", "flight", _flight(
+            frozen_camera(25.0, 15.0), "camera frozen", 12)),
+        Case("IMU samples with NaN for 0.5 s", "flight", _flight(nan_imu)),
+        Case("IMU silent for 3 s", "flight", _flight(imu_gap)),
+        Case("CameraInfo with a zero K for 10 s", "flight", _flight(
+            uncalibrated_camera, "not calibrated", 8)),
         Case("IMU stamp 5 s in the past, GNSS gone", "ekf", _ekf_stamp(-5.0)),
         Case("IMU stamp 1 h ahead, GNSS gone", "ekf", _ekf_stamp(3600.0), ci=True),
     ]
@@ -497,30 +542,33 @@ def _prepare(options: tuple, words: str):
         tmp / "index", *options), 2, (words,))
 
 
-def _frozen_camera_flight(tmp: Path):
-    """The short bag with its camera frozen from 25 to 40 s: those frames get no fix, with
-    the reason, and the fused error stays bounded (fixes of the frozen frame would pull the
-    filter back to where the aircraft was at 25 s)."""
-    import yaml
+def _flight(change: Callable, reason: str = "", at_least: int = 0) -> Callable:
+    """The short bag changed by ``change`` (:func:`changed_bag`) and replayed: GOOD when the
+    fused error stays bounded (3 x 20 m), every frame is answered and, with ``reason``, at
+    least ``at_least`` frames get a no-fix saying it."""
+    def run(tmp: Path):
+        import yaml
 
-    from terrain_nav_ros.tools.cli import REPO
+        from terrain_nav_ros.tools.cli import REPO
 
-    bag = frozen_camera(REPO / "bags" / "jacksboro_short", tmp / "frozen", 25.0, 15.0)
-    try:
-        proc = subprocess.run(terrain_nav("replay", "--bag", bag, "--out", tmp / "out"),
-                              capture_output=True, text=True, timeout=400)
-    except subprocess.TimeoutExpired:
-        return BAD, "replay did not finish within 400 s"
-    if proc.returncode != 0:
-        return BAD, f"replay exit {proc.returncode}: {proc.stderr.strip()[-110:]}"
-    report = yaml.safe_load((tmp / "out" / "report.yaml").read_text())
-    frozen = sum(n for reason, n in report["fixes"]["reasons"] if "camera frozen" in reason)
-    fused = report["fused_error"]
-    detail = (f"{frozen} frozen frames refused, {report['fixes']['fixes']} fixes, fused RMS "
-              f"{fused['rms']:.1f} m, final {fused['final']:.1f} m")
-    if fused["final"] > 3 * 20.0 or fused["rms"] > 3 * 20.0:
-        return BAD, detail
-    return (GOOD if frozen >= 12 else POOR), detail
+        bag = changed_bag(REPO / "bags" / "jacksboro_short", tmp / "bag", change)
+        try:
+            proc = subprocess.run(terrain_nav("replay", "--bag", bag, "--out", tmp / "out"),
+                                  capture_output=True, text=True, timeout=400)
+        except subprocess.TimeoutExpired:
+            return BAD, "replay did not finish within 400 s"
+        if proc.returncode != 0:
+            return BAD, f"replay exit {proc.returncode}: {proc.stderr.strip()[-110:]}"
+        report = yaml.safe_load((tmp / "out" / "report.yaml").read_text())
+        fixes, fused = report["fixes"], report["fused_error"]
+        said = sum(n for text, n in fixes["reasons"] if reason and reason in text)
+        detail = (f"{fixes['fixes']} fixes, {fixes['frames']} of {fixes['in_bag']} frames "
+                  f"answered{f', {said} {reason!r}' if reason else ''}, fused RMS "
+                  f"{fused['rms']:.1f} m, final {fused['final']:.1f} m, died {report['died']}")
+        if fused["final"] > 3 * 20.0 or fused["rms"] > 3 * 20.0 or report["died"]:
+            return BAD, detail
+        return (GOOD if said >= at_least and fixes["frames"] == fixes["in_bag"] else POOR), detail
+    return run
 
 
 def _partial_mission(tmp: Path):
