@@ -599,3 +599,29 @@ def test_a_dem_finer_than_the_image_is_not_aliased_onto_its_grid(tmp_path):
     centres = (np.arange(160) + 0.5) * 30.0
     ripple = scene.elevation[2:-2, 2:-2] - (1000.0 + 200.0 * np.sin(centres / 1500.0))[2:-2]
     assert ripple.std() < 0.05 * 20.0 / np.sqrt(2.0), ripple.std()
+
+
+@pytest.mark.filterwarnings("ignore::rasterio.errors.NotGeoreferencedWarning")
+def test_an_image_with_control_points_in_degrees_is_studied_like_its_georeferenced_twin(
+        tmp_path):
+    """A scanned or level-1 image carries only control points (here in lon/lat): it is
+    warped onto their grid, then onto UTM like any image in degrees."""
+    import rasterio
+    from rasterio.control import GroundControlPoint
+
+    image, dem = _write_pair(tmp_path, geographic=True)
+    with rasterio.open(image) as ds:
+        profile, grey, transform = ds.profile, ds.read(1), ds.transform
+    profile.update(crs=None, transform=rasterio.Affine.identity())
+    gcp_image = tmp_path / "gcps.tif"
+    with rasterio.open(gcp_image, "w", **profile) as ds:
+        ds.write(grey, 1)
+        ds.gcps = ([GroundControlPoint(r, c, *(transform @ (c, r)))
+                    for r in (0, 80, 160) for c in (0, 80, 160)], "EPSG:4326")
+    twin = load_scene(image, dem, sun=(150.0, 40.0))
+    scene = load_scene(gcp_image, dem, sun=(150.0, 40.0))
+    assert scene.gsd == pytest.approx(twin.gsd, rel=0.02)
+    h, w = (min(a, b) - 4 for a, b in zip(scene.image.shape, twin.image.shape, strict=True))
+    seen = scene.valid[2:h, 2:w] & twin.valid[2:h, 2:w]
+    a, b = scene.image[2:h, 2:w][seen], twin.image[2:h, 2:w][seen]
+    assert seen.mean() > 0.9 and np.corrcoef(a, b)[0, 1] > 0.95
