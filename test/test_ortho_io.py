@@ -60,6 +60,10 @@ def test_an_undeclared_fill_value_is_no_data_and_named(tmp_path, dtype, fill, lo
     np.testing.assert_allclose(data[~fill_px], values[~fill_px].astype(dtype), rtol=1e-6)
     assert f"{fill_px.sum()} of {fill_px.size} pixels" in warning
     assert f"{np.float32(fill):g}" in warning and "read as no data" in warning
+    with OrthoImage(path) as img:     # one band as three colours: read and judged once
+        grey = img.read([1, 1, 1])
+        assert img.warning == warning
+    np.testing.assert_array_equal(grey, np.stack([data] * 3))
 
 
 def test_a_saturated_plateau_and_declared_nodata_are_not_undeclared_fill(tmp_path):

@@ -145,14 +145,16 @@ class OrthoImage:
 
     def read(self, bands) -> np.ndarray:
         """Bands (1-based, of :attr:`count`) as float32 ``(len(bands), rows, cols)``, NaN
-        where any of them holds no data; :attr:`warning` names undeclared fills."""
+        where any of them holds no data; :attr:`warning` names undeclared fills. A band
+        asked for more than once (one band as three colours) is read and judged once."""
         import rasterio
 
-        bands = [int(b) for b in bands]
-        for b in bands:
+        wanted = [int(b) for b in bands]
+        for b in wanted:
             if not 1 <= b <= self.count:
                 raise ImageError(f"{self.name}: band {b} does not exist (the file has "
                                  f"{self.count})")
+        bands = sorted(set(wanted))
         try:
             data, nodata = self._colours(bands) if self._palette else self._bands(bands)
         except rasterio.errors.RasterioError as err:
@@ -169,7 +171,8 @@ class OrthoImage:
                 data[:, at] = np.nan
         self.warning = (f"{self.name}: " + "; ".join(notes) + ": an undeclared nodata "
                         "value, read as no data") if notes else None
-        return self._on_grid(data) if self._gcps else data
+        data = self._on_grid(data) if self._gcps else data
+        return data if wanted == bands else data[[bands.index(b) for b in wanted]]
 
     def _bands(self, bands):
         a = self._ds.read(bands, masked=True)
