@@ -83,10 +83,7 @@ def test_play_back_preserves_values_timing_and_remaps(recorded_bag):
                                            "topics": ["/chatter"],
                                            "remap": ["/chatter:=/replayed"],
                                            "wait_for_topics": ["/chatter"]})
-        log = stop(player, timeout=30) if not wait_until(
-            lambda: player.poll() is not None, 30) else player.communicate()[0]
-        assert player.returncode == 0, log
-        assert wait_until(lambda: len(got) == N, 5), f"got {len(got)} of {N}\n{log}"
+        _played_all(player, got)
     finally:
         listener.close()
     assert [d for _, d in got] == [f"hello {i}" for i in range(N)]
@@ -111,13 +108,18 @@ def test_play_back_waits_for_a_node_to_subscribe_to_its_inputs(recorded_bag):
                                            "wait_timeout": 60.0})
         time.sleep(3.0)
         late.node.create_subscription(String, "/chatter", lambda m: got.append(m.data), 10)
-        log = stop(player, timeout=30) if not wait_until(
-            lambda: player.poll() is not None, 30) else player.communicate()[0]
-        assert player.returncode == 0, log
-        assert wait_until(lambda: len(got) == N, 5), f"got {len(got)} of {N}\n{log}"
+        _played_all(player, got)
     finally:
         late.close()
     assert got == [f"hello {i}" for i in range(N)]
+
+
+def _played_all(player, got: list) -> None:
+    """The player ends within 30 s with exit 0, and all N messages arrive in ``got``."""
+    log = stop(player, timeout=30) if not wait_until(
+        lambda: player.poll() is not None, 30) else player.communicate()[0]
+    assert player.returncode == 0, log
+    assert wait_until(lambda: len(got) == N, 5), f"got {len(got)} of {N}\n{log}"
 
 
 def test_missing_and_damaged_bags_raise_bag_error(tmp_path, recorded_bag):

@@ -103,17 +103,18 @@ class BagPlayer(Node):
             if pub is None:
                 self.get_logger().warning(f"wait_for_topics: {topic} is not in the bag")
                 continue
-            while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
-                time.sleep(0.05)
-            if pub.get_subscription_count() == 0:
-                self.get_logger().warning(f"no subscriber on {topic} after "
-                                          f"{self.wait_timeout} s; playing anyway")
+            self._wait(lambda pub=pub: pub.get_subscription_count() > 0, deadline,
+                       f"no subscriber on {topic}")
         for name in self.wait_for_nodes:
-            while not self._subscribed(name) and time.monotonic() < deadline:
-                time.sleep(0.05)
-            if not self._subscribed(name):
-                self.get_logger().warning(f"{name} has not subscribed to its inputs after "
-                                          f"{self.wait_timeout} s; playing anyway")
+            self._wait(lambda name=name: self._subscribed(name), deadline,
+                       f"{name} has not subscribed to its inputs")
+
+    def _wait(self, ready, deadline: float, missing: str) -> None:
+        """Until ``ready()`` or the deadline; then, if still not ready, say ``missing``."""
+        while not ready() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        if not ready():
+            self.get_logger().warning(f"{missing} after {self.wait_timeout} s; playing anyway")
 
     def _subscribed(self, name: str) -> bool:
         """Whether node ``name`` subscribes to a topic of its own (not the clock or the
