@@ -524,6 +524,29 @@ def test_position_reset_after_consecutive_rejections():
     assert ekf.diagnostics.position_resets == 1
 
 
+def test_a_frozen_barometer_is_rejected_and_never_resets_the_height():
+    """A baro stuck 2 km below the aircraft, while fixes keep agreeing with the filter: its
+    samples are gated out however long the streak, and the height stays with the fixes (a
+    reset onto it would put the height 2 km off and lose every later fix)."""
+    params = EkfParams(init_mode="pose", reset_after_rejections=3)
+    rng, truth, imu = flight(straight_flight(30.0), 11, params)
+    ekf = start_filter(truth, params)
+    baro = []
+    for k in range(1, len(truth)):
+        ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
+        if k % 200 == 0:
+            ekf.process_fix(truth.t[k], truth.position[k] + rng.normal(0, 2, 3), np.eye(3) * 4)
+        if k % 20 == 0:
+            frozen = truth.t[k] > 10.0
+            height = truth.position[k, 2] - 2000.0 if frozen else truth.position[k, 2]
+            out = ekf.process_baro(truth.t[k], height, 4.0)
+            if frozen:
+                baro.append(out.reason)
+    assert len(baro) > 50 and set(baro) == {Reason.GATED}
+    assert ekf.diagnostics.position_resets == 0
+    assert abs(ekf.state.position[2] - truth.position[-1, 2]) < 10.0
+
+
 def test_position_reset_keeps_the_imu_velocity_and_attitude():
     """A reset takes the fix's position only: its differenced velocity (here 200 m/s off, as
     two fixes 1 s apart with ~100 m errors give) and unobserved tilt would derail the filter."""

@@ -173,8 +173,8 @@ EKF_PARAMETERS = {
     "gnss_gate_probability": ("chi-square gate probability for GNSS", 1e-6, 1.0),
     "fuse_gnss": ("fuse GNSS (true) or only initialise from it and score it (false)",
                   None, None),
-    "reset_after_rejections": ("consecutive gated-out measurements of one source before a "
-                               "position reset to the next one; 0 = never", 0, 1000),
+    "reset_after_rejections": ("consecutive gated-out fixes (or GNSS) before a position "
+                               "reset to the next one; 0 = never", 0, 1000),
     "history_length": ("state/IMU history for delayed measurements [s]", 0.01, 60.0),
     "max_future": ("measurements up to this far ahead of the IMU are queued [s]", 0.0, 10.0),
     "time_jump_reset": ("an IMU stamp this far from the previous one (either way) is "

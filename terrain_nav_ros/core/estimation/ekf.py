@@ -1022,7 +1022,8 @@ class TerrainEkf:
             else:
                 self._consecutive[meas.source] += 1
                 n = self.params.reset_after_rejections
-                if n and self._consecutive[meas.source] >= n:
+                if n and self._consecutive[meas.source] >= n \
+                        and meas.source in _RESETTING_SOURCES:
                     self._arm_reset(meas.source)
         meas.outcome = outcome
 
@@ -1034,6 +1035,14 @@ class TerrainEkf:
     def _refuse(self, source: str, reason: Reason) -> Outcome:
         self._diag.input_rejections[f"{source}:{reason.value}"] += 1
         return Outcome(False, reason)
+
+
+# Sources whose streak of gate rejections resets the position onto them: the absolute position
+# references. A barometer measures the height alone, against an offset learnt in flight, so a
+# streak of its rejections is a stuck or stepped sensor far more often than a filter gone
+# astray (which the fixes' heights catch): reset onto, a baro frozen at 90 kPa put the height
+# 2.8 km off and lost every fix after it. Its rejections are still counted and reported.
+_RESETTING_SOURCES = frozenset({"fix", "gnss"})
 
 
 def tilt_lever(height: float) -> np.ndarray:

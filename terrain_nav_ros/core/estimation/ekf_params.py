@@ -80,9 +80,9 @@ class EkfParams:
         If False, GNSS is used to initialise and is compared with the estimate (NIS
         recorded) but never updates it. Default True.
     reset_after_rejections : int
-        After this many consecutive gated-out measurements from one source, the position is
-        reset to the next one of that source (recovers from divergence); 0 disables.
-        Default 10.
+        After this many consecutive gated-out fixes (or GNSS measurements), the position is
+        reset to the next one of that source (recovers from divergence); 0 disables. Baro
+        rejections never reset (a stuck sensor, not a diverged filter). Default 10.
     history_length : float
         Length of the state / IMU history used for delayed measurements (s). Measurements
         older than the history are rejected as stale. Default 3.0.
