@@ -87,6 +87,16 @@ def test_frames_are_projected_to_the_right_place_and_bad_frames_explained():
             pubs["/camera/image_raw"].publish(msg)
             assert wait_until(lambda m=msg: got[-1].header.stamp == m.header.stamp, 10), \
                 stop(node)
+        guarded = list(got)
+        # a camera clock 3 s behind the navigation estimate (max_frame_age 1 s): refused
+        late = Odometry(header=cv.make_header(sent[-1] + 3 * 10**9, "map"), pose=odom.pose)
+
+        def publish_late_and_check():
+            pubs["/nav/odometry"].publish(late)
+            pubs["/camera/image_raw"].publish(next_frame())
+            return any("older than the newest estimate" in m.reason for m in got)
+
+        assert wait_until(publish_late_and_check, 10, period=0.3), stop(node)
         n_reports = len(diagnostics)
         assert wait_until(lambda: len(diagnostics) > n_reports, 10), stop(node)
         assert node.poll() is None
@@ -97,9 +107,11 @@ def test_frames_are_projected_to_the_right_place_and_bad_frames_explained():
     garbled_out = next(m for m in got if m.header.stamp.nanosec == 1)
     assert "no CameraInfo" in got[0].reason and got[0].image.width == 0
     assert "yuv9000" in garbled_out.reason and garbled_out.image.width == 0
-    assert got[-2].reason.startswith("frame not projected: camera frozen") and \
-        got[-2].image.width == 0
-    assert got[-1].reason.startswith("frame not projected: frame repeated or out of order")
+    assert guarded[-2].reason.startswith("frame not projected: camera frozen") and \
+        guarded[-2].image.width == 0
+    assert guarded[-1].reason.startswith("frame not projected: frame repeated or out of order")
+    late_out = next(m for m in got if "older than the newest estimate" in m.reason)
+    assert "3.00 s older" in late_out.reason and late_out.image.width == 0
     with pytest.raises(cv.ConversionError, match="no CameraInfo"):
         cv.msg_to_geo_image(got[0])
     # ... and the diagnostics count them by reason

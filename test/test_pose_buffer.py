@@ -39,3 +39,20 @@ def test_time_going_backwards_restarts_the_history():
     buf.add(_pose(100.1, 0))
     buf.add(_pose(5.0, 0))
     assert len(buf) == 1 and buf.at(5.0)[0].stamp == 5.0
+
+
+def test_a_frame_far_behind_the_newest_estimate_is_refused_with_its_age():
+    # a camera clock that jumped 2 s back: the pose of the stamp is not where the picture
+    # was taken, though the history still holds it
+    buf = PoseBuffer(horizon=5.0, max_extrapolation=0.2, max_age=1.0)
+    for k in range(31):
+        buf.add(_pose(10.0 + 0.1 * k, 0))
+    assert buf.at(12.6)[0] is not None                # 0.4 s behind: a normal lag
+    pose, reason = buf.at(11.0)
+    assert pose is None and "2.00 s older than the newest estimate" in reason
+    assert "clock" in reason
+    assert PoseBuffer(horizon=5.0).at(11.0)[0] is None  # (empty)
+    unlimited = PoseBuffer(horizon=5.0)
+    unlimited.add(_pose(10.0, 0))
+    unlimited.add(_pose(13.0, 0))
+    assert unlimited.at(11.0)[0] is not None          # without max_age: the history's reach

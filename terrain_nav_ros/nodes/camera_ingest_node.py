@@ -95,6 +95,10 @@ class CameraIngestNode(Node):
         self.max_pose_gap = declare(self, "max_pose_gap", 0.25,
                                     "largest time between a frame and the estimate [s]",
                                     min_value=0.0)
+        self.max_frame_age = declare(self, "max_frame_age", 1.0,
+                                     "largest time a frame's stamp may lag the newest "
+                                     "estimate (older: a late frame or a camera clock that "
+                                     "jumped back) [s]", min_value=0.0)
         self.frame_id = declare(self, "frame_id", "map", "frame of the ground images")
         self.orthorectify = declare(self, "orthorectify", True,
                                     "use the DEM tile's height for every ground pixel (true "
@@ -135,7 +139,8 @@ class CameraIngestNode(Node):
         self.terrain, self.terrain_problem = None, ""
         if self.cold_start:
             self.terrain, self.terrain_problem = self._area_terrain(mission_dir)
-        self.poses = PoseBuffer(horizon=5.0, max_extrapolation=self.max_pose_gap)
+        self.poses = PoseBuffer(horizon=5.0, max_extrapolation=self.max_pose_gap,
+                                max_age=self.max_frame_age)
         self.frames = FrameGuard()
         self.intrinsics: CameraIntrinsics | None = None
         self.calibration_problem = "no CameraInfo received yet"

@@ -4,11 +4,18 @@ Camera frames are stamped when the shutter opened; the navigation estimate arriv
 rate. Projecting a frame with the pose of another instant moves it by speed x time offset
 (30 m/s x 20 ms = 0.6 m), so the pose is interpolated at the frame's stamp: linearly for the
 position, by spherical interpolation for the attitude.
+
+A frame stamped far behind the newest estimate is refused (``max_age``): a camera's frames
+reach the graph within a fraction of a second, so a stamp seconds old is a camera clock that
+jumped back (or a frame stuck in a queue), and the pose at that stamp is not where the
+picture was taken. Projected with it, the fix lands speed x offset away (60 m for 2 s at
+30 m/s) and its heading is the one of seconds ago, which the filter then takes in.
 """
 
 from __future__ import annotations
 
 import bisect
+import math
 from collections import deque
 from dataclasses import dataclass
 
@@ -36,11 +43,16 @@ class PoseBuffer:
     max_extrapolation : float
         How far past the newest pose (or before the oldest) a query may be answered by the
         nearest pose (s); beyond, :meth:`at` returns None with a reason.
+    max_age : float
+        How far behind the newest pose a query may be (s); an older one is refused with the
+        reason (a late frame or a camera clock fault).
     """
 
-    def __init__(self, horizon: float = 5.0, max_extrapolation: float = 0.2):
+    def __init__(self, horizon: float = 5.0, max_extrapolation: float = 0.2,
+                 max_age: float = math.inf):
         self.horizon = float(horizon)
         self.max_extrapolation = float(max_extrapolation)
+        self.max_age = float(max_age)
         self._poses: deque[StampedPose] = deque()
 
     def __len__(self) -> int:
@@ -69,6 +81,10 @@ class PoseBuffer:
         first, last = self._poses[0], self._poses[-1]
         if stamp > last.stamp + self.max_extrapolation:
             return None, f"newest estimate is {stamp - last.stamp:.2f} s older than the frame"
+        if stamp < last.stamp - self.max_age:
+            return None, (f"frame is {last.stamp - stamp:.2f} s older than the newest estimate "
+                          f"(max_frame_age {self.max_age:g} s): a late frame or a camera clock "
+                          "that jumped back")
         if stamp < first.stamp - self.max_extrapolation:
             return None, f"frame is {first.stamp - stamp:.2f} s older than the pose history"
         if stamp >= last.stamp:
