@@ -37,5 +37,15 @@ def test_other_shapes_or_encodings_are_new_frames():
     guard, (a,) = FrameGuard(), _frames(1)
     assert guard.check(1.0, a) == ""
     assert guard.check(1.1, a.astype(np.uint16)) == ""
-    assert guard.check(1.2, np.zeros((10, 10), np.uint8)) == ""
-    assert guard.check(1.3, np.zeros((10, 10), np.uint8)).startswith("camera frozen")
+    assert guard.check(1.2, a[:10, :10].copy()) == ""
+    assert guard.check(1.3, a[:10, :10].copy()).startswith("camera frozen")
+
+
+def test_repeats_of_a_constant_image_are_not_taken_for_a_frozen_camera():
+    # a covered lens or a saturated frame has no noise left: its repeats are bit-identical
+    # and must reach the extractor, which says what they are (constant, no drainage)
+    guard, (a,) = FrameGuard(), _frames(1)
+    assert guard.check(1.0, a) == ""
+    for t, value in ((1.1, 0), (1.2, 0), (1.3, 255), (1.4, 255)):
+        assert guard.check(t, np.full((48, 64), value, np.uint8)) == ""
+    assert guard.check(1.5, a) == "" and guard.check(1.6, a.copy()).startswith("camera frozen")

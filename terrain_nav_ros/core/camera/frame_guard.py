@@ -7,6 +7,10 @@ silently wrong answer. A real sensor's frames always differ (photon and read noi
 bit-identical consecutive frames mean a frozen source, and a stamp that does not move
 forward means a repeated or out-of-order frame. :class:`FrameGuard` tells both apart from
 good frames, for camera_ingest to answer them with a no-fix and its reason.
+
+An image of one value (a covered lens, a black night frame, a frame saturated by glare) has
+no noise left to differ by, so its repeats are not taken for a frozen source: they pass, and
+the extractor answers them for what they are (a constant image, no drainage).
 """
 
 from __future__ import annotations
@@ -40,7 +44,8 @@ class FrameGuard:
             return (f"frame repeated or out of order: stamp {stamp:.3f} s is not after the "
                     f"previous frame's {self._stamp:.3f} s")
         if (self._image is not None and image.shape == self._image.shape
-                and image.dtype == self._image.dtype and np.array_equal(image, self._image)):
+                and image.dtype == self._image.dtype and not _constant(image)
+                and np.array_equal(image, self._image)):
             self.frozen_run = min(self.frozen_run + 1, self.max_frozen_report)
             self._stamp = stamp
             return (f"camera frozen: the image of the last new frame again, {self.frozen_run} "
@@ -48,3 +53,8 @@ class FrameGuard:
         self.frozen_run = 0
         self._stamp, self._image = stamp, image.copy()
         return ""
+
+
+def _constant(image: np.ndarray) -> bool:
+    """Whether every pixel holds the same value (nothing for sensor noise to change)."""
+    return image.size == 0 or bool(image.min() == image.max())
