@@ -107,14 +107,16 @@ def changed_bag(bag: Path, dest: Path, change: Callable) -> Path:
     return dest
 
 
+CAMERA_TOPICS = ("/camera/image_raw", "/camera/image_raw/compressed")
+
+
 def frozen_camera(start: float, seconds: float) -> Callable:
     """A :func:`changed_bag` change: the camera republishes, from ``start`` s for
     ``seconds``, the frame it took at ``start`` under new stamps (a hung driver)."""
-    cameras = ("/camera/image_raw", "/camera/image_raw/compressed")
     frozen = []
 
     def change(topic, at, decode):
-        if topic not in cameras or not start <= at < start + seconds:
+        if topic not in CAMERA_TOPICS or not start <= at < start + seconds:
             return None
         msg = decode()
         if not frozen:
@@ -148,6 +150,43 @@ def uncalibrated_camera(topic, at, decode):
 
     msg = decode()
     msg.k = np.zeros(9)
+    return msg
+
+
+def camera_clock_back(topic, at, decode):
+    """Camera frames and CameraInfo of 30-40 s stamped 2 s early: a camera clock that jumped
+    back (the first two are out of order; the rest move on, 2 s behind the navigation)."""
+    if topic not in (*CAMERA_TOPICS, "/camera/camera_info") or not 30.0 <= at < 40.0:
+        return None
+    msg = decode()
+    msg.header.stamp.sec -= 2
+    return msg
+
+
+def frozen_baro(topic, at, decode):
+    """Barometer stuck at 90 kPa (~990 m, the aircraft is near 3.8 km) from 25 s on."""
+    if topic != "/baro/pressure" or at < 25.0:
+        return None
+    msg = decode()
+    msg.fluid_pressure = 90_000.0
+    return msg
+
+
+def covered_lens(topic, at, decode):
+    """Camera frames of 30-40 s all black (a lens cap, a night frame): each one says it is
+    constant, none is taken for a frozen camera."""
+    if topic not in CAMERA_TOPICS or not 30.0 <= at < 40.0:
+        return None
+    import cv2
+    import numpy as np
+
+    msg = decode()
+    if topic.endswith("compressed"):
+        image = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_UNCHANGED)
+        msg.data = np.frombuffer(cv2.imencode(".jpg", np.zeros_like(image))[1].tobytes(),
+                                 np.uint8)
+    else:
+        msg.data = np.zeros(len(msg.data), np.uint8)
     return msg
 
 
@@ -525,6 +564,11 @@ def cases() -> list[Case]:
              _partial_mission),
         Case("camera frozen for 15 s mid-flight", "flight", _flight(
             frozen_camera(25.0, 15.0), "camera frozen", 12)),
+        Case("camera clock 2 s back for 10 s", "flight", _flight(
+            camera_clock_back, "older than the newest estimate", 8)),
+        Case("camera lens covered for 10 s (black frames)", "flight", _flight(
+            covered_lens, "image is constant", 10)),
+        Case("barometer stuck at 90 kPa from 25 s", "flight", _flight(frozen_baro)),
         Case("IMU samples with NaN for 0.5 s", "flight", _flight(nan_imu)),
         Case("IMU silent for 3 s", "flight", _flight(imu_gap)),
         Case("CameraInfo with a zero K for 10 s", "flight", _flight(
