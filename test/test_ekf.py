@@ -547,6 +547,26 @@ def test_a_frozen_barometer_is_rejected_and_never_resets_the_height():
     assert abs(ekf.state.position[2] - truth.position[-1, 2]) < 10.0
 
 
+def test_spoofed_gnss_is_rejected_and_not_reset_onto_while_the_fixes_agree():
+    """GNSS moved 200 m north for 5 s while terrain fixes keep agreeing with the filter: the
+    streak of GNSS rejections does not reset the position (the fixes say GNSS is the one
+    off; with nothing else accepted meanwhile a streak still resets, as tested above)."""
+    params = EkfParams(init_mode="pose", reset_after_rejections=3)
+    rng, truth, imu = flight(straight_flight(30.0), 11, params)
+    ekf = start_filter(truth, params)
+    gnss = []
+    for k in range(1, len(truth)):
+        ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
+        if k % 100 == 0:
+            ekf.process_fix(truth.t[k], truth.position[k] + rng.normal(0, 2, 3), np.eye(3) * 4)
+        if k % 20 == 0 and 5.0 <= truth.t[k] < 10.0:
+            gnss.append(ekf.process_gnss(truth.t[k], truth.position[k] + [0.0, 200.0, 0.0],
+                                         np.eye(3) * 4).reason)
+    assert len(gnss) >= 20 and set(gnss) == {Reason.GATED}
+    assert ekf.diagnostics.position_resets == 0
+    assert np.linalg.norm(ekf.state.position - truth.position[-1]) < 10.0
+
+
 def test_position_reset_keeps_the_imu_velocity_and_attitude():
     """A reset takes the fix's position only: its differenced velocity (here 200 m/s off, as
     two fixes 1 s apart with ~100 m errors give) and unobserved tilt would derail the filter."""

@@ -382,6 +382,7 @@ class TerrainEkf:
         self._pre_init_imu: deque = deque()
         self._init_candidate = None
         self._consecutive = Counter()
+        self._streak_start: dict[str, float] = {}   # stamp of each source's first rejection
         self._reset_armed: set[str] = set()
         self._last_good: NavState | None = None   # set after a time jump, for re-init
         self._init_source_seen = False
@@ -1020,12 +1021,26 @@ class TerrainEkf:
             if outcome.accepted:
                 self._consecutive[meas.source] = 0
             else:
+                if not self._consecutive[meas.source]:
+                    self._streak_start[meas.source] = meas.stamp
                 self._consecutive[meas.source] += 1
                 n = self.params.reset_after_rejections
                 if n and self._consecutive[meas.source] >= n \
-                        and meas.source in _RESETTING_SOURCES:
+                        and self._diverged_for(meas.source):
                     self._arm_reset(meas.source)
         meas.outcome = outcome
+
+    def _diverged_for(self, source: str) -> bool:
+        """Whether ``source``'s streak of rejections may mean a diverged filter: it is an
+        absolute position reference, and no other one was accepted since the streak began.
+        When the other agrees with the filter all along, the source is the one that is off
+        (GNSS spoofed 200 m for 4 s was reset onto, and the fused error stayed ~200 m until
+        ten fixes had been rejected in turn)."""
+        if source not in _RESETTING_SOURCES:
+            return False
+        start = self._streak_start.get(source, -math.inf)
+        return all(self._diag.last_accepted.get(other, -math.inf) < start
+                   for other in _RESETTING_SOURCES - {source})
 
     def _arm_reset(self, source: str):
         """Turn the next measurement of ``source`` to arrive into a position reset."""
@@ -1037,11 +1052,12 @@ class TerrainEkf:
         return Outcome(False, reason)
 
 
-# Sources whose streak of gate rejections resets the position onto them: the absolute position
-# references. A barometer measures the height alone, against an offset learnt in flight, so a
-# streak of its rejections is a stuck or stepped sensor far more often than a filter gone
-# astray (which the fixes' heights catch): reset onto, a baro frozen at 90 kPa put the height
-# 2.8 km off and lost every fix after it. Its rejections are still counted and reported.
+# Sources whose streak of gate rejections resets the position onto them (when the other one
+# does not agree with the filter meanwhile, :meth:`TerrainEkf._diverged_for`): the absolute
+# position references. A barometer measures the height alone, against an offset learnt in
+# flight, so a streak of its rejections is a stuck or stepped sensor far more often than a
+# filter gone astray (which the fixes' heights catch): reset onto, a baro frozen at 90 kPa
+# put the height 2.8 km off and lost every fix after it. Its rejections are still counted.
 _RESETTING_SOURCES = frozenset({"fix", "gnss"})
 
 
