@@ -172,6 +172,16 @@ def frozen_baro(topic, at, decode):
     return msg
 
 
+def spoofed_gnss(topic, at, decode):
+    """GNSS moved 200 m north for its last 4 s before the denial (11-15 s), while the
+    terrain fixes have begun: a spoofer taking over."""
+    if topic != "/gnss/fix" or not 11.0 <= at < 15.0:
+        return None
+    msg = decode()
+    msg.latitude += 200.0 / 111_320.0
+    return msg
+
+
 def covered_lens(topic, at, decode):
     """Camera frames of 30-40 s all black (a lens cap, a night frame): each one says it is
     constant, none is taken for a frozen camera."""
@@ -569,6 +579,8 @@ def cases() -> list[Case]:
         Case("camera lens covered for 10 s (black frames)", "flight", _flight(
             covered_lens, "image is constant", 10)),
         Case("barometer stuck at 90 kPa from 25 s", "flight", _flight(frozen_baro)),
+        Case("GNSS spoofed 200 m north for 4 s before the denial", "flight",
+             _flight(spoofed_gnss)),
         Case("IMU samples with NaN for 0.5 s", "flight", _flight(nan_imu)),
         Case("IMU silent for 3 s", "flight", _flight(imu_gap)),
         Case("CameraInfo with a zero K for 10 s", "flight", _flight(
