@@ -524,25 +524,36 @@ def test_position_reset_after_consecutive_rejections():
     assert ekf.diagnostics.position_resets == 1
 
 
+def _faulty_source_beside_fixes(fix_every, submit):
+    """A straight flight with accurate fixes every ``fix_every`` IMU samples and, every 20th,
+    ``submit(ekf, truth, k)`` (an Outcome, or None when nothing is sent): the filter, the
+    truth and the reasons of those outcomes."""
+    params = EkfParams(init_mode="pose", reset_after_rejections=3)
+    rng, truth, imu = flight(straight_flight(30.0), 11, params)
+    ekf = start_filter(truth, params)
+    reasons = []
+    for k in range(1, len(truth)):
+        ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
+        if k % fix_every == 0:
+            ekf.process_fix(truth.t[k], truth.position[k] + rng.normal(0, 2, 3), np.eye(3) * 4)
+        out = submit(ekf, truth, k) if k % 20 == 0 else None
+        if out is not None:
+            reasons.append(out.reason)
+    return ekf, truth, reasons
+
+
 def test_a_frozen_barometer_is_rejected_and_never_resets_the_height():
     """A baro stuck 2 km below the aircraft, while fixes keep agreeing with the filter: its
     samples are gated out however long the streak, and the height stays with the fixes (a
     reset onto it would put the height 2 km off and lose every later fix)."""
-    params = EkfParams(init_mode="pose", reset_after_rejections=3)
-    rng, truth, imu = flight(straight_flight(30.0), 11, params)
-    ekf = start_filter(truth, params)
-    baro = []
-    for k in range(1, len(truth)):
-        ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
-        if k % 200 == 0:
-            ekf.process_fix(truth.t[k], truth.position[k] + rng.normal(0, 2, 3), np.eye(3) * 4)
-        if k % 20 == 0:
-            frozen = truth.t[k] > 10.0
-            height = truth.position[k, 2] - 2000.0 if frozen else truth.position[k, 2]
-            out = ekf.process_baro(truth.t[k], height, 4.0)
-            if frozen:
-                baro.append(out.reason)
-    assert len(baro) > 50 and set(baro) == {Reason.GATED}
+    def baro(ekf, truth, k):
+        if truth.t[k] > 10.0:
+            return ekf.process_baro(truth.t[k], truth.position[k, 2] - 2000.0, 4.0)
+        ekf.process_baro(truth.t[k], truth.position[k, 2], 4.0)
+        return None
+
+    ekf, truth, reasons = _faulty_source_beside_fixes(200, baro)
+    assert len(reasons) > 50 and set(reasons) == {Reason.GATED}
     assert ekf.diagnostics.position_resets == 0
     assert abs(ekf.state.position[2] - truth.position[-1, 2]) < 10.0
 
@@ -551,18 +562,14 @@ def test_spoofed_gnss_is_rejected_and_not_reset_onto_while_the_fixes_agree():
     """GNSS moved 200 m north for 5 s while terrain fixes keep agreeing with the filter: the
     streak of GNSS rejections does not reset the position (the fixes say GNSS is the one
     off; with nothing else accepted meanwhile a streak still resets, as tested above)."""
-    params = EkfParams(init_mode="pose", reset_after_rejections=3)
-    rng, truth, imu = flight(straight_flight(30.0), 11, params)
-    ekf = start_filter(truth, params)
-    gnss = []
-    for k in range(1, len(truth)):
-        ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
-        if k % 100 == 0:
-            ekf.process_fix(truth.t[k], truth.position[k] + rng.normal(0, 2, 3), np.eye(3) * 4)
-        if k % 20 == 0 and 5.0 <= truth.t[k] < 10.0:
-            gnss.append(ekf.process_gnss(truth.t[k], truth.position[k] + [0.0, 200.0, 0.0],
-                                         np.eye(3) * 4).reason)
-    assert len(gnss) >= 20 and set(gnss) == {Reason.GATED}
+    def gnss(ekf, truth, k):
+        if 5.0 <= truth.t[k] < 10.0:
+            return ekf.process_gnss(truth.t[k], truth.position[k] + [0.0, 200.0, 0.0],
+                                    np.eye(3) * 4)
+        return None
+
+    ekf, truth, reasons = _faulty_source_beside_fixes(100, gnss)
+    assert len(reasons) >= 20 and set(reasons) == {Reason.GATED}
     assert ekf.diagnostics.position_resets == 0
     assert np.linalg.norm(ekf.state.position - truth.position[-1]) < 10.0
 
