@@ -28,6 +28,27 @@ def test_image_round_trip(encoding):
     np.testing.assert_array_equal(cv.image_to_array(msg), arr)
 
 
+@pytest.mark.parametrize("pattern", ["rggb", "bggr", "gbrg", "grbg"])
+@pytest.mark.parametrize("bits", [8, 16])
+def test_bayer_mosaics_come_back_demosaiced_to_grey(pattern, bits):
+    # a smooth colour scene, sampled through each colour filter layout as a camera does
+    y, x = np.mgrid[0:40, 0:60]
+    scale = 255.0 if bits == 8 else 65535.0
+    rgb = np.stack([0.2 + 0.6 * x / 59, 0.3 + 0.4 * y / 39, 0.8 - 0.5 * x / 59], -1) * scale
+    rgb = rgb.astype(np.uint8 if bits == 8 else np.uint16)
+    mosaic = np.empty(rgb.shape[:2], rgb.dtype)
+    for k, colour in enumerate(pattern):   # the 2x2 cell, row by row
+        mosaic[k // 2::2, k % 2::2] = rgb[k // 2::2, k % 2::2, "rgb".index(colour)]
+    grey = cv.image_to_array(cv.array_to_image(mosaic, f"bayer_{pattern}{bits}"))
+    expected = 0.299 * rgb[..., 0] + 0.587 * rgb[..., 1] + 0.114 * rgb[..., 2]
+    assert grey.shape == mosaic.shape and grey.dtype == mosaic.dtype
+    # inside the border the demosaiced grey is the scene's (a wrong layout is 11-24 % off)
+    error = np.abs(grey[2:-2, 2:-2].astype(float) - expected[2:-2, 2:-2]) / scale
+    assert error.max() < 0.02
+    with pytest.raises(cv.ConversionError, match="at least 2x2"):
+        cv.image_to_array(cv.array_to_image(mosaic[:1], f"bayer_{pattern}{bits}"))
+
+
 def test_image_with_row_padding_and_big_endian():
     arr = np.arange(12, dtype=np.uint16).reshape(3, 4) * 1000
     padded = np.zeros((3, 10), dtype=np.uint8)  # step 10 > 4 px * 2 bytes

@@ -52,6 +52,15 @@ IMAGE_ENCODINGS = {
     "bgr16": (np.uint16, 3),
 }
 
+# Bayer mosaics, the raw output of most machine-vision camera drivers: demosaiced to grey (all
+# the matcher uses). OpenCV names a pattern by its second row, so ROS's rggb is its BG (the
+# pairs cv_bridge uses).
+_BAYER_TO_GREY = {"rggb": "COLOR_BayerBG2GRAY", "bggr": "COLOR_BayerRG2GRAY",
+                  "gbrg": "COLOR_BayerGR2GRAY", "grbg": "COLOR_BayerGB2GRAY"}
+for _pattern in _BAYER_TO_GREY:
+    IMAGE_ENCODINGS[f"bayer_{_pattern}8"] = (np.uint8, 1)
+    IMAGE_ENCODINGS[f"bayer_{_pattern}16"] = (np.uint16, 1)
+
 # Default encoding for an array, by (dtype, channels).
 _DEFAULT_ENCODING = {
     (np.dtype(np.uint8), 1): "mono8",
@@ -107,7 +116,8 @@ def make_header(stamp: Time | int, frame_id: str) -> Header:
 def image_to_array(msg: Image) -> np.ndarray:
     """sensor_msgs/Image -> ndarray of shape (H, W) or (H, W, C), native byte order.
 
-    Rows padded beyond ``width * channels * itemsize`` (``step``) are cropped.
+    Rows padded beyond ``width * channels * itemsize`` (``step``) are cropped. A Bayer mosaic
+    (``bayer_rggb8``, ...) comes back demosaiced to grey (H, W).
     """
     if msg.encoding not in IMAGE_ENCODINGS:
         raise ConversionError(
@@ -125,7 +135,20 @@ def image_to_array(msg: Image) -> np.ndarray:
     arr = np.ascontiguousarray(rows).view(dtype).reshape(msg.height, msg.width, channels)
     if not dtype.isnative:
         arr = arr.astype(dtype.newbyteorder("="))
+    if msg.encoding.startswith("bayer_"):
+        return _demosaiced(arr[:, :, 0], msg.encoding)
     return arr[:, :, 0] if channels == 1 else arr
+
+
+def _demosaiced(mosaic: np.ndarray, encoding: str) -> np.ndarray:
+    """A Bayer mosaic (``bayer_<pattern><bits>``) as a grey image of the same size."""
+    import cv2
+
+    if min(mosaic.shape) < 2:
+        raise ConversionError(f"{encoding} image of {mosaic.shape[1]}x{mosaic.shape[0]} px: a "
+                              "Bayer mosaic needs at least 2x2 pixels")
+    pattern = encoding[len("bayer_"):].rstrip("0123456789")
+    return cv2.cvtColor(np.ascontiguousarray(mosaic), getattr(cv2, _BAYER_TO_GREY[pattern]))
 
 
 def array_to_image(arr: np.ndarray, encoding: str | None = None, header: Header | None = None,
