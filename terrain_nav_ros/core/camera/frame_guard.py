@@ -44,8 +44,8 @@ class FrameGuard:
             return (f"frame repeated or out of order: stamp {stamp:.3f} s is not after the "
                     f"previous frame's {self._stamp:.3f} s")
         if (self._image is not None and image.shape == self._image.shape
-                and image.dtype == self._image.dtype and not _constant(image)
-                and np.array_equal(image, self._image)):
+                and image.dtype == self._image.dtype and np.array_equal(image, self._image)
+                and not _constant(image)):   # (the range only of a repeated frame)
             self.frozen_run = min(self.frozen_run + 1, self.max_frozen_report)
             self._stamp = stamp
             return (f"camera frozen: the image of the last new frame again, {self.frozen_run} "
