@@ -686,13 +686,16 @@ def test_tilt_lever_is_the_shift_of_the_ground_point_below_the_camera():
     np.testing.assert_allclose(shift, (tilt_lever(3000.0) @ dtheta)[:2], atol=1.5)  # 1st order
 
 
-def _ground_matched_flight(projection_height: float, seed=11):
+def _ground_matched_flight(projection_height: float, seed=11, imu_fault=None):
     """Filter started 1 deg off in roll and pitch; every second a fix made as a ground match
     is, with the filter's own attitude: the truth moved by the filter's tilt error over a
-    height of 3000 m (about 50 m per degree), plus 20 m of noise. Returns the horizontal
-    errors after the first minute and the filter's final tilt error (deg)."""
+    height of 3000 m (about 50 m per degree), plus 20 m of noise. ``imu_fault(t, gyro,
+    accel)`` may change the IMU samples in place. Returns the horizontal errors after the
+    first minute, the filter's final tilt error (deg) and the filter."""
     params = EkfParams(init_mode="pose")
     rng, truth, imu = flight(survey_flight(240.0), seed, params)
+    if imu_fault is not None:
+        imu_fault(truth.t, imu.gyro, imu.accel)
     ekf = TerrainEkf(params)
     q0 = quat_multiply(quat_exp(np.radians([-1.0, 0.7, 0.0])), truth.quaternion[0])
     ekf.initialize(truth.t[0], truth.position[0], truth.velocity[0], q0,
@@ -709,7 +712,7 @@ def _ground_matched_flight(projection_height: float, seed=11):
             if truth.t[k] > 60.0:
                 herr.append(np.hypot(*(truth.position[k, :2] - ekf.state.position[:2])))
     tilt = attitude_error(truth.quaternion[-1], ekf.state.quaternion)[:2]
-    return np.array(herr), np.degrees(np.hypot(*tilt))
+    return np.array(herr), np.degrees(np.hypot(*tilt)), ekf
 
 
 def test_a_ground_match_fix_is_modelled_with_the_filters_tilt_error():
@@ -718,11 +721,39 @@ def test_a_ground_match_fix_is_modelled_with_the_filters_tilt_error():
     averaged as if it were noise, the estimate follows it and the tilt grows (300-600 m
     RMS, 1.5-3 deg over seeds); with their projection height the filter tells the tilt
     from the position and both converge (15-19 m, 0.1-0.2 deg)."""
-    plain, plain_tilt = _ground_matched_flight(0.0)
-    modelled, modelled_tilt = _ground_matched_flight(3000.0)
+    plain, plain_tilt, _ = _ground_matched_flight(0.0)
+    modelled, modelled_tilt, _ = _ground_matched_flight(3000.0)
     assert np.sqrt(np.mean(modelled ** 2)) < 0.5 * np.sqrt(np.mean(plain ** 2)), \
         (np.sqrt(np.mean(modelled ** 2)), np.sqrt(np.mean(plain ** 2)))
     assert modelled_tilt < 0.5 * plain_tilt, (modelled_tilt, plain_tilt)
     refused = TerrainEkf(EkfParams()).process_fix(0.0, np.zeros(3), np.eye(3),
                                                   projection_height=-1.0)
     assert not refused.accepted and refused.reason == Reason.BAD_PROJECTION_HEIGHT
+
+
+def test_a_divergence_reset_reopens_the_dead_reckoning():
+    """An accelerometer bias that steps by 0.5 m/s^2 (50 mg, far beyond its random walk)
+    carries the filter away and the ground matches are rejected until the position is
+    reset onto them. The reset also widens the velocity, attitude and bias uncertainties,
+    so the fixes after it estimate the new bias: one reset, RMS error after the first
+    minute 21-31 m, final 5-28 m over seeds 11-14. A reset of the position alone left the
+    filter sure of its old bias: it diverged again and again (8 resets), RMS 32-63 m,
+    final up to 142 m."""
+    def accel_step(t, gyro, accel):
+        accel[t >= 60.0, 2] += 0.5
+
+    herr, _, ekf = _ground_matched_flight(3000.0, imu_fault=accel_step)
+    assert 1 <= ekf.diagnostics.position_resets <= 2
+    assert np.sqrt(np.mean(herr ** 2)) < 45.0 and herr[-1] < 50.0, (herr.max(), herr[-1])
+    sigma = np.sqrt(np.diag(ekf.default_covariance()))
+    reset = TerrainEkf(EkfParams(init_mode="pose", reset_after_rejections=1))
+    reset.initialize(0.0, [0.0, 0.0, 500.0], [30.0, 0.0, 0.0], [0, 0, 0, 1],
+                     np.diag(np.r_[np.full(3, 5.0), sigma[3:] / 10.0] ** 2))
+    reasons = []
+    for t in (0.01, 0.02):
+        reset.process_imu(t, [0, 0, 0], [0, 0, 9.80665])
+        reasons.append(reset.process_fix(t, [900.0, 0.0, 500.0], np.eye(3)).reason)
+    assert reasons == [Reason.GATED, Reason.POSITION_RESET]
+    after = np.sqrt(np.diag(reset.state.covariance))
+    np.testing.assert_allclose(after[3:], sigma[3:], rtol=1e-3)
+    assert abs(reset.state.position[0] - 900.0) < 1e-6

@@ -993,7 +993,22 @@ class TerrainEkf:
         self._x[r] = z[keep]
         if meas.relocalisation:
             return Outcome(True, Reason.RELOCALISATION_RESET)
+        if meas.source in _RESETTING_SOURCES:
+            self._reopen_dead_reckoning()
         return Outcome(True, Reason.POSITION_RESET)
+
+    def _reopen_dead_reckoning(self):
+        """After a divergence, widen the velocity, attitude and bias uncertainties to at
+        least their initial ones (``init_*_sigma``), decorrelated: the streak of rejected
+        fixes says the dead reckoning that carried the filter away is off too (a gyro or
+        accelerometer bias that stepped beyond its random walk), and a filter still sure
+        of it would diverge again from the new position. The values stay the IMU's."""
+        rest = np.arange(IDX_V.start, DIM_ERR)
+        P = self.kf.P
+        floor = np.maximum(np.diag(P)[rest], np.diag(self.default_covariance())[rest])
+        P[rest, :] = 0.0
+        P[:, rest] = 0.0
+        P[rest, rest] = floor
 
     def _record(self, meas: _Measurement, outcome: Outcome):
         """Count an evaluation once; on re-application only fix up a changed decision."""
