@@ -83,8 +83,10 @@ class EkfParams:
         After this many consecutive gated-out fixes (or GNSS measurements), the position is
         reset to the next one of that source (recovers from divergence), unless the other
         source was accepted since the first of them (then that source is the one off, e.g.
-        spoofed GNSS); 0 disables. Baro rejections never reset (a stuck sensor, not a
-        diverged filter). Default 10.
+        spoofed GNSS); 0 disables. The reset also widens the velocity, attitude and bias
+        variances to at least their initial ones: the dead reckoning that diverged is
+        suspect too. Baro rejections never reset (a stuck sensor, not a diverged filter).
+        Default 10.
     history_length : float
         Length of the state / IMU history used for delayed measurements (s). Measurements
         older than the history are rejected as stale. Default 3.0.
