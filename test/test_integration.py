@@ -50,6 +50,8 @@ def test_replay_produces_fixes_and_bounds_the_error(nominal):
     assert fused["rms"] <= 3 * GSD, fused
     assert fused["rms"] < 0.7 * dr["rms"] and fused["final"] < 0.6 * dr["final"], (fused, dr)
     assert nominal["fix_error"]["within_3_sigma"] >= 0.7
+    # the baro holds the height (about 2 m RMS)
+    assert nominal["fused_height_error"]["max"] <= GSD, nominal["fused_height_error"]
 
 
 def test_recorded_outputs_are_readable_by_rosbags_and_mcap(nominal):

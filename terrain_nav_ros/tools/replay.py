@@ -333,8 +333,9 @@ def _bag_duration(bag: Path) -> float:
 def _summary(result: dict) -> dict:
     """The scalar part of the metrics, for report.yaml."""
     keep = {}
-    for key in ("fixes", "fix_error", "fused_error", "dr_error", "graph_status", "died",
-                "denied_after", "input_damaged", "partial", "no_odometry"):
+    for key in ("fixes", "fix_error", "fused_error", "fused_height_error", "dr_error",
+                "graph_status", "died", "denied_after", "input_damaged", "partial",
+                "no_odometry"):
         if key in result:
             keep[key] = result[key]
     keep["latency_ms"] = {k: {"p50": float(1e3 * np.median(v)),

@@ -146,12 +146,15 @@ def dead_reckoning(bag, origin: EnuOrigin, denied_after: float, t0: float):
     return np.array(t_out), np.array(p_out).reshape(-1, 3)
 
 
-def _horizontal_error(t_est, p_est, t_truth, p_truth):
-    """Horizontal error of an estimate at the truth stamps it covers."""
+def _horizontal_error(t_est, p_est, t_truth, p_truth, height: bool = False):
+    """Horizontal error of an estimate at the truth stamps it covers (with ``height``, the
+    height error too)."""
     inside = (t_truth >= t_est[0]) & (t_truth <= t_est[-1]) if len(t_est) else \
         np.zeros(len(t_truth), bool)
-    e = np.interp(t_truth[inside], t_est, p_est[:, 0]) - p_truth[inside, 0]
-    n = np.interp(t_truth[inside], t_est, p_est[:, 1]) - p_truth[inside, 1]
+    e, n, u = (np.interp(t_truth[inside], t_est, p_est[:, k]) - p_truth[inside, k]
+               for k in range(3))
+    if height:
+        return t_truth[inside], np.hypot(e, n), np.abs(u)
     return t_truth[inside], np.hypot(e, n)
 
 
@@ -209,8 +212,10 @@ def analyse(input_bag, output_bag, usage: dict | None = None,
                                "within_3_sigma": float(np.mean(err <= 3 * sigma))}
     window = t_truth - t0 >= denied
     if len(t_fused):
-        te, err = _horizontal_error(t_fused, p_fused, t_truth[window], p_truth[window])
+        te, err, up = _horizontal_error(t_fused, p_fused, t_truth[window], p_truth[window],
+                                        height=True)
         result["fused_error"] = _stats(err)
+        result["fused_height_error"] = _stats(up)
         if len(te):
             result["fused_error"]["first_after"] = float(te[0] - t0)
         if mission.get("landmark_gsd") and len(te):
@@ -275,6 +280,10 @@ def format_report(r: dict, gsd: float | None = None) -> str:
                 extra = f" = {e['rms'] / gsd:.1f} GSD" if gsd and key == "fused_error" else ""
                 lines.append(f"  {label:26s} RMS {e['rms']:8.1f} m{extra}, max {e['max']:8.1f} m,"
                              f" final {e['final']:8.1f} m")
+                if key == "fused_error" and "fused_height_error" in r:
+                    h = r["fused_height_error"]
+                    lines.append(f"  {'fused height':26s} RMS {h['rms']:8.1f} m, max "
+                                 f"{h['max']:8.1f} m, final {h['final']:8.1f} m")
                 if key == "fused_error" and e.get("first_after", 0.0) > 1.0:
                     lines.append(f"  first estimate {e['first_after']:.0f} s after the start")
                 if key == "fused_error" and "below_2_gsd_after" in e:
