@@ -554,6 +554,7 @@ def test_relocalisations_start_the_filter_and_a_wrong_one_never_moves_it():
     _, filt = rec.filter_status()["ekf: filter"]
     assert filt["navigation_state"] == "tracking"
     assert int(filt["relocalisation_resets"]) == 0 and int(filt["relocalisation_candidates"]) == 0
+    assert int(filt["baro_steps"]) == 0
     assert filt["found"].startswith("started from agreeing relocalisations at 17000000")
 
 

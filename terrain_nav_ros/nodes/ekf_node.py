@@ -41,7 +41,9 @@ Subscribed:
   to ENU up. The core has no baro-bias state, so the offset is ``baro_offset`` or, when that is
   NaN, learnt once: the filter's own height at the first baro sample after its vertical
   sigma fell below ``baro_offset_max_sigma`` (from GNSS, the initial pose or fixes). It is
-  forgotten and learnt again after a time-jump reset.
+  forgotten and learnt again after a time-jump reset. The filter refuses a baro height
+  repeated bit for bit ten times in a row (a stuck sensor) and takes the jump of a baro
+  that steps off its later heights (logged; ``baro_step_m`` in the diagnostics).
 * ``/gnss/fix`` (sensor_msgs/NavSatFix, optional): to initialise (``init_mode: gnss``), fused
   while available (``fuse_gnss: true``) or only scored against the estimate
   (``fuse_gnss: false``: NIS in the diagnostics). ``STATUS_NO_FIX`` and NaN are refused.
@@ -320,6 +322,7 @@ class EkfNode(Node):
             self._origin_client = self.create_client(GetDemTile, "/metamap/get_tile")
             self._origin_timer = self.create_timer(1.0, self._ask_origin, clock=steady)
         self.baro = BaroOffset(self.baro_offset_param, self.baro_offset_max_sigma)
+        self._baro_steps_logged = 0
 
         # 0.1 ms slack: epoch stamps as float seconds carry ~0.2 us of rounding, and a 20 ms
         # period over 10 ms samples must not turn into every third sample.
@@ -579,6 +582,12 @@ class EkfNode(Node):
         out = self.ekf.process_baro(stamp, altitude + self.baro_offset,
                                     max(sigma, self.baro_sigma) ** 2)
         self._report("baro", out)
+        d = self.ekf.diagnostics
+        if d.baro_steps != self._baro_steps_logged:
+            self._baro_steps_logged = d.baro_steps
+            self.get_logger().warning(
+                f"baro jumped ({d.baro_steps} so far): {d.baro_step:+.1f} m in all taken off "
+                "its heights (a static port that iced or cleared, a sensor fault?)")
 
     def on_gnss(self, msg: NavSatFix):
         stamp, status, lla, cov, cov_type = cv.navsatfix_to_arrays(msg)

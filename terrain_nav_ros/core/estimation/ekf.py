@@ -129,6 +129,8 @@ class Reason(StrEnum):
     TOO_FAR_AHEAD = "too_far_in_future"
     GATED = "chi_square_gate"
     COMPARED_ONLY = "compared_not_fused"
+    STUCK = "repeated_bit_for_bit"
+    PROBATION = "compared_after_a_jump"
     TIME_JUMP_RESET = "time_jump_reset"
     STAMP_OFF_PERIOD = "stamp_far_from_expected_period"
     REINITIALIZED = "reinitialised_from_last_good_state"
@@ -228,6 +230,10 @@ class EkfDiagnostics:
         Position resets after consecutive rejections.
     relocalisation_resets : int
         Position resets onto agreeing relocalisations.
+    baro_steps : int
+        Jumps of the barometer detected (:meth:`TerrainEkf.process_baro`).
+    baro_step : float
+        Their sum (m), taken off every later baro height.
     relocalisation_candidates : int
         Relocalisations held, waiting for another to agree (expired ones dropped).
     found : Found or None
@@ -256,6 +262,8 @@ class EkfDiagnostics:
     imu_stamps_refused: int = 0
     position_resets: int = 0
     relocalisation_resets: int = 0
+    baro_steps: int = 0
+    baro_step: float = 0.0
     relocalisation_candidates: int = 0
     found: Found | None = None
     imu_gaps: int = 0
@@ -303,6 +311,7 @@ class _Measurement:
     outcome: Outcome | None = None
     reset: bool = False      # apply as a position reset instead of a gated update
     relocalisation: bool = False   # found by a mission-wide search, independent of the prior
+    probation: bool = False  # compared, never fused (a baro height just after a jump)
     attitude_lever: np.ndarray | None = None   # (m, 3): how dtheta moves the measured rows
 
     @property
@@ -359,6 +368,7 @@ class TerrainEkf:
         self._Q3[i3, i3] = qa / 3.0
         self._seq = itertools.count()
         self._initial_pose = None
+        self._baro_repeats = (b"", 0)   # last baro height (bytes) and how often in a row
         # Outlives resets: it decides what a reset is.
         self._timing = ImuTimingGuard(p.time_jump_reset, p.max_imu_dt, p.time_jump_confirm)
         self._diag = EkfDiagnostics(records=deque(maxlen=p.nis_history_length))
@@ -383,6 +393,12 @@ class TerrainEkf:
         self._init_candidate = None
         self._consecutive = Counter()
         self._streak_start: dict[str, float] = {}   # stamp of each source's first rejection
+        # (stamp, smallest height error it would have caught) of accepted fixes and GNSS
+        self._height_checks: deque = deque(maxlen=64)
+        self._last_baro_gap: tuple[float, float] | None = None   # last accepted: stamp, z - h
+        self._baro_jumped = False   # the current baro streak began with a jump
+        self._baro_probation = 0    # baro heights still to compare only, after a jump
+        self._diag.baro_step = 0.0
         self._reset_armed: set[str] = set()
         self._last_good: NavState | None = None   # set after a time jump, for re-init
         self._init_source_seen = False
@@ -823,8 +839,24 @@ class TerrainEkf:
 
     def process_baro(self, stamp: float, altitude: float, variance: float) -> Outcome:
         """Barometric altitude as ENU up (m, already referred to the map origin height),
-        with its variance (m^2)."""
-        return self._submit(stamp, "baro", np.atleast_1d(np.asarray(altitude, dtype=float)),
+        with its variance (m^2).
+
+        A baro that jumps (its height differs from the filter's by far more than the last
+        accepted one did, within a second: a static port that ices or clears, a driver
+        fault) has stepped: the jump is taken off this and every later height
+        (``diagnostics.baro_step``), as a new offset learnt at once, and the streak it
+        begins never resets the height. The ``_BARO_STUCK`` heights after a jump are only
+        compared (``PROBATION``): a sensor that jumped and froze (a baro stuck at 90 kPa)
+        would otherwise hold the height still while the aircraft climbs, until refused.
+        A height repeated bit for bit ``_BARO_STUCK`` times in a row is refused
+        (``STUCK``): sensor noise no longer moves it, however plausible the value."""
+        value, repeats = self._baro_repeats
+        key = np.asarray(altitude, dtype=float).tobytes()
+        self._baro_repeats = (key, repeats + 1 if key == value else 1)
+        if self._baro_repeats[1] >= _BARO_STUCK:
+            return self._refuse("baro", Reason.STUCK)
+        altitude = np.asarray(altitude, dtype=float) - self._diag.baro_step
+        return self._submit(stamp, "baro", np.atleast_1d(altitude),
                             np.atleast_2d(np.asarray(variance, dtype=float)), np.array([2]),
                             None)
 
@@ -892,7 +924,13 @@ class TerrainEkf:
         elif meas.relocalisation:
             outcome = self._relocalise(meas)
         else:
+            gap = float(meas.z[0]) - self._x[2] if meas.source == "baro" else None
+            if gap is not None and meas.outcome is None and self._baro_probation:
+                meas.probation = True
+                self._baro_probation -= 1
             outcome = self._update(meas)
+            if gap is not None and meas.outcome is None:
+                self._note_baro_gap(meas, outcome, gap)
         self._record(meas, outcome)
 
     def _relocalise(self, meas: _Measurement) -> Outcome:
@@ -959,6 +997,8 @@ class TerrainEkf:
         z, H, nis, gate = tested
         if meas.source == "gnss" and not self.params.fuse_gnss:
             return Outcome(False, Reason.COMPARED_ONLY, nis, gate)
+        if meas.probation:
+            return Outcome(False, Reason.PROBATION, nis, gate)
         if nis > gate:
             return Outcome(False, Reason.GATED, nis, gate)
         self.kf.update(z.reshape(-1, 1), HJacobian=lambda _x: H, Hx=lambda x: H @ x, R=meas.R)
@@ -993,28 +1033,32 @@ class TerrainEkf:
         self._x[r] = z[keep]
         if meas.relocalisation:
             return Outcome(True, Reason.RELOCALISATION_RESET)
-        if meas.source in _RESETTING_SOURCES:
-            self._reopen_dead_reckoning()
+        if meas.source in _POSITION_SOURCES:
+            self._reopen_dead_reckoning(np.arange(IDX_V.start, DIM_ERR))
+        elif meas.source == "baro":
+            self._reopen_dead_reckoning(np.r_[IDX_V.stop - 1, np.arange(DIM_ERR)[IDX_BA]])
         return Outcome(True, Reason.POSITION_RESET)
 
-    def _reopen_dead_reckoning(self):
-        """After a divergence, widen the velocity, attitude and bias uncertainties to at
-        least their initial ones (``init_*_sigma``), decorrelated: the streak of rejected
-        fixes says the dead reckoning that carried the filter away is off too (a gyro or
-        accelerometer bias that stepped beyond its random walk), and a filter still sure
-        of it would diverge again from the new position. The values stay the IMU's."""
-        rest = np.arange(IDX_V.start, DIM_ERR)
+    def _reopen_dead_reckoning(self, states: np.ndarray):
+        """After a divergence, widen the uncertainties of ``states`` to at least their
+        initial ones (``init_*_sigma``), decorrelated: the streak of rejections says the
+        dead reckoning that carried the filter away is off too (a gyro or accelerometer
+        bias that stepped beyond its random walk), and a filter still sure of it would
+        diverge again from the new position. The values stay the IMU's. After fixes: the
+        velocity, attitude and biases; after baro heights, which see the vertical channel
+        alone: the vertical velocity and the accelerometer biases (reopening the tilt, which
+        ground matches observe poorly, cost 16 m of horizontal error in a replay)."""
         P = self.kf.P
-        floor = np.maximum(np.diag(P)[rest], np.diag(self.default_covariance())[rest])
-        P[rest, :] = 0.0
-        P[:, rest] = 0.0
-        P[rest, rest] = floor
+        floor = np.maximum(np.diag(P)[states], np.diag(self.default_covariance())[states])
+        P[states, :] = 0.0
+        P[:, states] = 0.0
+        P[states, states] = floor
 
     def _record(self, meas: _Measurement, outcome: Outcome):
         """Count an evaluation once; on re-application only fix up a changed decision."""
         d = self._diag
         first = meas.outcome is None
-        if outcome.reason == Reason.COMPARED_ONLY:
+        if outcome.reason in (Reason.COMPARED_ONLY, Reason.PROBATION):
             if first:
                 d.records.append(UpdateRecord(meas.stamp, meas.source, len(meas.z),
                                               outcome.nis, outcome.gate, False))
@@ -1030,6 +1074,7 @@ class TerrainEkf:
         if outcome.accepted:
             d.last_accepted[meas.source] = max(meas.stamp,
                                                d.last_accepted.get(meas.source, -np.inf))
+            self._note_height_check(meas)
         if first and not meas.relocalisation:   # relocalisations never arm a reset
             if outcome.reason == Reason.POSITION_RESET:
                 d.position_resets += 1
@@ -1040,22 +1085,66 @@ class TerrainEkf:
                     self._streak_start[meas.source] = meas.stamp
                 self._consecutive[meas.source] += 1
                 n = self.params.reset_after_rejections
-                if n and self._consecutive[meas.source] >= n \
-                        and self._diverged_for(meas.source):
+                if n and self._consecutive[meas.source] >= n and self._diverged_for(meas):
                     self._arm_reset(meas.source)
         meas.outcome = outcome
 
-    def _diverged_for(self, source: str) -> bool:
-        """Whether ``source``'s streak of rejections may mean a diverged filter: it is an
-        absolute position reference, and no other one was accepted since the streak began.
-        When the other agrees with the filter all along, the source is the one that is off
-        (GNSS spoofed 200 m for 4 s was reset onto, and the fused error stayed ~200 m until
-        ten fixes had been rejected in turn)."""
-        if source not in _RESETTING_SOURCES:
+    def _note_baro_gap(self, meas: _Measurement, outcome: Outcome, gap: float):
+        """Whether a baro streak begins with a jump: its first rejected height differs from
+        the filter by far more than the last accepted one did, within a second (the 1-dof
+        gate on the difference of two samples' noise). A filter integrating even a gross
+        accelerometer fault moves a few metres per second; a baro that steps jumps: the
+        step is taken off later heights and the streak never resets."""
+        if outcome.accepted:
+            self._last_baro_gap = (meas.stamp, gap)
+            self._baro_jumped = False
+            return
+        if self._consecutive["baro"] or self._last_baro_gap is None:
+            return
+        stamp, last = self._last_baro_gap
+        limit = math.sqrt(_gate(self.params.gate_probability("baro"), 1) * 2.0 * meas.R[0, 0])
+        self._baro_jumped = meas.stamp - stamp <= _BARO_JUMP_WINDOW and abs(gap - last) > limit
+        if self._baro_jumped:
+            self._diag.baro_steps += 1
+            self._diag.baro_step += gap - last
+            self._baro_probation = _BARO_STUCK - 1
+
+    def _note_height_check(self, meas: _Measurement):
+        """Remember how well an accepted fix or GNSS measured the height: the smallest
+        error of the filter's height its gate would have caught."""
+        if meas.source not in _POSITION_SOURCES or 2 not in meas.rows:
+            return
+        k = int(np.flatnonzero(meas.rows == 2)[0])
+        gate = _gate(self.params.gate_probability(meas.source), 1)
+        self._height_checks.append((meas.stamp, math.sqrt(meas.R[k, k] * gate)))
+
+    def _diverged_for(self, meas: _Measurement) -> bool:
+        """Whether the streak of rejections ``meas`` ends may mean a diverged filter rather
+        than a faulty source: no other reference of what it measures agreed with the filter
+        since the streak began.
+
+        For a fix or GNSS, the other one was not accepted meanwhile: when it agrees with
+        the filter all along, the source is the one that is off (GNSS spoofed 200 m for 4 s
+        was reset onto, and the fused error stayed ~200 m until ten fixes had been rejected
+        in turn). For the barometer, no fix or GNSS accepted meanwhile, nor the last one
+        before the streak, measured the height well enough to have caught the filter as far
+        off as the baro says: with 3-D fixes a baro stuck 2 km off is rejected for good, but
+        the graph's ground matches echo the filter's height (sigma 10 % of the height above
+        ground), and a filter whose height an accelerometer bias carries away must come
+        back onto the baro (an inertial vertical channel alone diverges); unless the streak
+        began with a jump of the baro (:meth:`_note_baro_gap`)."""
+        start = self._streak_start.get(meas.source, -math.inf)
+        if meas.source == "baro":
+            if self._baro_jumped:
+                return False
+            gap = abs(float(meas.z[0]) - self._x[2])
+            checks = [c for c in self._height_checks if c[0] < start][-1:] + \
+                [c for c in self._height_checks if c[0] >= start]
+            return not any(caught <= gap for _, caught in checks)
+        if meas.source not in _POSITION_SOURCES:
             return False
-        start = self._streak_start.get(source, -math.inf)
         return all(self._diag.last_accepted.get(other, -math.inf) < start
-                   for other in _RESETTING_SOURCES - {source})
+                   for other in _POSITION_SOURCES - {meas.source})
 
     def _arm_reset(self, source: str):
         """Turn the next measurement of ``source`` to arrive into a position reset."""
@@ -1067,13 +1156,16 @@ class TerrainEkf:
         return Outcome(False, reason)
 
 
-# Sources whose streak of gate rejections resets the position onto them (when the other one
-# does not agree with the filter meanwhile, :meth:`TerrainEkf._diverged_for`): the absolute
-# position references. A barometer measures the height alone, against an offset learnt in
-# flight, so a streak of its rejections is a stuck or stepped sensor far more often than a
-# filter gone astray (which the fixes' heights catch): reset onto, a baro frozen at 90 kPa
-# put the height 2.8 km off and lost every fix after it. Its rejections are still counted.
-_RESETTING_SOURCES = frozenset({"fix", "gnss"})
+# The absolute position references: a streak of gate rejections of one resets the position
+# onto it unless the other agreed with the filter meanwhile (:meth:`TerrainEkf._diverged_for`;
+# the barometer's streaks reset the height unless one of them measured it).
+_POSITION_SOURCES = frozenset({"fix", "gnss"})
+# A baro height differing from the previous accepted one by more than noise allows is a jump
+# only this soon after it (s): across a longer silence the filter may have drifted that far.
+_BARO_JUMP_WINDOW = 1.0
+# Baro heights repeated bit for bit this many times in a row are a stuck sensor: its noise
+# (a few Pa, over a resolution of about 1 Pa) no longer moves it.
+_BARO_STUCK = 10
 
 
 def tilt_lever(height: float) -> np.ndarray:

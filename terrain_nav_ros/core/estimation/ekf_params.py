@@ -85,8 +85,9 @@ class EkfParams:
         source was accepted since the first of them (then that source is the one off, e.g.
         spoofed GNSS); 0 disables. The reset also widens the velocity, attitude and bias
         variances to at least their initial ones: the dead reckoning that diverged is
-        suspect too. Baro rejections never reset (a stuck sensor, not a diverged filter).
-        Default 10.
+        suspect too. A baro streak resets the height unless an accepted fix or GNSS (during
+        it, or the last before it) measured the height well enough to vouch for the
+        filter's. Default 10.
     history_length : float
         Length of the state / IMU history used for delayed measurements (s). Measurements
         older than the history are rejected as stale. Default 3.0.
