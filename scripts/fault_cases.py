@@ -172,6 +172,33 @@ def frozen_baro(topic, at, decode):
     return msg
 
 
+def frozen_baro_reading(start: float) -> Callable:
+    """A :func:`changed_bag` change: the barometer repeats its reading of ``start`` s from
+    then on (a hung driver) while the aircraft climbs on."""
+    held = []
+
+    def change(topic, at, decode):
+        if topic != "/baro/pressure" or at < start:
+            return None
+        msg = decode()
+        if not held:
+            held.append(msg.fluid_pressure)
+        msg.fluid_pressure = held[0]
+        return msg
+
+    return change
+
+
+def accelerometer_bias_step(topic, at, decode):
+    """Accelerometer z reading 0.5 m/s^2 (50 mg) high from 30 s on: a bias step far beyond
+    the IMU's random walk, which carries the inertial height away unless the baro holds it."""
+    if topic != "/imu/data" or at < 30.0:
+        return None
+    msg = decode()
+    msg.linear_acceleration.z += 0.5
+    return msg
+
+
 def spoofed_gnss(topic, at, decode):
     """GNSS moved 200 m north for its last 4 s before the denial (11-15 s), while the
     terrain fixes have begun: a spoofer taking over."""
@@ -579,6 +606,10 @@ def cases() -> list[Case]:
         Case("camera lens covered for 10 s (black frames)", "flight", _flight(
             covered_lens, "image is constant", 10)),
         Case("barometer stuck at 90 kPa from 25 s", "flight", _flight(frozen_baro)),
+        Case("barometer frozen at its 25 s reading in a climb", "flight",
+             _flight(frozen_baro_reading(25.0))),
+        Case("accelerometer bias step of 0.5 m/s^2 up from 30 s", "flight",
+             _flight(accelerometer_bias_step)),
         Case("GNSS spoofed 200 m north for 4 s before the denial", "flight",
              _flight(spoofed_gnss)),
         Case("IMU samples with NaN for 0.5 s", "flight", _flight(nan_imu)),
@@ -600,8 +631,8 @@ def _prepare(options: tuple, words: str):
 
 def _flight(change: Callable, reason: str = "", at_least: int = 0) -> Callable:
     """The short bag changed by ``change`` (:func:`changed_bag`) and replayed: GOOD when the
-    fused error stays bounded (3 x 20 m), every frame is answered and, with ``reason``, at
-    least ``at_least`` frames get a no-fix saying it."""
+    fused error, horizontal and height, stays bounded (3 x 20 m), every frame is answered
+    and, with ``reason``, at least ``at_least`` frames get a no-fix saying it."""
     def run(tmp: Path):
         import yaml
 
@@ -617,11 +648,14 @@ def _flight(change: Callable, reason: str = "", at_least: int = 0) -> Callable:
             return BAD, f"replay exit {proc.returncode}: {proc.stderr.strip()[-110:]}"
         report = yaml.safe_load((tmp / "out" / "report.yaml").read_text())
         fixes, fused = report["fixes"], report["fused_error"]
+        height = report["fused_height_error"]
         said = sum(n for text, n in fixes["reasons"] if reason and reason in text)
         detail = (f"{fixes['fixes']} fixes, {fixes['frames']} of {fixes['in_bag']} frames "
                   f"answered{f', {said} {reason!r}' if reason else ''}, fused RMS "
-                  f"{fused['rms']:.1f} m, final {fused['final']:.1f} m, died {report['died']}")
-        if fused["final"] > 3 * 20.0 or fused["rms"] > 3 * 20.0 or report["died"]:
+                  f"{fused['rms']:.1f} m, final {fused['final']:.1f} m, height final "
+                  f"{height['final']:.1f} m, died {report['died']}")
+        if max(fused["final"], fused["rms"], height["final"], height["rms"]) > 3 * 20.0 \
+                or report["died"]:
             return BAD, detail
         return (GOOD if said >= at_least and fixes["frames"] == fixes["in_bag"] else POOR), detail
     return run
