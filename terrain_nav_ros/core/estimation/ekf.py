@@ -845,7 +845,7 @@ class TerrainEkf:
         accepted one did, within a second: a static port that ices or clears, a driver
         fault) has stepped: the jump is taken off this and every later height
         (``diagnostics.baro_step``), as a new offset learnt at once, and the streak it
-        begins never resets the height. The ``_BARO_STUCK`` heights after a jump are only
+        begins never resets the height. The next ``_BARO_STUCK - 1`` heights are only
         compared (``PROBATION``): a sensor that jumped and froze (a baro stuck at 90 kPa)
         would otherwise hold the height still while the aircraft climbs, until refused.
         A height repeated bit for bit ``_BARO_STUCK`` times in a row is refused
