@@ -86,33 +86,13 @@ def with_mission(bag: Path, dest: Path, text: str) -> Path:
     return dest
 
 
-def changed_bag(bag: Path, dest: Path, change: Callable) -> Path:
-    """A copy of ``bag`` (with its mission.yaml) whose messages go through ``change(topic,
-    seconds since the start, decode)``: None keeps one as it is, ``"drop"`` drops it, a
-    message replaces it (``decode()`` gives the original, decoded)."""
-    from terrain_nav_ros.tools import bags
-
-    first = None
-    with bags.BagWriter(dest, compress=True) as writer:
-        writer.add_topics_of(bag)
-        for m in bags.read(bag):
-            first = m.timestamp_ns if first is None else first
-            out = change(m.topic, (m.timestamp_ns - first) * 1e-9,
-                         lambda m=m: bags.decode(m))
-            if out is None:
-                writer.write(m.topic, m.timestamp_ns, m.rawdata)
-            elif not isinstance(out, str):
-                writer.write_message(m.topic, m.timestamp_ns, out, m.msgtype)
-    (dest / "mission.yaml").write_bytes((bag / "mission.yaml").read_bytes())
-    return dest
-
-
 CAMERA_TOPICS = ("/camera/image_raw", "/camera/image_raw/compressed")
 
 
 def frozen_camera(start: float, seconds: float) -> Callable:
-    """A :func:`changed_bag` change: the camera republishes, from ``start`` s for
-    ``seconds``, the frame it took at ``start`` under new stamps (a hung driver)."""
+    """A :func:`~terrain_nav_ros.tools.bags.changed_copy` change: the camera republishes,
+    from ``start`` s for ``seconds``, the frame it took at ``start`` under new stamps (a
+    hung driver)."""
     frozen = []
 
     def change(topic, at, decode):
@@ -173,8 +153,8 @@ def frozen_baro(topic, at, decode):
 
 
 def frozen_baro_reading(start: float) -> Callable:
-    """A :func:`changed_bag` change: the barometer repeats its reading of ``start`` s from
-    then on (a hung driver) while the aircraft climbs on."""
+    """A :func:`~terrain_nav_ros.tools.bags.changed_copy` change: the barometer repeats
+    its reading of ``start`` s from then on (a hung driver) while the aircraft climbs on."""
     held = []
 
     def change(topic, at, decode):
@@ -630,15 +610,17 @@ def _prepare(options: tuple, words: str):
 
 
 def _flight(change: Callable, reason: str = "", at_least: int = 0) -> Callable:
-    """The short bag changed by ``change`` (:func:`changed_bag`) and replayed: GOOD when the
-    fused error, horizontal and height, stays bounded (3 x 20 m), every frame is answered
-    and, with ``reason``, at least ``at_least`` frames get a no-fix saying it."""
+    """The short bag changed by ``change`` (:func:`~terrain_nav_ros.tools.bags.changed_copy`)
+    and replayed: GOOD when the fused error, horizontal and height, stays bounded (3 x 20
+    m), every frame is answered and, with ``reason``, at least ``at_least`` frames get a
+    no-fix saying it."""
     def run(tmp: Path):
         import yaml
 
+        from terrain_nav_ros.tools import bags
         from terrain_nav_ros.tools.cli import REPO
 
-        bag = changed_bag(REPO / "bags" / "jacksboro_short", tmp / "bag", change)
+        bag = bags.changed_copy(REPO / "bags" / "jacksboro_short", tmp / "bag", change)
         try:
             proc = subprocess.run(terrain_nav("replay", "--bag", bag, "--out", tmp / "out"),
                                   capture_output=True, text=True, timeout=400)

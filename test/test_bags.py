@@ -189,3 +189,31 @@ def test_settled_after_is_when_the_error_stays_below_the_bound():
     assert report.settled_after(t, [10] * 6, 60.0) == 0.0
     assert np.isnan(report.settled_after(t, [10, 10, 10, 10, 10, 70], 60.0))
     assert np.isnan(report.settled_after(np.array([]), [], 60.0))
+
+
+def test_a_changed_copy_keeps_drops_and_replaces_messages(tmp_path):
+    from rosbags.typesys.stores.ros2_jazzy import std_msgs__msg__String as String
+
+    bag = tmp_path / "talk"
+    with bags.BagWriter(bag) as writer:
+        for i in range(30):
+            writer.write_message("/chatter", i * 100_000_000, String(data=str(i)),
+                                 "std_msgs/msg/String")
+            writer.write_message("/noise", i * 100_000_000, String(data="x"),
+                                 "std_msgs/msg/String")
+    (bag / "mission.yaml").write_text("name: talk\n")
+
+    def change(topic, at, decode):
+        if topic == "/noise":
+            return "drop"
+        if at >= 2.0:
+            msg = decode()
+            msg.data += "!"
+            return msg
+        return None
+
+    copy = bags.changed_copy(bag, tmp_path / "copy", change)
+    assert {t.topic: t.count for t in bags.topics(copy)} == {"/chatter": 30, "/noise": 0}
+    texts = [bags.decode(m).data for m in bags.read(copy)]
+    assert texts == [str(i) for i in range(20)] + [f"{i}!" for i in range(20, 30)]
+    assert (copy / "mission.yaml").read_text() == "name: talk\n"

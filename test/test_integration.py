@@ -6,7 +6,6 @@ bag, no camera_info, a flight over flat terrain) must degrade to "no fix" with r
 never kill a node.
 """
 
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -115,23 +114,10 @@ def test_autopilot_bridge_output_in_the_replay(nominal):
     assert counters[-1] == int(values["reset_counter"])
 
 
-def _copy_bag(src: Path, dst: Path, drop_topics=(), until_s=None):
-    """A copy of a bag without some topics and/or cut after ``until_s`` seconds."""
-    first = None
-    with bags.BagWriter(dst) as writer:
-        for m in bags.read(src):
-            first = m.timestamp_ns if first is None else first
-            if until_s is not None and m.timestamp_ns - first > until_s * 1e9:
-                break
-            if m.topic in drop_topics:
-                continue
-            if not writer.has_topic(m.topic):
-                info = next(t for t in bags.topics(src) if t.topic == m.topic)
-                writer.add_topic(m.topic, m.msgtype,
-                                 bags.qos_profile(info.reliable, info.transient_local))
-            writer.write(m.topic, m.timestamp_ns, m.rawdata)
-    shutil.copy(src / "mission.yaml", dst / "mission.yaml")
-    return dst
+def _cut(until_s: float, drop_topics=()):
+    """A :func:`~terrain_nav_ros.tools.bags.changed_copy` change: the bag without some
+    topics, cut after ``until_s`` seconds."""
+    return lambda topic, at, _decode: "drop" if topic in drop_topics or at > until_s else None
 
 
 def _no_fix_reasons(result):
@@ -139,8 +125,8 @@ def _no_fix_reasons(result):
 
 
 def test_missing_camera_info_gives_no_fix_and_no_crash(tmp_path):
-    bag = _copy_bag(SHORT_BAG, tmp_path / "no_info", drop_topics={"/camera/camera_info"},
-                    until_s=25)
+    bag = bags.changed_copy(SHORT_BAG, tmp_path / "no_info",
+                            _cut(25.0, drop_topics={"/camera/camera_info"}))
     result = run_replay(bag, tmp_path / "out", GRAPH)
     _nodes_survived(result)
     fixes = result["fixes"]
@@ -153,7 +139,7 @@ def test_missing_camera_info_gives_no_fix_and_no_crash(tmp_path):
 
 
 def test_truncated_bag_replays_what_it_has(tmp_path):
-    bag = _copy_bag(SHORT_BAG, tmp_path / "cut", until_s=30)
+    bag = bags.changed_copy(SHORT_BAG, tmp_path / "cut", _cut(30.0))
     (mcap_file,) = bag.glob("*.mcap")
     data = mcap_file.read_bytes()
     mcap_file.write_bytes(data[: int(len(data) * 0.6)])

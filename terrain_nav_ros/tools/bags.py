@@ -157,6 +157,27 @@ class BagWriter:
         self.write(topic, timestamp_ns, typestore().serialize_cdr(msg, msgtype))
 
 
+def changed_copy(bag: str | Path, dest: str | Path, change) -> Path:
+    """A copy of ``bag`` at ``dest`` (with the bag folder's mission.yaml, if any) whose
+    messages go through ``change(topic, seconds since the first message, decode)``: None
+    keeps one as it is, ``"drop"`` drops it, a message object replaces it (``decode()``
+    gives the original, decoded). To replay a bag with a fault put in."""
+    bag, dest = Path(bag), Path(dest)
+    first = None
+    with BagWriter(dest, compress=True) as writer:
+        writer.add_topics_of(bag)
+        for m in read(bag):
+            first = m.timestamp_ns if first is None else first
+            out = change(m.topic, (m.timestamp_ns - first) * 1e-9, lambda m=m: decode(m))
+            if out is None:
+                writer.write(m.topic, m.timestamp_ns, m.rawdata)
+            elif not isinstance(out, str):
+                writer.write_message(m.topic, m.timestamp_ns, out, m.msgtype)
+    if (bag / "mission.yaml").is_file():
+        (dest / "mission.yaml").write_bytes((bag / "mission.yaml").read_bytes())
+    return dest
+
+
 def _mcap_file(path: Path) -> Path | None:
     files = sorted(path.glob("*.mcap")) if path.is_dir() else [path]
     return files[0] if files and files[0].suffix == ".mcap" else None
