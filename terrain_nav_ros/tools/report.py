@@ -146,16 +146,14 @@ def dead_reckoning(bag, origin: EnuOrigin, denied_after: float, t0: float):
     return np.array(t_out), np.array(p_out).reshape(-1, 3)
 
 
-def _horizontal_error(t_est, p_est, t_truth, p_truth, height: bool = False):
-    """Horizontal error of an estimate at the truth stamps it covers (with ``height``, the
-    height error too)."""
+def _position_errors(t_est, p_est, t_truth, p_truth):
+    """Horizontal and height errors of an estimate at the truth stamps it covers, with
+    those stamps."""
     inside = (t_truth >= t_est[0]) & (t_truth <= t_est[-1]) if len(t_est) else \
         np.zeros(len(t_truth), bool)
     e, n, u = (np.interp(t_truth[inside], t_est, p_est[:, k]) - p_truth[inside, k]
                for k in range(3))
-    if height:
-        return t_truth[inside], np.hypot(e, n), np.abs(u)
-    return t_truth[inside], np.hypot(e, n)
+    return t_truth[inside], np.hypot(e, n), np.abs(u)
 
 
 def settled_after(t: np.ndarray, err: np.ndarray, bound: float) -> float:
@@ -212,8 +210,7 @@ def analyse(input_bag, output_bag, usage: dict | None = None,
                                "within_3_sigma": float(np.mean(err <= 3 * sigma))}
     window = t_truth - t0 >= denied
     if len(t_fused):
-        te, err, up = _horizontal_error(t_fused, p_fused, t_truth[window], p_truth[window],
-                                        height=True)
+        te, err, up = _position_errors(t_fused, p_fused, t_truth[window], p_truth[window])
         result["fused_error"] = _stats(err)
         result["fused_height_error"] = _stats(up)
         if len(te):
@@ -230,7 +227,7 @@ def analyse(input_bag, output_bag, usage: dict | None = None,
     if origin:
         t_dr, p_dr = dead_reckoning(input_bag, EnuOrigin(*origin), denied, t0)
         if len(t_dr):
-            te, err = _horizontal_error(t_dr, p_dr, t_truth[window], p_truth[window])
+            te, err, _ = _position_errors(t_dr, p_dr, t_truth[window], p_truth[window])
             result["dr_error"] = _stats(err)
             result["series"]["dr"] = (t_dr, p_dr)
             result["series"]["dr_error"] = (te - t0, err)
