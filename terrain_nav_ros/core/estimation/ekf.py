@@ -233,7 +233,8 @@ class EkfDiagnostics:
     baro_steps : int
         Jumps of the barometer detected (:meth:`TerrainEkf.process_baro`).
     baro_step : float
-        Their sum (m), taken off every later baro height.
+        What is taken off every baro height now (m): the sum of the jumps since the filter
+        last (re)started (a reset forgets it, as the node then learns its offset again).
     relocalisation_candidates : int
         Relocalisations held, waiting for another to agree (expired ones dropped).
     found : Found or None
@@ -850,13 +851,13 @@ class TerrainEkf:
         would otherwise hold the height still while the aircraft climbs, until refused.
         A height repeated bit for bit ``_BARO_STUCK`` times in a row is refused
         (``STUCK``): sensor noise no longer moves it, however plausible the value."""
+        altitude = np.asarray(altitude, dtype=float)
         value, repeats = self._baro_repeats
-        key = np.asarray(altitude, dtype=float).tobytes()
+        key = altitude.tobytes()
         self._baro_repeats = (key, repeats + 1 if key == value else 1)
         if self._baro_repeats[1] >= _BARO_STUCK:
             return self._refuse("baro", Reason.STUCK)
-        altitude = np.asarray(altitude, dtype=float) - self._diag.baro_step
-        return self._submit(stamp, "baro", np.atleast_1d(altitude),
+        return self._submit(stamp, "baro", np.atleast_1d(altitude - self._diag.baro_step),
                             np.atleast_2d(np.asarray(variance, dtype=float)), np.array([2]),
                             None)
 
@@ -1034,9 +1035,9 @@ class TerrainEkf:
         if meas.relocalisation:
             return Outcome(True, Reason.RELOCALISATION_RESET)
         if meas.source in _POSITION_SOURCES:
-            self._reopen_dead_reckoning(np.arange(IDX_V.start, DIM_ERR))
+            self._reopen_dead_reckoning(_DEAD_RECKONING)
         elif meas.source == "baro":
-            self._reopen_dead_reckoning(np.r_[IDX_V.stop - 1, np.arange(DIM_ERR)[IDX_BA]])
+            self._reopen_dead_reckoning(_VERTICAL_CHANNEL)
         return Outcome(True, Reason.POSITION_RESET)
 
     def _reopen_dead_reckoning(self, states: np.ndarray):
@@ -1160,6 +1161,11 @@ class TerrainEkf:
 # onto it unless the other agreed with the filter meanwhile (:meth:`TerrainEkf._diverged_for`;
 # the barometer's streaks reset the height unless one of them measured it).
 _POSITION_SOURCES = frozenset({"fix", "gnss"})
+# States a divergence reset reopens (:meth:`TerrainEkf._reopen_dead_reckoning`): after fixes,
+# velocity, attitude and biases; after baro heights, the vertical velocity and the
+# accelerometer biases.
+_DEAD_RECKONING = np.arange(IDX_V.start, DIM_ERR)
+_VERTICAL_CHANNEL = np.r_[IDX_V.stop - 1, np.arange(IDX_BA.start, IDX_BA.stop)]
 # A baro height differing from the previous accepted one by more than noise allows is a jump
 # only this soon after it (s): across a longer silence the filter may have drifted that far.
 _BARO_JUMP_WINDOW = 1.0
