@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import io
+import math
 import os
 import subprocess
 import sys
@@ -176,6 +177,17 @@ def accelerometer_bias_step(topic, at, decode):
         return None
     msg = decode()
     msg.linear_acceleration.z += 0.5
+    return msg
+
+
+def roll_gyro_bias_step(topic, at, decode):
+    """Roll gyro reading 0.5 deg/s high from 30 s on: the tilt drifts 15 deg by the end
+    unless something other than the ground matches (which carry the filter's own tilt)
+    levels it."""
+    if topic != "/imu/data" or at < 30.0:
+        return None
+    msg = decode()
+    msg.angular_velocity.x += math.radians(0.5)
     return msg
 
 
@@ -590,6 +602,8 @@ def cases() -> list[Case]:
              _flight(frozen_baro_reading(25.0))),
         Case("accelerometer bias step of 0.5 m/s^2 up from 30 s", "flight",
              _flight(accelerometer_bias_step)),
+        Case("roll gyro bias step of 0.5 deg/s from 30 s", "flight",
+             _flight(roll_gyro_bias_step)),
         Case("GNSS spoofed 200 m north for 4 s before the denial", "flight",
              _flight(spoofed_gnss)),
         Case("IMU samples with NaN for 0.5 s", "flight", _flight(nan_imu)),

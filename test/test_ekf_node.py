@@ -555,6 +555,8 @@ def test_relocalisations_start_the_filter_and_a_wrong_one_never_moves_it():
     assert filt["navigation_state"] == "tracking"
     assert int(filt["relocalisation_resets"]) == 0 and int(filt["relocalisation_candidates"]) == 0
     assert int(filt["baro_steps"]) == 0
+    _, level = rec.filter_status()["ekf: level"]    # the accelerometers level the filter
+    assert int(level["accepted"]) >= 20, level
     assert filt["found"].startswith("started from agreeing relocalisations at 17000000")
 
 

@@ -200,6 +200,11 @@ EKF_PARAMETERS = {
     "relocalisation_fuse_max_sigma": ("a relocalisation inside the gate is fused on its own "
                                       "only while the horizontal sigma is at most this [m]",
                                       1e-3, 1e7),
+    "level_sigma": ("1-sigma of the tilt the accelerometer levelling measures (the specific "
+                    "force less the turn, over level_period); 0 = no levelling [rad]",
+                    0.0, 1.0),
+    "level_period": ("the levelling sums the specific force over this long [s]", 0.01, 60.0),
+    "level_gate_probability": ("chi-square gate probability for the levelling", 1e-6, 1.0),
     "relocalisation_speed_sigma": ("cold start: sigma of the speed prior the displacement "
                                    "between two relocalisations is tested against [m/s]",
                                    1e-3, 1e4),

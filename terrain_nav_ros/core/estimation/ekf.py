@@ -101,6 +101,7 @@ from .strapdown import (
     quat_from_euler,
     quat_multiply,
     quat_normalize,
+    quat_to_matrix,
     skew,
 )
 
@@ -235,6 +236,8 @@ class EkfDiagnostics:
     baro_step : float
         What is taken off every baro height now (m): the sum of the jumps since the filter
         last (re)started (a reset forgets it, as the node then learns its offset again).
+    tilt_drifts : int
+        Drifts of the tilt the accelerometer levelling found (a gyro bias that stepped).
     relocalisation_candidates : int
         Relocalisations held, waiting for another to agree (expired ones dropped).
     found : Found or None
@@ -265,6 +268,7 @@ class EkfDiagnostics:
     relocalisation_resets: int = 0
     baro_steps: int = 0
     baro_step: float = 0.0
+    tilt_drifts: int = 0
     relocalisation_candidates: int = 0
     found: Found | None = None
     imu_gaps: int = 0
@@ -314,6 +318,9 @@ class _Measurement:
     relocalisation: bool = False   # found by a mission-wide search, independent of the prior
     probation: bool = False  # compared, never fused (a baro height just after a jump)
     attitude_lever: np.ndarray | None = None   # (m, 3): how dtheta moves the measured rows
+    body_up: np.ndarray | None = None   # a levelling's measured up direction, body frame
+    state_lever: np.ndarray | None = None   # (m, DIM_ERR): how the state moves them too
+    reopen: tuple | None = None   # a levelling that found a tilt drift: variance floors
 
     @property
     def key(self):
@@ -400,6 +407,9 @@ class TerrainEkf:
         self._baro_jumped = False   # the current baro streak began with a jump
         self._baro_probation = 0    # baro heights still to compare only, after a jump
         self._diag.baro_step = 0.0
+        self._level_sum = [0.0, 0.0, 0.0]   # since _level_start: of C (f - b_a) - turn
+        self._level_start = None
+        self._level_window = deque(maxlen=_LEVEL_WINDOW)   # (stamp, innovation, S)
         self._reset_armed: set[str] = set()
         self._last_good: NavState | None = None   # set after a time jump, for re-init
         self._init_source_seen = False
@@ -643,6 +653,12 @@ class TerrainEkf:
             Specific force, body FLU (m/s^2), gravity not removed (level at rest reads
             ``+g`` on z).
 
+        Every ``level_period`` the samples also level the filter: the direction of their
+        specific force, less the turn's centripetal acceleration, is fused as a measurement
+        of roll and pitch (source ``"level"``, ``level_sigma``), the one tilt reference the
+        ground matches do not take from the filter; a drift of its innovations reopens the
+        tilt and the roll and pitch gyro biases (``diagnostics.tilt_drifts``).
+
         Returns
         -------
         Outcome
@@ -680,6 +696,8 @@ class TerrainEkf:
             return self._refuse("imu", Reason.OUT_OF_ORDER)
         gap = stamp - self.t > self.params.max_imu_dt
         self._advance(stamp, gyro, accel)
+        if self.params.level_sigma > 0.0:
+            self._accumulate_level()
         if gap:
             self._diag.imu_gaps += 1
             return Outcome(True, Reason.IMU_GAP)
@@ -732,6 +750,39 @@ class TerrainEkf:
         if t_new > self.t:   # not already there because a measurement sat at t_new
             self._predict(t_new, gyro, accel)
         self._store(gyro, accel)
+
+    def _accumulate_level(self):
+        """Accelerometer levelling, a tilt reference independent of the gyros and of the
+        fixes (which carry the filter's own tilt): sum the specific force less the turn's
+        centripetal acceleration (body rate x velocity), in ENU, and every ``level_period``
+        submit its direction as a measurement of the tilt (source ``"level"``)."""
+        fx, fy, fz = self._step.force_less_turn
+        total = self._level_sum
+        total[0] += fx
+        total[1] += fy
+        total[2] += fz
+        if self._level_start is None:
+            self._level_start = self.t
+        if self.t - self._level_start < self.params.level_period:
+            return
+        up = np.array(total) / math.hypot(*total)
+        total[:] = (0.0, 0.0, 0.0)
+        self._level_start = self.t
+        x = self._x
+        C = quat_to_matrix(self.q)
+        rate = np.array(self._step.rate_enu)
+        # The estimates taken off lean the measured up by their errors, through the turn a
+        # velocity error e_v by (rate x e_v) / g and a gyro bias one e_g by (C e_g) x v / g,
+        # an accelerometer bias one e_a by C e_a / g: the update takes the levelling as a
+        # measurement of them too.
+        lean = np.zeros((3, DIM_ERR))
+        lean[:, IDX_V] = skew(rate)
+        lean[:, IDX_BG] = skew(x[IDX_V]) @ C
+        lean[:, IDX_BA] = C
+        lean = _LEAN_ROWS @ lean / self.params.gravity
+        R = np.eye(2) * self.params.level_sigma**2
+        self._submit(self.t, "level", lean @ x, R, np.array([6, 7]), None,
+                     body_up=C.T @ up, state_lever=lean)
 
     def _store(self, gyro, accel):
         """Append the current state to the history and drop what fell out of it."""
@@ -862,7 +913,8 @@ class TerrainEkf:
                             None)
 
     def _submit(self, stamp, source, z, covariance, rows, attitude,
-                relocalisation: bool = False, reset: bool = False, lever=None) -> Outcome:
+                relocalisation: bool = False, reset: bool = False, lever=None,
+                body_up=None, state_lever=None) -> Outcome:
         """Validate, log and apply (now, queued or in the past) one measurement; with
         ``reset``, as a position reset (not gated)."""
         m = len(z)
@@ -875,7 +927,8 @@ class TerrainEkf:
             return self._refuse(source, Reason.BAD_COVARIANCE)
         meas = _Measurement(float(stamp), next(self._seq), source, z.copy(), 0.5 * (R + R.T),
                             rows, attitude, relocalisation=relocalisation, reset=reset,
-                            attitude_lever=lever)
+                            attitude_lever=lever, body_up=body_up,
+                            state_lever=state_lever)
         if not self.initialized:
             if relocalisation and source == self.params.init_mode:
                 return self._init_from_relocalisation(meas)
@@ -929,10 +982,52 @@ class TerrainEkf:
             if gap is not None and meas.outcome is None and self._baro_probation:
                 meas.probation = True
                 self._baro_probation -= 1
+            if meas.source == "level":
+                self._test_tilt_drift(meas)
             outcome = self._update(meas)
             if gap is not None and meas.outcome is None:
                 self._note_baro_gap(meas, outcome, gap)
         self._record(meas, outcome)
+
+    def _test_tilt_drift(self, meas: _Measurement):
+        """Whether the last ``_LEVEL_WINDOW`` levellings' innovations lean one way, by the
+        gate on their mean: a gyro bias that stepped beyond its random walk turns the tilt
+        steadily, which each levelling alone would not reject for several times the
+        window (its gate is ~4 sigma wide). When they do, the tilt's variance is reopened
+        to the mean's square and the roll and pitch gyro biases' to the innovations'
+        slope: this and later updates then move them (on a re-application after a rewind,
+        again). Not the yaw bias: a roll-axis drift would be taken as the lean its turn
+        compensation gives (reopening it lost tens of metres in simulated flights)."""
+        if meas.outcome is None:
+            z, H = self._innovation(meas)
+            S = H @ self.kf.P @ H.T + meas.R
+            window = self._level_window
+            window.append((meas.stamp, z - H @ self._x, S))
+            if len(window) == _LEVEL_WINDOW:
+                t = np.array([w[0] for w in window])
+                innovations = np.array([w[1] for w in window])
+                mean = innovations.mean(axis=0)
+                mean_cov = sum(w[2] for w in window) / len(window)**2
+                gate = _gate(self.params.gate_probability("level"), 2)
+                if mean @ np.linalg.solve(mean_cov, mean) > gate:
+                    t -= t.mean()
+                    slope = float(np.linalg.norm(t @ innovations / (t @ t)))
+                    meas.reopen = (float(mean @ mean), slope**2)
+                    window.clear()
+                    self._diag.tilt_drifts += 1
+        if meas.reopen is not None:
+            tilt, rate = meas.reopen
+            self._widen(_TILT, tilt)
+            self._widen(_TILT_RATE_BIASES, rate)
+
+    def _widen(self, states: np.ndarray, variance):
+        """Raise the variances of ``states`` to at least ``variance`` (one, or one each),
+        decorrelated from the rest."""
+        P = self.kf.P
+        floor = np.maximum(np.diag(P)[states], variance)
+        P[states, :] = 0.0
+        P[:, states] = 0.0
+        P[states, states] = floor
 
     def _relocalise(self, meas: _Measurement) -> Outcome:
         """Fuse a relocalisation the gate accepts while the estimate is good enough for the
@@ -972,10 +1067,16 @@ class TerrainEkf:
             # Attitude rows measure dtheta: the rotation from the nominal to the measured
             # attitude, about the ENU axes.
             z[-3:] = attitude_error(meas.attitude, self.q)
+        if meas.body_up is not None:
+            # The measured up, rotated to ENU by the estimate, leans by dtheta x e_z.
+            up = quat_to_matrix(self.q) @ meas.body_up
+            z += (up[1], -up[0])
         H = np.zeros((len(z), DIM_ERR))
         H[np.arange(len(z)), meas.rows] = 1.0
         if meas.attitude_lever is not None:
             H[:, IDX_TH] += meas.attitude_lever
+        if meas.state_lever is not None:
+            H += meas.state_lever
         return z, H
 
     def _gate_test(self, meas: _Measurement):
@@ -1023,9 +1124,11 @@ class TerrainEkf:
         """Replace the position by the measurement's, decorrelated from the rest: recovery
         when the filter has diverged. Velocity and attitude stay with the IMU: a terrain
         fix's velocity is a difference of two fixes (tens of m/s of noise at 1 s) and its
-        tilt is unobserved, so adopting them outright can throw the filter further off."""
+        tilt is unobserved, so adopting them outright can throw the filter further off. A
+        levelling's reset is of the tilt: onto the levelling, with the velocity and gyro
+        biases reopened and the roll and pitch biases to the drift rate of the streak."""
         z, _ = self._innovation(meas)
-        keep = meas.rows < 3
+        keep = meas.rows < 3 if meas.source != "level" else np.ones(len(meas.rows), bool)
         r = meas.rows[keep]
         P = self.kf.P
         P[r, :] = 0.0
@@ -1038,6 +1141,13 @@ class TerrainEkf:
             self._reopen_dead_reckoning(_DEAD_RECKONING)
         elif meas.source == "baro":
             self._reopen_dead_reckoning(_VERTICAL_CHANNEL)
+        elif meas.source == "level":
+            self._inject_attitude()
+            self._reopen_dead_reckoning(_LEVELLED)
+            # The streak says how fast the tilt drifted since the last accepted levelling.
+            last = self._diag.last_accepted.get("level", -math.inf)
+            rate = float(np.linalg.norm(z)) / max(meas.stamp - last, self.params.level_period)
+            self._widen(_TILT_RATE_BIASES, rate**2)
         return Outcome(True, Reason.POSITION_RESET)
 
     def _reopen_dead_reckoning(self, states: np.ndarray):
@@ -1049,11 +1159,7 @@ class TerrainEkf:
         velocity, attitude and biases; after baro heights, which see the vertical channel
         alone: the vertical velocity and the accelerometer biases (reopening the tilt, which
         ground matches observe poorly, cost 16 m of horizontal error in a replay)."""
-        P = self.kf.P
-        floor = np.maximum(np.diag(P)[states], np.diag(self.default_covariance())[states])
-        P[states, :] = 0.0
-        P[:, states] = 0.0
-        P[states, states] = floor
+        self._widen(states, np.diag(self.default_covariance())[states])
 
     def _record(self, meas: _Measurement, outcome: Outcome):
         """Count an evaluation once; on re-application only fix up a changed decision."""
@@ -1133,7 +1239,8 @@ class TerrainEkf:
         the graph's ground matches echo the filter's height (sigma 10 % of the height above
         ground), and a filter whose height an accelerometer bias carries away must come
         back onto the baro (an inertial vertical channel alone diverges); unless the streak
-        began with a jump of the baro (:meth:`_note_baro_gap`)."""
+        began with a jump of the baro (:meth:`_note_baro_gap`). The levelling is the one
+        tilt reference: its streaks always reset."""
         start = self._streak_start.get(meas.source, -math.inf)
         if meas.source == "baro":
             if self._baro_jumped:
@@ -1142,6 +1249,8 @@ class TerrainEkf:
             checks = [c for c in self._height_checks if c[0] < start][-1:] + \
                 [c for c in self._height_checks if c[0] >= start]
             return not any(caught <= gap for _, caught in checks)
+        if meas.source == "level":
+            return True
         if meas.source not in _POSITION_SOURCES:
             return False
         return all(self._diag.last_accepted.get(other, -math.inf) < start
@@ -1157,6 +1266,10 @@ class TerrainEkf:
         return Outcome(False, reason)
 
 
+# The levelling's rows (dtheta_x, dtheta_y) from an ENU up leaning by u: (u_y, -u_x).
+_LEAN_ROWS = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+# Levellings whose mean innovation is tested for a tilt drift (at level_period, 10 s).
+_LEVEL_WINDOW = 10
 # The absolute position references: a streak of gate rejections of one resets the position
 # onto it unless the other agreed with the filter meanwhile (:meth:`TerrainEkf._diverged_for`;
 # the barometer's streaks reset the height unless one of them measured it).
@@ -1166,6 +1279,10 @@ _POSITION_SOURCES = frozenset({"fix", "gnss"})
 # accelerometer biases.
 _DEAD_RECKONING = np.arange(IDX_V.start, DIM_ERR)
 _VERTICAL_CHANNEL = np.r_[IDX_V.stop - 1, np.arange(IDX_BA.start, IDX_BA.stop)]
+# ... after levellings: the velocity (integrated with the drifted tilt) and the gyro biases.
+_LEVELLED = np.r_[IDX_V.start:IDX_V.stop, IDX_BG.start:IDX_BG.stop]
+_TILT = np.arange(IDX_TH.start, IDX_TH.start + 2)
+_TILT_RATE_BIASES = np.arange(IDX_BG.start, IDX_BG.start + 2)   # roll and pitch axes
 # A baro height differing from the previous accepted one by more than noise allows is a jump
 # only this soon after it (s): across a longer silence the filter may have drifted that far.
 _BARO_JUMP_WINDOW = 1.0

@@ -21,7 +21,7 @@ import numpy as np
 from .ekf import EkfDiagnostics
 
 OK, WARN, ERROR = 0, 1, 2
-SOURCES = ("fix", "baro", "gnss")
+SOURCES = ("fix", "baro", "gnss", "level")
 
 
 @dataclass(frozen=True)
@@ -181,7 +181,7 @@ def filter_values(d: EkfDiagnostics, init_mode: str, imu_received: int, imu_dt: 
         "imu_stamps_refused": d.imu_stamps_refused,
         "position_resets": d.position_resets, "imu_gaps": d.imu_gaps,
         "relocalisation_resets": d.relocalisation_resets,
-        "baro_steps": d.baro_steps, "baro_step_m": d.baro_step,
+        "baro_steps": d.baro_steps, "baro_step_m": d.baro_step, "tilt_drifts": d.tilt_drifts,
         "relocalisation_candidates": d.relocalisation_candidates,
         "found": "never" if d.found is None else d.found.describe(),
         "imu_received": imu_received, "imu_rate_hz": 1.0 / imu_dt,

@@ -139,6 +139,16 @@ class EkfParams:
         Before the filter runs there is no dead reckoning: the displacement between two
         relocalisations is tested against a zero-mean speed prior of this sigma per axis
         (m/s). Default 50.0 (faster than a ScanEagle-class aircraft cruises).
+    level_sigma : float
+        Accelerometer levelling (:meth:`TerrainEkf.process_imu`): 1-sigma of the roll and
+        pitch measured by the direction of the specific force less the turn's centripetal
+        acceleration, summed over ``level_period`` (rad). It stands for the accelerations
+        the model leaves out (speed changes, gusts, sideslip). Default 0.01745 (1 deg,
+        0.17 m/s^2 sustained over the period); 0 turns the levelling off.
+    level_period : float
+        Time the levelling sums the specific force over (s). Default 1.0.
+    level_gate_probability : float
+        Chi-square gate probability for the levelling. Default 0.999.
     """
 
     gravity: float = 9.80665
@@ -172,6 +182,9 @@ class EkfParams:
     relocalisation_min_interval: float = 1.0
     relocalisation_fuse_max_sigma: float = 500.0
     relocalisation_speed_sigma: float = 50.0
+    level_sigma: float = float(np.deg2rad(1.0))
+    level_period: float = 1.0
+    level_gate_probability: float = 0.999
 
     def __post_init__(self):
         for f in fields(self):
@@ -184,9 +197,13 @@ class EkfParams:
         for name in positive:
             if getattr(self, name) <= 0:
                 raise ValueError(f"EkfParams.{name} must be > 0, got {getattr(self, name)}")
-        for name in ("fix_gate_probability", "baro_gate_probability", "gnss_gate_probability"):
+        for name in ("fix_gate_probability", "baro_gate_probability", "gnss_gate_probability",
+                     "level_gate_probability"):
             if not 0.0 < getattr(self, name):
                 raise ValueError(f"EkfParams.{name} must be in (0, 1], got {getattr(self, name)}")
+        if self.level_sigma < 0 or self.level_period <= 0:
+            raise ValueError("EkfParams.level_sigma must be >= 0 and level_period > 0, got "
+                             f"{self.level_sigma}, {self.level_period}")
         if self.time_jump_confirm < 1 or self.reinit_timeout < 0 or self.max_imu_outage < 0:
             raise ValueError("EkfParams.time_jump_confirm must be >= 1, reinit_timeout and "
                              f"max_imu_outage >= 0, got {self.time_jump_confirm}, "

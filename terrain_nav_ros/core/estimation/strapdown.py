@@ -267,6 +267,8 @@ class StrapdownStep:
         r3 = np.arange(3)
         self._flat = np.concatenate(
             [((r + r3[:, None]) * DIM_ERR + c + r3).ravel() for r, c in corners])
+        self.rate_enu = (0.0, 0.0, 0.0)          # of the last step, bias removed (rad/s)
+        self.force_less_turn = (0.0, 0.0, 0.0)   # its ENU specific force less the turn
 
     def step(self, x, q, gyro, accel, dt):
         """Propagate nominal state in place and fill the error transition :attr:`F`.
@@ -328,6 +330,14 @@ class StrapdownStep:
         az = c20 * fx + c21 * fy + c22 * fz
         # velocity and position (trapezoid)
         v1x, v1y, v1z = v0x + ax * dt, v0y + ay * dt, v0z + (az - self.gravity) * dt
+        # What the filter's levelling sums: the ENU specific force, less the turn (the ENU
+        # body rate x the velocity).
+        rx = c00 * wx + c01 * wy + c02 * wz
+        ry = c10 * wx + c11 * wy + c12 * wz
+        rz = c20 * wx + c21 * wy + c22 * wz
+        self.rate_enu = (rx, ry, rz)
+        self.force_less_turn = (ax - (ry * v1z - rz * v1y), ay - (rz * v1x - rx * v1z),
+                                az - (rx * v1y - ry * v1x))
         x[0:6] = (px + 0.5 * (v0x + v1x) * dt, py + 0.5 * (v0y + v1y) * dt,
                   pz + 0.5 * (v0z + v1z) * dt, v1x, v1y, v1z)
         return self._fill_transition(dt, (c00, c01, c02, c10, c11, c12, c20, c21, c22),
