@@ -204,6 +204,8 @@ EKF_PARAMETERS = {
                     "force less the turn, over level_period); 0 = no levelling [rad]",
                     0.0, 1.0),
     "level_period": ("the levelling sums the specific force over this long [s]", 0.01, 60.0),
+    "level_wind_sigma": ("the wind the levelling allows for in turns (it takes the turn "
+                         "off with the ground velocity) [m/s]", 0.0, 100.0),
     "level_gate_probability": ("chi-square gate probability for the levelling", 1e-6, 1.0),
     "relocalisation_speed_sigma": ("cold start: sigma of the speed prior the displacement "
                                    "between two relocalisations is tested against [m/s]",

@@ -780,7 +780,10 @@ class TerrainEkf:
         lean[:, IDX_BG] = skew(x[IDX_V]) @ C
         lean[:, IDX_BA] = C
         lean = _LEAN_ROWS @ lean / self.params.gravity
-        R = np.eye(2) * self.params.level_sigma**2
+        # The turn is the ground velocity's, the centripetal acceleration the air
+        # velocity's: an unknown wind w leans the up by up to |rate| |w| / g.
+        wind_lean = self.params.level_wind_sigma * math.hypot(*rate) / self.params.gravity
+        R = np.eye(2) * (self.params.level_sigma**2 + wind_lean**2)
         self._submit(self.t, "level", lean @ x, R, np.array([6, 7]), None,
                      body_up=C.T @ up, state_lever=lean)
 

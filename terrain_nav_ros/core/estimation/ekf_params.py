@@ -147,6 +147,11 @@ class EkfParams:
         0.17 m/s^2 sustained over the period); 0 turns the levelling off.
     level_period : float
         Time the levelling sums the specific force over (s). Default 1.0.
+    level_wind_sigma : float
+        The wind the levelling allows for (m/s): it takes the turn off with the ground
+        velocity, where the centripetal acceleration is the air velocity's, so in a turn at
+        rate r a wind w leans it by up to r w / g, which its variance adds (a 6 deg/s turn
+        in 10 m/s: 6 deg). Default 10.0.
     level_gate_probability : float
         Chi-square gate probability for the levelling. Default 0.999.
     """
@@ -184,6 +189,7 @@ class EkfParams:
     relocalisation_speed_sigma: float = 50.0
     level_sigma: float = float(np.deg2rad(1.0))
     level_period: float = 1.0
+    level_wind_sigma: float = 10.0
     level_gate_probability: float = 0.999
 
     def __post_init__(self):
@@ -201,9 +207,10 @@ class EkfParams:
                      "level_gate_probability"):
             if not 0.0 < getattr(self, name):
                 raise ValueError(f"EkfParams.{name} must be in (0, 1], got {getattr(self, name)}")
-        if self.level_sigma < 0 or self.level_period <= 0:
-            raise ValueError("EkfParams.level_sigma must be >= 0 and level_period > 0, got "
-                             f"{self.level_sigma}, {self.level_period}")
+        if self.level_sigma < 0 or self.level_period <= 0 or self.level_wind_sigma < 0:
+            raise ValueError("EkfParams.level_sigma and level_wind_sigma must be >= 0 and "
+                             f"level_period > 0, got {self.level_sigma}, "
+                             f"{self.level_wind_sigma}, {self.level_period}")
         if self.time_jump_confirm < 1 or self.reinit_timeout < 0 or self.max_imu_outage < 0:
             raise ValueError("EkfParams.time_jump_confirm must be >= 1, reinit_timeout and "
                              f"max_imu_outage >= 0, got {self.time_jump_confirm}, "
