@@ -45,9 +45,11 @@ def test_replay_produces_fixes_and_bounds_the_error(nominal):
     # camera topic is best effort: one frame may be lost on a loaded machine)
     assert fixes["frames"] >= fixes["in_bag"] - 1, fixes
     fused, dr = nominal["fused_error"], nominal["dr_error"]
-    # Bounded by a few landmark GSD, and far below dead reckoning.
-    assert fused["rms"] <= 3 * GSD, fused
-    assert fused["rms"] < 0.7 * dr["rms"] and fused["final"] < 0.6 * dr["final"], (fused, dr)
+    # Bounded by a few landmark GSD, ending within one, and below dead reckoning (the
+    # accelerometer levelling holds the dead reckoning's tilt: over the short bag's 45 s
+    # without GNSS it drifts only ~17 m, the demo's 4 min take it hundreds of metres off).
+    assert fused["rms"] <= 3 * GSD and fused["final"] <= GSD, fused
+    assert fused["rms"] < dr["rms"], (fused, dr)
     assert nominal["fix_error"]["within_3_sigma"] >= 0.7
     # the baro holds the height (about 2 m RMS)
     assert nominal["fused_height_error"]["max"] <= GSD, nominal["fused_height_error"]
