@@ -1131,6 +1131,8 @@ class TerrainEkf:
         levelling's reset is of the tilt: onto the levelling, with the velocity and gyro
         biases reopened and the roll and pitch biases to the drift rate of the streak."""
         z, _ = self._innovation(meas)
+        if meas.state_lever is not None:   # what the rows measure besides the state's lever
+            z = z - meas.state_lever @ self._x
         keep = meas.rows < 3 if meas.source != "level" else np.ones(len(meas.rows), bool)
         r = meas.rows[keep]
         P = self.kf.P
