@@ -238,6 +238,9 @@ class EkfDiagnostics:
         last (re)started (a reset forgets it, as the node then learns its offset again).
     tilt_drifts : int
         Drifts of the tilt the accelerometer levelling found (a gyro bias that stepped).
+    heading_drifts : int
+        Drifts of the heading the fixes that measure one found (a yaw gyro bias that
+        stepped).
     relocalisation_candidates : int
         Relocalisations held, waiting for another to agree (expired ones dropped).
     found : Found or None
@@ -269,6 +272,7 @@ class EkfDiagnostics:
     baro_steps: int = 0
     baro_step: float = 0.0
     tilt_drifts: int = 0
+    heading_drifts: int = 0
     relocalisation_candidates: int = 0
     found: Found | None = None
     imu_gaps: int = 0
@@ -320,7 +324,7 @@ class _Measurement:
     attitude_lever: np.ndarray | None = None   # (m, 3): how dtheta moves the measured rows
     body_up: np.ndarray | None = None   # a levelling's measured up direction, body frame
     state_lever: np.ndarray | None = None   # (m, DIM_ERR): how the state moves them too
-    reopen: tuple | None = None   # a levelling that found a tilt drift: variance floors
+    reopen: list | None = None   # found a drift (_test_drift): (states, variance floor)
 
     @property
     def key(self):
@@ -409,7 +413,9 @@ class TerrainEkf:
         self._diag.baro_step = 0.0
         self._level_sum = [0.0, 0.0, 0.0]   # since _level_start: of C (f - b_a) - turn
         self._level_start = None
-        self._level_window = deque(maxlen=_LEVEL_WINDOW)   # (stamp, innovation, S)
+        # per source of _DRIFT_TESTS: (stamp, innovation, S) of its latest measurements
+        self._drift_windows = {source: deque(maxlen=test.window)
+                               for source, test in _DRIFT_TESTS.items()}
         self._reset_armed: set[str] = set()
         self._last_good: NavState | None = None   # set after a time jump, for re-init
         self._init_source_seen = False
@@ -985,43 +991,52 @@ class TerrainEkf:
             if gap is not None and meas.outcome is None and self._baro_probation:
                 meas.probation = True
                 self._baro_probation -= 1
-            if meas.source == "level":
-                self._test_tilt_drift(meas)
+            self._test_drift(meas)
             outcome = self._update(meas)
             if gap is not None and meas.outcome is None:
                 self._note_baro_gap(meas, outcome, gap)
         self._record(meas, outcome)
 
-    def _test_tilt_drift(self, meas: _Measurement):
-        """Whether the last ``_LEVEL_WINDOW`` levellings' innovations lean one way, by the
-        gate on their mean: a gyro bias that stepped beyond its random walk turns the tilt
-        steadily, which each levelling alone would not reject for several times the
-        window (its gate is ~4 sigma wide). When they do, the tilt's variance is reopened
-        to the mean's square and the roll and pitch gyro biases' to the innovations'
-        slope: this and later updates then move them (on a re-application after a rewind,
-        again). Not the yaw bias: a roll-axis drift would be taken as the lean its turn
-        compensation gives (reopening it lost tens of metres in simulated flights)."""
+    def _test_drift(self, meas: _Measurement):
+        """Whether the last innovations of one attitude reference lean one way, by the gate
+        on their mean: a gyro bias that stepped beyond its random walk turns the attitude
+        steadily, which each measurement alone would not reject for several times the
+        window (its gate is ~4 sigma wide) and a gyro bias the filter is sure of would not
+        follow. When they do, the angle's variance is reopened to the mean's square and the
+        gyro bias's about the same axes to the innovations' slope: this and later updates
+        then move them (on a re-application after a rewind, again).
+
+        Two references are tested apart (:data:`_DRIFT_TESTS`): the levellings' tilt
+        (``diagnostics.tilt_drifts``; not the yaw bias: a roll-axis drift would be taken as
+        the lean its turn compensation gives) and the heading of fixes that measure one
+        (``diagnostics.heading_drifts``)."""
+        test = _DRIFT_TESTS.get(meas.source)
+        if test is None or meas.relocalisation:
+            return
         if meas.outcome is None:
+            rows = np.flatnonzero(np.isin(meas.rows, test.rows))
+            if len(rows) != len(test.rows):
+                return
             z, H = self._innovation(meas)
-            S = H @ self.kf.P @ H.T + meas.R
-            window = self._level_window
+            z, H = z[rows], H[rows]
+            S = H @ self.kf.P @ H.T + meas.R[np.ix_(rows, rows)]
+            window = self._drift_windows[meas.source]
             window.append((meas.stamp, z - H @ self._x, S))
-            if len(window) == _LEVEL_WINDOW:
+            if len(window) == window.maxlen:
                 t = np.array([w[0] for w in window])
                 innovations = np.array([w[1] for w in window])
                 mean = innovations.mean(axis=0)
                 mean_cov = sum(w[2] for w in window) / len(window)**2
-                gate = _gate(self.params.gate_probability("level"), 2)
+                gate = _gate(self.params.gate_probability(meas.source), len(rows))
                 if mean @ np.linalg.solve(mean_cov, mean) > gate:
                     t -= t.mean()
-                    slope = float(np.linalg.norm(t @ innovations / (t @ t)))
-                    meas.reopen = (float(mean @ mean), slope**2)
+                    slope = float(np.linalg.norm(t @ innovations / max(t @ t, 1e-9)))
+                    meas.reopen = [(test.angle, float(mean @ mean)),
+                                   (test.rate_biases, slope**2)]
                     window.clear()
-                    self._diag.tilt_drifts += 1
-        if meas.reopen is not None:
-            tilt, rate = meas.reopen
-            self._widen(_TILT, tilt)
-            self._widen(_TILT_RATE_BIASES, rate)
+                    setattr(self._diag, test.counter, getattr(self._diag, test.counter) + 1)
+        for states, variance in meas.reopen or ():
+            self._widen(states, variance)
 
     def _widen(self, states: np.ndarray, variance):
         """Raise the variances of ``states`` to at least ``variance`` (one, or one each),
@@ -1273,8 +1288,6 @@ class TerrainEkf:
 
 # The levelling's rows (dtheta_x, dtheta_y) from an ENU up leaning by u: (u_y, -u_x).
 _LEAN_ROWS = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
-# Levellings whose mean innovation is tested for a tilt drift (at level_period, 10 s).
-_LEVEL_WINDOW = 10
 # The absolute position references: a streak of gate rejections of one resets the position
 # onto it unless the other agreed with the filter meanwhile (:meth:`TerrainEkf._diverged_for`;
 # the barometer's streaks reset the height unless one of them measured it).
@@ -1288,6 +1301,27 @@ _VERTICAL_CHANNEL = np.r_[IDX_V.stop - 1, np.arange(IDX_BA.start, IDX_BA.stop)]
 _LEVELLED = np.r_[IDX_V.start:IDX_V.stop, IDX_BG.start:IDX_BG.stop]
 _TILT = np.arange(IDX_TH.start, IDX_TH.start + 2)
 _TILT_RATE_BIASES = np.arange(IDX_BG.start, IDX_BG.start + 2)   # roll and pitch axes
+
+
+@dataclass(frozen=True)
+class _DriftTest:
+    """An attitude reference whose innovations :meth:`TerrainEkf._test_drift` tests."""
+
+    rows: np.ndarray          # the attitude error states its measurements' rows must hold
+    angle: np.ndarray         # states reopened to the mean innovation's square
+    rate_biases: np.ndarray   # states reopened to the innovations' slope squared
+    window: int               # measurements whose mean is tested
+    counter: str              # the EkfDiagnostics field counting the drifts found
+
+
+_DRIFT_TESTS = {
+    # The levellings' tilt, over 10 of them (10 s at level_period).
+    "level": _DriftTest(_TILT, _TILT, _TILT_RATE_BIASES, 10, "tilt_drifts"),
+    # The heading of fixes that measure one, over 5: a yaw bias of 0.5 deg/s has them
+    # gated after ~5 s at the matcher's 0.5 deg heading sigma floor.
+    "fix": _DriftTest(np.array([IDX_TH.start + 2]), np.array([IDX_TH.start + 2]),
+                      np.array([IDX_BG.start + 2]), 5, "heading_drifts"),
+}
 # A baro height differing from the previous accepted one by more than noise allows is a jump
 # only this soon after it (s): across a longer silence the filter may have drifted that far.
 _BARO_JUMP_WINDOW = 1.0

@@ -182,6 +182,7 @@ def filter_values(d: EkfDiagnostics, init_mode: str, imu_received: int, imu_dt: 
         "position_resets": d.position_resets, "imu_gaps": d.imu_gaps,
         "relocalisation_resets": d.relocalisation_resets,
         "baro_steps": d.baro_steps, "baro_step_m": d.baro_step, "tilt_drifts": d.tilt_drifts,
+        "heading_drifts": d.heading_drifts,
         "relocalisation_candidates": d.relocalisation_candidates,
         "found": "never" if d.found is None else d.found.describe(),
         "imu_received": imu_received, "imu_rate_hz": 1.0 / imu_dt,
