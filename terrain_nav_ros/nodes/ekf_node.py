@@ -69,11 +69,13 @@ Published:
   covariance, every ``1/navsatfix_rate`` s of filter time.
 * ``/nav/ekf/diagnostics`` (diagnostic_msgs/DiagnosticArray), every
   ``diagnostics_period`` s of wall time: ``ekf: filter`` (health OK/WARN/ERROR, time since
-  the last fix, position sigma, covariance trace, resets, input rejections per
+  the last fix, position sigma, covariance trace, the wind estimate, resets, tilt and
+  heading drifts found, input rejections per
   ``source:reason``, the navigation state ``lost`` / ``searching`` / ``found`` / ``tracking``
   with when and by how much the last reset onto relocalisations moved the position; each
   change of state is logged once) and one status per measurement source (``ekf: fix``,
-  ``ekf: baro``, ``ekf: gnss``) with accepted/rejected counts, the NIS of every update
+  ``ekf: baro``, ``ekf: gnss``, ``ekf: level``, ``ekf: sideslip``) with accepted/rejected
+  counts, the NIS of every update
   since the previous report (``nis``), the last NIS, the gate and the mean NIS over the
   recent window (consistent filter: about the measurement dimension ``dof``).
 
@@ -204,9 +206,14 @@ EKF_PARAMETERS = {
                     "force less the turn, over level_period); 0 = no levelling [rad]",
                     0.0, 1.0),
     "level_period": ("the levelling sums the specific force over this long [s]", 0.01, 60.0),
-    "level_wind_sigma": ("the wind the levelling allows for in turns (it takes the turn "
-                         "off with the ground velocity) [m/s]", 0.0, 100.0),
     "level_gate_probability": ("chi-square gate probability for the levelling", 1e-6, 1.0),
+    "init_wind_sigma": ("1-sigma of each horizontal wind component at start; the wind "
+                        "starts at zero [m/s]", 1e-3, 100.0),
+    "wind_random_walk": ("how fast the wind may change, per component [m/s/sqrt(s)]",
+                         0.0, 10.0),
+    "sideslip_sigma": ("1-sigma of the sideslip, measured as zero (coordinated flight of a "
+                       "fixed wing); 0 = not measured [m/s]", 0.0, 100.0),
+    "sideslip_gate_probability": ("chi-square gate probability for the sideslip", 1e-6, 1.0),
     "relocalisation_speed_sigma": ("cold start: sigma of the speed prior the displacement "
                                    "between two relocalisations is tested against [m/s]",
                                    1e-3, 1e4),

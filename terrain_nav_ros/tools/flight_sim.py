@@ -34,7 +34,7 @@ from __future__ import annotations
 import math
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -150,9 +150,8 @@ def fly(cfg: SimConfig, metamap: MetaMap):
     truth = simulate_trajectory(segs, cfg.imu_rate, cfg.speed,
                                 (cfg.start_east, cfg.start_north, 0.0),
                                 math.radians(cfg.heading))
-    wind = np.array([cfg.wind[0], cfg.wind[1], 0.0])
-    pos = truth.position + truth.t[:, None] * wind  # constant wind: same accelerations
-    vel = truth.velocity + wind
+    truth = truth.in_wind(*cfg.wind)
+    pos = truth.position.copy()
     west, east = pos[:, 0].min() - 500.0, pos[:, 0].max() + 500.0
     south, north = pos[:, 1].min() - 500.0, pos[:, 1].max() + 500.0
     gsd = max(metamap.native_gsd, (east - west) / 2000.0)
@@ -166,8 +165,7 @@ def fly(cfg: SimConfig, metamap: MetaMap):
         raise SimInputError(f"the route leaves the DEM (ENU box {west:.0f}..{east:.0f} E, "
                          f"{south:.0f}..{north:.0f} N); move start_east/start_north")
     pos[:, 2] += float(np.nanmax(ground)) + cfg.agl
-    return (type(truth)(truth.t, pos, vel, truth.quaternion, truth.gyro, truth.accel),
-            float(np.nanmin(ground)))
+    return replace(truth, position=pos), float(np.nanmin(ground))
 
 
 def pinhole(cfg: SimConfig) -> PinholeCamera:

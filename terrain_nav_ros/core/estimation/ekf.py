@@ -6,7 +6,7 @@ apply to an INS).
 
 State
 -----
-``kf.x`` (15 x 1) and ``kf.P`` (15 x 15) follow this order:
+``kf.x`` (17 x 1) and ``kf.P`` (17 x 17) follow this order:
 
 ======  ==============  ===================================================================
 index   symbol          meaning
@@ -17,7 +17,13 @@ index   symbol          meaning
                         between updates: it is folded into the nominal quaternion
 9:12    b_g             gyro bias, body FLU (rad/s)
 12:15   b_a             accelerometer bias, body FLU (m/s^2)
+15:17   w               wind, east and north (m/s): the ground velocity less the air's
 ======  ==============  ===================================================================
+
+The wind is no IMU state: the accelerometer levelling needs it (a turn's centripetal
+acceleration is the air velocity's) and the sideslip of a fixed wing in coordinated flight,
+which is about zero, measures it (the crab between the heading and the track), as autopilot
+EKFs without an airspeed sensor do.
 
 The nominal attitude is the unit quaternion ``q`` (``[x, y, z, w]``, body -> ENU) kept beside
 ``kf.x``; the true attitude is ``Exp(dtheta) * q``. Position, velocity and biases are additive,
@@ -105,8 +111,12 @@ from .strapdown import (
     skew,
 )
 
-__all__ = ["EkfDiagnostics", "EkfParams", "NavState", "Outcome", "Reason", "TerrainEkf",
-           "UpdateRecord", "tilt_lever"]
+# The filter's states: the mechanisation's error states, then the wind (east, north).
+IDX_W = slice(DIM_ERR, DIM_ERR + 2)
+DIM_STATE = DIM_ERR + 2
+
+__all__ = ["DIM_STATE", "IDX_W", "EkfDiagnostics", "EkfParams", "NavState", "Outcome",
+           "Reason", "TerrainEkf", "UpdateRecord", "tilt_lever"]
 
 
 class Reason(StrEnum):
@@ -187,8 +197,10 @@ class NavState:
         Body -> ENU ``[x, y, z, w]``.
     gyro_bias, accel_bias : ndarray, (3,)
         Body frame (rad/s, m/s^2).
-    covariance : ndarray, (15, 15)
+    covariance : ndarray, (17, 17)
         Error-state covariance in the documented state order.
+    wind : ndarray, (2,)
+        East and north (m/s): where the air moves to.
     """
 
     stamp: float
@@ -198,6 +210,7 @@ class NavState:
     gyro_bias: np.ndarray
     accel_bias: np.ndarray
     covariance: np.ndarray
+    wind: np.ndarray
 
     def pose_covariance(self) -> np.ndarray:
         """6x6 covariance of (position, attitude about ENU axes), the ROS Pose layout."""
@@ -256,6 +269,10 @@ class EkfDiagnostics:
         sqrt of the trace of the position covariance (m).
     horizontal_sigma : float
         sqrt of the east + north position variances (m).
+    wind : tuple of float
+        Wind estimate, east and north (m/s).
+    wind_sigma : float
+        sqrt of the sum of its two variances (m/s).
     """
 
     initialized: bool = False
@@ -280,6 +297,8 @@ class EkfDiagnostics:
     covariance_trace: float = float("nan")
     position_sigma: float = float("nan")
     horizontal_sigma: float = float("nan")
+    wind: tuple = (float("nan"), float("nan"))
+    wind_sigma: float = float("nan")
 
     def time_since(self, source: str = "fix") -> float | None:
         """Seconds since the last accepted measurement of ``source`` (None if never)."""
@@ -323,7 +342,7 @@ class _Measurement:
     probation: bool = False  # compared, never fused (a baro height just after a jump)
     attitude_lever: np.ndarray | None = None   # (m, 3): how dtheta moves the measured rows
     body_up: np.ndarray | None = None   # a levelling's measured up direction, body frame
-    state_lever: np.ndarray | None = None   # (m, DIM_ERR): how the state moves them too
+    state_lever: np.ndarray | None = None   # (m, DIM_STATE): how the state moves them too
     reopen: list | None = None   # found a drift (_test_drift): (states, variance floor)
 
     @property
@@ -363,19 +382,21 @@ class TerrainEkf:
     def __init__(self, params: EkfParams | None = None):
         self.params = params or EkfParams()
         p = self.params
-        self.kf = ExtendedKalmanFilter(dim_x=DIM_ERR, dim_z=3)
-        self._step = StrapdownStep(p.gravity)
-        self._tmp = np.empty((DIM_ERR, DIM_ERR))
-        self._Q = np.zeros((DIM_ERR, DIM_ERR))
+        self.kf = ExtendedKalmanFilter(dim_x=DIM_STATE, dim_z=3)
+        self._step = StrapdownStep(p.gravity, DIM_STATE)
+        self._tmp = np.empty((DIM_STATE, DIM_STATE))
+        self._Q = np.zeros((DIM_STATE, DIM_STATE))
         self._q_dt = None
         # Q = dt * Q1 + dt^2 * Q2 + dt^3 * Q3, so a jittering IMU period costs three axpys.
         i3 = np.arange(3)
-        self._Q1, self._Q2, self._Q3 = (np.zeros((DIM_ERR, DIM_ERR)) for _ in range(3))
+        self._Q1, self._Q2, self._Q3 = (np.zeros((DIM_STATE, DIM_STATE)) for _ in range(3))
         qa = p.accel_noise_density**2
         self._Q1[i3 + 3, i3 + 3] = qa
         self._Q1[i3 + 6, i3 + 6] = p.gyro_noise_density**2
         self._Q1[i3 + 9, i3 + 9] = p.gyro_bias_random_walk**2
         self._Q1[i3 + 12, i3 + 12] = p.accel_bias_random_walk**2
+        wind = np.arange(IDX_W.start, IDX_W.stop)
+        self._Q1[wind, wind] = p.wind_random_walk**2
         self._Q2[i3, i3 + 3] = self._Q2[i3 + 3, i3] = qa / 2.0
         self._Q3[i3, i3] = qa / 3.0
         self._seq = itertools.count()
@@ -396,8 +417,8 @@ class TerrainEkf:
         self.initialized = False
         self.t = None
         self.q = np.array([0.0, 0.0, 0.0, 1.0])
-        self.kf.x = np.zeros((DIM_ERR, 1))
-        self.kf.P = np.eye(DIM_ERR)
+        self.kf.x = np.zeros((DIM_STATE, 1))
+        self.kf.P = np.eye(DIM_STATE)
         self._x = self.kf.x[:, 0]
         self._history: deque[_Entry] = deque()
         self._log: list[_Measurement] = []
@@ -412,6 +433,8 @@ class TerrainEkf:
         self._baro_probation = 0    # baro heights still to compare only, after a jump
         self._diag.baro_step = 0.0
         self._level_sum = [0.0, 0.0, 0.0]   # since _level_start: of C (f - b_a) - turn
+        self._level_rates = [0.0, 0.0, 0.0]   # ... of the ENU body rate
+        self._level_count = 0
         self._level_start = None
         # per source of _DRIFT_TESTS: (stamp, innovation, S) of its latest measurements
         self._drift_windows = {source: deque(maxlen=test.window)
@@ -430,7 +453,8 @@ class TerrainEkf:
         """Current estimate (copies)."""
         x = self._x
         return NavState(self.t, x[IDX_P].copy(), x[IDX_V].copy(), self.q.copy(),
-                        x[IDX_BG].copy(), x[IDX_BA].copy(), self.kf.P.copy())
+                        x[IDX_BG].copy(), x[IDX_BA].copy(), self.kf.P.copy(),
+                        x[IDX_W].copy())
 
     @property
     def diagnostics(self) -> EkfDiagnostics:
@@ -450,6 +474,10 @@ class TerrainEkf:
         d.covariance_trace = float(np.trace(P))
         d.position_sigma = float(np.sqrt(np.trace(P[IDX_P, IDX_P])))
         d.horizontal_sigma = float(np.sqrt(P[0, 0] + P[1, 1])) if self.initialized else math.inf
+        d.wind = tuple(float(w) for w in self._x[IDX_W]) if self.initialized else \
+            (math.nan, math.nan)
+        d.wind_sigma = float(np.sqrt(np.trace(P[IDX_W, IDX_W]))) if self.initialized else \
+            math.nan
 
     def _now(self) -> float | None:
         """Filter time, or before initialisation the newest IMU stamp buffered (None if none)."""
@@ -459,15 +487,16 @@ class TerrainEkf:
 
     # ------------------------------------------------------------------ initialisation
     def default_covariance(self) -> np.ndarray:
-        """Initial 15x15 covariance from the ``init_*_sigma`` parameters."""
+        """Initial 17x17 covariance from the ``init_*_sigma`` parameters."""
         p = self.params
         sig = np.r_[[p.init_position_sigma] * 3, [p.init_velocity_sigma] * 3,
                     [p.init_roll_pitch_sigma] * 2, p.init_yaw_sigma,
-                    [p.init_gyro_bias_sigma] * 3, [p.init_accel_bias_sigma] * 3]
+                    [p.init_gyro_bias_sigma] * 3, [p.init_accel_bias_sigma] * 3,
+                    [p.init_wind_sigma] * 2]
         return np.diag(sig**2)
 
     def initialize(self, stamp: float, position, velocity, quaternion, covariance=None,
-                   gyro_bias=None, accel_bias=None) -> Outcome:
+                   gyro_bias=None, accel_bias=None, wind=None) -> Outcome:
         """Start (or restart) the filter from a full state at ``stamp``.
 
         Parameters
@@ -478,10 +507,13 @@ class TerrainEkf:
             ENU (m, m/s).
         quaternion : array_like, (4,)
             Body -> ENU ``[x, y, z, w]``.
-        covariance : array_like, (15, 15), optional
-            Error covariance in the state order; default :meth:`default_covariance`.
+        covariance : array_like, (17, 17) or (15, 15), optional
+            Error covariance in the state order; default :meth:`default_covariance`. Without
+            the wind's rows (15 x 15), the wind starts uncorrelated at ``init_wind_sigma``.
         gyro_bias, accel_bias : array_like, (3,), optional
             Initial bias estimates (default zero).
+        wind : array_like, (2,), optional
+            Initial wind, east and north (m/s; default zero).
 
         Returns
         -------
@@ -495,17 +527,25 @@ class TerrainEkf:
         q = _unit_quaternion(vals[2])
         if q is None:
             return self._refuse("init", Reason.BAD_QUATERNION)
-        P = self.default_covariance() if covariance is None else np.array(covariance, float)
-        if P.shape != (DIM_ERR, DIM_ERR) or not _is_pd(P):
+        P = self.default_covariance()
+        if covariance is not None:
+            given = np.array(covariance, float)
+            if given.shape == (DIM_ERR, DIM_ERR):   # the IMU states alone
+                P[:DIM_ERR, :DIM_ERR] = given
+            else:
+                P = given
+        if P.shape != (DIM_STATE, DIM_STATE) or not _is_pd(P):
             return self._refuse("init", Reason.BAD_COVARIANCE)
         pre_init = [s for s in self._pre_init_imu if s[0] > stamp]
         self._clear()
-        x = np.zeros(DIM_ERR)
+        x = np.zeros(DIM_STATE)
         x[IDX_P], x[IDX_V] = vals[0], vals[1]
         if gyro_bias is not None:
             x[IDX_BG] = gyro_bias
         if accel_bias is not None:
             x[IDX_BA] = accel_bias
+        if wind is not None:
+            x[IDX_W] = wind
         self.kf.x = x.reshape(-1, 1).copy()
         self._x = self.kf.x[:, 0]
         self.kf.P = 0.5 * (P + P.T)
@@ -702,7 +742,7 @@ class TerrainEkf:
             return self._refuse("imu", Reason.OUT_OF_ORDER)
         gap = stamp - self.t > self.params.max_imu_dt
         self._advance(stamp, gyro, accel)
-        if self.params.level_sigma > 0.0:
+        if self.params.level_sigma > 0.0 or self.params.sideslip_sigma > 0.0:
             self._accumulate_level()
         if gap:
             self._diag.imu_gaps += 1
@@ -760,38 +800,83 @@ class TerrainEkf:
     def _accumulate_level(self):
         """Accelerometer levelling, a tilt reference independent of the gyros and of the
         fixes (which carry the filter's own tilt): sum the specific force less the turn's
-        centripetal acceleration (body rate x velocity), in ENU, and every ``level_period``
-        submit its direction as a measurement of the tilt (source ``"level"``)."""
+        centripetal acceleration (body rate x air velocity), in ENU, and every
+        ``level_period`` submit its direction as a measurement of the tilt (source
+        ``"level"``), with the sideslip (:meth:`_submit_sideslip`)."""
         fx, fy, fz = self._step.force_less_turn
-        total = self._level_sum
+        rx, ry, rz = self._step.rate_enu
+        total, rates = self._level_sum, self._level_rates
         total[0] += fx
         total[1] += fy
         total[2] += fz
+        rates[0] += rx
+        rates[1] += ry
+        rates[2] += rz
+        self._level_count += 1
         if self._level_start is None:
             self._level_start = self.t
         if self.t - self._level_start < self.params.level_period:
             return
-        up = np.array(total) / math.hypot(*total)
-        total[:] = (0.0, 0.0, 0.0)
-        self._level_start = self.t
         x = self._x
+        wind = np.r_[x[IDX_W], 0.0]
+        # The step took the turn off with the ground velocity; the wind's part is the air's.
+        up = np.array(total) + np.cross(rates, wind)
+        rate = np.array(rates) / self._level_count
+        total[:] = rates[:] = (0.0, 0.0, 0.0)
+        self._level_count = 0
+        self._level_start = self.t
+        self._submit_sideslip()
+        # Rolling into or out of a turn (or pulling up), the body rate is not the
+        # velocity's and the turn model multiplies every velocity error by it: skipped.
+        if self.params.level_sigma <= 0.0 or math.hypot(rate[0], rate[1]) > _LEVEL_MAX_TILT_RATE:
+            return
+        up /= np.linalg.norm(up)
         C = quat_to_matrix(self.q)
-        rate = np.array(self._step.rate_enu)
         # The estimates taken off lean the measured up by their errors, through the turn a
-        # velocity error e_v by (rate x e_v) / g and a gyro bias one e_g by (C e_g) x v / g,
-        # an accelerometer bias one e_a by C e_a / g: the update takes the levelling as a
-        # measurement of them too.
-        lean = np.zeros((3, DIM_ERR))
+        # velocity error e_v by (rate x e_v) / g, a wind one e_w by -(rate x e_w) / g, a
+        # gyro bias one e_g by (C e_g) x (v - w) / g and an attitude one dtheta, which turns
+        # the body rate, by rate x ((v - w) x dtheta) / g (a heading error leans a turn's
+        # levelling along the track); an accelerometer bias one e_a by C e_a / g: the update
+        # takes the levelling as a measurement of them too.
+        air = x[IDX_V] - wind
+        lean = np.zeros((3, DIM_STATE))
         lean[:, IDX_V] = skew(rate)
-        lean[:, IDX_BG] = skew(x[IDX_V]) @ C
+        lean[:, IDX_W] = -skew(rate)[:, :2]
+        lean[:, IDX_TH] = skew(rate) @ skew(air)
+        lean[:, IDX_BG] = skew(air) @ C
         lean[:, IDX_BA] = C
         lean = _LEAN_ROWS @ lean / self.params.gravity
-        # The turn is the ground velocity's, the centripetal acceleration the air
-        # velocity's: an unknown wind w leans the up by up to |rate| |w| / g.
-        wind_lean = self.params.level_wind_sigma * math.hypot(*rate) / self.params.gravity
-        R = np.eye(2) * (self.params.level_sigma**2 + wind_lean**2)
+        R = np.eye(2) * self.params.level_sigma**2
         self._submit(self.t, "level", lean @ x, R, np.array([6, 7]), None,
                      body_up=C.T @ up, state_lever=lean)
+
+    def _submit_sideslip(self):
+        """The sideslip, zero in coordinated flight of a fixed wing: the air velocity's
+        component along the body's lateral axis, measured as 0 with ``sideslip_sigma``
+        (source ``"sideslip"``). With the ground velocity the fixes pin, it is the crab
+        between heading and track, which measures the crosswind in straight flight and
+        the whole wind over a turn. Not below :data:`_SIDESLIP_MIN_AIRSPEED`, where the
+        aircraft is not flying (a launch, a bench test)."""
+        if self.params.sideslip_sigma <= 0.0:
+            return
+        x = self._x
+        if math.hypot(x[3] - x[IDX_W][0], x[4] - x[IDX_W][1]) < _SIDESLIP_MIN_AIRSPEED:
+            return
+        self._submit(self.t, "sideslip", np.zeros(1),
+                     np.array([[self.params.sideslip_sigma**2]]), _NO_ROWS, None)
+
+    def _sideslip_row(self) -> np.ndarray:
+        """Jacobian (DIM_STATE,) of the sideslip ``b . (v - w)`` at the estimate, ``b`` the
+        body's lateral axis in ENU: a small rotation dtheta turns it into ``b +
+        dtheta x b``, which adds ``b . ((v - w) x dtheta)``."""
+        x = self._x
+        lateral = quat_to_matrix(self.q)[:, 1]
+        air = x[IDX_V] - np.r_[x[IDX_W], 0.0]
+        row = np.zeros(DIM_STATE)
+        row[IDX_V] = lateral
+        row[IDX_W] = -lateral[:2]
+        row[IDX_TH] = lateral @ skew(air)
+        return row
 
     def _store(self, gyro, accel):
         """Append the current state to the history and drop what fell out of it."""
@@ -1089,8 +1174,11 @@ class TerrainEkf:
             # The measured up, rotated to ENU by the estimate, leans by dtheta x e_z.
             up = quat_to_matrix(self.q) @ meas.body_up
             z += (up[1], -up[0])
-        H = np.zeros((len(z), DIM_ERR))
-        H[np.arange(len(z)), meas.rows] = 1.0
+        H = np.zeros((len(z), DIM_STATE))
+        if meas.source == "sideslip":
+            H[0] = self._sideslip_row()
+        else:
+            H[np.arange(len(z)), meas.rows] = 1.0
         if meas.attitude_lever is not None:
             H[:, IDX_TH] += meas.attitude_lever
         if meas.state_lever is not None:
@@ -1133,7 +1221,7 @@ class TerrainEkf:
             return
         self.q = quat_normalize(quat_multiply(quat_exp(dth), self.q))
         self._x[IDX_TH] = 0.0
-        G = np.eye(DIM_ERR)
+        G = np.eye(DIM_STATE)
         G[IDX_TH, IDX_TH] -= 0.5 * skew(dth)
         P = G @ self.kf.P @ G.T
         self.kf.P = 0.5 * (P + P.T)
@@ -1286,7 +1374,14 @@ class TerrainEkf:
         return Outcome(False, reason)
 
 
+# The sideslip measures no state alone (its Jacobian is TerrainEkf._sideslip_row).
+_NO_ROWS = np.zeros(0, dtype=int)
+# Below this airspeed (m/s) the aircraft is not flying and its sideslip means nothing.
+_SIDESLIP_MIN_AIRSPEED = 10.0
 # The levelling's rows (dtheta_x, dtheta_y) from an ENU up leaning by u: (u_y, -u_x).
+# Levellings are skipped over periods whose mean ENU body rate about a horizontal axis
+# exceeds this (rad/s, 3 deg/s): a vertical velocity error of 1 m/s leans one by 0.3 deg.
+_LEVEL_MAX_TILT_RATE = math.radians(3.0)
 _LEAN_ROWS = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
 # The absolute position references: a streak of gate rejections of one resets the position
 # onto it unless the other agreed with the filter meanwhile (:meth:`TerrainEkf._diverged_for`;
@@ -1295,10 +1390,11 @@ _POSITION_SOURCES = frozenset({"fix", "gnss"})
 # States a divergence reset reopens (:meth:`TerrainEkf._reopen_dead_reckoning`): after fixes,
 # velocity, attitude and biases; after baro heights, the vertical velocity and the
 # accelerometer biases.
-_DEAD_RECKONING = np.arange(IDX_V.start, DIM_ERR)
+_DEAD_RECKONING = np.arange(IDX_V.start, DIM_STATE)
 _VERTICAL_CHANNEL = np.r_[IDX_V.stop - 1, np.arange(IDX_BA.start, IDX_BA.stop)]
-# ... after levellings: the velocity (integrated with the drifted tilt) and the gyro biases.
-_LEVELLED = np.r_[IDX_V.start:IDX_V.stop, IDX_BG.start:IDX_BG.stop]
+# ... after levellings: the velocity (integrated with the drifted tilt), the gyro biases and
+# the wind (through which the turns lean the levelling).
+_LEVELLED = np.r_[IDX_V.start:IDX_V.stop, IDX_BG.start:IDX_BG.stop, IDX_W.start:IDX_W.stop]
 _TILT = np.arange(IDX_TH.start, IDX_TH.start + 2)
 _TILT_RATE_BIASES = np.arange(IDX_BG.start, IDX_BG.start + 2)   # roll and pitch axes
 

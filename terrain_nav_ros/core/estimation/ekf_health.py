@@ -21,7 +21,7 @@ import numpy as np
 from .ekf import EkfDiagnostics
 
 OK, WARN, ERROR = 0, 1, 2
-SOURCES = ("fix", "baro", "gnss", "level")
+SOURCES = ("fix", "baro", "gnss", "level", "sideslip")
 
 
 @dataclass(frozen=True)
@@ -177,6 +177,8 @@ def filter_values(d: EkfDiagnostics, init_mode: str, imu_received: int, imu_dt: 
         "filter_time": "nan" if d.stamp is None else f"{d.stamp:.3f}",
         "time_since_last_fix": float("nan") if since_fix is None else since_fix,
         "position_sigma_m": d.position_sigma, "covariance_trace": d.covariance_trace,
+        "wind_east_m_s": d.wind[0], "wind_north_m_s": d.wind[1],
+        "wind_sigma_m_s": d.wind_sigma,
         "resets": d.resets, "reinitialisations": d.reinitialisations,
         "imu_stamps_refused": d.imu_stamps_refused,
         "position_resets": d.position_resets, "imu_gaps": d.imu_gaps,

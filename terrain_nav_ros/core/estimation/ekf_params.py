@@ -147,13 +147,24 @@ class EkfParams:
         0.17 m/s^2 sustained over the period); 0 turns the levelling off.
     level_period : float
         Time the levelling sums the specific force over (s). Default 1.0.
-    level_wind_sigma : float
-        The wind the levelling allows for (m/s): it takes the turn off with the ground
-        velocity, where the centripetal acceleration is the air velocity's, so in a turn at
-        rate r a wind w leans it by up to r w / g, which its variance adds (a 6 deg/s turn
-        in 10 m/s: 6 deg). Default 10.0.
     level_gate_probability : float
         Chi-square gate probability for the levelling. Default 0.999.
+    init_wind_sigma : float
+        1-sigma of each horizontal wind component at initialisation (m/s); the wind starts
+        at zero. The levelling needs it, since a turn's centripetal acceleration is the air
+        velocity's (in a turn at rate r an unknown wind w leans it by r w / g: 6 deg in a
+        6 deg/s turn at 10 m/s), and the sideslip measures it. Default 10.0.
+    wind_random_walk : float
+        How fast the wind may change, per horizontal component (m/s/sqrt(s)). Default 0.1
+        (1 m/s in 100 s).
+    sideslip_sigma : float
+        1-sigma of the sideslip, measured as zero every ``level_period`` (m/s of lateral air
+        velocity): a fixed wing in coordinated flight, with the IMU's x axis along its
+        fuselage; it holds the sideslip of turns and gusts and a mount misalignment of a
+        degree or two. Default 1.0; 0 turns it off (an aircraft that flies sideways: a
+        multicopter), when only the turns' levellings see the wind.
+    sideslip_gate_probability : float
+        Chi-square gate probability for the sideslip. Default 0.999.
     """
 
     gravity: float = 9.80665
@@ -189,8 +200,11 @@ class EkfParams:
     relocalisation_speed_sigma: float = 50.0
     level_sigma: float = float(np.deg2rad(1.0))
     level_period: float = 1.0
-    level_wind_sigma: float = 10.0
     level_gate_probability: float = 0.999
+    init_wind_sigma: float = 10.0
+    wind_random_walk: float = 0.1
+    sideslip_sigma: float = 1.0
+    sideslip_gate_probability: float = 0.999
 
     def __post_init__(self):
         for f in fields(self):
@@ -204,13 +218,16 @@ class EkfParams:
             if getattr(self, name) <= 0:
                 raise ValueError(f"EkfParams.{name} must be > 0, got {getattr(self, name)}")
         for name in ("fix_gate_probability", "baro_gate_probability", "gnss_gate_probability",
-                     "level_gate_probability"):
+                     "level_gate_probability", "sideslip_gate_probability"):
             if not 0.0 < getattr(self, name):
                 raise ValueError(f"EkfParams.{name} must be in (0, 1], got {getattr(self, name)}")
-        if self.level_sigma < 0 or self.level_period <= 0 or self.level_wind_sigma < 0:
-            raise ValueError("EkfParams.level_sigma and level_wind_sigma must be >= 0 and "
+        if self.level_sigma < 0 or self.level_period <= 0 or self.sideslip_sigma < 0:
+            raise ValueError("EkfParams.level_sigma and sideslip_sigma must be >= 0 and "
                              f"level_period > 0, got {self.level_sigma}, "
-                             f"{self.level_wind_sigma}, {self.level_period}")
+                             f"{self.sideslip_sigma}, {self.level_period}")
+        if self.init_wind_sigma <= 0 or self.wind_random_walk < 0:
+            raise ValueError("EkfParams.init_wind_sigma must be > 0 and wind_random_walk >= 0, "
+                             f"got {self.init_wind_sigma}, {self.wind_random_walk}")
         if self.time_jump_confirm < 1 or self.reinit_timeout < 0 or self.max_imu_outage < 0:
             raise ValueError("EkfParams.time_jump_confirm must be >= 1, reinit_timeout and "
                              f"max_imu_outage >= 0, got {self.time_jump_confirm}, "

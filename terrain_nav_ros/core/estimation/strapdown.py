@@ -254,11 +254,14 @@ class StrapdownStep:
     ----------
     gravity : float
         Magnitude of gravity (m/s^2).
+    dim : int
+        Size of the state (and of :attr:`F`): the 15 error states of the mechanisation, then
+        any a filter adds that the IMU does not move (the EKF's wind).
     """
 
-    def __init__(self, gravity: float = GRAVITY):
+    def __init__(self, gravity: float = GRAVITY, dim: int = DIM_ERR):
         self.gravity = float(gravity)
-        self.F = np.eye(DIM_ERR)
+        self.F = np.eye(dim)
         self._F_flat = self.F.reshape(-1)
         self._out = np.zeros(54)
         # Flat indices of the sample-dependent 3x3 blocks of F (top-left corners), in the
@@ -266,7 +269,7 @@ class StrapdownStep:
         corners = ((3, 6), (0, 6), (3, 12), (0, 12), (6, 9), (3, 9))
         r3 = np.arange(3)
         self._flat = np.concatenate(
-            [((r + r3[:, None]) * DIM_ERR + c + r3).ravel() for r, c in corners])
+            [((r + r3[:, None]) * dim + c + r3).ravel() for r, c in corners])
         self.rate_enu = (0.0, 0.0, 0.0)          # of the last step, bias removed (rad/s)
         self.force_less_turn = (0.0, 0.0, 0.0)   # its ENU specific force less the turn
 
@@ -275,8 +278,9 @@ class StrapdownStep:
 
         Parameters
         ----------
-        x : ndarray, (15,)
-            ``[p, v, dtheta, bg, ba]``; p and v are updated in place (dtheta must be zero).
+        x : ndarray, (dim,)
+            ``[p, v, dtheta, bg, ba, ...]``; p and v are updated in place (dtheta must be
+            zero). States past the fifteenth (a filter's own, constant here) are left alone.
         q : ndarray, (4,)
             Attitude ``[x, y, z, w]``, updated in place.
         gyro, accel : sequence of 3 floats
@@ -286,12 +290,12 @@ class StrapdownStep:
 
         Returns
         -------
-        F : ndarray, (15, 15)
+        F : ndarray, (dim, dim)
             First-order discrete error-state transition over ``dt`` (a view of :attr:`F`,
-            overwritten by the next call).
+            overwritten by the next call); the identity on the states past the fifteenth.
         """
         # Python floats: element access on numpy arrays costs more than the arithmetic.
-        px, py, pz, v0x, v0y, v0z, _, _, _, bgx, bgy, bgz, bax, bay, baz = x.tolist()
+        px, py, pz, v0x, v0y, v0z, _, _, _, bgx, bgy, bgz, bax, bay, baz = x[:DIM_ERR].tolist()
         gx, gy, gz = (float(g) for g in gyro)
         ax_, ay_, az_ = (float(a) for a in accel)
         wx, wy, wz = gx - bgx, gy - bgy, gz - bgz

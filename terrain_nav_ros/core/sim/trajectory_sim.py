@@ -19,7 +19,7 @@ Everything is vectorised over time; nothing is random here (noise lives in
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -71,6 +71,14 @@ class Truth:
 
     def __len__(self) -> int:
         return len(self.t)
+
+    def in_wind(self, east: float, north: float) -> Truth:
+        """The same flight through air that moves at ``(east, north)`` (m/s): the ground track
+        drifts with it, while the attitude (the nose along the air velocity, no sideslip)
+        and the IMU stay, as a constant wind changes no acceleration."""
+        wind = np.array([east, north, 0.0])
+        return replace(self, position=self.position + self.t[:, None] * wind,
+                       velocity=self.velocity + wind)
 
     def at(self, times) -> np.ndarray:
         """Indices of the grid epochs nearest to ``times`` (s)."""
