@@ -96,6 +96,7 @@ from .imu_timing import ImuTiming, ImuTimingGuard
 from .relocalisation import Candidate, Found, RelocalisationCandidates
 from .strapdown import (
     DIM_ERR,
+    GRAVITY,
     IDX_BA,
     IDX_BG,
     IDX_P,
@@ -1119,17 +1120,24 @@ class TerrainEkf:
     @staticmethod
     def _drifted(window: list, gate: float, meas: _Measurement, test: _DriftTest) -> bool:
         """Whether the mean of a window of ``(stamp, innovation, S)`` is outside the gate;
-        if so, set ``meas.reopen`` to the angle's floor (the mean's square) and the rate
-        biases' (the innovations' slope squared)."""
+        if so, set ``meas.reopen`` to the angle's floor (the mean's square), the rate
+        biases' (the innovations' slope squared) and, for a tilt, the horizontal velocity's
+        (g times the mean times the window's span)."""
         t = np.array([w[0] for w in window])
         innovations = np.array([w[1] for w in window])
         mean = innovations.mean(axis=0)
         mean_cov = sum(w[2] for w in window) / len(window)**2
         if not mean @ np.linalg.solve(mean_cov, mean) > gate:
             return False
+        span = t[-1] - t[0]
         t -= t.mean()
         slope = float(np.linalg.norm(t @ innovations / max(t @ t, 1e-9)))
         meas.reopen = [(test.angle, float(mean @ mean)), (test.rate_biases, slope**2)]
+        if test.acceleration_per_angle:
+            # The drift the filter missed over the window had the dead reckoning integrate
+            # the specific force with it: the horizontal velocity is off by about as much.
+            speed = test.acceleration_per_angle * float(np.linalg.norm(mean)) * span
+            meas.reopen.append((_HORIZONTAL_VELOCITY, speed**2))
         return True
 
     def _widen(self, states: np.ndarray, variance):
@@ -1405,6 +1413,7 @@ _VERTICAL_CHANNEL = np.r_[IDX_V.stop - 1, np.arange(IDX_BA.start, IDX_BA.stop)]
 # the wind (through which the turns lean the levelling).
 _LEVELLED = np.r_[IDX_V.start:IDX_V.stop, IDX_BG.start:IDX_BG.stop, IDX_W.start:IDX_W.stop]
 _TILT = np.arange(IDX_TH.start, IDX_TH.start + 2)
+_HORIZONTAL_VELOCITY = np.arange(IDX_V.start, IDX_V.start + 2)
 _TILT_RATE_BIASES = np.arange(IDX_BG.start, IDX_BG.start + 2)   # roll and pitch axes
 
 
@@ -1417,6 +1426,7 @@ class _DriftTest:
     rate_biases: np.ndarray   # states reopened to the innovations' slope squared
     windows: tuple            # the numbers of latest measurements whose means are tested
     counter: str              # the EkfDiagnostics field counting the drifts found
+    acceleration_per_angle: float = 0.0   # m/s^2 of horizontal acceleration error per rad
 
 
 _DRIFT_TESTS = {
@@ -1424,7 +1434,8 @@ _DRIFT_TESTS = {
     # surveys a 20 s window cut the worst error of a pitch gyro bias step of 0.1 deg/s from
     # 93 to 53 m; a 5 s one, taking the drift rate from fewer levellings, lost more at
     # 0.2 deg/s than it won at 0.5.
-    "level": _DriftTest(_TILT, _TILT, _TILT_RATE_BIASES, (10, 20), "tilt_drifts"),
+    "level": _DriftTest(_TILT, _TILT, _TILT_RATE_BIASES, (10, 20), "tilt_drifts",
+                        acceleration_per_angle=GRAVITY),
     # The heading of fixes that measure one, over the last 5, 10 and 20: a yaw bias of
     # 0.5 deg/s has them gated after ~5 s at the matcher's 0.5 deg heading sigma floor.
     "fix": _DriftTest(np.array([IDX_TH.start + 2]), np.array([IDX_TH.start + 2]),
