@@ -180,15 +180,21 @@ def accelerometer_bias_step(topic, at, decode):
     return msg
 
 
-def roll_gyro_bias_step(topic, at, decode):
-    """Roll gyro reading 0.5 deg/s high from 30 s on: the tilt drifts 15 deg by the end
-    unless something other than the ground matches (which carry the filter's own tilt)
-    levels it."""
-    if topic != "/imu/data" or at < 30.0:
-        return None
-    msg = decode()
-    msg.angular_velocity.x += math.radians(0.5)
-    return msg
+def gyro_bias_step(axis: str, deg_per_s: float):
+    """Gyro ``axis`` (x roll, y pitch, z yaw) reading ``deg_per_s`` high from 30 s on: the
+    attitude drifts by up to 15 deg by the end unless something other than the ground
+    matches (which carry the filter's own tilt) levels it, or, for the yaw, the fixes'
+    headings are let move the bias the filter is sure of."""
+
+    def change(topic, at, decode):
+        if topic != "/imu/data" or at < 30.0:
+            return None
+        msg = decode()
+        setattr(msg.angular_velocity, axis,
+                getattr(msg.angular_velocity, axis) + math.radians(deg_per_s))
+        return msg
+
+    return change
 
 
 def spoofed_gnss(topic, at, decode):
@@ -603,7 +609,11 @@ def cases() -> list[Case]:
         Case("accelerometer bias step of 0.5 m/s^2 up from 30 s", "flight",
              _flight(accelerometer_bias_step)),
         Case("roll gyro bias step of 0.5 deg/s from 30 s", "flight",
-             _flight(roll_gyro_bias_step)),
+             _flight(gyro_bias_step("x", 0.5))),
+        Case("pitch gyro bias step of 0.2 deg/s from 30 s", "flight",
+             _flight(gyro_bias_step("y", 0.2))),
+        Case("yaw gyro bias step of 0.5 deg/s from 30 s", "flight",
+             _flight(gyro_bias_step("z", 0.5))),
         Case("GNSS spoofed 200 m north for 4 s before the denial", "flight",
              _flight(spoofed_gnss)),
         Case("IMU samples with NaN for 0.5 s", "flight", _flight(nan_imu)),
