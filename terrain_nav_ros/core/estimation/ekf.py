@@ -704,7 +704,9 @@ class TerrainEkf:
         specific force, less the turn's centripetal acceleration, is fused as a measurement
         of roll and pitch (source ``"level"``, ``level_sigma``), the one tilt reference the
         ground matches do not take from the filter; a drift of its innovations reopens the
-        tilt and the roll and pitch gyro biases (``diagnostics.tilt_drifts``).
+        tilt, the roll and pitch gyro biases and the horizontal velocity
+        (``diagnostics.tilt_drifts``). With it the sideslip is measured as zero (source
+        ``"sideslip"``, ``sideslip_sigma``), which with the turns estimates the wind.
 
         Returns
         -------
