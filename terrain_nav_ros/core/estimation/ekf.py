@@ -1397,10 +1397,10 @@ class TerrainEkf:
 _NO_ROWS = np.zeros(0, dtype=int)
 # Below this airspeed (m/s) the aircraft is not flying and its sideslip means nothing.
 _SIDESLIP_MIN_AIRSPEED = 10.0
-# The levelling's rows (dtheta_x, dtheta_y) from an ENU up leaning by u: (u_y, -u_x).
 # Levellings are skipped over periods whose mean ENU body rate about a horizontal axis
 # exceeds this (rad/s, 3 deg/s): a vertical velocity error of 1 m/s leans one by 0.3 deg.
 _LEVEL_MAX_TILT_RATE = math.radians(3.0)
+# The levelling's rows (dtheta_x, dtheta_y) from an ENU up leaning by u: (u_y, -u_x).
 _LEAN_ROWS = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
 # The absolute position references: a streak of gate rejections of one resets the position
 # onto it unless the other agreed with the filter meanwhile (:meth:`TerrainEkf._diverged_for`;
