@@ -821,9 +821,8 @@ class TerrainEkf:
         if self.t - self._level_start < self.params.level_period:
             return
         x = self._x
-        wind = np.r_[x[IDX_W], 0.0]
         # The step took the turn off with the ground velocity; the wind's part is the air's.
-        up = np.array(total) + np.cross(rates, wind)
+        up = np.array(total) + np.cross(rates, np.r_[x[IDX_W], 0.0])
         rate = np.array(rates) / self._level_count
         total[:] = rates[:] = (0.0, 0.0, 0.0)
         self._level_count = 0
@@ -841,7 +840,7 @@ class TerrainEkf:
         # the body rate, by rate x ((v - w) x dtheta) / g (a heading error leans a turn's
         # levelling along the track); an accelerometer bias one e_a by C e_a / g: the update
         # takes the levelling as a measurement of them too.
-        air = x[IDX_V] - wind
+        air = self._air_velocity()
         lean = np.zeros((3, DIM_STATE))
         lean[:, IDX_V] = skew(rate)
         lean[:, IDX_W] = -skew(rate)[:, :2]
@@ -862,8 +861,7 @@ class TerrainEkf:
         aircraft is not flying (a launch, a bench test)."""
         if self.params.sideslip_sigma <= 0.0:
             return
-        x = self._x
-        if math.hypot(x[3] - x[IDX_W][0], x[4] - x[IDX_W][1]) < _SIDESLIP_MIN_AIRSPEED:
+        if math.hypot(*self._air_velocity()[:2]) < _SIDESLIP_MIN_AIRSPEED:
             return
         self._submit(self.t, "sideslip", np.zeros(1),
                      np.array([[self.params.sideslip_sigma**2]]), _NO_ROWS, None)
@@ -872,14 +870,20 @@ class TerrainEkf:
         """Jacobian (DIM_STATE,) of the sideslip ``b . (v - w)`` at the estimate, ``b`` the
         body's lateral axis in ENU: a small rotation dtheta turns it into ``b +
         dtheta x b``, which adds ``b . ((v - w) x dtheta)``."""
-        x = self._x
         lateral = quat_to_matrix(self.q)[:, 1]
-        air = x[IDX_V] - np.r_[x[IDX_W], 0.0]
+        air = self._air_velocity()
         row = np.zeros(DIM_STATE)
         row[IDX_V] = lateral
         row[IDX_W] = -lateral[:2]
         row[IDX_TH] = lateral @ skew(air)
         return row
+
+    def _air_velocity(self) -> np.ndarray:
+        """The estimate's velocity through the air, ENU (m/s): the ground velocity less the
+        (horizontal) wind."""
+        air = self._x[IDX_V].copy()
+        air[:2] -= self._x[IDX_W]
+        return air
 
     def _store(self, gyro, accel):
         """Append the current state to the history and drop what fell out of it."""
