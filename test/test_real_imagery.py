@@ -246,6 +246,42 @@ def test_bad_scene_options_are_clear_errors(tmp_path, kwargs, message):
         load_scene(image, dem, **kwargs)
 
 
+def test_a_scene_without_a_sun_is_told_the_azimuth_its_shading_follows(tmp_path):
+    image, dem = _write_pair(tmp_path, geographic=False)   # shaded from azimuth 160
+    with pytest.raises(ValueError, match=r"sun is needed.*from azimuth 1(5[5-9]|6[0-5]) deg"):
+        load_scene(image, dem)
+
+
+def test_a_doubtful_sun_is_warned_of_and_reported(tmp_path, capsys):
+    image, dem = _write_pair(tmp_path, geographic=False)   # shaded from azimuth 160
+    assert load_scene(image, dem, sun=(160.0, 40.0)).sun_warning is None
+    out = tmp_path / "study"
+    code = main(["evaluate", "--image", str(image), "--dem", str(dem), "--sun", "300,40",
+                 "--sizes", "64", "--cases", "1", "--controls", "0", "--no-baselines",
+                 "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 0 and "warning: image: its shading agrees better with a sun from " \
+        "azimuth 1" in err and "check the sun" in err
+    saved = json.loads((out / "results.json").read_text())["setup"]["scenes"][0]
+    assert "check the sun" in saved["sun_warning"]
+    assert abs(saved["shading"]["best_azimuth_deg"] - 160.0) <= 5.0
+    assert saved["shading"]["r_at_sun"] < 0.8 * saved["shading"]["r_best"]
+    assert "check the sun" in (out / "report.md").read_text()
+
+
+def test_the_dev_scenes_shading_follows_their_stated_sun(shared_data):
+    """Landsat and HLS scenes whose sun is known: the azimuth their shading follows is within
+    a few degrees of it; July's canopy and cloud show little of the terrain."""
+    scenes = {s.name: s for s in load_scenes(SCENES_YAML, shared_data / "imagery")
+              if not s.name.startswith(("swellendam", "rmnp"))}   # their dates are not known
+    for name, scene in scenes.items():
+        if name == "pa_july_clouds":
+            assert "little of its terrain's shading" in scene.sun_warning
+            continue
+        off = abs((scene.shading.best_azimuth - scene.sun[0] + 180.0) % 360.0 - 180.0)
+        assert off <= 10.0 and scene.sun_warning is None, (name, scene.shading)
+
+
 def test_a_corrupt_image_is_a_clear_error(tmp_path):
     image, dem = _write_pair(tmp_path, geographic=False)
     image.write_bytes(b"II*\x00" + b"\x00" * 40)

@@ -214,9 +214,10 @@ def _cmd_evaluate_imagery(args) -> int:
             scenes = [load_scene(args.image, args.dem, band=args.band, gsd=gsd, sun=sun,
                                  when=args.time)]
         for scene in scenes:
-            for warning in (scene.image_warning, scene.dem_warning):
+            for warning in (scene.image_warning, scene.dem_warning, scene.sun_warning):
                 if warning:
-                    print(f"terrain-nav evaluate: warning: {warning}", file=sys.stderr)
+                    print(f"terrain-nav evaluate: warning: {scene.name}: {warning}",
+                          file=sys.stderr)
         sizes = tuple(int(x) for x in args.sizes.split(","))
         if min(sizes) < 16 or args.cases < 1 or args.controls < 0:
             raise ValueError("--sizes must be >= 16 px, --cases >= 1 and --controls >= 0")

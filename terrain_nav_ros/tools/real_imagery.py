@@ -16,7 +16,11 @@ landmark render of a co-registered DEM, lit by the image's sun, the way the grap
    (views and regions area averaged): the render holds no terrain finer, and the camera's
    albedo detail (fields, roads, tree crowns) would outnumber the drainage the two share.
 2. **Landmark.** :class:`~.core.render.renderer.LandmarkRenderer` renders the DEM nadir with the
-   scene's sun (given, or from the acquisition time and the scene's centre).
+   scene's sun (given, or from the acquisition time and the scene's centre). The image's
+   correlation with the DEM's shading (:func:`~.core.features.hillshade.shading_agreement`)
+   checks that sun: a stated sun far from the azimuth the image's shading follows, or an
+   image that follows its terrain's shading at no sun, is warned of and reported; without a
+   sun the error suggests the azimuth the shading follows.
 3. **Cases.** For each view size, views are cut from the image at random places, with a
    random rotation (within +-180 degrees with the heading unknown; within +-2 degrees, and
    the matcher told so, with it known) and scale (+-10 %); a view must lie on >= 95 % valid
@@ -54,7 +58,12 @@ import numpy as np
 from affine import Affine
 
 from ..core.features.clouds import CloudParams, cloud_cover
-from ..core.features.hillshade import extractor_input
+from ..core.features.hillshade import (
+    FAINT_SHADING_R,
+    ShadingAgreement,
+    extractor_input,
+    shading_agreement,
+)
 from ..core.features.minutia_set import MinutiaSet
 from ..core.features.minutiae import FeatureExtractor, MinutiaParams
 from ..core.matching.baselines import keypoint_locate, ncc_locate
@@ -105,12 +114,18 @@ class Scene:
     dem_cell: float = math.nan   # the DEM's own cell [m] (before resampling to ``gsd``)
     dem_warning: str | None = None   # what is wrong with the DEM's heights (read as voids)
     image_warning: str | None = None   # the image's undeclared fill (read as no data)
+    shading: ShadingAgreement | None = None   # the image against its DEM's shading
     landmark: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def georef(self) -> GeoReference:
         h, w = self.image.shape
         return GeoReference(0.0, 0.0, self.gsd, w, h)
+
+    @property
+    def sun_warning(self) -> str | None:
+        """What the image's shading says against its sun (see :class:`ShadingAgreement`)."""
+        return self.shading.warning(self.sun) if self.shading else None
 
 
 def _dem_window(d, dem_crs, crs, transform, shape, margin: int = 4) -> tuple[slice, slice]:
@@ -166,9 +181,6 @@ def _parse_sun(sun, when, lat: float, lon: float) -> tuple[float, float]:
         if not (0.0 < el <= 90.0 and math.isfinite(az)):
             raise ValueError(f"sun elevation must be in (0, 90] deg, got {el}")
         return az % 360.0, el
-    if when is None:
-        raise ValueError("the scene's sun is needed: give --sun AZ,EL or --time ISO8601 "
-                         "(the acquisition time)")
     t = when if isinstance(when, _dt.datetime) else parse_utc(when)
     az, el = solar_position(t, lat, lon)
     if not float(el) > 0:
@@ -259,10 +271,20 @@ def load_scene(image, dem, *, band=None, gsd: float | None = None, sun=None, whe
     # the DEM's large voids and the land beyond it: inpainted smooth, so the render makes no
     # cliffs there (no creases), and never observed
     elevation = fill_voids(z, max_area=z.size, fill_border=True)[0]
-    return Scene(name or image.stem, grey.astype(np.uint8), valid, elevation, gsd,
-                 _parse_sun(sun, when, lat, lon), (lat, lon), place=str(dem.resolve()),
-                 dem_cell=dem_cell,
-                 dem_warning=dem_warning, image_warning=image_warning)
+    grey = grey.astype(np.uint8)
+    per_cell = dem_cell / gsd if math.isfinite(dem_cell) else 1.0
+    if sun is None and when is None:
+        hint = shading_agreement(grey, elevation, gsd, None, valid, per_cell)
+        raise ValueError("the scene's sun is needed: give --sun AZ,EL or --time ISO8601 (the "
+                         "acquisition time)" + (
+                             f"; its shading follows a sun from azimuth "
+                             f"{hint.best_azimuth:.0f} deg best"
+                             if hint.r_best >= FAINT_SHADING_R else ""))
+    sun = _parse_sun(sun, when, lat, lon)
+    return Scene(name or image.stem, grey, valid, elevation, gsd, sun, (lat, lon),
+                 place=str(dem.resolve()), dem_cell=dem_cell,
+                 dem_warning=dem_warning, image_warning=image_warning,
+                 shading=shading_agreement(grey, elevation, gsd, sun, valid, per_cell))
 
 
 def load_scenes(path, data_dir=None) -> list[Scene]:
@@ -663,7 +685,9 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
                               "sun": list(s.sun), "centre_latlon": list(s.centre_latlon),
                               "valid": float(s.valid.mean()),
                               "dem_warning": s.dem_warning,
-                              "image_warning": s.image_warning} for s in scenes],
+                              "image_warning": s.image_warning,
+                              "shading": _shading_json(s.shading),
+                              "sun_warning": s.sun_warning} for s in scenes],
                   "sizes": list(sizes), "cases": cases, "seed": seed,
                   "region_factor": region_factor, "success_px": success_px,
                   "threshold": thr, "false_match_rate": false_match_rate,
@@ -843,6 +867,19 @@ def _score_histogram(out: Path, rows, non: np.ndarray, thr: float, success_px: f
     return save_figure(fig, out / "scores.png")
 
 
+def _shading_json(shading: ShadingAgreement | None) -> dict | None:
+    return None if shading is None else {
+        "r_at_sun": shading.r_at_sun, "best_azimuth_deg": shading.best_azimuth,
+        "r_best": shading.r_best, "pixels": shading.pixels}
+
+
+def _shading_cell(shading: dict | None) -> str:
+    if not shading or not math.isfinite(shading["r_best"]):
+        return "-"
+    return (f"{shading['r_at_sun']:.2f} ({shading['best_azimuth_deg']:.0f} deg, "
+            f"{shading['r_best']:.2f})")
+
+
 def _fmt(x, spec=".0f") -> str:
     return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else \
         format(x, spec)
@@ -861,16 +898,19 @@ def _report(summary: dict, pngs: list[str]) -> str:
              f"(NCC with {st['n_rotations']} rotations), known = +-{KNOWN_HEADING_DEG:g} deg "
              f"(matcher told +-{KNOWN_HEADING_PRIOR_DEG:g}, NCC without rotations). "
              "Baselines always answer: every answer off the truth is wrong.", "",
-             "| scene | GSD m | DEM cell m | matched at m | size px | sun az/el | valid |",
-             "|---|---|---|---|---|---|---|"]
+             "| scene | GSD m | DEM cell m | matched at m | size px | sun az/el | valid "
+             "| shading r at the sun (best azimuth, its r) |",
+             "|---|---|---|---|---|---|---|---|"]
     for s in st["scenes"]:
         lines.append(f"| {s['name']} | {s['gsd_m']:g} | {s['dem_cell_m']:.0f} | "
                      f"{st['match_gsd_m'][s['name']]:.0f} | {s['shape'][1]}x{s['shape'][0]} | "
-                     f"{s['sun'][0]:.1f} / {s['sun'][1]:.1f} | {100 * s['valid']:.0f} % |")
+                     f"{s['sun'][0]:.1f} / {s['sun'][1]:.1f} | {100 * s['valid']:.0f} % | "
+                     f"{_shading_cell(s.get('shading'))} |")
     notes = [f"- {s['name']}: {s[key]}" for s in st["scenes"]
-             for key in ("image_warning", "dem_warning") if s.get(key)]
+             for key in ("image_warning", "dem_warning", "sun_warning") if s.get(key)]
     if notes:
-        lines += ["", "Input warnings (what was read as no data, and why):", ""] + notes
+        lines += ["", "Input warnings (what was read as no data, and why; a doubtful sun):",
+                  ""] + notes
     head = "| scene | view px | heading | cases | " + " | ".join(
         f"{m} ok / wrong / ms" for m in methods) + " | minutiae: too little drainage |"
     lines += ["", "## Localisation", "", head, "|" + "---|" * (5 + len(methods))]

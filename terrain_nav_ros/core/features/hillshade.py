@@ -4,9 +4,15 @@ The flight renderer is the moderngl landmark renderer; this is the simple refere
 ``I = ambient + (1 - ambient) * max(0, n . s)`` of a north-up DEM, with the surface normal
 ``n`` from central differences and the sun direction ``s`` from azimuth (clockwise from
 North, degrees) and elevation above the horizon (degrees). No cast shadows.
+
+:func:`shading_agreement` measures how far a real image's brightness follows that shading:
+a check of an image's stated sun, band and registration before it is studied.
 """
 
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -15,7 +21,7 @@ from ..render.sun import sun_direction_enu
 from .creases import _fill_nodata
 
 __all__ = ["sun_vector", "surface_normals", "hillshade", "shading_curvature", "LIGHTINGS",
-           "check_lighting", "extractor_input"]
+           "check_lighting", "extractor_input", "ShadingAgreement", "shading_agreement"]
 
 # What the crease extractor sees: the shading itself, or the curvature estimated from it.
 LIGHTINGS = ("shading", "compensated")
@@ -183,3 +189,136 @@ def extractor_input(image, lighting: str, sun=None, valid_mask=None) -> np.ndarr
     if sun is None:
         raise ValueError("compensated lighting needs the sun that lit the image")
     return -shading_curvature(image, *sun, valid_mask=valid_mask)
+
+
+# The shading compared, as a band of scales in DEM cells: a DEM holds no shading finer than
+# its cell, and beyond a few slopes' width land cover and snow outweigh the shading.
+SHADING_BAND_CELLS = (1.0, 8.0)
+# An image whose correlation with its DEM's shading stays below this at every sun azimuth
+# shows little of its terrain (canopy, cloud, haze, or not the DEM's place).
+FAINT_SHADING_R = 0.1
+# A stated sun is doubtful when some azimuth this far from it or farther agrees better than
+# its own by this factor: for shading that follows the sun's horizontal direction as a
+# cosine, about 37 deg of error.
+DOUBTFUL_SUN_RATIO = 0.8
+DOUBTFUL_SUN_DEG = 30.0
+
+
+@dataclass(frozen=True)
+class ShadingAgreement:
+    """How far an image's brightness follows the Lambertian shading of its DEM.
+
+    Attributes
+    ----------
+    r_at_sun : float
+        Correlation of the band-passed image and shading at the stated sun (NaN if none).
+    best_azimuth : float
+        The sun azimuth (deg, at the stated sun's elevation) whose shading agrees best.
+    r_best : float
+        The correlation at ``best_azimuth``.
+    pixels : int
+        Pixels compared, at the DEM's cell.
+    """
+
+    r_at_sun: float
+    best_azimuth: float
+    r_best: float
+    pixels: int
+
+    def warning(self, sun=None) -> str | None:
+        """What looks wrong with the image or its stated ``sun`` (azimuth, elevation), or
+        None. The image is not judged on fewer than 100 pixels."""
+        if self.pixels < 100 or not math.isfinite(self.r_best):
+            return None
+        if self.r_best < FAINT_SHADING_R:
+            return (f"the image shows little of its terrain's shading at any sun azimuth "
+                    f"(correlation {self.r_best:.2f} at best): expect few fixes (canopy, "
+                    f"cloud, haze, another band, or an image and DEM of different places)")
+        off = abs((self.best_azimuth - sun[0] + 180.0) % 360.0 - 180.0) if sun else 0.0
+        if (sun and off >= DOUBTFUL_SUN_DEG
+                and not self.r_at_sun >= DOUBTFUL_SUN_RATIO * self.r_best):
+            return (f"its shading agrees better with a sun from azimuth "
+                    f"{self.best_azimuth:.0f} deg (correlation {self.r_best:.2f}) than with "
+                    f"the stated {sun[0]:.1f} deg ({self.r_at_sun:.2f}): check the sun (the "
+                    f"acquisition time) and the band")
+        return None
+
+
+def shading_agreement(image, elevation, gsd: float, sun=None, valid_mask=None,
+                      cell: float = 1.0) -> ShadingAgreement:
+    """Correlate an image with the Lambertian shading of its co-registered DEM.
+
+    Both are band-passed to :data:`SHADING_BAND_CELLS` DEM cells. Band-passed shading is
+    linear in the sun vector ``s``, ``S(s) = s . B`` with ``B`` the band-passed normals,
+    so the correlation at every sun is ``s . c / sqrt(s' G s)`` from the image's products
+    with ``B`` (``c``) and those of ``B`` (``G``): one pass over the pixels for all suns.
+    The elevation changes it little (the shading of gentle slopes scales with its cosine,
+    which a correlation ignores), the azimuth much.
+
+    Parameters
+    ----------
+    image : (M, N) array
+        The image (any gain and offset), north-up.
+    elevation : (M, N) array
+        Its DEM on the same grid (m).
+    gsd : float
+        Grid cell (m).
+    sun : (azimuth, elevation), optional
+        The stated sun (deg); without it the azimuths are scanned at 45 deg of elevation.
+    valid_mask : (M, N) bool array, optional
+        The image's observed pixels.
+    cell : float
+        The DEM's own cell in grid pixels (> 1 when the grid is finer than the DEM): both
+        are compared at the DEM's cell.
+
+    Returns
+    -------
+    ShadingAgreement
+    """
+    img = np.asarray(image, np.float32)
+    z = np.asarray(elevation, np.float32)
+    if img.ndim != 2 or img.shape != z.shape:
+        raise ValueError(f"image and elevation must be 2-D of one shape, got {img.shape} "
+                         f"and {z.shape}")
+    valid = np.isfinite(img) & np.isfinite(z)
+    if valid_mask is not None:
+        valid &= np.asarray(valid_mask, bool)
+    if not valid.any():
+        return ShadingAgreement(math.nan, math.nan, math.nan, 0)
+    if not np.isfinite(z).all():   # voids: no slope there (they are not compared either)
+        z = _fill_nodata(z, np.isfinite(z))
+    cell = max(float(cell), 1.0)
+    if cell > 1.0:   # to the DEM's cell: the finer pixels hold no more of its shading
+        size = (max(int(round(img.shape[1] / cell)), 2), max(int(round(img.shape[0] / cell)), 2))
+        weight = cv2.resize(valid.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+        img = cv2.resize(np.where(valid, img, 0), size, interpolation=cv2.INTER_AREA)
+        img /= np.maximum(weight, 1e-6)
+        z = cv2.resize(z, size, interpolation=cv2.INTER_AREA)
+        valid = weight > 0.999
+    # the band's edge within a pixel of no data is the fill's, not the image's
+    compared = cv2.erode(valid.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    azimuths = np.arange(0.0, 360.0, 1.0)
+    if compared.sum() < 100 or min(img.shape) < 3:
+        return ShadingAgreement(math.nan, math.nan, math.nan, int(compared.sum()))
+    low, high = SHADING_BAND_CELLS
+
+    def band(x):
+        return cv2.GaussianBlur(x, (0, 0), low) - cv2.GaussianBlur(x, (0, 0), high)
+
+    a = band(_fill_nodata(img, valid) if not valid.all() else img)[compared]
+    a -= a.mean()
+    normals = surface_normals(z, gsd * cell)
+    b = np.stack([band(n.astype(np.float32))[compared] for n in normals]).astype(np.float64)
+    b -= b.mean(axis=1, keepdims=True)
+    c, gram, norm_a = b @ a, b @ b.T, float(np.sqrt(a @ a))
+
+    def correlation(s):
+        energy = float(s @ gram @ s)
+        return float(s @ c) / math.sqrt(energy) / norm_a if energy > 0 and norm_a > 0 \
+            else math.nan
+
+    sun_elevation = sun[1] if sun is not None else 45.0
+    scan = [correlation(sun_vector(az, sun_elevation)) for az in azimuths]
+    k = int(np.nanargmax(scan)) if np.isfinite(scan).any() else 0
+    r_at = correlation(sun_vector(*sun)) if sun is not None else math.nan
+    return ShadingAgreement(r_at, float(azimuths[k]), float(scan[k]), int(compared.sum()))
