@@ -15,7 +15,7 @@ from launch.actions import DeclareLaunchArgument, OpaqueFunction, SetEnvironment
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-from terrain_nav_ros.tools.graph_runner import DDS_PROFILE_VARIABLE, load_graph
+from terrain_nav_ros.tools.graph_runner import DDS_PROFILE_VARIABLE, RESPAWN_DELAY, load_graph
 
 
 def graph_nodes(graph_path, use_sim_time=False, enable=()):
@@ -24,7 +24,7 @@ def graph_nodes(graph_path, use_sim_time=False, enable=()):
     params_files = [str(p) for p in spec.params_files]
     return [
         Node(package="terrain_nav_ros", executable=node.executable, name=node.name,
-             output="screen", respawn=False,
+             output="screen", respawn=node.respawn, respawn_delay=RESPAWN_DELAY,
              parameters=params_files + [{**node.parameters, "use_sim_time": use_sim_time}],
              remappings=list(node.remappings.items()))
         for node in spec.nodes

@@ -597,6 +597,10 @@ def cases() -> list[Case]:
             node="matcher")),
         Case("matcher: mission index with a tile layer missing", "parameters",
              _partial_mission),
+        Case("matcher killed 20 s into the flight (SIGKILL)", "flight", _flight(
+            None, kill="matcher")),
+        Case("landmark renderer killed 20 s into the flight (SIGKILL)", "flight", _flight(
+            None, kill="landmark_renderer")),
         Case("camera frozen for 15 s mid-flight", "flight", _flight(
             frozen_camera(25.0, 15.0), "camera frozen", 12)),
         Case("camera clock 2 s back for 10 s", "flight", _flight(
@@ -633,38 +637,79 @@ def _prepare(options: tuple, words: str):
         tmp / "index", *options), 2, (words,))
 
 
-def _flight(change: Callable, reason: str = "", at_least: int = 0) -> Callable:
+def _flight(change: Callable | None, reason: str = "", at_least: int = 0,
+            kill: str = "") -> Callable:
     """The short bag changed by ``change`` (:func:`~terrain_nav_ros.tools.bags.changed_copy`)
     and replayed: GOOD when the fused error, horizontal and height, stays bounded (3 x 20
     m), every frame is answered and, with ``reason``, at least ``at_least`` frames get a
-    no-fix saying it."""
+    no-fix saying it. With ``kill``, that node is killed (SIGKILL) 20 s into the flight: GOOD
+    also needs it respawned, and the frames of its restart (up to 8: the respawn delay and
+    the node's start-up, 2-5 s) may go unanswered."""
     def run(tmp: Path):
         import yaml
 
         from terrain_nav_ros.tools import bags
         from terrain_nav_ros.tools.cli import REPO
 
-        bag = bags.changed_copy(REPO / "bags" / "jacksboro_short", tmp / "bag", change)
+        bag = REPO / "bags" / "jacksboro_short"
+        if change is not None:
+            bag = bags.changed_copy(bag, tmp / "bag", change)
+        cmd = terrain_nav("replay", "--bag", bag, "--out", tmp / "out")
         try:
-            proc = subprocess.run(terrain_nav("replay", "--bag", bag, "--out", tmp / "out"),
-                                  capture_output=True, text=True, timeout=400)
+            code, err = _replay_killing(cmd, tmp, kill) if kill else _replay_plain(cmd)
         except subprocess.TimeoutExpired:
             return BAD, "replay did not finish within 400 s"
-        if proc.returncode != 0:
-            return BAD, f"replay exit {proc.returncode}: {proc.stderr.strip()[-110:]}"
+        if code != 0:
+            return BAD, f"replay exit {code}: {err.strip()[-110:]}"
         report = yaml.safe_load((tmp / "out" / "report.yaml").read_text())
         fixes, fused = report["fixes"], report["fused_error"]
         height = report["fused_height_error"]
         said = sum(n for text, n in fixes["reasons"] if reason and reason in text)
+        respawns = report["usage"].get(kill, {}).get("respawns", 0) if kill else 0
         detail = (f"{fixes['fixes']} fixes, {fixes['frames']} of {fixes['in_bag']} frames "
                   f"answered{f', {said} {reason!r}' if reason else ''}, fused RMS "
                   f"{fused['rms']:.1f} m, final {fused['final']:.1f} m, height final "
-                  f"{height['final']:.1f} m, died {report['died']}")
+                  f"{height['final']:.1f} m, died {report['died']}"
+                  + (f", {kill} respawned {respawns}x" if kill else ""))
+        crashed = [n for n, u in report["usage"].items() if u.get("respawns") and n != kill]
+        if crashed:   # respawned, but a crash all the same
+            detail += f", {', '.join(crashed)} crashed and respawned"
         if max(fused["final"], fused["rms"], height["final"], height["rms"]) > 3 * 20.0 \
-                or report["died"]:
+                or report["died"] or crashed or (kill and not respawns):
             return BAD, detail
-        return (GOOD if said >= at_least and fixes["frames"] == fixes["in_bag"] else POOR), detail
+        unanswered = fixes["in_bag"] - fixes["frames"]
+        return (GOOD if said >= at_least and unanswered <= (8 if kill else 0) else POOR), detail
     return run
+
+
+def _replay_plain(cmd: list) -> tuple[int, str]:
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=400)
+    return proc.returncode, proc.stderr
+
+
+def _replay_killing(cmd: list, tmp: Path, node: str, after: float = 20.0) -> tuple[int, str]:
+    """Run a replay and SIGKILL its ``node`` ``after`` s once the graph is up."""
+    import time
+
+    import psutil
+
+    out = tmp / "replay.out"
+    with open(out, "w") as sink:
+        proc = subprocess.Popen(cmd, stdout=sink, stderr=subprocess.STDOUT, text=True)
+        try:
+            deadline = time.monotonic() + 120.0
+            while "nodes up" not in out.read_text() and time.monotonic() < deadline \
+                    and proc.poll() is None:
+                time.sleep(0.5)
+            time.sleep(after)
+            for child in psutil.Process(proc.pid).children(recursive=True):
+                if f"__node:={node}" in " ".join(child.cmdline()):
+                    child.kill()
+            proc.wait(timeout=400)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    return proc.returncode, out.read_text()
 
 
 def _partial_mission(tmp: Path):

@@ -75,6 +75,70 @@ def test_runner_starts_nodes_reports_a_killed_node_and_stops_cleanly(tmp_path):
     assert recorded and recorded == [f"m{i}" for i in range(len(recorded))]
 
 
+def _respawning_graph(tmp_path):
+    bag, out_bag = tmp_path / "in", tmp_path / "out"
+    _slow_bag(bag, seconds=120)
+    graph = _graph_file(tmp_path, bag, out_bag)
+    doc = yaml.safe_load(graph.read_text())
+    doc["nodes"][1]["respawn"] = True   # the player
+    graph.write_text(yaml.safe_dump(doc))
+    return load_graph(graph)
+
+
+def _kill_when_up(runner, name, log):
+    """SIGKILL ``name`` once its current process is up; return the killed pid."""
+    pid = runner.procs[name].pid
+    assert wait_until(lambda: log.getvalue().count(f"started {name}") and
+                      psutil.pid_exists(pid), 20)
+    time.sleep(1.0)
+    os.kill(pid, signal.SIGKILL)
+    return pid
+
+
+def test_a_respawned_node_that_dies_is_started_again(tmp_path):
+    spec = _respawning_graph(tmp_path)
+    log = io.StringIO()
+    runner = GraphRunner(spec, out=log, log_dir=tmp_path / "logs")
+    runner.start()
+    try:
+        runner.wait_until_up(timeout=30)
+        killed = _kill_when_up(runner, "player", log)
+        status = runner.spin(duration=6)
+        assert runner.procs["player"].pid != killed and runner.procs["player"].poll() is None
+        runner.sample_usage()
+    finally:
+        runner.shutdown()
+    text = log.getvalue()
+    assert status == 0, text
+    assert "NODE DIED: player (signal SIGKILL); respawning it in 0.5 s" in text
+    assert text.count("started player") == 2 and runner.respawns == {"player": 1}
+    assert runner.died == []
+    # both lives write to one log
+    assert (tmp_path / "logs" / "player.log").read_text().count("playing 1 topics") == 2
+
+
+def test_a_node_that_keeps_dying_is_given_up_on(tmp_path, monkeypatch):
+    from terrain_nav_ros.tools import graph_runner
+
+    monkeypatch.setattr(graph_runner, "RESPAWN_LIMIT", 2)
+    spec = _respawning_graph(tmp_path)
+    log = io.StringIO()
+    runner = GraphRunner(spec, out=log)
+    runner.start()
+    try:
+        runner.wait_until_up(timeout=30)
+        _kill_when_up(runner, "player", log)
+        assert runner.spin(duration=4) == 0
+        _kill_when_up(runner, "player", log)
+        status = runner.spin(duration=10)
+    finally:
+        runner.shutdown()
+    text = log.getvalue()
+    assert status == 1 and runner.died == ["player"], text
+    assert "player died 2 times within 60 s: not respawning it again" in text
+    assert "stopping the graph: required node(s) ['player'] died" in text
+
+
 def test_runner_forwards_stop_request_and_nodes_exit_cleanly(tmp_path):
     bag, out_bag = tmp_path / "in", tmp_path / "out"
     _slow_bag(bag, seconds=60)

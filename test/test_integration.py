@@ -27,6 +27,9 @@ pytestmark = pytest.mark.skipif(not SHORT_BAG.exists(), reason="bags/jacksboro_s
 
 def _nodes_survived(result):
     assert result["graph_status"] == 0 and result["died"] == [], result.get("died")
+    # nor crashed and were respawned (config/graph.yaml respawns all nodes but the ekf)
+    respawned = {n: u["respawns"] for n, u in result["usage"].items() if u.get("respawns")}
+    assert not respawned, respawned
 
 
 @pytest.fixture(scope="module")
@@ -124,6 +127,36 @@ def _cut(until_s: float, drop_topics=()):
 
 def _no_fix_reasons(result):
     return " | ".join(reason for reason, _ in result["fixes"]["reasons"])
+
+
+def test_a_node_killed_mid_flight_is_respawned_and_the_fixes_resume(tmp_path):
+    import threading
+    import time
+
+    import psutil
+
+    def kill_matcher():
+        # 35 s after the start: the graph is up and the bag some 25 s in, GNSS denied
+        time.sleep(35.0)
+        for child in psutil.Process().children(recursive=True):
+            if "__node:=matcher" in " ".join(child.cmdline()):
+                child.kill()
+
+    killer = threading.Thread(target=kill_matcher, daemon=True)
+    killer.start()
+    result = run_replay(SHORT_BAG, tmp_path / "out", GRAPH)
+    killer.join()
+    assert result["graph_status"] == 0 and result["died"] == [], result["died"]
+    assert result["usage"]["matcher"]["respawns"] == 1
+    log = (tmp_path / "out" / "logs" / "matcher.log").read_text()
+    last_fix = log.rindex("] [matcher]: fix (")
+    assert log.index("landmark set", log.index("] [matcher]: fix (")) < last_fix, \
+        "no fix after the restart"
+    fixes, fused = result["fixes"], result["fused_error"]
+    assert fixes["fixes"] >= 0.5 * fixes["in_bag"], fixes
+    assert fused["rms"] <= 3 * GSD and fused["final"] <= GSD, fused
+    text = (tmp_path / "out" / "report.txt").read_text()
+    assert "matcher" in text and "died and respawned 1x" in text
 
 
 def test_missing_camera_info_gives_no_fix_and_no_crash(tmp_path):

@@ -7,7 +7,8 @@ The graph is described once, in a YAML file (``config/graph.yaml``)::
     nodes:
       - name: metamap                  # node name; its block in the params files
         executable: metamap            # an entry of terrain_nav_ros.executables.NODES
-        required: true                 # if it dies, the whole graph is stopped
+        required: true                 # if it dies for good, the whole graph is stopped
+        respawn: false                 # true: restarted when it dies (see below)
         enabled: true                  # false: started only when asked for by name
         parameters: {gsd: 5.0}         # overrides on top of the params files
         remappings: {/in: /out}
@@ -21,6 +22,12 @@ installs. The runner starts every node in its own process (and session, so a ter
 Ctrl-C reaches only the runner), waits until all are visible in the ROS graph, prefixes their
 output with their name, forwards SIGINT/SIGTERM, escalates to SIGKILL after a grace period,
 and reports any node that dies.
+
+A node with ``respawn: true`` that dies once the graph is up (a crash, a kill: any exit but
+0) is started again after :data:`RESPAWN_DELAY` s, as ``ros2 launch`` does with
+``respawn=True``; one that dies :data:`RESPAWN_LIMIT` times within :data:`RESPAWN_WINDOW` s
+is crash-looping and is given up on: it counts as died. A node that dies during start-up is
+not respawned (a bad parameter would only die again).
 """
 
 from __future__ import annotations
@@ -32,12 +39,19 @@ import subprocess
 import sys
 import threading
 import time
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import yaml
 
 from ..executables import NODES
+
+# A respawned node is started again this long after it died [s] ...
+RESPAWN_DELAY = 0.5
+# ... unless it died this many times within this window [s]: a crash loop, given up on.
+RESPAWN_LIMIT = 3
+RESPAWN_WINDOW = 60.0
 
 
 class GraphError(RuntimeError):
@@ -52,6 +66,7 @@ class NodeSpec:
     executable: str
     required: bool = True
     enabled: bool = True
+    respawn: bool = False
     parameters: dict = field(default_factory=dict)
     remappings: dict = field(default_factory=dict)
 
@@ -97,13 +112,14 @@ def load_graph(path: str | Path, enable=()) -> GraphSpec:
             raise GraphError(f"{path}: params file {params_path} does not exist")
     nodes = []
     for entry in doc.get("nodes") or []:
-        unknown = set(entry) - {"name", "executable", "required", "enabled", "parameters",
-                                "remappings"}
+        unknown = set(entry) - {"name", "executable", "required", "enabled", "respawn",
+                                "parameters", "remappings"}
         if unknown:
             raise GraphError(f"{path}: node entry {entry.get('name')} has unknown keys {unknown}")
         spec = NodeSpec(name=entry["name"], executable=entry.get("executable", entry["name"]),
                         required=bool(entry.get("required", True)),
                         enabled=bool(entry.get("enabled", True)),
+                        respawn=bool(entry.get("respawn", False)),
                         parameters=dict(entry.get("parameters") or {}),
                         remappings=dict(entry.get("remappings") or {}))
         if spec.executable not in NODES:
@@ -197,6 +213,10 @@ class GraphRunner:
         self.usage: dict[str, dict] = {}
         self.exit_codes: dict[str, int] = {}
         self.died: list[str] = []
+        self.respawns: Counter = Counter()   # restarts per node
+        self._deaths: dict[str, deque] = {}   # when each respawned node died (monotonic)
+        self._respawn_at: dict[str, float] = {}   # nodes waiting to be started again
+        self._up = False   # past start-up: nodes that die from now on may be respawned
         self._pumps: list[threading.Thread] = []
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -211,18 +231,24 @@ class GraphRunner:
         if self.log_dir:
             self.log_dir.mkdir(parents=True, exist_ok=True)
         for spec in self.spec.nodes:
-            cmd = node_command(spec, self.spec.params_files, self.extra_parameters)
-            proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                    stdin=subprocess.DEVNULL, text=True, bufsize=1,
-                                    env=self.spec.environment(), start_new_session=True)
-            self.procs[spec.name] = proc
-            pump = threading.Thread(target=self._pump, args=(spec.name, proc), daemon=True)
-            pump.start()
-            self._pumps.append(pump)
-            self.report(f"started {spec.name} (pid {proc.pid})")
+            self._launch(spec)
 
-    def _pump(self, name: str, proc: subprocess.Popen) -> None:
-        log = open(self.log_dir / f"{name}.log", "w") if self.log_dir else None  # noqa: SIM115
+    def _launch(self, spec: NodeSpec) -> None:
+        cmd = node_command(spec, self.spec.params_files, self.extra_parameters)
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                stdin=subprocess.DEVNULL, text=True, bufsize=1,
+                                env=self.spec.environment(), start_new_session=True)
+        self.procs[spec.name] = proc
+        # a log file per node, appended to by its later lives
+        pump = threading.Thread(target=self._pump, args=(spec.name, proc, spec.name in
+                                                         self.respawns), daemon=True)
+        pump.start()
+        self._pumps.append(pump)
+        self.report(f"started {spec.name} (pid {proc.pid})")
+
+    def _pump(self, name: str, proc: subprocess.Popen, append: bool = False) -> None:
+        log = open(self.log_dir / f"{name}.log", "a" if append else "w") \
+            if self.log_dir else None  # noqa: SIM115
         try:
             for line in proc.stdout:
                 if self.echo(name, line):
@@ -259,6 +285,7 @@ class GraphRunner:
                 if wanted <= seen | set(self.exit_codes):
                     elapsed = time.monotonic() - start
                     self.report(f"all {len(wanted)} nodes up in {elapsed:.1f} s")
+                    self._up = True
                     return elapsed
                 time.sleep(0.1)
             missing = wanted - seen
@@ -276,9 +303,40 @@ class GraphRunner:
             self.exit_codes[name] = code
             if code == 0:
                 self.report(f"{name} finished (exit code 0)")
+            elif self._may_respawn(name):
+                self._respawn_at[name] = time.monotonic() + RESPAWN_DELAY
+                self.report(f"NODE DIED: {name} ({_describe_exit(code)}); respawning it in "
+                            f"{RESPAWN_DELAY:g} s")
             else:
                 self.report(f"NODE DIED: {name} ({_describe_exit(code)})")
                 self.died.append(name)
+
+    def _may_respawn(self, name: str) -> bool:
+        """Whether a node that just died is to be started again (and count its death)."""
+        spec = next(n for n in self.spec.nodes if n.name == name)
+        if not (spec.respawn and self._up) or self._stop.is_set():
+            return False
+        now = time.monotonic()
+        deaths = self._deaths.setdefault(name, deque())
+        deaths.append(now)
+        while deaths and deaths[0] < now - RESPAWN_WINDOW:
+            deaths.popleft()
+        if len(deaths) >= RESPAWN_LIMIT:
+            self.report(f"{name} died {len(deaths)} times within {RESPAWN_WINDOW:g} s: "
+                        "not respawning it again")
+            return False
+        return True
+
+    def _respawn_due(self) -> None:
+        """Start again the nodes whose respawn delay has passed."""
+        for name, at in list(self._respawn_at.items()):
+            if time.monotonic() < at or self._stop.is_set():
+                continue
+            del self._respawn_at[name]
+            self._bank_usage(name)
+            self.exit_codes.pop(name, None)
+            self.respawns[name] += 1
+            self._launch(next(n for n in self.spec.nodes if n.name == name))
 
     def sample_usage(self) -> None:
         """Record CPU time and peak resident memory of every live node (psutil)."""
@@ -299,9 +357,15 @@ class GraphRunner:
             # the millions of percent when a graph stopped at once (issue 22)
             entry = self.usage.setdefault(name, {"cpu_s": 0.0, "peak_rss_mb": 0.0,
                                                  "started": created})
-            entry["cpu_s"] = cpu.user + cpu.system
+            entry["cpu_s"] = entry.get("cpu_before", 0.0) + cpu.user + cpu.system
             entry["peak_rss_mb"] = max(entry["peak_rss_mb"], rss / 2**20)
             entry["last"] = time.time()
+
+    def _bank_usage(self, name: str) -> None:
+        """Keep a dead process's CPU time (as last sampled) in its node's total."""
+        entry = self.usage.get(name)
+        if entry:
+            entry["cpu_before"] = entry["cpu_s"]
 
     def spin(self, duration: float | None = None, until_exit: str | None = None) -> int:
         """Watch the processes until a stop condition; return the graph's exit status.
@@ -318,6 +382,7 @@ class GraphRunner:
                 self.sample_usage()
                 next_sample += 1.0
             self._check_exits()
+            self._respawn_due()
             required_dead = [n.name for n in self.spec.nodes if n.required and n.name in self.died]
             if required_dead:
                 self.report(f"stopping the graph: required node(s) {required_dead} died")
@@ -325,7 +390,7 @@ class GraphRunner:
                 break
             if until_exit and until_exit in self.exit_codes:
                 break
-            if len(self.exit_codes) == len(self.procs):
+            if len(self.exit_codes) == len(self.procs) and not self._respawn_at:
                 break
             if duration is not None and time.monotonic() - start >= duration:
                 break

@@ -281,6 +281,9 @@ def run_replay(bag: str | Path, out_dir: str | Path, graph_config: str | Path,
         runner.sample_usage()
         usage = {k: v for k, v in runner.usage.items()
                  if k not in ("bag_player", "bag_recorder")}
+        for name, count in runner.respawns.items():   # restarts of nodes that died
+            if name in usage:
+                usage[name]["respawns"] = count
         codes = runner.shutdown()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
@@ -341,7 +344,8 @@ def _summary(result: dict) -> dict:
     keep["latency_ms"] = {k: {"p50": float(1e3 * np.median(v)),
                               "p95": float(1e3 * np.percentile(v, 95))}
                           for k, v in result["latency"].items()}
-    keep["usage"] = {k: {"cpu_s": round(v["cpu_s"], 2), "peak_rss_mb": round(v["peak_rss_mb"])}
+    keep["usage"] = {k: {"cpu_s": round(v["cpu_s"], 2), "peak_rss_mb": round(v["peak_rss_mb"]),
+                         "respawns": v.get("respawns", 0)}
                      for k, v in result["usage"].items()}
     return report.plain(keep)
 

@@ -255,8 +255,11 @@ def format_report(r: dict, gsd: float | None = None) -> str:
         lines.append(f"  of the fixes, {f['relocalisations']} relocalisation(s) (searched over "
                      "the whole mission area)")
     if f["in_bag"] and f["frames"] < f["in_bag"]:
+        respawned = sorted(n for n, u in (r.get("usage") or {}).items() if u.get("respawns"))
+        why = (f"died with {', '.join(respawned)} or came while it restarted" if respawned
+               else "lost on the way to camera_ingest, or the graph fell behind")
         lines.append(f"WARNING: {f['in_bag'] - f['frames']} camera frames of the bag got no "
-                     "answer (lost on the way to camera_ingest, or the graph fell behind)")
+                     f"answer ({why})")
     for reason, count in f["reasons"]:
         lines.append(f"  no fix x{count}: {reason}")
     if "first_after" in f:
@@ -300,8 +303,9 @@ def format_report(r: dict, gsd: float | None = None) -> str:
         for name, u in sorted(r["usage"].items()):
             wall = u.get("last", 0) - u.get("started", 0)
             share = f"{100 * u['cpu_s'] / wall:5.1f}%" if wall >= 1.0 else "  n/a"
+            respawned = f" (died and respawned {u['respawns']}x)" if u.get("respawns") else ""
             lines.append(f"  {name:18s} {u['cpu_s']:7.1f} s CPU ({share})"
-                         f" / {u['peak_rss_mb']:6.0f} MB")
+                         f" / {u['peak_rss_mb']:6.0f} MB{respawned}")
     return "\n".join(lines)
 
 
