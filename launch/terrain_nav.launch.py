@@ -8,6 +8,7 @@ The node list is not repeated here: it is read from config/graph.yaml, the same 
 """
 
 import os
+import tempfile
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
@@ -15,6 +16,7 @@ from launch.actions import DeclareLaunchArgument, OpaqueFunction, SetEnvironment
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
+from terrain_nav_ros.core.estimation.checkpoint import RUN_DIR_VARIABLE
 from terrain_nav_ros.tools.graph_runner import DDS_PROFILE_VARIABLE, RESPAWN_DELAY, load_graph
 
 
@@ -40,6 +42,10 @@ def _from_arguments(context):
     env = load_graph(graph, enable).environment()
     actions = [SetEnvironmentVariable(DDS_PROFILE_VARIABLE, env[DDS_PROFILE_VARIABLE])] \
         if env.get(DDS_PROFILE_VARIABLE) else []
+    # the run's folder (the ekf's checkpoint, for a respawned ekf), as the runner's
+    if not os.environ.get(RUN_DIR_VARIABLE):
+        actions.append(SetEnvironmentVariable(
+            RUN_DIR_VARIABLE, tempfile.mkdtemp(prefix="terrain_nav_run_")))
     return actions + graph_nodes(graph, sim, enable)
 
 

@@ -601,6 +601,8 @@ def cases() -> list[Case]:
             None, kill="matcher")),
         Case("landmark renderer killed 20 s into the flight (SIGKILL)", "flight", _flight(
             None, kill="landmark_renderer")),
+        Case("ekf killed 20 s into the flight (SIGKILL)", "flight", _flight(
+            None, kill="ekf")),
         Case("camera frozen for 15 s mid-flight", "flight", _flight(
             frozen_camera(25.0, 15.0), "camera frozen", 12)),
         Case("camera clock 2 s back for 10 s", "flight", _flight(
@@ -703,7 +705,7 @@ def _replay_killing(cmd: list, tmp: Path, node: str, after: float = 20.0) -> tup
                 time.sleep(0.5)
             time.sleep(after)
             for child in psutil.Process(proc.pid).children(recursive=True):
-                if f"__node:={node}" in " ".join(child.cmdline()):
+                if f"__node:={node}" in child.cmdline():
                     child.kill()
             proc.wait(timeout=400)
         finally:

@@ -16,6 +16,7 @@ import pytest
 import yaml
 from ros_helpers import wait_until
 
+from terrain_nav_ros.core.estimation.checkpoint import RUN_DIR_VARIABLE
 from terrain_nav_ros.tools import bags
 from terrain_nav_ros.tools.graph_runner import GraphError, GraphRunner, load_graph, node_command
 
@@ -252,6 +253,10 @@ def test_the_graphs_dds_profile_reaches_every_node_unless_one_is_set(tmp_path, m
               "enable": ""}
     monkeypatch.setattr(launch_file, "LaunchConfiguration",
                         lambda name: types.SimpleNamespace(perform=lambda ctx: values[name]))
+    monkeypatch.delenv(RUN_DIR_VARIABLE, raising=False)
     actions = launch_file._from_arguments(Context())
     assert actions[0].args == (DDS_PROFILE_VARIABLE, str(spec.dds_profile))
-    assert [a.kwargs["name"] for a in actions[1:]] == [n.name for n in spec.nodes]
+    # and a fresh folder for the run (the ekf's checkpoint), as the runner makes
+    assert actions[1].args[0] == RUN_DIR_VARIABLE and Path(actions[1].args[1]).is_dir()
+    Path(actions[1].args[1]).rmdir()
+    assert [a.kwargs["name"] for a in actions[2:]] == [n.name for n in spec.nodes]

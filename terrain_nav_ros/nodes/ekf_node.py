@@ -79,12 +79,20 @@ Published:
   since the previous report (``nis``), the last NIS, the gate and the mean NIS over the
   recent window (consistent filter: about the measurement dimension ``dof``).
 
+Checkpoint (:mod:`~terrain_nav_ros.core.estimation.checkpoint`): every ``checkpoint_period``
+s of filter time the estimate is written to ``checkpoint_file`` (default: the graph run's
+folder, ``$TERRAIN_NAV_RUN_DIR``; "none": never). A node started again after a crash that
+finds one at most ``checkpoint_max_age`` s older than its first IMU sample resumes from it
+(carried across the gap, its covariance grown for a manoeuvre in it) before its
+``init_mode`` source is considered; the baro offset comes with it. One from another run
+(older, later, or of another ENU origin) is left alone, said once in the log.
+
 Parameters: every :class:`~terrain_nav_ros.core.estimation.ekf_params.EkfParams` field under its own
 name, plus the node's own (frames, rates, origin, baro, mount, initial pose, health
-thresholds, ``executor``); ``config/ekf.yaml`` explains each. Parameters apply at start-up
-only. The node is spun by rclpy's ``EventsExecutor`` by default (``executor: events``): with
-the default executor, rclpy's per-message wait-set work alone used more CPU than the target
-of 10 % of a core at a 200 Hz IMU (``benchmarks/bench_ekf_node.py``).
+thresholds, checkpoint, ``executor``); ``config/ekf.yaml`` explains each. Parameters apply
+at start-up only. The node is spun by rclpy's ``EventsExecutor`` by default (``executor:
+events``): with the default executor, rclpy's per-message wait-set work alone used more CPU
+than the target of 10 % of a core at a 200 Hz IMU (``benchmarks/bench_ekf_node.py``).
 
 Usage::
 
@@ -117,6 +125,14 @@ from terrain_nav_msgs.srv import GetDemTile
 
 from ..core.camera.camera_mount import mount_rotation
 from ..core.estimation.baro import SEA_LEVEL_PRESSURE, altitude_sigma, pressure_to_altitude
+from ..core.estimation.checkpoint import (
+    Checkpoint,
+    CheckpointError,
+    checkpoint_path,
+    load_checkpoint,
+    resume_from,
+    save_checkpoint,
+)
 from ..core.estimation.ekf import EkfParams, Outcome, Reason, TerrainEkf
 from ..core.estimation.ekf_health import (
     SOURCES,
@@ -302,6 +318,15 @@ class EkfNode(Node):
             lost_sigma=declare(self, "diag_lost_horizontal_sigma", 1000.0,
                                "navigation state 'lost' above this horizontal position sigma "
                                "[m]", min_value=0.0))
+        checkpoint_file = declare(self, "checkpoint_file", "",
+                                  "where the estimate is kept for a restarted node; '' = the "
+                                  "graph run's folder ($TERRAIN_NAV_RUN_DIR), 'none' = nowhere")
+        self.checkpoint_period = declare(self, "checkpoint_period", 0.2,
+                                         "checkpoint every this long of filter time [s]",
+                                         min_value=0.01)
+        self.checkpoint_max_age = declare(self, "checkpoint_max_age", 10.0,
+                                          "resume from a checkpoint at most this old at the "
+                                          "first IMU sample [s]", min_value=0.0)
         log_throttle = declare(self, "log_throttle", 5.0,
                                "minimum time between two logs of one reason [s]",
                                min_value=0.0)
@@ -357,6 +382,10 @@ class EkfNode(Node):
         self._stamps_reported = 0
         self._init_stamp = None
         self._navigation = NavigationLog()
+        self._checkpoint_path = checkpoint_path(checkpoint_file)
+        self._last_checkpoint = -math.inf
+        self._checkpoint_failed = False
+        self._resume = self._read_checkpoint()
 
         imu_qos = QoSProfile(depth=imu_depth, reliability=ReliabilityPolicy.BEST_EFFORT,
                              history=HistoryPolicy.KEEP_LAST)
@@ -479,6 +508,8 @@ class EkfNode(Node):
 
     def on_imu(self, msg: Imu):
         stamp, gyro, accel = cv.imu_to_sample(msg)
+        if self._resume is not None:
+            self._resume_at(stamp)
         self._imu_count += 1
         self._imu_span = (self._imu_span or (stamp, stamp))[:1] + (stamp,)
         self._last_imu_wall = time.monotonic()
@@ -507,6 +538,61 @@ class EkfNode(Node):
         if t - self._last_odom >= self._odom_period:
             self._last_odom = t
             self.publish_state(msg.header.stamp, t)
+        if self._checkpoint_path is not None and t - self._last_checkpoint >= \
+                self.checkpoint_period:
+            self._last_checkpoint = t
+            self._write_checkpoint()
+
+    # ------------------------------------------------------------------ checkpoint
+    def _read_checkpoint(self) -> Checkpoint | None:
+        """The checkpoint a crashed predecessor left, if any (resumed at the first IMU)."""
+        if self._checkpoint_path is None or not self._checkpoint_path.exists():
+            return None
+        try:
+            return load_checkpoint(self._checkpoint_path)
+        except CheckpointError as err:
+            self.get_logger().warning(f"not resuming: {err}")
+            return None
+
+    def _resume_at(self, stamp: float):
+        """Start the filter from the checkpoint carried to ``stamp`` (once, if it fits)."""
+        checkpoint, self._resume = self._resume, None
+        o = checkpoint.origin
+        try:
+            if o is not None and self.origin is not None and not np.allclose(
+                    o, (self.origin.lat, self.origin.lon, self.origin.alt), atol=1e-9):
+                raise CheckpointError("the checkpoint is of another ENU origin")
+            s = resume_from(checkpoint, stamp, self.checkpoint_max_age)
+        except CheckpointError as err:
+            self.get_logger().warning(f"not resuming from {self._checkpoint_path}: {err}")
+            return
+        out = self.ekf.initialize(stamp, s.position, s.velocity, s.quaternion, s.covariance,
+                                  s.gyro_bias, s.accel_bias, s.wind)
+        if not out.accepted:
+            self.get_logger().warning(f"not resuming: the filter refused the checkpoint "
+                                      f"({out.reason.value})")
+            return
+        if o is not None and self.origin is None:
+            self._origin.adopt(*o)
+        if checkpoint.baro_offset is not None and self.baro.value is None:
+            self.baro.value = checkpoint.baro_offset
+        self._init_stamp = stamp
+        self.get_logger().warning(
+            f"resumed from the checkpoint of {checkpoint.state.stamp:.3f} s, "
+            f"{stamp - checkpoint.state.stamp:.1f} s old, carried across the gap at "
+            f"({s.position[0]:.0f}, {s.position[1]:.0f}, {s.position[2]:.0f}) m, "
+            f"horizontal sigma {math.sqrt(s.covariance[0, 0] + s.covariance[1, 1]):.0f} m")
+
+    def _write_checkpoint(self):
+        origin = self.origin
+        try:
+            save_checkpoint(self._checkpoint_path, Checkpoint(
+                self.ekf.state, (origin.lat, origin.lon, origin.alt) if origin else None,
+                self.baro.value))
+        except OSError as err:
+            if not self._checkpoint_failed:   # once: a full or read-only disk stays so
+                self.get_logger().error(f"cannot write the checkpoint: {err}")
+            self._checkpoint_failed = True
 
     def _on_reset(self, stamp: float, prev: float | None):
         way = "back" if prev is None or stamp < prev else "ahead"

@@ -27,7 +27,10 @@ A node with ``respawn: true`` that dies once the graph is up (a crash, a kill: a
 0) is started again after :data:`RESPAWN_DELAY` s, as ``ros2 launch`` does with
 ``respawn=True``; one that dies :data:`RESPAWN_LIMIT` times within :data:`RESPAWN_WINDOW` s
 is crash-looping and is given up on: it counts as died. A node that dies during start-up is
-not respawned (a bad parameter would only die again).
+not respawned (a bad parameter would only die again). The nodes share a folder for the run,
+named by ``$TERRAIN_NAV_RUN_DIR`` (the log folder, or a temporary one removed at the end,
+unless the environment names one): the ekf keeps its checkpoint there, which a respawned
+ekf resumes from.
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections import Counter, deque
@@ -45,6 +49,7 @@ from pathlib import Path
 
 import yaml
 
+from ..core.estimation.checkpoint import RUN_DIR_VARIABLE
 from ..executables import NODES
 
 # A respawned node is started again this long after it died [s] ...
@@ -217,6 +222,8 @@ class GraphRunner:
         self._deaths: dict[str, deque] = {}   # when each respawned node died (monotonic)
         self._respawn_at: dict[str, float] = {}   # nodes waiting to be started again
         self._up = False   # past start-up: nodes that die from now on may be respawned
+        self.run_dir: Path | None = None   # the folder the nodes share ($TERRAIN_NAV_RUN_DIR)
+        self._own_run_dir = False
         self._pumps: list[threading.Thread] = []
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -230,6 +237,9 @@ class GraphRunner:
         """Start every node's process."""
         if self.log_dir:
             self.log_dir.mkdir(parents=True, exist_ok=True)
+        self._own_run_dir = not (self.log_dir or os.environ.get(RUN_DIR_VARIABLE))
+        self.run_dir = Path(os.environ.get(RUN_DIR_VARIABLE) or self.log_dir
+                            or tempfile.mkdtemp(prefix="terrain_nav_run_"))
         for spec in self.spec.nodes:
             self._launch(spec)
 
@@ -237,7 +247,9 @@ class GraphRunner:
         cmd = node_command(spec, self.spec.params_files, self.extra_parameters)
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                 stdin=subprocess.DEVNULL, text=True, bufsize=1,
-                                env=self.spec.environment(), start_new_session=True)
+                                env={**self.spec.environment(),
+                                     RUN_DIR_VARIABLE: str(self.run_dir)},
+                                start_new_session=True)
         self.procs[spec.name] = proc
         # a log file per node, appended to by its later lives
         pump = threading.Thread(target=self._pump, args=(spec.name, proc, spec.name in
@@ -421,6 +433,8 @@ class GraphRunner:
             pump.join(timeout=2)
         for name, proc in self.procs.items():
             self.exit_codes.setdefault(name, proc.returncode)
+        if self._own_run_dir:
+            shutil.rmtree(self.run_dir, ignore_errors=True)
         failed = {n: c for n, c in self.exit_codes.items() if c}
         self.report("graph stopped" + ("; non-zero exit codes: " + ", ".join(
             f"{n} {_describe_exit(c)}" for n, c in failed.items()) if failed else ""))
