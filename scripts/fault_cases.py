@@ -597,6 +597,8 @@ def cases() -> list[Case]:
             node="matcher")),
         Case("matcher: mission index with a tile layer missing", "parameters",
              _partial_mission),
+        Case("IMU in FRD axes (z down)", "flight", _refused_imu(frd_imu, "FRD / NED")),
+        Case("IMU acceleration in g", "flight", _refused_imu(imu_in_g, "in g, not m/s^2")),
         Case("matcher killed 20 s into the flight (SIGKILL)", "flight", _flight(
             None, kill="matcher")),
         Case("landmark renderer killed 20 s into the flight (SIGKILL)", "flight", _flight(
@@ -682,6 +684,50 @@ def _flight(change: Callable | None, reason: str = "", at_least: int = 0,
         unanswered = fixes["in_bag"] - fixes["frames"]
         return (GOOD if said >= at_least and unanswered <= (8 if kill else 0) else POOR), detail
     return run
+
+
+def _refused_imu(change: Callable, words: str) -> Callable:
+    """The short bag with its IMU changed by ``change`` and replayed: GOOD when the ekf
+    publishes no estimate and its diagnostics say why (``words``), BAD when it navigates on
+    the wrong IMU (or says nothing)."""
+    def run(tmp: Path):
+        import yaml
+
+        from terrain_nav_ros.tools import bags
+        from terrain_nav_ros.tools.cli import REPO
+
+        bag = bags.changed_copy(REPO / "bags" / "jacksboro_short", tmp / "bag", change)
+        try:
+            code, err = _replay_plain(terrain_nav("replay", "--bag", bag, "--out", tmp / "out"))
+        except subprocess.TimeoutExpired:
+            return BAD, "replay did not finish within 400 s"
+        if code != 0:
+            return BAD, f"replay exit {code}: {err.strip()[-110:]}"
+        said = yaml.safe_load((tmp / "out" / "report.yaml").read_text()).get("no_odometry")
+        if said and words in said:
+            return GOOD, f"no estimate: {said[:150]}"
+        return BAD, f"navigated on it: {said or 'no reason given'}"
+    return run
+
+
+def frd_imu(topic, at, decode):
+    """Every IMU sample in FRD axes (y and z negated), as PX4 and many drivers give it."""
+    if topic != "/imu/data":
+        return None
+    msg = decode()
+    for vector in (msg.angular_velocity, msg.linear_acceleration):
+        vector.y, vector.z = -vector.y, -vector.z
+    return msg
+
+
+def imu_in_g(topic, at, decode):
+    """Every IMU acceleration in g, not m/s^2."""
+    if topic != "/imu/data":
+        return None
+    msg = decode()
+    a = msg.linear_acceleration
+    a.x, a.y, a.z = a.x / 9.80665, a.y / 9.80665, a.z / 9.80665
+    return msg
 
 
 def _replay_plain(cmd: list) -> tuple[int, str]:

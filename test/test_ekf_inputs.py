@@ -137,3 +137,29 @@ def test_the_origin_handshake_adopts_the_first_origin_and_resends_a_lost_request
     assert not handshake.adopt(10.0, 10.0, 0.0)                   # the first one wins
     assert handshake.origin.lat == 36.5
     assert handshake.request(6.0, pending=True) == "done"
+
+
+@pytest.mark.parametrize("accel, words", [
+    ((0.3, 0.1, 9.8), None),                     # FLU, level
+    ((0.5, 2.0, 11.5), None),                    # FLU, a 30 deg coordinated turn
+    ((0.3, -0.1, -9.8), "FRD / NED"),            # z down
+    ((0.03, 0.01, 1.0), "in g, not m/s^2"),
+    ((3.0, 1.0, 1000.0), "in milli-g"),
+    ((9.8, 0.2, 0.3), "not along body z"),       # mounted on its side
+    ((0.0, 0.0, 0.0), "far below gravity"),      # a dead accelerometer
+])
+def test_the_first_second_of_imu_tells_its_axes_and_units(accel, words):
+    from terrain_nav_ros.core.estimation.ekf_inputs import ImuConvention
+
+    check = ImuConvention(9.80665, window=1.0)
+    rng = np.random.default_rng(0)
+    answers = [check.add(100.0 + 0.01 * k, np.asarray(accel) + rng.normal(0, 0.05, 3))
+               for k in range(150)]
+    assert all(a is None for a in answers[:100])   # nothing said before a whole second
+    if words is None:
+        assert answers[-1] is None and check.problem is None
+    else:
+        assert words in answers[-1]
+        # for good: later samples that look right do not undo it
+        assert words in check.add(200.0, np.array([0.0, 0.0, 9.8]))
+    assert check.add(300.0, np.array([np.nan, 0.0, 9.8])) == check.problem

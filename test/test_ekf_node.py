@@ -473,6 +473,45 @@ def test_every_imu_sample_is_integrated_in_order_by_either_executor(executor):
     assert odom[-1].pose.pose.position.x == pytest.approx(30.0 * (n - 1) * 0.01, abs=1e-3)
 
 
+def test_an_imu_in_frd_axes_is_refused_with_the_reason():
+    """An IMU driver that publishes FRD (z down: -g on z at rest) would be integrated
+    kilometres off: after its first second the node refuses it, publishes no estimate and
+    says why in its diagnostics (ERROR) and log."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import Imu
+
+    n = 300
+    proc = start_node("ekf", {"init_mode": "pose", "initial_velocity": [30.0, 0.0, 0.0],
+                              "diagnostics_period": 0.3, "publish_tf": False})
+    client = SpinningNode("ekf_frd_client")
+    odom, diags = [], []
+    try:
+        node = client.node
+        node.create_subscription(Odometry, "/nav/odometry", odom.append, n + 10)
+        node.create_subscription(DiagnosticArray, "/nav/ekf/diagnostics", diags.append, 10)
+        imu_pub = node.create_publisher(Imu, "/imu/data", n + 10)
+        assert wait_until(lambda: imu_pub.get_subscription_count() > 0, 10)
+        for k in range(1, n + 1):       # level flight, FRD: gravity reads -g on z
+            imu_pub.publish(cv.sample_to_imu(cv.make_header(_stamp(k * 0.01), "base_link"),
+                                             [0.0, 0.0, 0.0], [0.0, 0.0, -9.80665]))
+            time.sleep(0.002)
+        count = len(odom)
+
+        def refused():
+            return diags and "IMU refused" in diags[-1].status[0].message
+        assert wait_until(refused, 10), diags[-1].status[0].message if diags else "no diags"
+    finally:
+        client.close()
+        log = stop(proc)
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    assert diags[-1].status[0].level == DiagnosticStatus.ERROR
+    # what it published came from the first second, judged with it; none after
+    assert count <= 110 and len(odom) == count, (count, len(odom))
+    assert "FRD / NED" in log and "IMU refused for good" in log
+
+
 def _fly_with_relocalisations(node_params: dict, seconds: float, relocalisations: dict,
                               fixes, seed: int):
     """A straight flight of ``seconds`` published at SPEEDUP to an ekf started with

@@ -15,6 +15,10 @@ Subscribed:
 * ``/imu/data`` (sensor_msgs/Imu, best effort, depth ``imu_queue_depth``): angular velocity
   and specific force in ``base_link`` (FLU; an IMU mounted otherwise must be rotated first).
   Every sample is integrated; NaN samples, duplicates and small backward steps are refused.
+  The first second's mean specific force must look like gravity in FLU (+g on z): an FRD /
+  NED frame, the acceleration in g or milli-g, or axes turned off body z refuse the stream
+  for good, with the reason logged and in the diagnostics (ERROR), the filter reset
+  (:class:`~terrain_nav_ros.core.estimation.ekf_inputs.ImuConvention`).
   A stamp more than ``time_jump_reset`` from the previous one, back or ahead, is refused and
   counted (one bad stamp must not end navigation); when ``time_jump_confirm`` samples in a
   row go on from it (bag loop, simulator restart) the filter resets and re-initialises per
@@ -149,6 +153,7 @@ from ..core.estimation.ekf_health import (
 from ..core.estimation.ekf_inputs import (
     BaroOffset,
     FixFrame,
+    ImuConvention,
     OriginHandshake,
     baro_refusal,
     fix_covariance,
@@ -386,6 +391,7 @@ class EkfNode(Node):
         self._last_checkpoint = -math.inf
         self._checkpoint_failed = False
         self._resume = self._read_checkpoint()
+        self.imu_convention = ImuConvention(self.params.gravity)
 
         imu_qos = QoSProfile(depth=imu_depth, reliability=ReliabilityPolicy.BEST_EFFORT,
                              history=HistoryPolicy.KEEP_LAST)
@@ -508,6 +514,12 @@ class EkfNode(Node):
 
     def on_imu(self, msg: Imu):
         stamp, gyro, accel = cv.imu_to_sample(msg)
+        if self.imu_convention.problem is None and self.imu_convention.add(stamp, accel):
+            self.get_logger().error(f"IMU refused for good: {self.imu_convention.problem}")
+            self.ekf.reset()   # what it integrated so far is wrong too
+        if self.imu_convention.problem is not None:
+            self.rejections["imu:axes_or_units"] += 1
+            return
         if self._resume is not None:
             self._resume_at(stamp)
         self._imu_count += 1
@@ -737,7 +749,7 @@ class EkfNode(Node):
         new = self._new_records(d.records)
         gated = gated_records(new, self.params.fuse_gnss)
         health = filter_health(d, since_imu, self.ekf.waiting_for(), self.health_limits,
-                               refused_now, len(gated))
+                               refused_now, len(gated), self.imu_convention.problem)
         for r in gated:
             self._log_refusal(f"{r.source}:{Reason.GATED.value}",
                               f"{r.source} at {r.stamp:.3f} s rejected by the "

@@ -115,7 +115,7 @@ class NavigationLog:
 
 def filter_health(d: EkfDiagnostics, since_imu: float, waiting_for: str,
                   limits: HealthLimits, refused_stamps: int = 0,
-                  gated: int = 0) -> Health:
+                  gated: int = 0, imu_problem: str | None = None) -> Health:
     """The filter's level and problems.
 
     Parameters
@@ -130,8 +130,12 @@ def filter_health(d: EkfDiagnostics, since_imu: float, waiting_for: str,
         IMU stamps refused since the previous report.
     gated : int
         Measurements the chi-square gate rejected since the previous report.
+    imu_problem : str, optional
+        Why the IMU stream is refused for good (:class:`~.ekf_inputs.ImuConvention`).
     """
     health = Health()
+    if imu_problem:
+        health.worse(ERROR, f"IMU refused: {imu_problem}")
     if since_imu > limits.imu_timeout:
         health.worse(ERROR, f"no IMU for {since_imu:.1f} s")
     if not d.initialized:

@@ -13,6 +13,8 @@ strapdown solution of chapter 2's INS model).
   altitude to ENU up, set or learnt once (:class:`BaroOffset`).
 * The ENU origin: adopted from the first metamap georeference, asked for again when a request
   goes unanswered (:class:`OriginHandshake`).
+* The IMU's axes and units: its first second of specific force against gravity
+  (:class:`ImuConvention`).
 """
 
 from __future__ import annotations
@@ -223,3 +225,67 @@ class OriginHandshake:
     def sent(self, now: float):
         """A request went out at ``now``."""
         self.asked_at = now
+
+
+class ImuConvention:
+    """Checks an IMU stream's first ``window`` s against what the filter takes: specific
+    force in m/s^2 in a z-up body frame (REP 103 FLU), where gravity reads about +g on z.
+
+    A driver that publishes FRD / NED axes (-g on z), or the acceleration in g (about 1)
+    or in milli-g (about 1000), would be integrated into an estimate kilometres and
+    kilometres off within a minute, with nothing but gate rejections to show for it. Over
+    the window the mean specific force of an aircraft at rest or in flight without negative
+    load is within :data:`FORCE_RANGE` g of magnitude and within 60 deg of body z (in a
+    coordinated turn it stays on z); anything else is the problem :meth:`add` returns, for
+    good: a stream's convention does not change.
+
+    Parameters
+    ----------
+    gravity : float
+        The filter's gravity (m/s^2).
+    window : float
+        Seconds of samples judged.
+    """
+
+    FORCE_RANGE = (0.4, 4.0)
+
+    def __init__(self, gravity: float, window: float = 1.0):
+        self.gravity = gravity
+        self.window = window
+        self.problem: str | None = None
+        self._first: float | None = None
+        self._sum = np.zeros(3)
+        self._count = 0
+        self._judged = False
+
+    def add(self, stamp: float, accel) -> str | None:
+        """Take one sample's specific force; returns the problem once one is found."""
+        if self._judged or not (math.isfinite(stamp) and np.isfinite(accel).all()):
+            return self.problem
+        self._first = stamp if self._first is None else self._first
+        self._sum += accel
+        self._count += 1
+        if stamp - self._first >= self.window and self._count >= 10:
+            self._judged = True
+            self.problem = self._judge(self._sum / self._count)
+        return self.problem
+
+    def _judge(self, mean: np.ndarray) -> str | None:
+        g = self.gravity
+        size = float(np.linalg.norm(mean))
+        low, high = self.FORCE_RANGE
+        said = f"its mean specific force over the first {self.window:g} s is " \
+               f"({mean[0]:.3g}, {mean[1]:.3g}, {mean[2]:.3g}) m/s^2"
+        if size < low * g:
+            unit = " (in g, not m/s^2?)" if low < size < high else ""
+            return f"{said}, |f| {size:.3g}: far below gravity{unit}"
+        if size > high * g:
+            unit = " (in milli-g, not m/s^2?)" if low * 1000 < size < high * 1000 else ""
+            return f"{said}, |f| {size:.3g}: far above gravity{unit}"
+        if mean[2] < -0.5 * size:
+            return (f"{said}: gravity reads down the body z axis, an FRD / NED frame (z down); "
+                    "the filter takes FLU (REP 103: z up, +g on z at rest)")
+        if mean[2] < 0.5 * size:
+            return (f"{said}: gravity is not along body z; rotate the IMU's axes to base_link "
+                    "(FLU, REP 103) in its driver or a transform")
+        return None
