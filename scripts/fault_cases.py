@@ -153,6 +153,16 @@ def frozen_baro(topic, at, decode):
     return msg
 
 
+def baro_in_hpa(topic, at, decode):
+    """Every barometer sample in hPa, not the Pa FluidPressure is in."""
+    if topic != "/baro/pressure":
+        return None
+    msg = decode()
+    msg.fluid_pressure /= 100.0
+    msg.variance /= 1e4
+    return msg
+
+
 def frozen_baro_reading(start: float) -> Callable:
     """A :func:`~terrain_nav_ros.tools.bags.changed_copy` change: the barometer repeats
     its reading of ``start`` s from then on (a hung driver) while the aircraft climbs on."""
@@ -612,6 +622,7 @@ def cases() -> list[Case]:
         Case("camera lens covered for 10 s (black frames)", "flight", _flight(
             covered_lens, "image is constant", 10)),
         Case("barometer stuck at 90 kPa from 25 s", "flight", _flight(frozen_baro)),
+        Case("barometer in hPa", "flight", _flight(baro_in_hpa)),
         Case("barometer frozen at its 25 s reading in a climb", "flight",
              _flight(frozen_baro_reading(25.0))),
         Case("accelerometer bias step of 0.5 m/s^2 up from 30 s", "flight",

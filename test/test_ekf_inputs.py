@@ -96,6 +96,11 @@ def test_baro_samples_need_a_positive_finite_pressure_and_variance():
     for stamp, pressure, variance in ((1.0, -1.0, 0.0), (1.0, np.nan, 0.0),
                                       (1.0, 95000.0, -1.0), (math.nan, 95000.0, 0.0)):
         assert baro_refusal(stamp, pressure, variance) is not None
+    # FluidPressure is in Pa: a driver's hPa or kPa is named
+    assert "hPa or mbar, not Pa?" in baro_refusal(1.0, 1013.25, 0.0)
+    assert "kPa, not Pa?" in baro_refusal(1.0, 95.0, 0.0)
+    assert "outside the 10-115 kPa" in baro_refusal(1.0, 250_000.0, 0.0)
+    assert baro_refusal(1.0, 48_000.0, 0.0) is None   # a ScanEagle's ceiling, ~6 km
 
 
 def _ekf(initialized=True, t=10.0, sigma_z=2.0, z=500.0, vz=1.0, stamp=10.0):

@@ -144,11 +144,22 @@ def gnss_covariance(covariance, covariance_type: int, fallback_sigma) -> np.ndar
     return covariance
 
 
+# Static pressures of flight (Pa): 16 km up to below the Dead Sea. FluidPressure is in Pa;
+# a driver's hPa, mbar, kPa or psi fall far below.
+FLIGHT_PRESSURE_RANGE = (10_000.0, 115_000.0)
+
+
 def baro_refusal(stamp: float, pressure: float, variance: float) -> str | None:
     """Why a pressure sample is refused (the detail of ``bad_pressure``), or None."""
     if not (math.isfinite(pressure) and math.isfinite(variance) and pressure > 0
             and variance >= 0 and math.isfinite(stamp)):
         return f" {pressure} Pa (variance {variance})"
+    low, high = FLIGHT_PRESSURE_RANGE
+    if not low <= pressure <= high:
+        unit = " (hPa or mbar, not Pa?)" if 100.0 <= pressure <= 1150.0 else \
+            " (kPa, not Pa?)" if 10.0 <= pressure <= 115.0 else ""
+        return (f" {pressure:g} Pa: outside the {low / 1000:g}-{high / 1000:g} kPa of "
+                f"flight{unit}")
     return None
 
 
