@@ -661,22 +661,9 @@ def _flight(change: Callable | None, reason: str = "", at_least: int = 0,
     also needs it respawned, and the frames of its restart (up to 8: the respawn delay and
     the node's start-up, 2-5 s) may go unanswered."""
     def run(tmp: Path):
-        import yaml
-
-        from terrain_nav_ros.tools import bags
-        from terrain_nav_ros.tools.cli import REPO
-
-        bag = REPO / "bags" / "jacksboro_short"
-        if change is not None:
-            bag = bags.changed_copy(bag, tmp / "bag", change)
-        cmd = terrain_nav("replay", "--bag", bag, "--out", tmp / "out")
-        try:
-            code, err = _replay_killing(cmd, tmp, kill) if kill else _replay_plain(cmd)
-        except subprocess.TimeoutExpired:
-            return BAD, "replay did not finish within 400 s"
-        if code != 0:
-            return BAD, f"replay exit {code}: {err.strip()[-110:]}"
-        report = yaml.safe_load((tmp / "out" / "report.yaml").read_text())
+        report, failed = _replayed(tmp, change, kill)
+        if report is None:
+            return BAD, failed
         fixes, fused = report["fixes"], report["fused_error"]
         height = report["fused_height_error"]
         said = sum(n for text, n in fixes["reasons"] if reason and reason in text)
@@ -702,19 +689,10 @@ def _refused_imu(change: Callable, words: str) -> Callable:
     publishes no estimate and its diagnostics say why (``words``), BAD when it navigates on
     the wrong IMU (or says nothing)."""
     def run(tmp: Path):
-        import yaml
-
-        from terrain_nav_ros.tools import bags
-        from terrain_nav_ros.tools.cli import REPO
-
-        bag = bags.changed_copy(REPO / "bags" / "jacksboro_short", tmp / "bag", change)
-        try:
-            code, err = _replay_plain(terrain_nav("replay", "--bag", bag, "--out", tmp / "out"))
-        except subprocess.TimeoutExpired:
-            return BAD, "replay did not finish within 400 s"
-        if code != 0:
-            return BAD, f"replay exit {code}: {err.strip()[-110:]}"
-        said = yaml.safe_load((tmp / "out" / "report.yaml").read_text()).get("no_odometry")
+        report, failed = _replayed(tmp, change)
+        if report is None:
+            return BAD, failed
+        said = report.get("no_odometry")
         if said and words in said:
             return GOOD, f"no estimate: {said[:150]}"
         return BAD, f"navigated on it: {said or 'no reason given'}"
@@ -739,6 +717,27 @@ def imu_in_g(topic, at, decode):
     a = msg.linear_acceleration
     a.x, a.y, a.z = a.x / 9.80665, a.y / 9.80665, a.z / 9.80665
     return msg
+
+
+def _replayed(tmp: Path, change: Callable | None, kill: str = "") -> tuple[dict | None, str]:
+    """The short bag changed by ``change`` (None: as it is) replayed, ``kill`` killed in it
+    (:func:`_replay_killing`): its report.yaml, or None and why there is none."""
+    import yaml
+
+    from terrain_nav_ros.tools import bags
+    from terrain_nav_ros.tools.cli import REPO
+
+    bag = REPO / "bags" / "jacksboro_short"
+    if change is not None:
+        bag = bags.changed_copy(bag, tmp / "bag", change)
+    cmd = terrain_nav("replay", "--bag", bag, "--out", tmp / "out")
+    try:
+        code, err = _replay_killing(cmd, tmp, kill) if kill else _replay_plain(cmd)
+    except subprocess.TimeoutExpired:
+        return None, "replay did not finish within 400 s"
+    if code != 0:
+        return None, f"replay exit {code}: {err.strip()[-110:]}"
+    return yaml.safe_load((tmp / "out" / "report.yaml").read_text()), ""
 
 
 def _replay_plain(cmd: list) -> tuple[int, str]:

@@ -13,6 +13,7 @@ from terrain_nav_ros.core.estimation.checkpoint import (
 )
 from terrain_nav_ros.core.estimation.ekf import TerrainEkf
 from terrain_nav_ros.core.estimation.ekf_params import EkfParams
+from terrain_nav_ros.core.terrain.geodesy import EnuOrigin
 
 
 def _running_filter():
@@ -26,14 +27,15 @@ def _running_filter():
 def test_a_checkpoint_reads_back_as_written(tmp_path):
     state = _running_filter().state
     path = tmp_path / "ekf.npz"
-    save_checkpoint(path, Checkpoint(state, (36.5, -84.3, 300.0), -12.5))
-    save_checkpoint(path, Checkpoint(state, (36.5, -84.3, 300.0), -12.5))   # replaced
+    origin = EnuOrigin(36.5, -84.3, 300.0)
+    save_checkpoint(path, Checkpoint(state, origin, -12.5))
+    save_checkpoint(path, Checkpoint(state, origin, -12.5))   # replaced
     back = load_checkpoint(path)
     for name in ("position", "velocity", "quaternion", "gyro_bias", "accel_bias",
                  "covariance", "wind"):
         np.testing.assert_array_equal(getattr(back.state, name), getattr(state, name))
     assert back.state.stamp == state.stamp == pytest.approx(101.0)
-    assert back.origin == (36.5, -84.3, 300.0) and back.baro_offset == -12.5
+    assert back.origin == origin and back.baro_offset == -12.5
     assert [p.name for p in tmp_path.iterdir()] == ["ekf.npz"]   # no temporary left
     save_checkpoint(path, Checkpoint(state))
     assert load_checkpoint(path).origin is None and load_checkpoint(path).baro_offset is None
@@ -76,4 +78,8 @@ def test_a_damaged_checkpoint_is_a_clear_error(tmp_path):
     np.savez(path, **{**dict(np.load(tmp_path / "good.npz")),
                       "position": np.array([np.nan, 0.0, 0.0])})
     with pytest.raises(CheckpointError, match="'position' is not finite"):
+        load_checkpoint(path)
+    np.savez(path, **{**dict(np.load(tmp_path / "good.npz")),
+                      "origin": np.array([123.0, 0.0, 0.0])})   # no such latitude
+    with pytest.raises(CheckpointError, match="latitude 123"):
         load_checkpoint(path)

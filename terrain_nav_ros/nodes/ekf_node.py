@@ -502,9 +502,10 @@ class EkfNode(Node):
 
     def _set_origin(self, georef, source: str):
         """Adopt the ENU origin of a metamap georeference (first one wins)."""
-        if self.origin is not None:
-            return
-        lat, lon, alt = cv.enu_origin_of(georef)
+        if self.origin is None:
+            self._adopt_origin(*cv.enu_origin_of(georef), source)
+
+    def _adopt_origin(self, lat: float, lon: float, alt: float, source: str):
         try:
             self._origin.adopt(lat, lon, alt)
         except ValueError as err:
@@ -572,7 +573,8 @@ class EkfNode(Node):
         o = checkpoint.origin
         try:
             if o is not None and self.origin is not None and not np.allclose(
-                    o, (self.origin.lat, self.origin.lon, self.origin.alt), atol=1e-9):
+                    (o.lat, o.lon, o.alt), (self.origin.lat, self.origin.lon, self.origin.alt),
+                    atol=1e-9):
                 raise CheckpointError("the checkpoint is of another ENU origin")
             s = resume_from(checkpoint, stamp, self.checkpoint_max_age)
         except CheckpointError as err:
@@ -585,7 +587,7 @@ class EkfNode(Node):
                                       f"({out.reason.value})")
             return
         if o is not None and self.origin is None:
-            self._origin.adopt(*o)
+            self._adopt_origin(o.lat, o.lon, o.alt, "the checkpoint")
         if checkpoint.baro_offset is not None and self.baro.value is None:
             self.baro.value = checkpoint.baro_offset
         self._init_stamp = stamp
@@ -596,11 +598,9 @@ class EkfNode(Node):
             f"horizontal sigma {math.sqrt(s.covariance[0, 0] + s.covariance[1, 1]):.0f} m")
 
     def _write_checkpoint(self):
-        origin = self.origin
         try:
-            save_checkpoint(self._checkpoint_path, Checkpoint(
-                self.ekf.state, (origin.lat, origin.lon, origin.alt) if origin else None,
-                self.baro.value))
+            save_checkpoint(self._checkpoint_path,
+                            Checkpoint(self.ekf.state, self.origin, self.baro.value))
         except OSError as err:
             if not self._checkpoint_failed:   # once: a full or read-only disk stays so
                 self.get_logger().error(f"cannot write the checkpoint: {err}")

@@ -237,9 +237,9 @@ class GraphRunner:
         """Start every node's process."""
         if self.log_dir:
             self.log_dir.mkdir(parents=True, exist_ok=True)
-        self._own_run_dir = not (self.log_dir or os.environ.get(RUN_DIR_VARIABLE))
-        self.run_dir = Path(os.environ.get(RUN_DIR_VARIABLE) or self.log_dir
-                            or tempfile.mkdtemp(prefix="terrain_nav_run_"))
+        given = os.environ.get(RUN_DIR_VARIABLE) or self.log_dir
+        self._own_run_dir = not given
+        self.run_dir = Path(given or tempfile.mkdtemp(prefix="terrain_nav_run_"))
         for spec in self.spec.nodes:
             self._launch(spec)
 

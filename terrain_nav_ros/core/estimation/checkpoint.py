@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..terrain.geodesy import EnuOrigin
 from .ekf import DIM_STATE, NavState
 from .strapdown import IDX_P, IDX_V
 
@@ -58,24 +59,24 @@ class Checkpoint:
     ----------
     state : NavState
         The estimate at ``state.stamp``.
-    origin : tuple of 3 floats or None
-        Latitude, longitude (deg) and height (m) of the ENU origin it is expressed in.
+    origin : EnuOrigin or None
+        The ENU origin it is expressed in (its latitude, longitude and height are kept).
     baro_offset : float or None
         ENU up minus pressure altitude (m), once learnt.
     """
 
     state: NavState
-    origin: tuple[float, float, float] | None = None
+    origin: EnuOrigin | None = None
     baro_offset: float | None = None
 
 
 def save_checkpoint(path, checkpoint: Checkpoint) -> None:
     """Write ``checkpoint`` to ``path`` (``.npz``), replacing the previous one atomically."""
     path = Path(path)
-    s = checkpoint.state
+    s, o = checkpoint.state, checkpoint.origin
     arrays = {name: np.asarray(getattr(s, name), float) for name in _VECTORS}
     arrays.update(stamp=np.float64(s.stamp), covariance=np.asarray(s.covariance, float),
-                  origin=np.asarray(checkpoint.origin if checkpoint.origin else [], float),
+                  origin=np.asarray([o.lat, o.lon, o.alt] if o else [], float),
                   baro_offset=np.asarray([] if checkpoint.baro_offset is None
                                          else [checkpoint.baro_offset], float))
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
@@ -101,13 +102,15 @@ def load_checkpoint(path) -> Checkpoint:
         if not np.isfinite(arrays[name]).all():
             raise CheckpointError(f"{path.name}: '{name}' is not finite")
     origin, offset = arrays.get("origin", np.empty(0)), arrays.get("baro_offset", np.empty(0))
+    try:
+        origin = EnuOrigin(*origin) if origin.size == 3 else None
+    except ValueError as err:
+        raise CheckpointError(f"{path.name}: {err}") from None
     state = NavState(float(arrays["stamp"]), *(arrays[name] for name in
                                                ("position", "velocity", "quaternion",
                                                 "gyro_bias", "accel_bias")),
                      arrays["covariance"].reshape(DIM_STATE, DIM_STATE), arrays["wind"])
-    return Checkpoint(state,
-                      tuple(float(v) for v in origin) if origin.size == 3 else None,
-                      float(offset[0]) if offset.size == 1 else None)
+    return Checkpoint(state, origin, float(offset[0]) if offset.size == 1 else None)
 
 
 def resume_from(checkpoint: Checkpoint, stamp: float, max_age: float) -> NavState:
