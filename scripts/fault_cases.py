@@ -609,6 +609,8 @@ def cases() -> list[Case]:
              _partial_mission),
         Case("IMU in FRD axes (z down)", "flight", _refused_imu(frd_imu, "FRD / NED")),
         Case("IMU acceleration in g", "flight", _refused_imu(imu_in_g, "in g, not m/s^2")),
+        Case("gyro in deg/s (demo bag to 80 s: a turn from 61 s)", "flight",
+             _refused_imu(gyro_in_deg_until_80_s, "deg/s, not rad/s", "jacksboro_demo")),
         Case("matcher killed 20 s into the flight (SIGKILL)", "flight", _flight(
             None, kill="matcher")),
         Case("landmark renderer killed 20 s into the flight (SIGKILL)", "flight", _flight(
@@ -684,17 +686,19 @@ def _flight(change: Callable | None, reason: str = "", at_least: int = 0,
     return run
 
 
-def _refused_imu(change: Callable, words: str) -> Callable:
-    """The short bag with its IMU changed by ``change`` and replayed: GOOD when the ekf
-    publishes no estimate and its diagnostics say why (``words``), BAD when it navigates on
-    the wrong IMU (or says nothing)."""
+def _refused_imu(change: Callable, words: str, bag: str = "jacksboro_short") -> Callable:
+    """``bag`` with its IMU changed by ``change`` and replayed: GOOD when the ekf publishes
+    no estimate, or stops publishing one, and its diagnostics say why (``words``), BAD when
+    it navigates on the wrong IMU (or says nothing)."""
     def run(tmp: Path):
-        report, failed = _replayed(tmp, change)
+        report, failed = _replayed(tmp, change, bag=bag)
         if report is None:
             return BAD, failed
-        said = report.get("no_odometry")
+        stopped = report.get("odometry_stopped")
+        said = report.get("no_odometry") or (stopped or {}).get("why")
         if said and words in said:
-            return GOOD, f"no estimate: {said[:150]}"
+            when = f"estimate stopped at {stopped['at']:.1f} s: " if stopped else "no estimate: "
+            return GOOD, when + said[:150]
         return BAD, f"navigated on it: {said or 'no reason given'}"
     return run
 
@@ -719,15 +723,28 @@ def imu_in_g(topic, at, decode):
     return msg
 
 
-def _replayed(tmp: Path, change: Callable | None, kill: str = "") -> tuple[dict | None, str]:
-    """The short bag changed by ``change`` (None: as it is) replayed, ``kill`` killed in it
-    (:func:`_replay_killing`): its report.yaml, or None and why there is none."""
+def gyro_in_deg_until_80_s(topic, at, decode):
+    """Every gyro rate in deg/s, not rad/s; the bag cut at 80 s."""
+    if at > 80.0:
+        return "drop"
+    if topic != "/imu/data":
+        return None
+    msg = decode()
+    w = msg.angular_velocity
+    w.x, w.y, w.z = math.degrees(w.x), math.degrees(w.y), math.degrees(w.z)
+    return msg
+
+
+def _replayed(tmp: Path, change: Callable | None, kill: str = "",
+              bag: str = "jacksboro_short") -> tuple[dict | None, str]:
+    """``bag`` (of bags/) changed by ``change`` (None: as it is) replayed, ``kill`` killed in
+    it (:func:`_replay_killing`): its report.yaml, or None and why there is none."""
     import yaml
 
     from terrain_nav_ros.tools import bags
     from terrain_nav_ros.tools.cli import REPO
 
-    bag = REPO / "bags" / "jacksboro_short"
+    bag = REPO / "bags" / bag
     if change is not None:
         bag = bags.changed_copy(bag, tmp / "bag", change)
     cmd = terrain_nav("replay", "--bag", bag, "--out", tmp / "out")

@@ -181,6 +181,22 @@ def test_the_report_lists_what_the_ekf_found_once_each(tmp_path):
     assert report.navigation_events(tmp_path / "out") == found[1::2]
 
 
+def test_odometry_that_stops_before_the_imu_does_is_reported(tmp_path):
+    """An IMU refused mid-flight leaves odometry up to that stamp only: the report says
+    where it stopped, against the bag's IMU (a gap under 5 s is the tail of the replay)."""
+    from terrain_nav_ros.tools import report
+
+    store = bags.typestore()
+    string = store.types["std_msgs/msg/String"]
+    with bags.BagWriter(tmp_path / "in") as writer:
+        for k in range(201):                      # 20 s of IMU at 10 Hz from t = 100 s
+            writer.write_message("/imu/data", (100 * 10**9) + k * 10**8, string(data=""),
+                                 "std_msgs/msg/String")
+    stopped = report._odometry_stopped(tmp_path / "in", 111.0)
+    assert stopped == pytest.approx({"at": 11.0, "imu_end": 20.0})
+    assert report._odometry_stopped(tmp_path / "in", 116.0) is None
+
+
 def test_settled_after_is_when_the_error_stays_below_the_bound():
     from terrain_nav_ros.tools import report
 

@@ -168,3 +168,69 @@ def test_the_first_second_of_imu_tells_its_axes_and_units(accel, words):
         # for good: later samples that look right do not undo it
         assert words in check.add(200.0, np.array([0.0, 0.0, 9.8]))
     assert check.add(300.0, np.array([np.nan, 0.0, 9.8])) == check.problem
+
+
+def _gyro_scale_answers(segments, gyro_scale=1.0, wind=(0.0, 0.0), accel_bias=None,
+                        bias_learnt=True, seed=0):
+    """GyroScale's answers over a simulated flight's IMU (speed, and the accelerometer bias
+    when ``bias_learnt``, from the truth)."""
+    from terrain_nav_ros.core.estimation.ekf_inputs import GyroScale
+    from terrain_nav_ros.core.estimation.ekf_params import EkfParams
+    from terrain_nav_ros.core.sim.imu_sim import ImuErrorModel, simulate_imu
+    from terrain_nav_ros.core.sim.trajectory_sim import simulate_trajectory
+
+    truth = simulate_trajectory(segments, rate_hz=100.0).in_wind(*wind)
+    imu = simulate_imu(truth, ImuErrorModel.from_params(EkfParams()),
+                       np.random.default_rng(seed), accel_bias=accel_bias)
+    check = GyroScale(9.80665)
+    speed = np.linalg.norm(truth.velocity, axis=1)
+    answers = []
+    for k in range(len(truth)):
+        def motion(k=k):
+            return speed[k], imu.accel_bias[k] if bias_learnt else np.zeros(3)
+        answers.append(check.add(truth.t[k], imu.gyro[k] * gyro_scale, imu.accel[k], motion))
+    return answers, check
+
+
+@pytest.mark.parametrize("turn_deg_s", [3.0, 6.0, 12.0])
+def test_a_gyro_in_deg_per_s_is_refused_in_its_first_turn(turn_deg_s):
+    from terrain_nav_ros.core.sim.trajectory_sim import Segment
+
+    turn = np.deg2rad(turn_deg_s)
+    segments = [Segment(20.0), Segment(20.0, turn), Segment(20.0)]
+    answers, check = _gyro_scale_answers(segments, gyro_scale=math.degrees(1.0))
+    assert all(a is None for a in answers[:2000])      # straight flight hides the unit
+    assert "deg/s, not rad/s" in answers[-1]
+    first = next(k for k, a in enumerate(answers) if a is not None)
+    assert first < 2000 + 1200                         # within the turn's first 12 s
+    assert check.add(100.0, np.zeros(3), np.array([0.0, 0.0, 9.8]), lambda: None) \
+        == check.problem                               # for good
+
+
+@pytest.mark.parametrize("segments_of, wind", [
+    ("s_turns", (0.0, 0.0)),
+    ("s_turns", (9.0, -4.0)),          # 30 % wind: the ground speed stands in for the air's
+    ("climbing_turns", (0.0, 0.0)),
+    ("straight", (0.0, 0.0)),
+])
+def test_a_gyro_in_rad_per_s_passes_in_turns_wind_and_climbs(segments_of, wind):
+    from terrain_nav_ros.core.sim.trajectory_sim import Segment, straight_flight, turning_flight
+
+    segments = {
+        "s_turns": turning_flight(120.0, np.deg2rad(6.0)),
+        "climbing_turns": [Segment(30.0, np.deg2rad(4.0), np.deg2rad(6.0)),
+                           Segment(30.0, np.deg2rad(-8.0), np.deg2rad(-4.0))],
+        "straight": straight_flight(60.0),
+    }[segments_of]
+    answers, _ = _gyro_scale_answers(segments, wind=wind)
+    assert all(a is None for a in answers)
+
+
+def test_an_accelerometer_bias_the_filter_has_not_learnt_is_no_turn():
+    """0.6 m/s^2 on z reads like a 10 deg bank to |f|; the gyro's few mrad/s are then no
+    evidence either way, and a correct gyro is never refused for it."""
+    from terrain_nav_ros.core.sim.trajectory_sim import straight_flight
+
+    answers, _ = _gyro_scale_answers(straight_flight(60.0), accel_bias=(0.0, 0.0, 0.6),
+                                     bias_learnt=False)
+    assert all(a is None for a in answers)

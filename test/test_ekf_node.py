@@ -473,28 +473,27 @@ def test_every_imu_sample_is_integrated_in_order_by_either_executor(executor):
     assert odom[-1].pose.pose.position.x == pytest.approx(30.0 * (n - 1) * 0.01, abs=1e-3)
 
 
-def test_an_imu_in_frd_axes_is_refused_with_the_reason():
-    """An IMU driver that publishes FRD (z down: -g on z at rest) would be integrated
-    kilometres off: after its first second the node refuses it, publishes no estimate and
-    says why in its diagnostics (ERROR) and log."""
+def _imu_refused(samples, name: str):
+    """Publish ``samples`` ((gyro, accel) per 10 ms) to an ekf initialised in level flight
+    at 30 m/s east, until its diagnostics say the IMU is refused. Returns the odometry
+    messages published by then, all of them, the last diagnostics and the log."""
     from diagnostic_msgs.msg import DiagnosticArray
     from nav_msgs.msg import Odometry
     from sensor_msgs.msg import Imu
 
-    n = 300
     proc = start_node("ekf", {"init_mode": "pose", "initial_velocity": [30.0, 0.0, 0.0],
                               "diagnostics_period": 0.3, "publish_tf": False})
-    client = SpinningNode("ekf_frd_client")
+    client = SpinningNode(f"ekf_{name}_client")
     odom, diags = [], []
     try:
         node = client.node
-        node.create_subscription(Odometry, "/nav/odometry", odom.append, n + 10)
+        node.create_subscription(Odometry, "/nav/odometry", odom.append, len(samples) + 10)
         node.create_subscription(DiagnosticArray, "/nav/ekf/diagnostics", diags.append, 10)
-        imu_pub = node.create_publisher(Imu, "/imu/data", n + 10)
+        imu_pub = node.create_publisher(Imu, "/imu/data", len(samples) + 10)
         assert wait_until(lambda: imu_pub.get_subscription_count() > 0, 10)
-        for k in range(1, n + 1):       # level flight, FRD: gravity reads -g on z
+        for k, (gyro, accel) in enumerate(samples, start=1):
             imu_pub.publish(cv.sample_to_imu(cv.make_header(_stamp(k * 0.01), "base_link"),
-                                             [0.0, 0.0, 0.0], [0.0, 0.0, -9.80665]))
+                                             list(gyro), list(accel)))
             time.sleep(0.002)
         count = len(odom)
 
@@ -504,12 +503,37 @@ def test_an_imu_in_frd_axes_is_refused_with_the_reason():
     finally:
         client.close()
         log = stop(proc)
+    return count, odom, diags[-1].status[0], log
+
+
+def test_an_imu_in_frd_axes_is_refused_with_the_reason():
+    """An IMU driver that publishes FRD (z down: -g on z at rest) would be integrated
+    kilometres off: after its first second the node refuses it, publishes no estimate and
+    says why in its diagnostics (ERROR) and log."""
     from diagnostic_msgs.msg import DiagnosticStatus
 
-    assert diags[-1].status[0].level == DiagnosticStatus.ERROR
+    level_frd = [((0.0, 0.0, 0.0), (0.0, 0.0, -9.80665))] * 300   # gravity reads -g on z
+    count, odom, status, log = _imu_refused(level_frd, "frd")
+    assert status.level == DiagnosticStatus.ERROR
     # what it published came from the first second, judged with it; none after
     assert count <= 110 and len(odom) == count, (count, len(odom))
     assert "FRD / NED" in log and "IMU refused for good" in log
+
+
+def test_a_gyro_in_deg_per_s_is_refused_in_the_first_turn():
+    """Rates in deg/s look right in straight flight and spin the attitude 57 times too fast
+    in a turn: the node refuses the IMU within the turn's first seconds and says why."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    truth = simulate_trajectory([Segment(3.0), Segment(12.0, math.radians(6.0))],
+                                rate_hz=100.0)
+    samples = list(zip(np.degrees(truth.gyro[1:]), truth.accel[1:], strict=True))
+    count, odom, status, log = _imu_refused(samples, "deg")
+    assert status.level == DiagnosticStatus.ERROR
+    assert "deg/s, not rad/s" in status.message and "IMU refused for good" in log
+    # nothing published after the turn's first seconds (it rolls in over 4 s from 3 s)
+    assert len(odom) == count
+    assert cv.stamp_to_ns(odom[-1].header.stamp) < cv.stamp_to_ns(_stamp(10.0))
 
 
 def _fly_with_relocalisations(node_params: dict, seconds: float, relocalisations: dict,

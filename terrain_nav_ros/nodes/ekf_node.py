@@ -18,7 +18,9 @@ Subscribed:
   The first second's mean specific force must look like gravity in FLU (+g on z): an FRD /
   NED frame, the acceleration in g or milli-g, or axes turned off body z refuse the stream
   for good, with the reason logged and in the diagnostics (ERROR), the filter reset
-  (:class:`~terrain_nav_ros.core.estimation.ekf_inputs.ImuConvention`).
+  (:class:`~terrain_nav_ros.core.estimation.ekf_inputs.ImuConvention`). So does a gyro
+  that reads many times the turn rate the specific force and speed imply in a turn (deg/s
+  for rad/s: :class:`~terrain_nav_ros.core.estimation.ekf_inputs.GyroScale`).
   A stamp more than ``time_jump_reset`` from the previous one, back or ahead, is refused and
   counted (one bad stamp must not end navigation); when ``time_jump_confirm`` samples in a
   row go on from it (bag loop, simulator restart) the filter resets and re-initialises per
@@ -153,6 +155,7 @@ from ..core.estimation.ekf_health import (
 from ..core.estimation.ekf_inputs import (
     BaroOffset,
     FixFrame,
+    GyroScale,
     ImuConvention,
     OriginHandshake,
     baro_refusal,
@@ -392,6 +395,7 @@ class EkfNode(Node):
         self._checkpoint_failed = False
         self._resume = self._read_checkpoint()
         self.imu_convention = ImuConvention(self.params.gravity)
+        self.gyro_scale = GyroScale(self.params.gravity)
 
         imu_qos = QoSProfile(depth=imu_depth, reliability=ReliabilityPolicy.BEST_EFFORT,
                              history=HistoryPolicy.KEEP_LAST)
@@ -515,10 +519,10 @@ class EkfNode(Node):
 
     def on_imu(self, msg: Imu):
         stamp, gyro, accel = cv.imu_to_sample(msg)
-        if self.imu_convention.problem is None and self.imu_convention.add(stamp, accel):
-            self.get_logger().error(f"IMU refused for good: {self.imu_convention.problem}")
+        if self.imu_problem is None and self._imu_refused(stamp, gyro, accel):
+            self.get_logger().error(f"IMU refused for good: {self.imu_problem}")
             self.ekf.reset()   # what it integrated so far is wrong too
-        if self.imu_convention.problem is not None:
+        if self.imu_problem is not None:
             self.rejections["imu:axes_or_units"] += 1
             return
         if self._resume is not None:
@@ -555,6 +559,22 @@ class EkfNode(Node):
                 self.checkpoint_period:
             self._last_checkpoint = t
             self._write_checkpoint()
+
+    @property
+    def imu_problem(self) -> str | None:
+        """Why the IMU stream is refused for good (its axes, units or gyro scale), if it is."""
+        return self.imu_convention.problem or self.gyro_scale.problem
+
+    def _imu_refused(self, stamp: float, gyro, accel) -> bool:
+        return bool(self.imu_convention.add(stamp, accel)
+                    or self.gyro_scale.add(stamp, gyro, accel, self._motion))
+
+    def _motion(self) -> tuple[float, np.ndarray] | None:
+        """The estimate's speed and accelerometer bias, for the gyro's scale in turns."""
+        if not self.ekf.initialized:
+            return None
+        s = self.ekf.state
+        return float(np.linalg.norm(s.velocity)), s.accel_bias
 
     # ------------------------------------------------------------------ checkpoint
     def _read_checkpoint(self) -> Checkpoint | None:
@@ -749,7 +769,7 @@ class EkfNode(Node):
         new = self._new_records(d.records)
         gated = gated_records(new, self.params.fuse_gnss)
         health = filter_health(d, since_imu, self.ekf.waiting_for(), self.health_limits,
-                               refused_now, len(gated), self.imu_convention.problem)
+                               refused_now, len(gated), self.imu_problem)
         for r in gated:
             self._log_refusal(f"{r.source}:{Reason.GATED.value}",
                               f"{r.source} at {r.stamp:.3f} s rejected by the "

@@ -338,7 +338,7 @@ def _summary(result: dict) -> dict:
     keep = {}
     for key in ("fixes", "fix_error", "fused_error", "fused_height_error", "dr_error",
                 "graph_status", "died", "denied_after", "input_damaged", "partial",
-                "no_odometry"):
+                "no_odometry", "odometry_stopped"):
         if key in result:
             keep[key] = result[key]
     keep["latency_ms"] = {k: {"p50": float(1e3 * np.median(v)),

@@ -91,6 +91,18 @@ def _ekf_health(bag) -> str:
     return last or "it published no diagnostics either"
 
 
+def _odometry_stopped(input_bag, odometry_end: float, grace: float = 5.0) -> dict | None:
+    """Where the fused odometry ended more than ``grace`` s before the bag's IMU did (an
+    IMU refused mid-flight): that stamp and the IMU's last, in s from the IMU's first."""
+    first = last = None
+    for m in bags.read(input_bag, ["/imu/data"]):
+        first = m.timestamp_ns if first is None else first
+        last = m.timestamp_ns
+    if last is None or last * 1e-9 - odometry_end <= grace:
+        return None
+    return {"at": odometry_end - first * 1e-9, "imu_end": (last - first) * 1e-9}
+
+
 def navigation_events(bag) -> list[str]:
     """What the EKF's diagnostics said it found, in order: each reset onto (or start from)
     agreeing relocalisations, once (the ``found`` value of its ``ekf: filter`` status)."""
@@ -188,6 +200,8 @@ def analyse(input_bag, output_bag, usage: dict | None = None,
     result["series"] = {"fused": (t_fused, p_fused, var_fused), "fixes": good}
     if not len(t_fused):   # say why, or the report only shows empty sections
         result["no_odometry"] = _ekf_health(output_bag)
+    elif (stopped := _odometry_stopped(input_bag, t_fused[-1])) is not None:
+        result["odometry_stopped"] = {**stopped, "why": _ekf_health(output_bag)}
     if "/ground_truth/odometry" not in info:
         result["truth"] = None
         return result
@@ -248,6 +262,10 @@ def format_report(r: dict, gsd: float | None = None) -> str:
     if r.get("no_odometry"):
         lines.append(f"NO ODOMETRY: the EKF published none; its last diagnostics: "
                      f"{r['no_odometry']}")
+    if r.get("odometry_stopped"):
+        s = r["odometry_stopped"]
+        lines.append(f"ODOMETRY STOPPED at {s['at']:.1f} s of the IMU's {s['imu_end']:.1f} s; "
+                     f"the EKF's last diagnostics: {s['why']}")
     f = r["fixes"]
     lines.append(f"camera frames answered: {f['frames']} of {f['in_bag']}  fixes: "
                  f"{f['fixes']}  no fix: {f['no_fix']}")

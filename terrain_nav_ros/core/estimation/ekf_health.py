@@ -131,7 +131,8 @@ def filter_health(d: EkfDiagnostics, since_imu: float, waiting_for: str,
     gated : int
         Measurements the chi-square gate rejected since the previous report.
     imu_problem : str, optional
-        Why the IMU stream is refused for good (:class:`~.ekf_inputs.ImuConvention`).
+        Why the IMU stream is refused for good (:class:`~.ekf_inputs.ImuConvention`,
+        :class:`~.ekf_inputs.GyroScale`).
     """
     health = Health()
     if imu_problem:

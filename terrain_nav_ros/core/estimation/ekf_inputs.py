@@ -14,12 +14,14 @@ strapdown solution of chapter 2's INS model).
 * The ENU origin: adopted from the first metamap georeference, asked for again when a request
   goes unanswered (:class:`OriginHandshake`).
 * The IMU's axes and units: its first second of specific force against gravity
-  (:class:`ImuConvention`).
+  (:class:`ImuConvention`), and its gyro's scale in turns against the turn rate the
+  specific force and the speed imply (:class:`GyroScale`).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -300,3 +302,98 @@ class ImuConvention:
             return (f"{said}: gravity is not along body z; rotate the IMU's axes to base_link "
                     "(FLU, REP 103) in its driver or a transform")
         return None
+
+
+class GyroScale:
+    """Checks an IMU's rates against the turns its specific force tells, in rad/s.
+
+    A gyro in deg/s reads 57 times its rates: in straight flight that is hidden in the
+    noise, in the first turn the attitude spins 57 times too fast. Whatever the flight path
+    bends with, its normal acceleration is the speed times the rate the path turns at:
+    ``a_n = V |w|``. In a turn, coordinated or not, level or climbing, the body's rate is that
+    turn rate, and the specific force ``f`` grows to ``|f|^2 = g^2 + a_n^2``. So over a turn
+    ``V |w| / sqrt(|f|^2 - g^2)`` is about 1 (0.85-1.1 with 30 % wind, the ground speed
+    standing in for the air speed) and about 57 for deg/s. A ratio over
+    :attr:`MAX_RATIO` over the first :attr:`TURN_BLOCKS` half-seconds of a turn is the
+    problem :meth:`add` returns, for good; :attr:`TURNS_TO_TRUST` turns under it settle the
+    question. Roll rates into a turn and pull-ups keep the ratio within a few, far below.
+
+    Parameters
+    ----------
+    gravity : float
+        The filter's gravity (m/s^2).
+    """
+
+    BLOCK = 0.5             # s averaged: vibration out, a turn's rates kept
+    MIN_TURN_FORCE = 1.5    # m/s^2 of normal acceleration: a bank of ~9 deg
+    MIN_SPEED = 8.0         # m/s: below, the ratio says nothing
+    TURN_BLOCKS = 6         # 3 s of turn judged
+    MAX_RATIO = 15.0        # sqrt(57) * 2: rad/s and deg/s far on either side
+    TURNS_TO_TRUST = 2
+
+    def __init__(self, gravity: float):
+        self.gravity = gravity
+        self.problem: str | None = None
+        self._settled = False
+        self._trusted_turns = 0
+        self._block_start: float | None = None
+        self._gyro = np.zeros(3)
+        self._accel = np.zeros(3)
+        self._count = 0
+        self._turn: list[tuple[float, float]] = []   # (V |w|, a_n) of the turn's blocks
+
+    def add(self, stamp: float, gyro, accel,
+            motion: Callable[[], tuple[float, np.ndarray] | None]) -> str | None:
+        """Take one sample; returns the problem once one is found.
+
+        ``motion`` gives the estimate's speed (m/s) and accelerometer bias (m/s^2, body), or
+        None before there is an estimate; it is called once a block.
+        """
+        if self._settled or not (math.isfinite(stamp) and np.isfinite(gyro).all()
+                                 and np.isfinite(accel).all()):
+            return self.problem
+        if self._block_start is None or not 0.0 <= stamp - self._block_start < 10 * self.BLOCK:
+            self._start_block(stamp)
+        self._gyro += gyro
+        self._accel += accel
+        self._count += 1
+        if stamp - self._block_start >= self.BLOCK:
+            self._close_block(motion())
+            self._start_block(stamp)
+        return self.problem
+
+    def _start_block(self, stamp: float):
+        self._block_start = stamp
+        self._gyro[:] = 0.0
+        self._accel[:] = 0.0
+        self._count = 0
+
+    def _close_block(self, motion):
+        if motion is None or self._count == 0:
+            self._turn.clear()
+            return
+        speed, accel_bias = motion
+        rate = float(np.linalg.norm(self._gyro / self._count))
+        force = float(np.linalg.norm(self._accel / self._count - accel_bias))
+        normal = math.sqrt(max(force * force - self.gravity ** 2, 0.0))
+        if speed < self.MIN_SPEED or normal < self.MIN_TURN_FORCE:
+            self._turn.clear()
+            return
+        self._turn.append((speed * rate, normal))
+        if len(self._turn) == self.TURN_BLOCKS:
+            self._judge()
+
+    def _judge(self):
+        turning, normal = np.sum(self._turn, axis=0)
+        ratio = turning / normal
+        seconds = self.TURN_BLOCKS * self.BLOCK
+        if ratio > self.MAX_RATIO:
+            self.problem = (
+                f"in a {seconds:g} s turn the gyro reads {ratio:.3g} times the turn rate its "
+                f"normal acceleration and speed imply ({turning / len(self._turn):.3g} against "
+                f"{normal / len(self._turn):.3g} m/s^2 on average, V |w| against a_n): rates "
+                + ("in deg/s, not rad/s?" if 30 < ratio < 200 else "in another unit?"))
+            self._settled = True
+            return
+        self._trusted_turns += 1
+        self._settled = self._trusted_turns >= self.TURNS_TO_TRUST
