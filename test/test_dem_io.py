@@ -495,3 +495,113 @@ def test_dem_files_expands_dirs_and_globs(shared_data):
     assert "N44E005.hgt" in names and "rmnp_dem_4326.tif" in names
     assert "rmnp_rgb_4326.tif" not in names and "README.md" not in names
     assert files == sorted(set(files))
+
+
+def _hill_geotiff(path, z, crs="EPSG:32611", **kw):
+    with rasterio.open(path, "w", driver="GTiff", width=z.shape[1], height=z.shape[0],
+                       count=1, dtype=z.dtype, crs=crs,
+                       transform=Affine(30, 0, 4e5, 0, -30, 3.8e6), **kw) as ds:
+        ds.write(z, 1)
+    return path
+
+
+def _hill(n=64):
+    r, c = np.mgrid[0:n, 0:n]
+    return (1000 + 300 * np.exp(-((r - n / 2) ** 2 + (c - n / 2) ** 2) / 200.0)).astype(
+        np.float32)
+
+
+@pytest.mark.parametrize("crs, units, per_unit", [
+    ("EPSG:2229+6360", None, 1200 / 3937),      # state plane ftUS + NAVD88 height ftUS
+    ("EPSG:32611", "ft", 0.3048),               # the band says feet
+    ("EPSG:32611", "US survey foot", 1200 / 3937),
+    ("EPSG:32611", "metre", 1.0),
+])
+def test_heights_in_feet_are_read_in_metres(tmp_path, crs, units, per_unit):
+    z = _hill()
+    p = _hill_geotiff(tmp_path / "feet.tif", z / per_unit, crs)
+    if units:
+        with rasterio.open(p, "r+") as ds:
+            ds.units = (units,)
+    np.testing.assert_allclose(open_dem(p).read(), z, rtol=1e-5)
+
+
+def test_heights_in_an_unknown_unit_are_refused(tmp_path):
+    p = _hill_geotiff(tmp_path / "cubits.tif", _hill())
+    with rasterio.open(p, "r+") as ds:
+        ds.units = ("cubit",)
+    _assert_dem_error(p, "heights are in 'cubit'")
+
+
+@pytest.mark.parametrize("dtype, scale, offset", [("int16", 1.0, 1000.0), ("int32", 0.1, 0.0)])
+def test_band_scale_and_offset_are_applied(tmp_path, dtype, scale, offset):
+    """Packed products: int16 heights above 1000 m, int32 decimetres."""
+    z = np.round(_hill())
+    p = _hill_geotiff(tmp_path / "packed.tif", np.round((z - offset) / scale).astype(dtype))
+    with rasterio.open(p, "r+") as ds:
+        ds.scales, ds.offsets = (scale,), (offset,)
+    dem = open_dem(p)
+    assert dem.warning is None
+    np.testing.assert_allclose(dem.read(), z, atol=0.06)
+
+
+def test_cells_under_a_gdal_mask_are_voids(tmp_path):
+    """An internal mask (gdal_translate -mask, QGIS exports) with 0 under it: the masked
+    cells are voids, not a cliff down to 0 m."""
+    z = _hill()
+    z[:, 40:] = 0.0
+    p = _hill_geotiff(tmp_path / "masked.tif", z)
+    with rasterio.open(p, "r+") as ds:
+        ds.write_mask(np.where(z != 0, 255, 0).astype(np.uint8))
+    got = open_dem(p).read()
+    assert np.isnan(got[:, 40:]).all() and np.array_equal(got[:, :40], z[:, :40])
+
+
+def test_a_local_engineering_crs_in_metres_is_local_metres(tmp_path):
+    local = rasterio.crs.CRS.from_wkt('LOCAL_CS["site grid",UNIT["metre",1],'
+                                      'AXIS["Easting",EAST],AXIS["Northing",NORTH]]')
+    dem = open_dem(_hill_geotiff(tmp_path / "site.tif", _hill(), local))
+    assert dem.local_metres and not dem.crs_guessed
+
+
+def test_projected_coordinates_labelled_lon_lat_are_refused(tmp_path):
+    p = _hill_geotiff(tmp_path / "utm_as_4326.tif", _hill(), "EPSG:4326")
+    _assert_dem_error(p, "not degrees, as its CRS")
+
+
+@pytest.mark.parametrize("cellsize", ["0", "-30", "nan"])
+def test_an_ascii_grid_cell_size_must_be_positive(tmp_path, cellsize):
+    p = tmp_path / "cell.asc"
+    p.write_text(re.sub(r"cellsize \S+", f"cellsize {cellsize}", ASC_HEADER) + ASC_ROWS)
+    _assert_dem_error(p, "cellsize is .*it must be a number > 0")
+
+
+def test_a_geotiff_whose_cells_have_no_area_is_refused(tmp_path):
+    p = tmp_path / "flat_transform.tif"
+    with rasterio.open(p, "w", driver="GTiff", width=8, height=8, count=1, dtype="int16",
+                       crs="EPSG:32611", transform=Affine(30, 30, 4e5, 30, 30, 3.8e6)) as ds:
+        ds.write(np.zeros((8, 8), np.int16), 1)
+    _assert_dem_error(p, "cell size of 0")
+
+
+def test_srtm_tiles_zipped_with_lp_daac_names_and_halved_columns(shared_data, tmp_path):
+    """As USGS and viewfinderpanoramas ship tiles: N44E005.hgt.zip reads like the tile;
+    N44E005.SRTMGL1.hgt is a tile's name; a 1" tile at 50-60 deg has 1801 columns."""
+    import zipfile
+
+    tile = shared_data / "dem/N44E005.hgt"
+    zipped = tmp_path / "N44E005.hgt.zip"
+    with zipfile.ZipFile(zipped, "w") as z:
+        z.write(tile, "N44E005.hgt")
+    np.testing.assert_array_equal(open_dem(zipped).read(), open_dem(tile).read())
+    assert str(zipped) in dem_files([tmp_path])
+    named = tmp_path / "N44E005.SRTMGL3.hgt"
+    shutil.copy(tile, named)
+    assert open_dem(named).bounds == pytest.approx(open_dem(tile).bounds)
+    high = tmp_path / "N55E010.hgt"
+    np.full((3601, 1801), 100, ">i2").tofile(high)
+    dem = open_dem(high)
+    assert dem.shape == (3601, 1801) and dem.res == pytest.approx((2 / 3600, 1 / 3600))
+    bad = tmp_path / "N99E999.hgt"
+    shutil.copy(tile, bad)
+    _assert_dem_error(bad, "within 89 deg of latitude")

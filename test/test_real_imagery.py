@@ -1,6 +1,7 @@
 """The real-imagery study (terrain_nav_ros.tools.real_imagery, ``evaluate --image/--scenes``)."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -239,6 +240,10 @@ def test_a_scene_without_a_band_takes_the_near_infrared(tmp_path):
     ({"band": 4}, "band 4 does not exist"),
     ({}, "the scene's sun is needed"),
     ({"sun": (150.0, -5.0)}, "sun elevation"),
+    ({"sun": (math.nan, 45.0)}, "sun azimuth must be a finite number"),
+    ({"sun": (150.0, 40.0), "gsd": -5.0}, "GSD must be a number of metres > 0"),
+    ({"sun": (150.0, 40.0), "gsd": math.nan}, "GSD must be a number of metres > 0"),
+    ({"sun": (150.0, 40.0), "gsd": 1e-3}, "M pixels .*nearer its own cell"),
 ])
 def test_bad_scene_options_are_clear_errors(tmp_path, kwargs, message):
     image, dem = _write_pair(tmp_path, geographic=False)

@@ -178,7 +178,9 @@ def _parse_sun(sun, when, lat: float, lon: float) -> tuple[float, float]:
         except (TypeError, ValueError):
             raise ValueError(f"the sun must be two numbers, azimuth and elevation in degrees; "
                              f"got {sun!r}") from None
-        if not (0.0 < el <= 90.0 and math.isfinite(az)):
+        if not math.isfinite(az):
+            raise ValueError(f"sun azimuth must be a finite number of degrees, got {az}")
+        if not 0.0 < el <= 90.0:
             raise ValueError(f"sun elevation must be in (0, 90] deg, got {el}")
         return az % 360.0, el
     t = when if isinstance(when, _dt.datetime) else parse_utc(when)
@@ -187,6 +189,20 @@ def _parse_sun(sun, when, lat: float, lon: float) -> tuple[float, float]:
         raise ValueError(f"the sun is below the horizon at {t.isoformat()} "
                          f"({lat:.3f}, {lon:.3f})")
     return float(az), float(el)
+
+
+MAX_SCENE_PIXELS = 64 * 1024 * 1024   # 256 MB a float32 layer: a scene, not a mission area
+
+
+def _check_scene_size(image: Path, shape, cell: float, gsd: float | None):
+    """Refuse a GSD that would resample the image into more than MAX_SCENE_PIXELS."""
+    if gsd is None:
+        return
+    pixels = shape[0] * shape[1] * (cell / gsd) ** 2
+    if pixels > MAX_SCENE_PIXELS:
+        raise ValueError(f"{image.name}: at a GSD of {gsd:g} m its {cell:.3g} m cells would "
+                         f"be {pixels / 1e6:.3g} M pixels (at most {MAX_SCENE_PIXELS / 1e6:.0f} "
+                         f"M): study it at a GSD nearer its own cell")
 
 
 def load_scene(image, dem, *, band=None, gsd: float | None = None, sun=None, when=None,
@@ -215,9 +231,12 @@ def load_scene(image, dem, *, band=None, gsd: float | None = None, sun=None, whe
     for path in (image, dem):
         if not path.is_file():
             raise ValueError(f"no such file: {path}")
+    if gsd is not None and not (math.isfinite(gsd) and gsd > 0):
+        raise ValueError(f"the study GSD must be a number of metres > 0, got {gsd}")
     with OrthoImage(image) as src:
         img = _scene_band(src, band)
         transform, crs, image_warning = src.transform, src.crs, src.warning
+    _check_scene_size(image, img.shape, ground_cell_metres(crs, transform, img.shape), gsd)
     # the DEM as the graph's metamap reads it: impossible heights (undeclared nodata) are
     # voids, and the small voids are filled
     with open_dem(dem) as d:

@@ -11,8 +11,11 @@ tiled or compressed files should set ``GDAL_CACHEMAX`` (e.g. 64 MB) in its envir
 Pixel convention (as in :mod:`.georef`): ``Dem.transform`` is the GDAL affine transform of
 pixel *corners*; integer pixel coordinates (col, row) are pixel *centres*.
 
-Heights are whatever the file stores, normally orthometric metres (SRTM: EGM96 geoid; USGS:
-NAVD88); see :mod:`.geodesy` for what that means in ENU. A file's heights outside
+Heights are orthometric metres (SRTM: EGM96 geoid; USGS: NAVD88); see :mod:`.geodesy` for
+what that means in ENU. A GeoTIFF's stored values go through its band scale and offset, and
+heights in feet (the band's unit, or the vertical axis of a compound CRS such as US
+state-plane lidar's ``EPSG:2229+6360``) are converted; cells under a GDAL mask (internal,
+``.msk`` or alpha) are voids like nodata. A file's heights outside
 :data:`EARTH_ELEVATIONS` are impossible for the surface a camera sees (corrupt pixels, an
 undeclared nodata value such as -9999, sea floor, or heights not in metres), and so are
 nonzero ones within :data:`TINY_HEIGHT` of 0 (random bytes read as floats): they are read as
@@ -34,6 +37,7 @@ about 1 m, 1 % of a cell. Heights are metres above the geoid (NAVD88 or EGM96).
 from __future__ import annotations
 
 import glob
+import math
 import mmap
 import os
 import re
@@ -47,7 +51,9 @@ import cv2
 import numpy as np
 import rasterio
 from affine import Affine
-from pyproj import CRS
+from pyproj import CRS, Transformer
+from pyproj.exceptions import ProjError
+from rasterio.enums import MaskFlags
 from rasterio.errors import RasterioError, RasterioIOError
 from rasterio.windows import Window
 from scipy import ndimage as ndi
@@ -67,8 +73,13 @@ EARTH_ELEVATIONS = (-500.0, 9000.0)
 TINY_HEIGHT = 1e-6
 _SCAN_CELLS = 1 << 22  # cells open_dem reads to judge the heights (a small DEM: all of them)
 _SCAN_BAND = 1 << 18  # cells it reads at once
-_HGT_NAME = re.compile(r"^([NS])(\d{2})([EW])(\d{3})\.hgt$", re.IGNORECASE)
-_HGT_SIZES = {1201: 3.0, 3601: 1.0}  # samples per side -> arc-seconds
+# N44E005.hgt, and LP DAAC's N44E005.SRTMGL1.hgt; GDAL reads them zipped too (.hgt.zip)
+_HGT_NAME = re.compile(r"^([NS])(\d{2})([EW])(\d{3})(\.SRTMGL[13])?\.hgt(\.zip)?$",
+                       re.IGNORECASE)
+# (rows, cols) of SRTM3, SRTM1 and of SRTM1-style tiles at 50-60 deg that halve the columns
+_HGT_SHAPES = ((1201, 1201), (3601, 3601), (3601, 1801))
+# metres per foot, per US survey foot
+_FOOT, _US_SURVEY_FOOT = 0.3048, 1200.0 / 3937.0
 _ASC_KEYS = {b"ncols", b"nrows", b"xllcorner", b"yllcorner", b"xllcenter", b"yllcenter",
              b"cellsize", b"dx", b"dy", b"nodata_value"}
 _CHUNK = 1 << 22
@@ -286,7 +297,8 @@ def open_dem(path, crs=None, *, validate: bool = True) -> Dem:
     ----------
     path : str or Path
         ``.asc`` (ESRI ASCII grid, optional ``.prj``), ``.tif``/``.tiff`` (GeoTIFF), ``.hgt``
-        (SRTM tile named like ``N44E005.hgt``), ``.npz`` (matplotlib sample-DEM layout), or
+        (SRTM tile named like ``N44E005.hgt``, or zipped: ``N44E005.hgt.zip``), ``.npz``
+        (matplotlib sample-DEM layout), or
         anything else GDAL reads.
     crs : pyproj.CRS, str, or "local", optional
         Override the file's CRS; ``"local"`` forces unreferenced local metres.
@@ -309,8 +321,8 @@ def open_dem(path, crs=None, *, validate: bool = True) -> Dem:
     Notes
     -----
     An ESRI ASCII grid without ``.prj`` gets its CRS from the header: if the cell size is
-    below 0.01 and the extent lies within [-180, 180] x [-90, 90] it is taken as WGS84
-    lon/lat (EPSG:4326), otherwise as local metres (``Dem.local_metres``); both set
+    below 0.1 (6 arc-minutes) and the extent lies within [-180, 180] x [-90, 90] it is taken
+    as WGS84 lon/lat (EPSG:4326), otherwise as local metres (``Dem.local_metres``); both set
     ``Dem.crs_guessed``. A GeoTIFF without CRS, or a ``.prj`` GDAL cannot parse, is an error
     unless ``crs`` is given.
     """
@@ -321,13 +333,18 @@ def open_dem(path, crs=None, *, validate: bool = True) -> Dem:
     if suffix == ".npz":
         dem = _open_npz(path)
     else:
-        if suffix == ".hgt":
+        if suffix == ".hgt" or path.name.lower().endswith(".hgt.zip"):
             _check_hgt(path)
         _check_ascii_grid(path)
         dem = _open_gdal(path, crs is not None)
     if crs is not None:
         dem.crs = None if str(crs).lower() == "local" else _parse_crs(crs, path)
         dem.crs_guessed = False
+    try:
+        _check_georeference(dem)
+    except DemError:
+        dem.close()
+        raise
     if validate and dem.width and dem.height:
         try:
             dem.read_window(dem.height - 1, dem.width - 1, 1, 1)
@@ -369,6 +386,22 @@ def _judge_heights(dem: Dem) -> str | None:
     return f"{what}; they are read as voids"
 
 
+def _check_georeference(dem: Dem):
+    """Refuse a transform no point can be located with, and lon/lat that are not degrees
+    (projected coordinates labelled EPSG:4326 would put the origin at latitude 3.8e6)."""
+    t = dem.transform
+    if not all(np.isfinite(t[:6])) or t.determinant == 0:
+        raise DemError(f"{dem.name}: the geotransform {tuple(t[:6])} has a cell size of 0 "
+                       "or is not finite: no cell can be located")
+    if dem.crs is None or not dem.crs.is_geographic:
+        return
+    left, bottom, right, top = dem.bounds
+    if bottom < -90.5 or top > 90.5 or left < -540.0 or right > 540.0:
+        raise DemError(f"{dem.name}: its coordinates ({left:.6g}..{right:.6g}, {bottom:.6g}.."
+                       f"{top:.6g}) are not degrees, as its CRS ({dem.crs.name}) says: "
+                       "projected coordinates labelled lon/lat? Give the right CRS")
+
+
 def _parse_crs(crs, path) -> CRS:
     try:
         return CRS.from_user_input(crs)
@@ -378,14 +411,21 @@ def _parse_crs(crs, path) -> CRS:
 
 def _check_hgt(path: Path):
     """Reject .hgt files whose name or size is not an SRTM tile (GDAL's errors are vague)."""
-    if not _HGT_NAME.match(path.name):
+    name = _HGT_NAME.match(path.name)
+    if not name:
         raise DemError(f"{path}: SRTM .hgt name must give the SW corner, like N44E005.hgt")
+    lat, lon = int(name[2]), int(name[4])
+    if lat > 89 or lon > 179:
+        raise DemError(f"{path}: {path.name} names a tile at latitude {lat}, longitude {lon}: "
+                       "the SW corner must be within 89 deg of latitude, 179 of longitude")
+    if name[6]:     # zipped: GDAL checks the size inside
+        return
     size = path.stat().st_size
-    for n in _HGT_SIZES:
-        if size == 2 * n * n:
-            return
+    if size in [2 * rows * cols for rows, cols in _HGT_SHAPES]:
+        return
     raise DemError(f"{path}: {size} bytes is not an SRTM tile (expected {2 * 1201 ** 2} for "
-                   f"3\" 1201x1201 or {2 * 3601 ** 2} for 1\" 3601x3601): truncated?")
+                   f"3\" 1201x1201, {2 * 3601 ** 2} for 1\" 3601x3601 or {2 * 3601 * 1801} "
+                   "for 1\" 3601x1801 at 50-60 deg): truncated?")
 
 
 def _check_ascii_grid(path: Path):
@@ -405,6 +445,7 @@ def _check_ascii_grid(path: Path):
                            f"got {header}") from None
         if ncols <= 0 or nrows <= 0:
             raise DemError(f"{path}: ESRI ASCII grid header gives {ncols} x {nrows} cells")
+        _check_cell_size(path, header)
         promised = ncols * nrows
         # every value takes a character and a separator: a short file fails without a scan
         room = path.stat().st_size - f.tell()
@@ -415,6 +456,22 @@ def _check_ascii_grid(path: Path):
         raise DemError(f"{path}: truncated ESRI ASCII grid: the header promises {nrows} x "
                        f"{ncols} = {promised} values, the file holds {what}; export or copy "
                        "it again")
+
+
+def _check_cell_size(path: Path, header: dict):
+    """An ESRI ASCII grid's cellsize (or dx, dy) must be a number > 0: GDAL takes a negative
+    one as a grid mirrored in both axes, a zero one as a grid no cell can be located in."""
+    for key in (b"cellsize", b"dx", b"dy"):
+        if key not in header:
+            continue
+        try:
+            size = float(header[key])
+        except ValueError:
+            size = math.nan
+        if not size > 0 or not math.isfinite(size):
+            raise DemError(f"{path}: ESRI ASCII grid {key.decode()} is "
+                           f"{header[key].decode(errors='replace')!r}: it must be a number "
+                           "> 0 (the lower-left corner and the cell size place the grid)")
 
 
 def _ascii_grid_header(f) -> dict:
@@ -478,9 +535,12 @@ def _open_gdal(path: Path, crs_given: bool = False) -> Dem:
             raise DemError(f"{path}: raster has no georeference (no geotransform)")
         crs, guessed = (None, False) if crs_given else _dataset_crs(ds, path)
         nodata = ds.nodata
-        if path.suffix.lower() == ".hgt" and nodata is None:
+        if ds.driver == "SRTMHGT" and nodata is None:
             nodata = float(SRTM_VOID)
-        array = _memmap_if_possible(ds, path)
+        scale, offset = _height_scaling(ds, path)
+        masked = _has_mask(ds)
+        plain = (scale, offset) == (1.0, 0.0) and not masked
+        array = _memmap_if_possible(ds, path) if plain else None
     except BaseException:
         ds.close()
         raise
@@ -492,21 +552,83 @@ def _open_gdal(path: Path, crs_given: bool = False) -> Dem:
     lock = threading.Lock()  # a GDAL dataset handle must not be used by two threads at once
 
     def read(r0, r1, c0, c1):
+        window = Window(c0, r0, c1 - c0, r1 - r0)
         with lock:
-            block = ds.read(1, window=Window(c0, r0, c1 - c0, r1 - r0))
-        return _to_float(block, nodata)
+            block = ds.read(1, window=window)
+            valid = ds.read_masks(1, window=window) if masked else None
+        z = _to_float(block, nodata)
+        if not plain:
+            z *= np.float32(scale)
+            z += np.float32(offset)
+        if valid is not None:
+            z[valid == 0] = np.nan
+        return z
 
     return Dem(str(path), ds.transform, ds.width, ds.height, crs, np.dtype(ds.dtypes[0]),
                nodata, read, guessed, ds.close)
 
 
+def _height_scaling(ds, path: Path) -> tuple[float, float]:
+    """(scale, offset) from stored values to metres: the band's scale and offset (packed
+    products: int16 with an offset, decimetres in int32), times the metres per height unit
+    the band or the CRS's vertical axis gives (US lidar DEMs store feet)."""
+    scale = ds.scales[0] if ds.scales and ds.scales[0] is not None else 1.0
+    offset = ds.offsets[0] if ds.offsets and ds.offsets[0] is not None else 0.0
+    if not (math.isfinite(scale) and math.isfinite(offset)) or scale == 0:
+        raise DemError(f"{path}: band scale {scale} and offset {offset}: no heights follow")
+    metres = _metres_per_height_unit(ds, path)
+    return scale * metres, offset * metres
+
+
+def _metres_per_height_unit(ds, path: Path) -> float:
+    unit = (ds.units[0] or "").strip() if ds.units else ""
+    if not unit:
+        return _vertical_crs_unit(ds.crs)
+    name = unit.lower().replace("_", " ").replace("-", " ")
+    if name in ("m", "metre", "meter", "metres", "meters", "metre (m)", "meters (m)"):
+        return 1.0
+    if any(word in name.split() for word in ("ft", "foot", "feet", "ftus", "us")):
+        return _US_SURVEY_FOOT if ("us" in name.split() or "survey" in name
+                                   or "ftus" in name) else _FOOT
+    raise DemError(f"{path}: its heights are in {unit!r}: give a DEM in metres or feet")
+
+
+def _vertical_crs_unit(crs) -> float:
+    """Metres per unit of a compound CRS's vertical axis (1 without one)."""
+    if not crs:
+        return 1.0
+    try:
+        crs = CRS.from_wkt(crs.to_wkt())
+    except Exception:     # an unparsable CRS is _dataset_crs's to refuse
+        return 1.0
+    vertical = [c for c in crs.sub_crs_list if c.is_vertical]
+    return float(vertical[0].axis_info[0].unit_conversion_factor) if vertical else 1.0
+
+
+def _has_mask(ds) -> bool:
+    """True when band 1 has a GDAL mask of its own (internal, .msk, alpha), not nodata's."""
+    flags = ds.mask_flag_enums[0]
+    return MaskFlags.per_dataset in flags or MaskFlags.alpha in flags
+
+
 def _dataset_crs(ds, path: Path):
-    """(crs, guessed) for a rasterio dataset, applying the ESRI-grid header rule."""
+    """(crs, guessed) for a rasterio dataset, applying the ESRI-grid header rule. A local
+    (engineering) CRS in metres is local metres; any other CRS must relate to lon/lat."""
     if ds.crs:
         try:
-            return CRS.from_wkt(ds.crs.to_wkt()), False
+            crs = CRS.from_wkt(ds.crs.to_wkt())
         except Exception as exc:
             raise DemError(f"{path}: unknown CRS in file: {exc}") from exc
+        if crs.type_name == "Engineering CRS":
+            if all(a.unit_name in ("metre", "meter") for a in crs.axis_info):
+                return None, False
+            raise DemError(f"{path}: a local CRS ({crs.name}) not in metres")
+        try:
+            Transformer.from_crs(crs, CRS.from_epsg(4326), always_xy=True)
+        except ProjError as exc:
+            raise DemError(f"{path}: its CRS ({crs.name}) cannot be related to longitude "
+                           f"and latitude: {exc}") from exc
+        return crs, False
     prj = path.with_suffix(".prj")
     if prj.exists():
         raise DemError(f"{path}: unknown CRS: GDAL cannot parse {prj.name}")
@@ -514,7 +636,7 @@ def _dataset_crs(ds, path: Path):
         raise DemError(f"{path}: unknown CRS: the file stores none (pass crs=...)")
     left, bottom, right, top = ds.bounds
     cell = max(abs(ds.transform.a), abs(ds.transform.e))
-    lonlat = (cell < 0.01 and -180.0 <= left < right <= 360.0 and -90.0 <= bottom < top <= 90.0)
+    lonlat = (cell < 0.1 and -180.0 <= left < right <= 360.0 and -90.0 <= bottom < top <= 90.0)
     return (CRS.from_epsg(4326) if lonlat else None), True
 
 
@@ -523,7 +645,9 @@ def _memmap_if_possible(ds, path: Path):
     if ds.count != 1 or ds.driver not in ("GTiff", "SRTMHGT"):
         return None
     h, w, dtype = ds.height, ds.width, np.dtype(ds.dtypes[0])
-    if ds.driver == "SRTMHGT":
+    if ds.driver == "SRTMHGT":     # a plain tile only, not one GDAL reads inside a .zip
+        if path.suffix.lower() != ".hgt" or path.stat().st_size != 2 * h * w:
+            return None
         return np.memmap(path, dtype=">i2", mode="r", shape=(h, w))
     if ds.compression is not None or ds.profile.get("tiled") or dtype.kind not in "iuf" or \
             ds.tags(1, ns="IMAGE_STRUCTURE").get("NBITS"):  # packed sub-byte samples
@@ -695,7 +819,8 @@ def dem_files(paths) -> list[str]:
         p = os.fspath(p)
         if os.path.isdir(p):
             out += [str(q) for q in Path(p).iterdir()
-                    if q.suffix.lower() in (".asc", ".tif", ".tiff", ".hgt", ".npz")]
+                    if q.suffix.lower() in (".asc", ".tif", ".tiff", ".hgt", ".npz")
+                    or q.name.lower().endswith(".hgt.zip")]
         elif any(ch in p for ch in "*?["):
             out += glob.glob(p)
         else:
