@@ -8,11 +8,18 @@ The node list is not repeated here: it is read from config/graph.yaml, the same 
 """
 
 import os
+import shutil
 import tempfile
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, OpaqueFunction, SetEnvironmentVariable
+from launch.actions import (
+    DeclareLaunchArgument,
+    OpaqueFunction,
+    RegisterEventHandler,
+    SetEnvironmentVariable,
+)
+from launch.event_handlers import OnShutdown
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
@@ -42,10 +49,13 @@ def _from_arguments(context):
     env = load_graph(graph, enable).environment()
     actions = [SetEnvironmentVariable(DDS_PROFILE_VARIABLE, env[DDS_PROFILE_VARIABLE])] \
         if env.get(DDS_PROFILE_VARIABLE) else []
-    # the run's folder (the ekf's checkpoint, for a respawned ekf), as the runner's
+    # the run's folder (the ekf's checkpoint, for a respawned ekf), removed at the end as
+    # the runner's is: a later launch must not resume from this run's checkpoint
     if not os.environ.get(RUN_DIR_VARIABLE):
-        actions.append(SetEnvironmentVariable(
-            RUN_DIR_VARIABLE, tempfile.mkdtemp(prefix="terrain_nav_run_")))
+        run_dir = tempfile.mkdtemp(prefix="terrain_nav_run_")
+        actions += [SetEnvironmentVariable(RUN_DIR_VARIABLE, run_dir),
+                    RegisterEventHandler(OnShutdown(on_shutdown=lambda event, context:
+                                                    shutil.rmtree(run_dir, True)))]
     return actions + graph_nodes(graph, sim, enable)
 
 

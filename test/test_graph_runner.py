@@ -188,7 +188,8 @@ def _stub_launch_modules(monkeypatch):
     for name, attrs in {
         "launch": {"LaunchDescription": Action},
         "launch.actions": {"DeclareLaunchArgument": Action, "OpaqueFunction": Action,
-                           "SetEnvironmentVariable": Action},
+                           "SetEnvironmentVariable": Action, "RegisterEventHandler": Action},
+        "launch.event_handlers": {"OnShutdown": Action},
         "launch.substitutions": {"LaunchConfiguration": Action},
         "launch_ros": {},
         "launch_ros.actions": {"Node": Action},
@@ -256,7 +257,11 @@ def test_the_graphs_dds_profile_reaches_every_node_unless_one_is_set(tmp_path, m
     monkeypatch.delenv(RUN_DIR_VARIABLE, raising=False)
     actions = launch_file._from_arguments(Context())
     assert actions[0].args == (DDS_PROFILE_VARIABLE, str(spec.dds_profile))
-    # and a fresh folder for the run (the ekf's checkpoint), as the runner makes
-    assert actions[1].args[0] == RUN_DIR_VARIABLE and Path(actions[1].args[1]).is_dir()
-    Path(actions[1].args[1]).rmdir()
-    assert [a.kwargs["name"] for a in actions[2:]] == [n.name for n in spec.nodes]
+    # and a fresh folder for the run (the ekf's checkpoint), as the runner makes, removed
+    # when the launch shuts down
+    run_dir = Path(actions[1].args[1])
+    assert actions[1].args[0] == RUN_DIR_VARIABLE and run_dir.is_dir()
+    (run_dir / "ekf.checkpoint").write_text("x")
+    actions[2].args[0].kwargs["on_shutdown"](None, Context())
+    assert not run_dir.exists()
+    assert [a.kwargs["name"] for a in actions[3:]] == [n.name for n in spec.nodes]
