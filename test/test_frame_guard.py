@@ -49,3 +49,23 @@ def test_repeats_of_a_constant_image_are_not_taken_for_a_frozen_camera():
     for t, value in ((1.1, 0), (1.2, 0), (1.3, 255), (1.4, 255)):
         assert guard.check(t, np.full((48, 64), value, np.uint8)) == ""
     assert guard.check(1.5, a) == "" and guard.check(1.6, a.copy()).startswith("camera frozen")
+
+
+def test_a_stamp_far_ahead_or_a_clock_that_jumps_back_costs_a_few_frames_not_the_flight():
+    """One frame stamped an hour ahead, or a clock restarted (bag --loop): the frames after
+    it go forward among themselves, and the third in a row restarts the guard; repeated
+    stamps never do."""
+    frames = _frames(12)
+    guard = FrameGuard()
+    assert guard.check(100.0, frames[0]) == "" and guard.check(3700.0, frames[1]) == ""
+    answers = [guard.check(101.0 + k, frames[2 + k]) for k in range(5)]
+    assert [a == "" for a in answers] == [False, False, True, True, True]
+    assert guard.restarts == 1
+    # a clock that jumps back by a minute
+    assert [guard.check(50.0 + k, frames[7 + k]) == "" for k in range(4)] == \
+        [False, False, True, True]
+    # the same stamp over and over is a repeat, however long it goes on
+    guard = FrameGuard()
+    assert guard.check(10.0, frames[0]) == ""
+    assert all(guard.check(9.0, f) for f in frames[1:])
+    assert guard.restarts == 0

@@ -8,7 +8,8 @@ onto the mean terrain plane under the view (homography from the pose interpolate
 frame's stamp), then published as a ``terrain_nav_msgs/GeoImage`` on ``/camera/image_ground``
 with a validity mask. A frame that cannot be projected (no estimate or tile yet, no
 calibration, camera above the horizon, undecodable image, a frozen camera repeating its
-last image or a stamp that does not move forward) is still published, as a GeoImage
+last image or a stamp that does not move forward; three frames in a row that go forward
+behind the last one are a new clock, taken with a warning) is still published, as a GeoImage
 without an image whose ``reason`` says why, so that the matcher answers it with a no-fix; a
 throttled log line says so too, and ``/camera_ingest/diagnostics`` counts each reason.
 
@@ -279,7 +280,13 @@ class CameraIngestNode(Node):
 
     def ingest(self, image: np.ndarray, encoding: str, header) -> None:
         """Project one frame; every frame comes out, projected or with the reason why not."""
+        restarts = self.frames.restarts
         refused = self.frames.check(cv.stamp_to_sec(header.stamp), image)
+        if self.frames.restarts > restarts:
+            self.get_logger().warning(
+                f"camera clock went back (a loop, a restart) or the last frame's stamp was "
+                f"wrong: {FrameGuard.CONFIRM} frames in a row go on from "
+                f"{cv.stamp_to_sec(header.stamp):.3f} s; taking that clock")
         if refused:
             self.drop(refused, header)
             return
