@@ -407,6 +407,19 @@ def test_waiting_for_says_what_initialisation_needs():
     assert ekf.initialized and ekf.waiting_for() == ""
 
 
+def test_a_pair_of_fixes_too_far_apart_for_an_aircraft_starts_nothing():
+    """A bad first fix (a receiver's output before its fix, a false match) and a good one
+    10 s later mean thousands of km/s: the filter drops the older and starts from the good
+    one with the next good one."""
+    ekf = TerrainEkf(EkfParams(init_mode="gnss", init_min_fix_interval=10.0))
+    ekf.process_gnss(2.0, [-6.3e6, 3.6e5, -5.0e6], np.eye(3))
+    out = ekf.process_gnss(12.0, [300.0, 0.0, 500.0], np.eye(3))
+    assert out.reason == Reason.INIT_TOO_FAST and not ekf.initialized
+    assert ekf.waiting_for().endswith("after the one at 12.000 s (or one with velocity)")
+    assert ekf.process_gnss(22.0, [600.0, 0.0, 500.0], np.eye(3)).reason == Reason.INITIALIZED
+    np.testing.assert_allclose(ekf.state.velocity, [30.0, 0.0, 0.0], atol=1e-6)
+
+
 def test_init_from_a_late_fix_replays_the_buffered_imu_as_it_is():
     """The IMU buffered while waiting for initialisation is replayed from the fix's stamp,
     2.5 s behind the newest sample: passed by the timing screen already, never taken for a

@@ -20,6 +20,7 @@ from terrain_nav_ros.core.estimation.ekf_inputs import (
     gnss_refusal,
 )
 from terrain_nav_ros.core.estimation.strapdown import quat_from_euler, quat_to_matrix
+from terrain_nav_ros.core.terrain.geodesy import EnuOrigin
 
 
 def _frame(pose_frame="camera_optical", lever_arm=(0.0, 0.0, 0.0)):
@@ -75,11 +76,19 @@ def test_fix_covariance_is_in_the_cores_block_order():
 
 def test_gnss_refusals_name_their_reason():
     good = np.array([36.5, -84.3, 300.0])
-    assert gnss_refusal(1.0, good, True) is None
-    assert gnss_refusal(1.0, [np.nan, -84.3, 300.0], True)[0] == "non_finite_value"
-    assert gnss_refusal(math.inf, good, True)[0] == "non_finite_value"
-    assert gnss_refusal(1.0, [91.0, 0.0, 0.0], True)[0] == "latitude_longitude_out_of_range"
-    assert gnss_refusal(1.0, good, False) == ("no_enu_origin_yet", "")
+    origin = EnuOrigin(36.6, -84.2, 0.0)
+    assert gnss_refusal(1.0, good, origin) is None
+    assert gnss_refusal(1.0, [np.nan, -84.3, 300.0], origin)[0] == "non_finite_value"
+    assert gnss_refusal(math.inf, good, origin)[0] == "non_finite_value"
+    assert gnss_refusal(1.0, [91.0, 0.0, 0.0], origin)[0] == "latitude_longitude_out_of_range"
+    assert gnss_refusal(1.0, good, None) == ("no_enu_origin_yet", "")
+    # a receiver's (0, 0) before its first fix, with or without an origin
+    assert gnss_refusal(1.0, [0.0, 0.0, 0.0], None)[0] == "zero_latitude_longitude"
+    assert gnss_refusal(1.0, [0.0, 0.0, 0.0], EnuOrigin(0.1, 0.1, 0.0))[0] == \
+        "zero_latitude_longitude"
+    reason, detail = gnss_refusal(1.0, [46.5, 7.0, 300.0], origin)   # the Alps, not Tennessee
+    assert reason == "far_from_the_mission" and " km from the ENU origin" in detail
+    assert gnss_refusal(1.0, [41.0, -84.3, 300.0], origin) is None    # 500 km: a long flight
 
 
 def test_gnss_covariance_falls_back_or_keeps_what_the_fix_knows():

@@ -195,6 +195,8 @@ EKF_PARAMETERS = {
     "init_mode": ("pose | gnss | fix: what starts the filter", None, None),
     "init_min_fix_interval": ("init from fixes without velocity: time between the two "
                               "fixes used [s]", 0.0, 600.0),
+    "init_max_speed": ("init from fixes without velocity: a pair further apart than this "
+                       "speed allows starts nothing [m/s]", 1.0, 1e4),
     "fix_gate_probability": ("chi-square gate probability for terrain fixes; 1 = no gate",
                              1e-6, 1.0),
     "baro_gate_probability": ("chi-square gate probability for baro altitude", 1e-6, 1.0),
@@ -726,7 +728,7 @@ class EkfNode(Node):
         if status < NavSatStatus.STATUS_FIX:
             self._refuse("gnss", "no_fix_status")
             return
-        refused = gnss_refusal(stamp, lla, self.origin is not None)
+        refused = gnss_refusal(stamp, lla, self.origin)
         if refused is not None:
             self._refuse("gnss", *refused)
             return

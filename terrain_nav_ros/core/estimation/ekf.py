@@ -127,6 +127,7 @@ class Reason(StrEnum):
     INITIALIZED = "initialized"
     QUEUED = "queued_until_imu_reaches_stamp"
     WAITING_FOR_INIT = "stored_for_initialisation"
+    INIT_TOO_FAST = "initialisation_pair_implies_an_impossible_speed"
     IMU_GAP = "imu_gap_integrated"
     POSITION_RESET = "position_reset_after_consecutive_rejections"
     NOT_INITIALIZED = "not_initialized"
@@ -581,6 +582,10 @@ class TerrainEkf:
             if first is None or meas.stamp < first.stamp:
                 self._init_candidate = meas
             return Outcome(True, Reason.WAITING_FOR_INIT)
+        speed = np.linalg.norm(meas.z[:3] - first.z[:3]) / (meas.stamp - first.stamp)
+        if not speed <= self.params.init_max_speed:
+            self._init_candidate = meas    # one of the two is wrong: start again from this
+            return Outcome(False, Reason.INIT_TOO_FAST)
         return self._init_from(meas, first)
 
     def _init_from_relocalisation(self, meas: _Measurement) -> Outcome:

@@ -121,15 +121,31 @@ def fix_covariance(covariance, velocity_covariance=None,
     return cov
 
 
-def gnss_refusal(stamp: float, lla, has_origin: bool) -> tuple[str, str] | None:
-    """Why a GNSS fix (with a fix status) is refused, as ``(reason, detail)``, or None."""
+MAX_GNSS_RANGE = 1000e3   # m from the ENU origin: beyond, a fix is of another mission
+
+
+def gnss_refusal(stamp: float, lla, origin: EnuOrigin | None) -> tuple[str, str] | None:
+    """Why a GNSS fix (with a fix status) is refused, as ``(reason, detail)``, or None.
+
+    Besides values no fix can hold: latitude and longitude both exactly 0, which receivers
+    and drivers put out before their first fix (status already set, or not gated), and a
+    fix over :data:`MAX_GNSS_RANGE` from the mission's origin. Either would start or reset
+    the filter thousands of kilometres off.
+    """
     if not (np.isfinite(lla).all() and math.isfinite(stamp)):
         return Reason.NON_FINITE.value, ""
     if abs(lla[0]) > 90.0 or abs(lla[1]) > 360.0:
         return "latitude_longitude_out_of_range", f" {lla[:2]}"
-    if not has_origin:
+    if lla[0] == 0.0 and lla[1] == 0.0:
+        return "zero_latitude_longitude", " (0, 0): a receiver's placeholder before its fix"
+    if origin is None:
         return "no_enu_origin_yet", ""
+    distance = float(np.linalg.norm(origin.geodetic_to_enu(lla[0], lla[1], origin.alt)))
+    if distance > MAX_GNSS_RANGE:
+        return "far_from_the_mission", (f" ({lla[0]:.5f}, {lla[1]:.5f}) is {distance / 1e3:.0f} "
+                                        "km from the ENU origin")
     return None
+
 
 
 def gnss_covariance(covariance, covariance_type: int, fallback_sigma) -> np.ndarray:

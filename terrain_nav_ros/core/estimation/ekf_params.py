@@ -69,6 +69,10 @@ class EkfParams:
     init_min_fix_interval : float
         When initialising from fixes that carry no velocity, the second fix used to derive
         velocity and course must be at least this much later than the first (s). Default 10.0.
+    init_max_speed : float
+        A pair of such fixes whose difference means a faster speed (m/s) starts nothing: one
+        of them is wrong (a receiver's first output, a false match). The older is dropped and
+        the newer waits for a partner. Default 150.0 (a small fixed-wing with wind to spare).
     fix_gate_probability : float
         Chi-square gate probability for terrain fixes (dof = measurement dimension); >= 1
         disables gating. Default 0.999.
@@ -180,6 +184,7 @@ class EkfParams:
     init_accel_bias_sigma: float = 2.0e-2
     init_mode: str = "fix"
     init_min_fix_interval: float = 10.0
+    init_max_speed: float = 150.0
     fix_gate_probability: float = 0.999
     baro_gate_probability: float = 0.999
     gnss_gate_probability: float = 0.999
