@@ -150,6 +150,10 @@ def test_view_partly_above_the_horizon_is_masked():
     (CameraIntrinsics(0.0, 0.0, 0.0, 0.0, 640, 480), nadir_rotation(), PLANE + ALT, "zero"),
     (CameraIntrinsics(500.0, 500.0, 320.0, 240.0, 0, 0), nadir_rotation(), PLANE + ALT,
      "size"),
+    (CameraIntrinsics(1e9, 1e9, 320.0, 240.0, 640, 480), nadir_rotation(), PLANE + ALT,
+     "field of view 3.67e-05 deg across"),           # a focal length in nm, not px
+    (CameraIntrinsics(1e-3, 1e-3, 320.0, 240.0, 640, 480), nadir_rotation(), PLANE + ALT,
+     "field of view 180 deg across"),
     (PINHOLE, nadir_rotation(), PLANE - 5.0, "not above"),
     (PINHOLE, 2.0 * nadir_rotation(), PLANE + ALT, "rotation"),
     (PINHOLE, np.full((3, 3), np.nan), PLANE + ALT, "not finite"),
@@ -171,6 +175,21 @@ def test_wrong_frame_size_and_missed_raster():
     far = GeoReference.centred(1e5, 0.0, 1.0, 64, 64)
     miss = project_to_ground(np.zeros((480, 640), np.uint8), PINHOLE, pose, PLANE, far)
     assert miss.image is None and "does not reach" in miss.reason
+
+
+def test_a_float_frame_s_nan_pixels_are_not_valid_ground():
+    """32FC1 frames (thermal, depth-style drivers) with NaN pixels: the ground pixels they
+    reach are invalid, never NaN marked valid; a frame mostly NaN says so."""
+    pose = CameraPose([0.0, 0.0, PLANE + ALT], nadir_rotation())
+    geo = GeoReference.centred(0.0, 0.0, 2.0, 200, 200)   # the whole 384 x 288 m view
+    frame = np.full((480, 640), 50.0, np.float32)
+    frame[:100] = np.nan                  # the top of the frame: 144 to 84 m north
+    out = project_to_ground(frame, PINHOLE, pose, PLANE, geo)
+    assert np.isfinite(out.image).all() and np.all(out.image[out.valid] == 50.0)
+    assert out.valid[150, 20:180].all() and not out.valid[32:56].any()
+    frame[:300] = np.nan
+    mostly = project_to_ground(frame, PINHOLE, pose, PLANE, geo)
+    assert mostly.image is None and "62 % of the frame's pixels are not numbers" in mostly.reason
 
 
 def test_colour_frames_become_grey():

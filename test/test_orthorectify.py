@@ -1,7 +1,9 @@
 """True-ortho projection: a point on a mountain top lands on its ground position; the
 mean-plane homography would misplace it by height x distance / flying height."""
 
+import cv2
 import numpy as np
+import pytest
 
 from terrain_nav_ros.core.camera.ground_projection import (
     CameraIntrinsics,
@@ -58,3 +60,21 @@ def test_heights_outside_the_dem_are_invalid():
     assert np.isnan(heights[:, :40]).all() and np.isfinite(heights[:, 60:]).all()
     ortho = orthorectify(np.full((480, 640), 100, np.uint8), INTR, POSE, heights, georef)
     assert not ortho.valid[:, :40].any()
+
+
+@pytest.mark.parametrize("sigma", [6.0, 20.0, 60.0])
+def test_a_wide_blur_is_the_gaussian_it_stands_for(sigma):
+    """A large frame low over the ground needs a wide low-pass: the cheap one keeps the
+    Gaussian's response (a step's edge spread and the noise left) and the frame's grid."""
+    from terrain_nav_ros.core.camera.orthorectify import wide_blur
+
+    rng = np.random.default_rng(1)
+    frame = rng.normal(100.0, 20.0, (600, 800)).astype(np.float32)
+    frame[:, 400:] += 100.0                               # a step across the frame
+    exact = cv2.GaussianBlur(frame, (0, 0), sigma)
+    cheap = wide_blur(frame, sigma)
+    assert cheap.shape == frame.shape
+    row = slice(200, 400)
+    np.testing.assert_allclose(cheap[row].mean(axis=0)[100:-100],
+                               exact[row].mean(axis=0)[100:-100], atol=2.5)
+    assert cheap[row, 100:300].std() == pytest.approx(exact[row, 100:300].std(), rel=0.35)

@@ -47,6 +47,11 @@ __all__ = [
 _MIN_DEPTH = 1e-6  # m; ground points closer to the camera plane are behind it
 
 
+#: Fields of view (deg) a pinhole model of a navigation camera can have: narrower sees a few
+#: metres of ground from altitude, wider is a fisheye the polynomial models fold over.
+FIELD_OF_VIEW = (0.1, 160.0)
+
+
 @dataclass(frozen=True)
 class CameraIntrinsics:
     """Pinhole intrinsics and OpenCV distortion of one camera.
@@ -106,6 +111,14 @@ class CameraIntrinsics:
             return "camera image size is zero"
         if len(self.dist) not in (0, 4, 5, 8):
             return f"unsupported distortion model with {len(self.dist)} coefficients"
+        for axis, size, focal in (("across", self.width, self.fx), ("down", self.height,
+                                                                       self.fy)):
+            fov = 2.0 * np.degrees(np.arctan(0.5 * size / focal))
+            if not FIELD_OF_VIEW[0] <= fov <= FIELD_OF_VIEW[1]:
+                return (f"camera field of view {fov:.3g} deg {axis}: a focal length of "
+                        f"{focal:g} px for {size} px (in another unit, or another image "
+                        f"size?); a pinhole camera sees {FIELD_OF_VIEW[0]:g}-"
+                        f"{FIELD_OF_VIEW[1]:g} deg")
         return ""
 
 
@@ -309,6 +322,11 @@ def grey_frame(image, intr: CameraIntrinsics, bgr: bool) -> tuple[np.ndarray, st
     if img.shape != (intr.height, intr.width):
         return img, (f"image size {img.shape[::-1]} differs from CameraInfo "
                      f"{intr.width}x{intr.height}")
+    if img.dtype.kind == "f":
+        bad = img.size - np.count_nonzero(np.isfinite(img))
+        if bad > img.size // 2:
+            return img, (f"{100 * bad / img.size:.0f} % of the frame's pixels are not "
+                         "numbers (NaN or inf)")
     return img, ""
 
 
@@ -400,6 +418,8 @@ def project_to_ground(image, intr: CameraIntrinsics, pose: CameraPose, plane_hei
                         borderMode=cv2.BORDER_CONSTANT)
     # Interpolated from frame pixels only (no constant border mixed in).
     valid &= (u >= 0) & (u <= intr.width - 1) & (v >= 0) & (v <= intr.height - 1)
+    if out.dtype.kind == "f":
+        valid &= np.isfinite(out)       # a float frame's NaN pixels
     if not valid.any():
         return GroundImage(None, None, georef, "camera view does not reach the output raster")
     out[~valid] = 0
