@@ -1,5 +1,7 @@
 """Round trips through the one conversions module."""
 
+import math
+
 import numpy as np
 import pytest
 from sensor_msgs.msg import Image
@@ -302,3 +304,22 @@ def test_sensor_gps_without_a_velocity_says_so_and_stationary_course_is_unknown(
                                np.eye(3) * 0.04, SensorGps.FIX_TYPE_3D)
     assert still.vel_ned_valid and still.s_variance_m_s == pytest.approx(0.2)
     assert still.c_variance_rad == pytest.approx(np.pi)
+
+
+def test_an_imu_orientation_is_taken_only_where_there_is_one():
+    """REP 145's -1, a driver's untouched identity with an all-zero covariance and a
+    quaternion that is no rotation carry none; an estimate with an unknown (zero)
+    covariance gets a MEMS AHRS's 3 deg."""
+    header = cv.make_header(cv.sec_to_stamp(1.0), "base_link")
+    msg = cv.sample_to_imu(header, [0.0, 0.0, 0.0], [0.0, 0.0, 9.8])
+    assert cv.imu_orientation(msg) is None                        # covariance[0] = -1
+    msg.orientation_covariance = [0.0] * 9
+    assert cv.imu_orientation(msg) is None                        # the untouched default
+    msg.orientation.x, msg.orientation.w = 0.3, 0.3               # not of unit length
+    assert cv.imu_orientation(msg) is None
+    msg.orientation.x, msg.orientation.w = math.sin(0.1), math.cos(0.1)
+    q, variance = cv.imu_orientation(msg)
+    np.testing.assert_allclose(q, [math.sin(0.1), 0.0, 0.0, math.cos(0.1)])
+    assert variance == pytest.approx(math.radians(3.0) ** 2)
+    msg.orientation_covariance = [1e-4, 0, 0, 0, 2e-4, 0, 0, 0, 1e-3]
+    assert cv.imu_orientation(msg)[1] == pytest.approx(2e-4)

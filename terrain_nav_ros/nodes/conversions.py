@@ -8,6 +8,7 @@ an ndarray to a message's sequence field goes element by element (22 ms for a 51
 from __future__ import annotations
 
 import array
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -545,15 +546,28 @@ def imu_to_sample(msg: Imu) -> tuple[float, tuple, tuple]:
     return stamp_to_sec(msg.header.stamp), (w.x, w.y, w.z), (a.x, a.y, a.z)
 
 
+#: Variance (rad^2) of an IMU orientation whose covariance is all zero (REP 145: unknown):
+#: a MEMS AHRS's 3 deg.
+UNKNOWN_ORIENTATION_VARIANCE = math.radians(3.0) ** 2
+
+
 def imu_orientation(msg: Imu) -> tuple[np.ndarray, float] | None:
     """The orientation an Imu message carries (quaternion ``[x, y, z, w]``, body -> its
     frame) and the larger of its roll and pitch variances (rad^2), or None when it carries
-    none (REP 145: ``orientation_covariance[0] == -1``)."""
+    none: REP 145's ``orientation_covariance[0] == -1``, a quaternion that is no rotation
+    (not of unit length), or the identity with an all-zero covariance, which is what many
+    drivers that estimate no orientation leave in the message. Another orientation with an
+    all-zero (unknown) covariance gets :data:`UNKNOWN_ORIENTATION_VARIANCE`."""
     cov = msg.orientation_covariance
     if cov[0] < 0:
         return None
     o = msg.orientation
-    return np.array([o.x, o.y, o.z, o.w], float), float(max(cov[0], cov[4]))
+    q = np.array([o.x, o.y, o.z, o.w], float)
+    if not (np.isfinite(q).all() and abs(np.linalg.norm(q) - 1.0) <= 0.01):
+        return None
+    if not any(cov):
+        return None if tuple(q) == (0.0, 0.0, 0.0, 1.0) else (q, UNKNOWN_ORIENTATION_VARIANCE)
+    return q / np.linalg.norm(q), float(max(cov[0], cov[4]))
 
 
 def sample_to_imu(header: Header, gyro, accel) -> Imu:
