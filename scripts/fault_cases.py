@@ -568,6 +568,9 @@ def cases() -> list[Case]:
         Case("replay of a mission naming a missing DEM", "replay", _replay(
             lambda t: with_mission(make_bag(t / "whole"), t / "bag", "dem: /no/dem.tif\n"), (),
             "no such DEM file")),
+        Case("replay of a bag whose /imu/data is not sensor_msgs/Imu", "replay", _replay(
+            lambda t: make_bag(t / "whole"), (),
+            "/imu/data is std_msgs/msg/String, not sensor_msgs/msg/Imu"), ci=True),
         Case("replay --rate 0", "replay", _replay(
             lambda t: make_bag(t / "whole"), ("--rate", 0), "--rate 0.0: must be > 0")),
         Case("replay --rate nan", "replay", _replay(

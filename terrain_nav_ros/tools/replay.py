@@ -171,6 +171,25 @@ def _read_mission(bag: Path) -> dict:
     return mission
 
 
+#: The message type the graph (and the report) takes on each input topic a bag may hold.
+INPUT_TYPES = {
+    "/imu/data": "sensor_msgs/msg/Imu",
+    "/camera/image_raw": "sensor_msgs/msg/Image",
+    "/camera/image_raw/compressed": "sensor_msgs/msg/CompressedImage",
+    "/camera/camera_info": "sensor_msgs/msg/CameraInfo",
+    "/baro/pressure": "sensor_msgs/msg/FluidPressure",
+    "/gnss/fix": "sensor_msgs/msg/NavSatFix",
+    "/ground_truth/odometry": "nav_msgs/msg/Odometry",
+}
+
+
+def _wrong_types(topics) -> list[str]:
+    """'topic is T, not U' for each input topic of another type than the graph takes (a
+    subscription never matches it: the replay would wait for it, then play to no one)."""
+    return [f"{t.topic} is {t.msgtype}, not {INPUT_TYPES[t.topic]}" for t in topics
+            if t.topic in INPUT_TYPES and t.msgtype != INPUT_TYPES[t.topic]]
+
+
 def check_inputs(bag: Path, out_dir: Path, rate: float) -> tuple[dict, bags.BagHealth]:
     """Everything a replay needs, checked before any node starts: the options, the bag
     (read in full), its mission.yaml and the DEM it names. Returns (mission, bag health);
@@ -191,6 +210,10 @@ def check_inputs(bag: Path, out_dir: Path, rate: float) -> tuple[dict, bags.BagH
         from ..core.terrain.dem_sources import open_dem_source
 
         open_dem_source(dem).close()
+    wrong = _wrong_types(bags.topics(bag))
+    if wrong:
+        raise InputError(f"bag {bag}: {'; '.join(wrong)}: the graph's subscriptions never "
+                         "match a topic of another type; convert or remap it")
     return mission, health
 
 
