@@ -47,6 +47,7 @@ from ..core.camera.frame_guard import FrameGuard
 from ..core.camera.ground_projection import (
     CameraIntrinsics,
     CameraPose,
+    check_view,
     footprint_georef,
     mean_height_near,
     project_to_ground,
@@ -325,7 +326,7 @@ class CameraIngestNode(Node):
                 plane = better
                 georef = footprint_georef(self.intrinsics, camera, plane, self.gsd, max_range)
         if georef is None:
-            self.drop("camera is pointing at or above the horizon", header)
+            self.drop(check_view(self.intrinsics, camera, plane), header)
             return
         georef = self._capped(georef)
         bgr = encoding.startswith("bgr")
@@ -400,7 +401,7 @@ class CameraIngestNode(Node):
         max_range = self.max_range_factor * view.height_above_ground
         georef = footprint_georef(self.intrinsics, camera, plane, self.gsd, max_range)
         if georef is None:
-            self.drop("camera is pointing at or above the horizon", header)
+            self.drop(check_view(self.intrinsics, camera, plane), header)
             return
         georef = self._capped(georef)
         ground = project_to_ground(image, self.intrinsics, camera, plane, georef,
