@@ -128,9 +128,12 @@ def test_front_range_longs_peak_agrees_with_rmnp(shared_data):
 
 
 def test_asc_crs_from_header_and_prj(shared_data, tmp_path):
-    assert open_dem(shared_data / "dem/front_range_srtm3.asc").crs.to_epsg() == 4326
+    lonlat = open_dem(shared_data / "dem/front_range_srtm3.asc")
+    assert lonlat.crs.to_epsg() == 4326 and "taken as WGS84 longitude and latitude" in \
+        lonlat.warning                       # a guess is said: it could be another place
     local = open_dem(shared_data / "dem/halffork_5m.asc")
     assert local.local_metres and local.crs_guessed and local.res == (5.0, 5.0)
+    assert "no .prj: its CRS is taken as local metres" in local.warning
     # with a .prj the CRS is the file's, not a guess
     asc = tmp_path / "halffork.asc"
     shutil.copyfile(shared_data / "dem/halffork_5m.asc", asc)
@@ -138,7 +141,7 @@ def test_asc_crs_from_header_and_prj(shared_data, tmp_path):
 
     asc.with_suffix(".prj").write_text(CRS.from_epsg(32613).to_wkt("WKT1_ESRI"))
     dem = open_dem(asc)
-    assert dem.crs.to_epsg() == 32613 and not dem.crs_guessed
+    assert dem.crs.to_epsg() == 32613 and not dem.crs_guessed and dem.warning is None
     # and an explicit override wins
     assert open_dem(shared_data / "dem/halffork_5m.asc", crs="EPSG:32613").crs.to_epsg() == 32613
     assert open_dem(shared_data / "dem/front_range_srtm3.asc", crs="local").local_metres

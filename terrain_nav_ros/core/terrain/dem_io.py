@@ -116,7 +116,8 @@ class Dem:
         Heights outside it, or nonzero below :data:`TINY_HEIGHT`, are read as voids (files:
         :data:`EARTH_ELEVATIONS`).
     warning : str or None
-        What is wrong with the heights, for the caller to show (impossible ones voided).
+        What is wrong with the heights, for the caller to show (impossible ones voided), and
+        a CRS guessed from an ESRI grid's header.
     """
 
     name: str
@@ -352,6 +353,11 @@ def open_dem(path, crs=None, *, validate: bool = True) -> Dem:
         except DemError:
             dem.close()
             raise
+    if dem.crs_guessed:   # say so: a wrong guess puts the DEM at another place
+        guess = "WGS84 longitude and latitude" if dem.crs else "local metres"
+        dem.warning = "; ".join(w for w in (
+            f"{path}: no .prj: its CRS is taken as {guess} from its header's cell size and "
+            f"extent; put the right .prj beside it if that is wrong", dem.warning) if w)
     dem.valid_range = EARTH_ELEVATIONS
     return dem
 
