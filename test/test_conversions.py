@@ -84,8 +84,10 @@ def test_camera_info_round_trip_and_uncalibrated_error():
     np.testing.assert_array_equal(k2, k)
     np.testing.assert_array_equal(d2, d)
     assert (model, size) == ("plumb_bob", (640, 480))
-    msg.distortion_model = "equidistant"      # a fisheye calibration: never as a pinhole
-    with pytest.raises(cv.ConversionError, match="fisheye .* not supported"):
+    msg.distortion_model = "equidistant"      # a fisheye calibration: its model goes along
+    assert cv.camera_info_to_intrinsics(msg)[2] == "equidistant"
+    msg.distortion_model = "kannala_brandt"
+    with pytest.raises(cv.ConversionError, match="unsupported distortion model"):
         cv.camera_info_to_intrinsics(msg)
     msg.k = [0.0] * 9
     with pytest.raises(cv.ConversionError, match="not calibrated"):

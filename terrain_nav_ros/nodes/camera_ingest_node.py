@@ -214,11 +214,11 @@ class CameraIngestNode(Node):
     @contained
     def on_info(self, msg: CameraInfo) -> None:
         try:
-            k, d, _model, (w, h) = cv.camera_info_to_intrinsics(msg)
+            k, d, model, (w, h) = cv.camera_info_to_intrinsics(msg)
         except cv.ConversionError as err:
             self.intrinsics, self.calibration_problem = None, str(err)
             return
-        self.intrinsics = CameraIntrinsics.from_matrix(k, w, h, tuple(d))
+        self.intrinsics = CameraIntrinsics.from_matrix(k, w, h, tuple(d), model)
         self.calibration_problem = self.intrinsics.problem()
 
     @contained

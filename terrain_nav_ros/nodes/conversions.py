@@ -226,11 +226,7 @@ def camera_info_to_intrinsics(msg: CameraInfo) -> tuple[np.ndarray, np.ndarray, 
             f"CameraInfo is not calibrated (size {msg.width}x{msg.height}, "
             f"fx={k[0, 0]}, fy={k[1, 1]})")
     model = msg.distortion_model or "plumb_bob"
-    if model == "equidistant":   # its 4 coefficients would pass for plumb_bob's, wrongly
-        raise ConversionError(
-            "fisheye (equidistant) CameraInfo is not supported: rectify the frames to a "
-            "pinhole camera (image_proc) and publish that camera's CameraInfo")
-    if model not in ("plumb_bob", "rational_polynomial"):
+    if model not in ("plumb_bob", "rational_polynomial", "equidistant"):
         raise ConversionError(f"unsupported distortion model '{model}'")
     return k, np.asarray(msg.d, dtype=np.float64), model, (int(msg.width), int(msg.height))
 

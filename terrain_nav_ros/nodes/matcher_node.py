@@ -202,11 +202,11 @@ class MatcherNode(Node):
     @contained
     def on_info(self, msg: CameraInfo) -> None:
         try:
-            k, d, _model, (width, height) = cv.camera_info_to_intrinsics(msg)
+            k, d, model, (width, height) = cv.camera_info_to_intrinsics(msg)
         except cv.ConversionError:
             self.camera_model = None
             return
-        self.camera_model = CameraIntrinsics.from_matrix(k, width, height, tuple(d))
+        self.camera_model = CameraIntrinsics.from_matrix(k, width, height, tuple(d), model)
 
     @contained
     def on_landmark(self, msg: MinutiaArray) -> None:
@@ -383,13 +383,17 @@ class MatcherNode(Node):
         u, v = ground_to_image(east, north, dem_heights(heights, dem_georef, east, north),
                                intr, CameraPose(position, rotation))
         pixels = np.column_stack([u, v])            # NaN: no DEM height or behind the camera
+        dist = intr.dist_coeffs
+        if intr.fisheye:     # PnP takes the polynomial models: give it the pinhole's pixels
+            ok = np.isfinite(pixels).all(axis=1)
+            pixels[ok] = intr.pinhole_pixels(*pixels[ok].T)
+            dist = ()
         if np.isfinite(pixels).all(axis=1).sum() < 6:
             return None
         land_east, land_north = landmark.enu()
         land_h = dem_heights(heights, dem_georef, land_east, land_north)
         return fix_from_pnp(result, pixels, (land_east, land_north), land_h, intr.matrix,
-                            intr.dist_coeffs, position, rotation,
-                            landmark_sigma=self.landmark_sigma)
+                            dist, position, rotation, landmark_sigma=self.landmark_sigma)
 
     def publish_no_fix(self, stamp, reason: str, fix: PvaFixEstimate | None = None) -> None:
         out = PvaFix(header=cv.make_header(stamp, self.frame_id),

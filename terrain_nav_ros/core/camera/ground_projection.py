@@ -3,7 +3,9 @@
 Model:
 
 * Pinhole intrinsics ``K`` plus the OpenCV lens model (``plumb_bob``/``rational_polynomial``
-  coefficients k1, k2, p1, p2[, k3[, k4, k5, k6]]), as in ``sensor_msgs/CameraInfo``.
+  coefficients k1, k2, p1, p2[, k3[, k4, k5, k6]]), or a fisheye's (``equidistant``: OpenCV's
+  ``cv2.fisheye`` model, ``r = f theta_d``, ``theta_d = theta (1 + k1 theta^2 + k2 theta^4 +
+  k3 theta^6 + k4 theta^8)``), as in ``sensor_msgs/CameraInfo``.
 * Camera pose in the mission's local ENU frame: optical centre ``position`` (m) and rotation
   ``R`` taking camera-optical vectors to ENU (REP 103 ``*_optical`` frame: z forward along the
   optical axis, x right, y down in the image).
@@ -50,6 +52,9 @@ _MIN_DEPTH = 1e-6  # m; ground points closer to the camera plane are behind it
 #: Fields of view (deg) a pinhole model of a navigation camera can have: narrower sees a few
 #: metres of ground from altitude, wider is a fisheye the polynomial models fold over.
 FIELD_OF_VIEW = (0.1, 160.0)
+#: ... and a fisheye (equidistant) model: up to a lens that sees behind itself.
+FISHEYE_FIELD_OF_VIEW = (0.1, 240.0)
+LENS_MODELS = ("plumb_bob", "rational_polynomial", "equidistant")
 
 
 @dataclass(frozen=True)
@@ -64,7 +69,9 @@ class CameraIntrinsics:
         Image size (px).
     dist : tuple of float
         OpenCV distortion coefficients (k1, k2, p1, p2[, k3[, k4, k5, k6]]); empty or all zero
-        for an ideal pinhole.
+        for an ideal pinhole. For ``model="equidistant"``: the fisheye's k1-k4.
+    model : str
+        ``sensor_msgs/CameraInfo.distortion_model``: one of :data:`LENS_MODELS`.
     """
 
     fx: float
@@ -74,15 +81,22 @@ class CameraIntrinsics:
     width: int
     height: int
     dist: tuple = ()
+    model: str = "plumb_bob"
 
     def __post_init__(self):
         object.__setattr__(self, "dist", tuple(float(d) for d in self.dist))
 
     @classmethod
-    def from_matrix(cls, K, width: int, height: int, dist=()) -> CameraIntrinsics:
+    def from_matrix(cls, K, width: int, height: int, dist=(),
+                    model: str = "plumb_bob") -> CameraIntrinsics:
         """From a 3x3 camera matrix (e.g. ``CameraInfo.k`` reshaped)."""
         K = np.asarray(K, float).reshape(3, 3)
-        return cls(K[0, 0], K[1, 1], K[0, 2], K[1, 2], int(width), int(height), tuple(dist))
+        return cls(K[0, 0], K[1, 1], K[0, 2], K[1, 2], int(width), int(height), tuple(dist),
+                   model)
+
+    @property
+    def fisheye(self) -> bool:
+        return self.model == "equidistant"
 
     @property
     def matrix(self) -> np.ndarray:
@@ -98,7 +112,63 @@ class CameraIntrinsics:
 
     @property
     def distorted(self) -> bool:
-        return any(d != 0.0 for d in self.dist)
+        return self.fisheye or any(d != 0.0 for d in self.dist)
+
+    def rays(self, u, v) -> np.ndarray:
+        """Camera-optical directions (N, 3) through pixels ``u, v`` (distorted): ``(x, y, 1)``
+        for the polynomial models; unit vectors for a fisheye, whose rays may reach past
+        90 deg from the axis (``z <= 0``)."""
+        pts = np.column_stack([np.ravel(u), np.ravel(v)]).astype(np.float64)
+        if self.fisheye:
+            return self._fisheye_rays(pts)
+        if self.distorted:
+            norm = cv2.undistortPoints(pts[:, None, :], self.matrix, self.dist_coeffs)[:, 0, :]
+        else:
+            norm = np.column_stack([(pts[:, 0] - self.cx) / self.fx,
+                                    (pts[:, 1] - self.cy) / self.fy])
+        return np.column_stack([norm, np.ones(len(norm))])
+
+    def project(self, points) -> np.ndarray:
+        """Pixels (N, 2) of camera-optical points (N, 3) in front of the camera (z > 0)."""
+        points = np.asarray(points, np.float64).reshape(-1, 3)
+        if self.fisheye:
+            x, y, z = points.T
+            radius = np.hypot(x, y)
+            theta_d = self._distorted_angle(np.arctan2(radius, z))
+            scale = np.where(radius > 0, theta_d / np.maximum(radius, 1e-300), 0.0)
+            return np.column_stack([self.fx * x * scale + self.cx,
+                                    self.fy * y * scale + self.cy])
+        return cv2.projectPoints(points[:, None, :], np.zeros(3), np.zeros(3), self.matrix,
+                                 self.dist_coeffs)[0][:, 0, :]
+
+    def pinhole_pixels(self, u, v) -> np.ndarray:
+        """Where pixels ``u, v`` of the lens would be in the ideal pinhole camera ``K``
+        (N, 2); NaN for a fisheye's rays at 90 deg or more from the axis."""
+        d = self.rays(u, v)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x, y = np.where(d[:, 2] > 0, d[:, 0] / d[:, 2], np.nan), \
+                np.where(d[:, 2] > 0, d[:, 1] / d[:, 2], np.nan)
+        return np.column_stack([self.fx * x + self.cx, self.fy * y + self.cy])
+
+    def _distorted_angle(self, theta):
+        k = (list(self.dist) + [0.0] * 4)[:4]
+        t2 = theta * theta
+        return theta * (1 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3]))))
+
+    def _fisheye_rays(self, pts: np.ndarray) -> np.ndarray:
+        """Unit rays of a fisheye's pixels: theta from theta_d by Newton's method."""
+        xd, yd = (pts[:, 0] - self.cx) / self.fx, (pts[:, 1] - self.cy) / self.fy
+        theta_d = np.hypot(xd, yd)
+        theta = theta_d.copy()
+        k = (list(self.dist) + [0.0] * 4)[:4]
+        for _ in range(20):
+            t2 = theta * theta
+            f = self._distorted_angle(theta) - theta_d
+            df = 1 + t2 * (3 * k[0] + t2 * (5 * k[1] + t2 * (7 * k[2] + t2 * 9 * k[3])))
+            theta = np.clip(theta - f / np.where(np.abs(df) > 1e-12, df, 1e-12), 0.0, np.pi)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            c = np.where(theta_d > 0, np.sin(theta) / np.maximum(theta_d, 1e-300), 1.0)
+        return np.column_stack([xd * c, yd * c, np.cos(theta)])
 
     def problem(self) -> str:
         """Why these intrinsics cannot be used ("" when they can)."""
@@ -109,16 +179,20 @@ class CameraIntrinsics:
             return "camera intrinsics are zero or negative (no CameraInfo calibration)"
         if self.width <= 0 or self.height <= 0:
             return "camera image size is zero"
-        if len(self.dist) not in (0, 4, 5, 8):
+        if self.model not in LENS_MODELS:
+            return f"unsupported distortion model '{self.model}'"
+        if len(self.dist) not in ((0, 4) if self.fisheye else (0, 4, 5, 8)):
             return f"unsupported distortion model with {len(self.dist)} coefficients"
+        limits = FISHEYE_FIELD_OF_VIEW if self.fisheye else FIELD_OF_VIEW
         for axis, size, focal in (("across", self.width, self.fx), ("down", self.height,
                                                                        self.fy)):
-            fov = 2.0 * np.degrees(np.arctan(0.5 * size / focal))
-            if not FIELD_OF_VIEW[0] <= fov <= FIELD_OF_VIEW[1]:
+            half = 0.5 * size / focal     # equidistant: the angle; pinhole: its tangent
+            fov = 2.0 * np.degrees(half if self.fisheye else np.arctan(half))
+            if not limits[0] <= fov <= limits[1]:
                 return (f"camera field of view {fov:.3g} deg {axis}: a focal length of "
                         f"{focal:g} px for {size} px (in another unit, or another image "
-                        f"size?); a pinhole camera sees {FIELD_OF_VIEW[0]:g}-"
-                        f"{FIELD_OF_VIEW[1]:g} deg")
+                        f"size?); a {'fisheye' if self.fisheye else 'pinhole'} camera sees "
+                        f"{limits[0]:g}-{limits[1]:g} deg")
         return ""
 
 
@@ -177,14 +251,7 @@ def nadir_rotation(heading_deg: float = 0.0) -> np.ndarray:
 
 def _ground_rays(u, v, intr: CameraIntrinsics, pose: CameraPose):
     """ENU ray directions through (distorted) pixels."""
-    pts = np.column_stack([np.ravel(u), np.ravel(v)]).astype(np.float64)[:, None, :]
-    if intr.distorted:
-        norm = cv2.undistortPoints(pts, intr.matrix, intr.dist_coeffs)[:, 0, :]
-    else:
-        norm = np.column_stack([(pts[:, 0, 0] - intr.cx) / intr.fx,
-                                (pts[:, 0, 1] - intr.cy) / intr.fy])
-    d_cam = np.column_stack([norm, np.ones(len(norm))])
-    return d_cam @ pose.rotation.T
+    return intr.rays(u, v) @ pose.rotation.T
 
 
 def image_to_ground(u, v, intr: CameraIntrinsics, pose: CameraPose, plane_height: float):
@@ -218,8 +285,7 @@ def ground_to_image(east, north, plane_height, intr: CameraIntrinsics, pose: Cam
     X = np.column_stack([east.ravel(), north.ravel(), up.ravel()]) - pose.position
     cam = X @ pose.rotation  # rows: R^T (X - C)
     front = cam[:, 2] > _MIN_DEPTH
-    uv = cv2.projectPoints(cam[:, None, :], np.zeros(3), np.zeros(3), intr.matrix,
-                           intr.dist_coeffs)[0][:, 0, :]
+    uv = intr.project(cam)
     uv[~front] = np.nan
     return uv[:, 0].reshape(east.shape), uv[:, 1].reshape(east.shape)
 
@@ -403,15 +469,15 @@ def project_to_ground(image, intr: CameraIntrinsics, pose: CameraPose, plane_hei
             xn = (pts[..., 0] / pts[..., 2] - intr.cx) / intr.fx
             yn = (pts[..., 1] / pts[..., 2] - intr.cy) / intr.fy
         # The polynomial lens model folds back far outside the frame: only distort rays
-        # within a margin of the undistorted field of view.
-        lim_x = 1.5 * max(intr.cx, intr.width - intr.cx) / intr.fx
-        lim_y = 1.5 * max(intr.cy, intr.height - intr.cy) / intr.fy
-        valid &= (np.abs(xn) <= lim_x) & (np.abs(yn) <= lim_y)
+        # within a margin of the undistorted field of view. (A fisheye's does not.)
+        if not intr.fisheye:
+            lim_x = 1.5 * max(intr.cx, intr.width - intr.cx) / intr.fx
+            lim_y = 1.5 * max(intr.cy, intr.height - intr.cy) / intr.fy
+            valid &= (np.abs(xn) <= lim_x) & (np.abs(yn) <= lim_y)
+        valid &= np.isfinite(xn) & np.isfinite(yn)
         xn = np.where(valid, xn, 0.0)
         yn = np.where(valid, yn, 0.0)
-        obj = np.stack([xn.ravel(), yn.ravel(), np.ones(xn.size)], axis=-1)[:, None, :]
-        uv = cv2.projectPoints(obj, np.zeros(3), np.zeros(3), intr.matrix,
-                               intr.dist_coeffs)[0][:, 0, :]
+        uv = intr.project(np.stack([xn.ravel(), yn.ravel(), np.ones(xn.size)], axis=-1))
         u = uv[:, 0].reshape(rows, cols)
         v = uv[:, 1].reshape(rows, cols)
         out = cv2.remap(img, u.astype(np.float32), v.astype(np.float32), interpolation,
