@@ -248,6 +248,59 @@ def test_localisation_by_creases_and_its_size_bounds(region):
     assert r.decision == Decision.NO_DECISION and "too few minutiae" in r.reason
 
 
+def test_a_view_of_terrain_the_region_holds_twice_is_ambiguous_not_a_fix():
+    """Repeated terrain (a region tiled from one 256 px drainage pattern): every copy
+    registers the view as well, so the matcher answers no fix and says why, where the region
+    holding it once localises it."""
+    from synthetic_minutiae import crossing_minutiae, terrain_minutiae
+
+    skel = terrain_minutiae((256, 256), seed=13)[1]
+    matcher = Matcher()
+    once = np.zeros((512, 512), bool)
+    once[:256, :256] = skel
+    for region_skel in (once, np.tile(skel, (2, 2))):
+        region_ms = crossing_minutiae(region_skel)
+        view_ms, view_skel, truth = _turned_view(region_ms, region_skel, 60, 160, 30.0,
+                                                 (2.0, -1.0))
+        r = matcher.localise(matcher.index(view_ms, view_skel),
+                             matcher.index(region_ms, region_skel))
+        if region_skel is once:
+            assert r.decision == Decision.MATCH, r.reason
+            assert _centre_error(r, truth + np.array([[0, 0, 60], [0, 0, 160]])) < 1.5
+        else:
+            assert r.decision == Decision.NO_MATCH and r.reason.startswith("ambiguous: "), \
+                (r.decision, r.score, r.reason)
+            assert "256 px away" in r.reason or "362 px away" in r.reason
+
+
+@pytest.mark.parametrize("scale, found", [(0.92, True), (1.08, True), (1.25, False)])
+def test_a_view_whose_scale_is_off_the_prior_is_no_fix(region, scale, found):
+    """The prior's height above ground sets the view's scale within +-10 %: a view at 0.92
+    or 1.08 is fitted at its scale; one at 1.25 (a wrong height) stops at the fit's bound
+    and is refused, not a fix at the wrong scale."""
+    from synthetic_minutiae import crossing_minutiae
+
+    _, skel = region
+    size, x0, y0 = 128, 300, 180
+    c = 0.5 * (size - 1)
+    # view px -> region px: the view sees 1/scale region px per px, turned 15 deg
+    m = cv2.getRotationMatrix2D((c, c), 15.0, 1.0 / scale)
+    m[:, 2] += [x0 + c - c, y0 + c - c]
+    view = cv2.warpAffine(skel.astype(np.float32), m, (size, size),
+                          flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    view_skel = skeletonize(view > 0.3)
+    matcher = Matcher()
+    r = matcher.localise(matcher.index(crossing_minutiae(view_skel), view_skel),
+                         matcher.index(crossing_minutiae(skel), skel))
+    if found:
+        assert r.decision == Decision.MATCH, r.reason
+        assert r.scale == pytest.approx(1.0 / scale, rel=0.02)
+        assert np.hypot(*(np.array(r.apply(c, c)) - (m @ [c, c, 1.0]))) < 2.0
+    else:
+        assert r.decision == Decision.NO_MATCH and "at the edge of the fit" in r.reason, \
+            (r.decision, r.scale, r.reason)
+
+
 def test_a_large_search_runs_coarse_and_registers_as_the_fine_one(region):
     """The view's search in the 512 px region is over the fine level's budget: it runs at
     the coarse level (an eighth of the work) and the coarse-to-fine ICP pulls its proposals

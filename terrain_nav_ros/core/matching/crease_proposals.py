@@ -117,6 +117,10 @@ def _n_proposals(level: SearchLevel, p: MatchParams) -> int:
     return p.crease_search_proposals * (2 if level != FINE else 1)
 
 
+#: How far beyond the searched scales the crease ICP may fit a registration's scale.
+SCALE_FIT_MARGIN = 0.05
+
+
 def _registered(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, proposals,
                 level: SearchLevel, scale_change: float) -> list:
     """``proposals`` (c, t, hits), placed at ``level``, moved onto B's creases with their
@@ -124,7 +128,11 @@ def _registered(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, proposals,
     radii = p.crease_rescue_radii if level != FINE else (3.0,)
     out, reached = [], []
     ridges = _ridge_channel(a, b, p)
-    scale = (1.0 - scale_change, 1.0 + scale_change) if scale_change > 0 else None
+    # the ICP may fit a little beyond the search: a view the prior put at the search's edge
+    # is fitted where it is, and one further off stops at this bound, where the matcher
+    # refuses it (SCALE_FIT_MARGIN)
+    reach = scale_change + SCALE_FIT_MARGIN
+    scale = (1.0 - reach, 1.0 + reach) if scale_change > 0 else None
     for c, t, _ in proposals:
         for k, radius in enumerate(radii):
             c, t = refine_on_creases(_icp_samples(a, radius), b.crease_field, c, t,

@@ -64,6 +64,7 @@ from ..features.minutia_set import MinutiaSet
 from .consensus import _hypotheses
 from .crease_check import CreaseEvidence, crease_covariance
 from .crease_proposals import (
+    SCALE_FIT_MARGIN,
     _crease_search,
     _crease_search_registrations,
     _fine_level_registrations,
@@ -310,6 +311,26 @@ def _view_try(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, level: SearchLev
     return view
 
 
+#: log10 of the likelihood ratio within which a registration at another place makes the best
+#: ambiguous: a look-alike of the view's terrain (repeated relief, a ridge along its strike).
+LOOK_ALIKE_MARGIN = 1.0
+
+
+def _look_alike(a: MinutiaIndex, best: _Scored, scored: list) -> tuple[_Scored, float] | None:
+    """The strongest registration among ``scored`` that puts the view at another place (its
+    creases' centre a quarter of their reach or more from ``best``'s) and scores within
+    :data:`LOOK_ALIKE_MARGIN` of the strongest, with that distance (px); or None."""
+    top = max(s.score for s in scored)
+    apart = max(5.0, 0.25 * a.crease_reach)
+    for s in sorted(scored, key=lambda s: -s.score):
+        if s.score < top - LOOK_ALIKE_MARGIN:
+            return None
+        distance = abs((s.c - best.c) * a.crease_centre + s.t - best.t)
+        if distance > apart:
+            return s, distance
+    return None
+
+
 def _better(best: _Scored | None, other: _Scored | None) -> _Scored | None:
     """The one of two registrations (either may be None) that scores more."""
     if other is not None and (best is None or other.score > best.score):
@@ -468,7 +489,8 @@ class Matcher:
                 _, other, vote_scored = _vote_try(a, b, p, rng, search_area, use_creases)
                 scored += vote_scored
                 best = _better(best, other)
-            return self._result(a, b, base, best, scored, use_creases, search_area)
+            return self._result(a, b, base, best, scored, use_creases, search_area,
+                                scale_change)
         votes, best, scored = _vote_try(a, b, p, rng, search_area, use_creases)
         low = _low(best, len(scored), p)
         if low and search:
@@ -486,11 +508,12 @@ class Matcher:
             # (a view the view search fits was searched above: the sweep of the votes would
             # only add chances to it)
             best = _sweep_try(a, b, p, votes, rng, best, scored, search_area, use_creases)
-        return self._result(a, b, base, best, scored, use_creases, search_area)
+        return self._result(a, b, base, best, scored, use_creases, search_area,
+                            scale_change)
 
     def _result(self, a: MinutiaIndex, b: MinutiaIndex, base: MatchResult,
                 best: _Scored | None, scored: list, use_creases: bool,
-                search_area: float) -> MatchResult:
+                search_area: float, scale_change: float = 0.0) -> MatchResult:
         """The decision on the best registration of the ``scored`` ones, with its
         covariance."""
         p = self.params
@@ -510,6 +533,22 @@ class Matcher:
             cov = crease_covariance(a.crease_samples, b.crease_field, c, t,
                                     **p.crease_tolerances)
         ok = score >= p.threshold
+        reason = "" if ok else f"score {score:.2f} below threshold {p.threshold:.2f}"
+        look_alike = _look_alike(a, best, scored) if ok and use_creases else None
+        fitted_scale = abs(c)
+        if ok and scale_change > 0 and \
+                abs(fitted_scale - 1.0) >= scale_change + SCALE_FIT_MARGIN - 1e-3:
+            # stopped at the fit's bound: the view's scale is off the prior by more than it
+            # allows (a wrong height above ground), or the fit is of nothing
+            ok = False
+            reason = (f"scale {fitted_scale:.3f} at the edge of the fit (the prior's "
+                      f"+-{scale_change:.0%} and {SCALE_FIT_MARGIN:.0%} more): the height "
+                      "above ground is off, or the view is not of this place")
+        elif look_alike is not None:
+            ok, (other, distance) = False, look_alike
+            reason = (f"ambiguous: another place {distance:.0f} px away scores "
+                      f"{other.score:.1f}, within {LOOK_ALIKE_MARGIN:g} of the best "
+                      f"({max(s.score for s in scored):.1f}): repeated terrain")
         return MatchResult(
             decision=Decision.MATCH if ok else Decision.NO_MATCH, score=score,
             n_pairings=len(pairs), pairings=pairs, transform=_pixel_transform(c, t),
@@ -517,8 +556,7 @@ class Matcher:
             scale_estimated=p.estimate_scale, covariance=cov, rms=rms,
             n_a=a.n, n_b=b.n, n_overlap=(n_ao, n_bo), expected_chance=best.lam,
             pairing_ratio=len(pairs) ** 2 / max(n_ao * n_bo, 1), creases=best.creases,
-            ridges=best.ridges,
-            reason="" if ok else f"score {score:.2f} below threshold {p.threshold:.2f}")
+            ridges=best.ridges, reason=reason)
 
 
 def compare(a, b, params: MatchParams | None = None, **overrides) -> MatchResult:
