@@ -155,6 +155,21 @@ def test_prepare_input_dem_and_nodata():
     assert prepare_input(colour)[0].shape == (32, 32)
 
 
+def test_an_image_too_narrow_or_with_a_sentinel_pixel_is_read_for_what_it_is():
+    """1 x N frames are a no-fix with the reason (not an error deep in the diffusion); one
+    undeclared float sentinel (3e38) neither sets the noise floor nor hides the creases."""
+    rng = np.random.default_rng(0)
+    for shape in ((1, 300), (300, 1), (2, 50)):
+        reason = prepare_input(rng.integers(0, 255, shape).astype(np.uint8))[3]
+        assert reason.startswith(f"image of {shape[0]}x{shape[1]} px: too narrow")
+    image = line_image(64).astype(np.float32) + rng.normal(0.0, 3.0, (64, 64)).astype(
+        np.float32)
+    clean = prepare_input(image)
+    image[5, 5] = 3e38
+    spiked = prepare_input(image)
+    assert spiked[3] == "" and spiked[2] == pytest.approx(clean[2], rel=0.05)
+
+
 def test_strip_processing_is_exact():
     from terrain_nav_ros.core.features.creases import (
         _diffusion_in_strips,

@@ -385,3 +385,17 @@ def test_fused_walker_matches_the_reference(monkeypatch):
     assert len(rows) >= 4
     assert np.array_equal(fused[0], ref[0]) and np.array_equal(fused[2], ref[2])
     assert np.array_equal(fused[3], ref[3]) and np.allclose(fused[1], ref[1], equal_nan=True)
+
+
+def test_a_minutia_set_of_values_that_are_not_numbers_is_refused():
+    """NaN or inf positions (a corrupt message, an offset bug) would fail deep in the
+    index, or match somewhere: refused where the set is made, naming the field."""
+    from terrain_nav_ros.core.features.minutia_set import MinutiaSet
+
+    good = dict(col=[1.0, 2.0], row=[3.0, 4.0], angle=[0.1, 0.2], kind=[ENDING, BIFURCATION],
+                quality=[1.0, 1.0])
+    MinutiaSet(**good)
+    for field, bad in (("col", [np.nan, 2.0]), ("row", [3.0, np.inf]), ("angle", [np.nan, 0]),
+                       ("quality", [np.inf, 1.0])):
+        with pytest.raises(ValueError, match=f"1 {field} value"):
+            MinutiaSet(**{**good, field: bad})

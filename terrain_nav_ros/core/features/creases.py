@@ -276,6 +276,11 @@ def _fill_nodata(image: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return image[tuple(idx)]
 
 
+#: Fewest pixels across an image or DEM that creases are looked for in (the diffusion's
+#: derivatives need 2; below a few there is no valley to see).
+MIN_SIDE = 3
+
+
 def prepare_input(image, valid_mask=None, source: str = "image", gsd: float = 1.0,
                   nodata=None, *, scratch: Scratch | None = None):
     """Convert an image or DEM to float32 ready for crease extraction.
@@ -330,6 +335,10 @@ def prepare_input(image, valid_mask=None, source: str = "image", gsd: float = 1.
         valid &= work != np.float32(nodata)
     if img.size == 0 or np.count_nonzero(valid) < 16:
         return np.zeros(img.shape, np.float32), valid, 0.0, "no valid pixels"
+    if min(img.shape) < MIN_SIDE:
+        return (np.zeros(img.shape, np.float32), valid, 0.0,
+                f"image of {img.shape[0]}x{img.shape[1]} px: too narrow for creases (at least "
+                f"{MIN_SIDE} px each way)")
     if not valid.all():
         work = _fill_nodata(work, valid)
     # Robust range from a subsample: percentiles need no more than ~65k values.
@@ -350,6 +359,10 @@ def prepare_input(image, valid_mask=None, source: str = "image", gsd: float = 1.
         work -= np.float32(lo)  # work is this function's own copy
         quant = 1.0 if integer else 0.0
     work *= np.float32(scale)
+    if source == "image":
+        # far outside the stretch: saturated, or an undeclared float sentinel (3e38), whose
+        # span would set the noise floor above every crease of the frame
+        np.clip(work, -1.0, 2.0, out=work)
     # Voids hold copies of valid values, so the range over all pixels is the valid range.
     span = float(work.max() - work.min())
     if span == 0.0:

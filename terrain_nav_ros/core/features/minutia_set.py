@@ -55,6 +55,11 @@ class MinutiaSet:
         bad = ~np.isin(self.kind, (ENDING, BIFURCATION))
         if bad.any():
             raise ValueError(f"MinutiaSet: unknown minutia kind(s) {np.unique(self.kind[bad])}")
+        for name in ("col", "row", "angle", "quality"):
+            values = getattr(self, name)
+            if not np.isfinite(values).all():
+                raise ValueError(f"MinutiaSet: {np.count_nonzero(~np.isfinite(values))} "
+                                 f"{name} value(s) are not finite")
 
     @classmethod
     def empty(cls, reason: str = "", georef: GeoReference | None = None) -> MinutiaSet:
