@@ -109,11 +109,14 @@ def bridges():
     from terrain_nav_ros.nodes.ros_common import RELIABLE_QOS
 
     procs = {
+        # (estimates stamped from T0, a fixed date: their age by the wall clock is not
+        # what these phases test; max_estimate_age is tested on its own)
         "px4": start_node("autopilot_bridge", {
             "target": "px4", "px4_sensor_gps": True, "geoid_undulation": GEOID,
-            "diagnostics_period": 0.5}),
+            "diagnostics_period": 0.5, "max_estimate_age": 0.0}),
         "mavros": start_node("autopilot_bridge", {
-            "target": "mavros", "mavros_vision_pose": True, "diagnostics_period": 0.5},
+            "target": "mavros", "mavros_vision_pose": True, "diagnostics_period": 0.5,
+            "max_estimate_age": 0.0},
             "-r", "__node:=autopilot_bridge_mavros"),
     }
     client = SpinningNode("autopilot_bridge_test")
@@ -270,3 +273,48 @@ def test_mavros_odometry_is_the_enu_estimate_in_odom_and_base_link(bridges):
     assert poses[3].header == m.header and poses[3].pose == m.pose
     assert _between(bridges, "mavros", "jump", "lost") == []
     assert len(_between(bridges, "mavros", "lost", "back")) > 50
+
+
+def test_estimates_the_autopilot_must_not_get_are_held_back_with_the_reason(monkeypatch):
+    """Odometry in another frame, an hour old, with a quaternion not of unit length, a NaN
+    velocity, an unknown (zero) covariance or a position 40 000 km off never reaches the
+    autopilot, however healthy the ekf says it is; each is counted by its reason. The node
+    in this process, its callbacks called directly."""
+    import rclpy
+
+    from terrain_nav_ros.nodes.autopilot_bridge_node import AutopilotBridge
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = AutopilotBridge(context=context)
+    try:
+        sent = []
+        monkeypatch.setattr(node, "_publish", lambda key, msg: sent.append(key))
+        node.ekf_status, node._ekf_status_wall = (0, "ok", {"initialized": "True"}), \
+            time.monotonic()
+        now_ns = node.get_clock().now().nanoseconds
+        v_body = quat_to_matrix(Q).T @ V_ENU
+
+        def odometry(frame="map", child="base_link", age=0.0, q=Q, v=v_body, cov=POSE_COV,
+                     position=(100.0, 200.0, 1500.0)):
+            header = cv.make_header(now_ns - round(age * 1e9), frame)
+            return cv.odometry_msg(header, child, np.array(position), q, cov, v, OMEGA,
+                                   TWIST_COV)
+
+        bad = {
+            "odometry in utm -> base_link, not map -> base_link": odometry(frame="utm"),
+            "odometry in map -> (none), not map -> base_link": odometry(child=""),
+            "estimate older than max_estimate_age": odometry(age=3600.0),
+            "quaternion not of unit length": odometry(q=2.0 * Q),
+            "non-finite estimate": odometry(v=np.array([np.nan, 0.0, 0.0])),
+            "position covariance not positive (unknown)": odometry(cov=np.zeros((6, 6))),
+            "position beyond 10 000 km": odometry(position=(4e7, 0.0, 0.0)),
+        }
+        for msg in bad.values():
+            node.on_odometry(msg)
+        assert sent == [] and dict(node.held_back) == {reason: 1 for reason in bad}
+        node.on_odometry(odometry())
+        assert sent == ["odometry"]
+    finally:
+        node.destroy_node()
+        context.try_shutdown()

@@ -21,7 +21,10 @@ Subscribed:
 Nothing is published while the ekf has not said it is initialised, while its last
 diagnostics are older than ``diagnostics_timeout`` or say ERROR (``stop_on_error``), or while
 the position sigma (square root of the covariance trace, as the ekf reports it) exceeds
-``max_position_sigma``. Each estimate that is held back is counted by reason in the bridge's
+``max_position_sigma``. Nor is an odometry that is not ``map_frame`` -> ``base_frame``, older
+than ``max_estimate_age`` by the node's clock, not finite, with a quaternion not of unit
+length, a position covariance that is not positive (unknown: zeros or -1) or a position
+beyond 10 000 km. Each estimate that is held back is counted by reason in the bridge's
 diagnostics.
 
 Published with ``target: px4`` (best effort, transient local, depth 1: PX4's ``/fmu/in``
@@ -99,13 +102,16 @@ PX4_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT,
 QUALITY = {DIAG_OK: 100, DIAG_WARN: 50}
 # SensorGps velocity taken from an odometry at most this far from the NavSatFix's stamp.
 _GPS_VELOCITY_MAX_AGE_S = 0.5
+# An estimate further than this from the ENU origin is no position (float32 would not even
+# hold it in PX4's message).
+_MAX_DISTANCE = 1e7
 
 
 class AutopilotBridge(Node):
     """/nav/odometry (+ /nav/fix) in the autopilot's messages and frames, when healthy."""
 
-    def __init__(self):
-        super().__init__("autopilot_bridge")
+    def __init__(self, **kwargs):
+        super().__init__("autopilot_bridge", **kwargs)
         self.target = declare(self, "target", "px4",
                               "px4 (uXRCE-DDS, px4_msgs) | mavros (ArduPilot or PX4 "
                               "through MAVROS)", read_only=True)
@@ -147,8 +153,17 @@ class AutopilotBridge(Node):
         self.mavros_vision_pose = declare(
             self, "mavros_vision_pose", False,
             "mavros: also publish /mavros/vision_pose/pose_cov")
+        self.map_frame = declare(self, "map_frame", "map",
+                                 "the frame /nav/odometry must be in (the ekf's map frame)")
+        self.base_frame = declare(self, "base_frame", "base_link",
+                                  "the child frame /nav/odometry must be of")
+        self.max_estimate_age = declare(
+            self, "max_estimate_age", 2.0,
+            "send nothing older than this by the node's clock (sim time in a replay) [s]; "
+            "0 = no limit", min_value=0.0)
         diag_period = declare(self, "diagnostics_period", 1.0,
-                              "diagnostics period, wall clock [s]", min_value=0.01)
+                              "diagnostics period, wall clock [s]", min_value=0.01,
+                              max_value=3600.0)
         self.add_on_set_parameters_callback(reject_all_changes)
 
         self.limiter = RateLimiter(rate)
@@ -219,10 +234,24 @@ class AutopilotBridge(Node):
             return "ekf reports ERROR"
         return None
 
-    def _hold_back_reason(self, pose_cov: np.ndarray, position, quaternion) -> str | None:
+    def _hold_back_reason(self, msg: Odometry, t: float, pose_cov: np.ndarray, position,
+                          quaternion, *twist) -> str | None:
         """Why this estimate must not reach the autopilot (None: it may)."""
-        if not (np.isfinite(position).all() and np.isfinite(quaternion).all()):
+        if (msg.header.frame_id, msg.child_frame_id) != (self.map_frame, self.base_frame):
+            return (f"odometry in {msg.header.frame_id or '(none)'} -> "
+                    f"{msg.child_frame_id or '(none)'}, not {self.map_frame} -> "
+                    f"{self.base_frame}")
+        if not all(np.isfinite(a).all() for a in (position, quaternion, pose_cov, *twist)):
             return "non-finite estimate"
+        if abs(float(np.linalg.norm(quaternion)) - 1.0) > 1e-3:
+            return "quaternion not of unit length"
+        if not (np.diag(pose_cov)[:3] > 0).all():
+            return "position covariance not positive (unknown)"
+        if float(np.max(np.abs(position))) > _MAX_DISTANCE:
+            return "position beyond 10 000 km"
+        now = self.get_clock().now().nanoseconds * 1e-9
+        if self.max_estimate_age > 0 and now > 0 and now - t > self.max_estimate_age:
+            return "estimate older than max_estimate_age"
         health = self._health_reason()
         if health is not None:
             return health
@@ -234,7 +263,8 @@ class AutopilotBridge(Node):
     @contained
     def on_odometry(self, msg: Odometry):
         t, position, q, pose_cov, linear, angular, twist_cov = cv.odometry_to_state(msg)
-        reason = self._hold_back_reason(pose_cov, position, q)
+        reason = self._hold_back_reason(msg, t, pose_cov, position, q, linear, angular,
+                                        twist_cov)
         if reason is not None:
             self.held_back[reason] += 1
             if self._sending:
