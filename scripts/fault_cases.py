@@ -370,6 +370,11 @@ class Case:
     ci: bool = False
 
 
+def _written(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
 def judge(cmd: list, expect: int, words: tuple[str, ...], timeout: float = 60.0,
           stream: str = "stderr", one_line: bool = True) -> tuple[str, str]:
     """Run ``cmd`` and judge its answer against the exit status and words expected."""
@@ -591,6 +596,17 @@ def cases() -> list[Case]:
             ("--area", "34.3,-118.1,34.4", "--suns", "120/40"), "give LAT,LON,LAT,LON")),
         Case("graph --config missing", "options", lambda tmp: judge(terrain_nav(
             "graph", "--config", tmp / "nope.yaml"), 2, ("cannot read graph file",))),
+        Case('graph file with enabled: "false" quoted', "options", lambda tmp: judge(
+            terrain_nav("graph", "--config", _written(
+                tmp / "g.yaml", 'nodes:\n  - {name: autopilot_bridge, enabled: "false"}\n')),
+            2, ("enabled 'false' must be true or false",)), ci=True),
+        Case("graph --only a node not in the graph", "options", lambda tmp: judge(terrain_nav(
+            "graph", "--only", "nosuchnode"), 2, ("cannot enable nosuchnode",))),
+        Case("graph --duration nan", "options", lambda tmp: judge(terrain_nav(
+            "graph", "--duration", "nan"), 2, ("--duration nan: must be > 0",))),
+        Case("bag play --topics of a topic not in the bag", "options", lambda tmp: judge(
+            terrain_nav("bag", "play", make_bag(tmp / "whole"), "--topics", "/nope"), 2,
+            ("--topics /nope: not in bag",))),
         Case("misspelt parameter (time_jump_reste)", "parameters", _node_params(
             "    time_jump_reste: 2.0\n",
             "unknown parameter(s) time_jump_reste (did you mean time_jump_reset?)")),

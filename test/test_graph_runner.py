@@ -4,6 +4,7 @@ graph shuts down without leaving processes behind. The launch file names the sam
 import importlib.util
 import io
 import os
+import re
 import signal
 import sys
 import threading
@@ -176,6 +177,30 @@ def test_invalid_graph_files_are_rejected_with_the_reason(tmp_path):
     bad.write_text("params_files: [missing.yaml]\nnodes: []\n")
     with pytest.raises(GraphError, match="does not exist"):
         load_graph(bad)
+
+
+@pytest.mark.parametrize("text, words", [
+    # quoted, "false" is a string, and a string is true: the node would start
+    ('nodes:\n  - {name: ekf, enabled: "false"}\n', "enabled 'false' must be true or false"),
+    ("nodes:\n  - {name: ekf, respawn: 'no'}\n", "respawn 'no' must be true or false"),
+    ("nodes:\n  - {name: ekf}\nnodes:\n  - {name: matcher}\n", "key 'nodes' given twice"),
+    ("nodes: {ekf: {}}\n", "nodes must be a list of node entries"),
+    ("nodes:\n  - ekf\n", "node entry 'ekf' must be a mapping"),
+    ("nodes:\n  - {executable: ekf}\n", "name must be a ROS node name"),
+    ("nodes:\n  - {name: my-ekf, executable: ekf}\n", "name must be a ROS node name"),
+    ("nodes:\n  - {name: ekf, parameters: [a, b]}\n", "parameters ['a', 'b'] must be a map"),
+    ("- ekf\n", "the top level must be a mapping"),
+    ("params_files: [p.yaml]\nnodes:\n  - {name: ekf}\n", "'ekf_typo', which names no node"),
+    ("params_files: [q.yaml]\nnodes:\n  - {name: ekf}\n", "key 'gravity' given twice"),
+])
+def test_graph_and_params_file_mistakes_are_named_not_guessed(tmp_path, text, words):
+    (tmp_path / "p.yaml").write_text("ekf_typo:\n  ros__parameters: {gravity: 9.8}\n")
+    (tmp_path / "q.yaml").write_text("ekf:\n  ros__parameters:\n    gravity: 9.8\n"
+                                     "    gravity: 9.7\n")
+    graph = tmp_path / "g.yaml"
+    graph.write_text(text)
+    with pytest.raises(GraphError, match=re.escape(words)):
+        load_graph(graph)
 
 
 def _stub_launch_modules(monkeypatch):

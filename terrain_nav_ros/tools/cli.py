@@ -23,13 +23,18 @@ DEFAULT_BAG = REPO / "bags" / "jacksboro_demo"
 def _cmd_graph(args) -> int:
     from .graph_runner import GraphError, load_graph, run_graph
 
+    _check_positive(args, "duration")
     try:
-        spec = load_graph(args.config, args.enable or ())
+        # a node named by --only runs even where the file disables it
+        spec = load_graph(args.config, [*(args.enable or ()), *(args.only or ())])
     except GraphError as err:
         print(f"terrain-nav graph: {err}", file=sys.stderr)
         return 2
     if args.only:
         spec.nodes = [n for n in spec.nodes if n.name in args.only]
+    if args.until_exit and args.until_exit not in [n.name for n in spec.nodes]:
+        raise InputError(f"--until-exit {args.until_exit}: not a node this graph runs "
+                         f"({', '.join(n.name for n in spec.nodes)})")
     extra = {"use_sim_time": True} if args.use_sim_time else {}
     return run_graph(spec, extra_parameters=extra, duration=args.duration,
                      until_exit=args.until_exit, log_dir=args.log_dir)
@@ -62,6 +67,14 @@ def _cmd_bag_play(args) -> int:
                              f"({health.problem})")
         print(f"terrain-nav bag play: bag {args.bag} is {health.describe()}: playing those; "
               "exit status 1 when done", file=sys.stderr)
+    if not (math.isfinite(args.rate) and math.isfinite(args.delay) and args.delay >= 0):
+        raise InputError(f"--rate {args.rate} and --delay {args.delay}: must be finite, the "
+                         "delay >= 0")
+    held = {t.topic for t in bags.topics(args.bag)}
+    missing = sorted(set(args.topics or ()) - held)
+    if missing:
+        raise InputError(f"--topics {' '.join(missing)}: not in bag {args.bag} (it holds "
+                         f"{', '.join(sorted(held))})")
     params = {"bag": str(Path(args.bag).resolve()), "rate": float(args.rate),
               "publish_clock": not args.no_clock, "start_delay": float(args.delay)}
     if args.topics:

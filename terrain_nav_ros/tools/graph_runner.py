@@ -36,6 +36,7 @@ ekf resumes from.
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -101,39 +102,35 @@ def load_graph(path: str | Path, enable=()) -> GraphSpec:
     """Parse and validate a graph YAML file (see the module docstring).
 
     The spec holds the enabled nodes, and those with ``enabled: false`` whose names are in
-    ``enable``; a name in ``enable`` that the file does not have is an error.
+    ``enable``; a name in ``enable`` that the file does not have is an error. Every key must
+    be of its type (``enabled: "false"`` is a string, and would be true): a mistake is a
+    GraphError naming it, never a node started or left out by a guess.
     """
     path = Path(path)
     try:
-        doc = yaml.safe_load(path.read_text()) or {}
+        doc = yaml.load(path.read_text(), Loader=_UniqueKeyLoader)
     except (OSError, yaml.YAMLError) as err:
         raise GraphError(f"cannot read graph file {path}: {err}") from err
+    doc = {} if doc is None else doc
+    _expect(doc, dict, f"{path}: the top level", "a mapping (params_files, dds_profile, nodes)")
     names = doc.get("params_files") or []
-    if isinstance(names, str):
-        names = [names]
-    params_paths = [(path.parent / name).resolve() for name in names]
+    names = [names] if isinstance(names, str) else names
+    _expect(names, list, f"{path}: params_files", "a file name or a list of them")
+    params_paths = []
+    for name in names:
+        _expect(name, str, f"{path}: params_files entry {name!r}", "a file name")
+        params_paths.append((path.parent / name).resolve())
     for params_path in params_paths:
         if not params_path.is_file():
             raise GraphError(f"{path}: params file {params_path} does not exist")
-    nodes = []
-    for entry in doc.get("nodes") or []:
-        unknown = set(entry) - {"name", "executable", "required", "enabled", "respawn",
-                                "parameters", "remappings"}
-        if unknown:
-            raise GraphError(f"{path}: node entry {entry.get('name')} has unknown keys {unknown}")
-        spec = NodeSpec(name=entry["name"], executable=entry.get("executable", entry["name"]),
-                        required=bool(entry.get("required", True)),
-                        enabled=bool(entry.get("enabled", True)),
-                        respawn=bool(entry.get("respawn", False)),
-                        parameters=dict(entry.get("parameters") or {}),
-                        remappings=dict(entry.get("remappings") or {}))
-        if spec.executable not in NODES:
-            raise GraphError(f"{path}: node {spec.name}: unknown executable {spec.executable} "
-                             f"(known: {', '.join(sorted(NODES))})")
-        nodes.append(spec)
+    entries = doc.get("nodes") or []
+    _expect(entries, list, f"{path}: nodes", "a list of node entries")
+    nodes = [_node_spec(path, entry) for entry in entries]
     names = [n.name for n in nodes]
     if len(set(names)) != len(names):
         raise GraphError(f"{path}: duplicate node names in {names}")
+    for params_path in params_paths:
+        _check_params_file(params_path, set(names) | set(NODES))
     unknown = set(enable) - set(names)
     if unknown:
         raise GraphError(f"{path}: cannot enable {', '.join(sorted(unknown))}: not in the "
@@ -143,10 +140,81 @@ def load_graph(path: str | Path, enable=()) -> GraphSpec:
         raise GraphError(f"{path}: no nodes")
     profile = None
     if doc.get("dds_profile"):
+        _expect(doc["dds_profile"], str, f"{path}: dds_profile", "a file name")
         profile = (path.parent / doc["dds_profile"]).resolve()
         if not profile.is_file():
             raise GraphError(f"{path}: dds_profile {profile} does not exist")
     return GraphSpec(nodes, params_paths, profile)
+
+
+_NODE_KEYS = {"name": str, "executable": str, "required": bool, "enabled": bool,
+              "respawn": bool, "parameters": dict, "remappings": dict}
+# a ROS node name: a letter or underscore, then letters, digits and underscores
+_NODE_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+def _node_spec(path: Path, entry) -> NodeSpec:
+    """One ``nodes:`` entry, every key of its type."""
+    _expect(entry, dict, f"{path}: node entry {entry!r}", "a mapping with a name")
+    name = entry.get("name")
+    unknown = set(entry) - set(_NODE_KEYS)
+    if unknown:
+        raise GraphError(f"{path}: node entry {name} has unknown keys {unknown}")
+    for key, kind in _NODE_KEYS.items():
+        if key in entry and entry[key] is not None:
+            _expect(entry[key], kind, f"{path}: node {name}: {key} {entry[key]!r}",
+                    {bool: "true or false (unquoted)", str: "a string",
+                     dict: "a mapping"}[kind])
+    if not isinstance(name, str) or not _NODE_NAME.match(name):
+        raise GraphError(f"{path}: node entry {entry!r}: name must be a ROS node name "
+                         "(letters, digits, underscores; not starting with a digit)")
+    spec = NodeSpec(name=name, executable=entry.get("executable") or name,
+                    required=entry.get("required", True), enabled=entry.get("enabled", True),
+                    respawn=entry.get("respawn", False),
+                    parameters=dict(entry.get("parameters") or {}),
+                    remappings={str(k): str(v) for k, v in
+                                (entry.get("remappings") or {}).items()})
+    if spec.executable not in NODES:
+        raise GraphError(f"{path}: node {spec.name}: unknown executable {spec.executable} "
+                         f"(known: {', '.join(sorted(NODES))})")
+    return spec
+
+
+def _check_params_file(path: Path, node_names: set):
+    """A ROS 2 parameters file whose blocks are all for a node (of the graph, or one this
+    package has), with no key given twice: a misspelt block would leave its node on the
+    defaults, a repeated key would silently replace the first, and the node would start."""
+    try:
+        doc = yaml.load(path.read_text(), Loader=_UniqueKeyLoader) or {}
+    except (OSError, yaml.YAMLError) as err:
+        raise GraphError(f"cannot read params file {path}: {err}") from err
+    _expect(doc, dict, f"{path}: the top level", "a mapping of node names")
+    for block in doc:
+        name = str(block).strip("/")
+        if block != "/**" and name not in node_names:
+            raise GraphError(f"{path}: parameters for {block!r}, which names no node "
+                             f"(nodes: {', '.join(sorted(node_names))}); a misspelling?")
+
+
+def _expect(value, kind: type, what: str, expected: str):
+    # (bool is an int in Python, and 1 is no boolean here)
+    if not isinstance(value, kind) or (kind is not bool and isinstance(value, bool)):
+        raise GraphError(f"{what} must be {expected}, not {type(value).__name__}")
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """A YAML loader that refuses a key given twice in one mapping (the second would silently
+    replace the first: a node list, a parameter)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"key {key!r} given twice", key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep)
 
 
 def _yaml_scalar(value) -> str:
