@@ -169,6 +169,25 @@ def test_unknown_parameters_are_an_error_naming_them():
         context.try_shutdown()
 
 
+def test_a_whole_number_for_a_float_parameter_is_that_float():
+    """``threshold: 9`` in a params file is 9.0, not a node that dies at start-up; an int
+    parameter given a float stays refused."""
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        node = _settings_node(context, **{"match.threshold": 9, "match.k_query": 4})
+        declare_settings(node, "match", MatchParams(), MatchParams.FIX_RANGES)
+        assert node.get_parameter("match.threshold").value == 9.0
+        assert isinstance(node.get_parameter("match.threshold").value, float)
+        node.destroy_node()
+        node = _settings_node(context, **{"match.k_query": 4.5})
+        with pytest.raises(rclpy.exceptions.InvalidParameterTypeException):
+            declare_settings(node, "match", MatchParams(), MatchParams.FIX_RANGES)
+        node.destroy_node()
+    finally:
+        context.try_shutdown()
+
+
 @pytest.mark.parametrize("prefix,settings,name,value", [
     ("match", MatchParams(), "threshold", math.nan),
     ("match", MatchParams(), "threshold", -1.0),

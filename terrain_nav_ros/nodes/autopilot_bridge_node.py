@@ -145,7 +145,8 @@ class AutopilotBridge(Node):
                                    "1-sigma accuracy [m]", min_value=0.0)
         self.geoid_undulation = declare(self, "geoid_undulation", 0.0,
                                         "px4: geoid height N, altitude_msl = ellipsoidal - N "
-                                        "[m]")
+                                        "[m] (the Earth's are within +-110 m)",
+                                        min_value=-150.0, max_value=150.0)
         self.mavros_frame_id = declare(self, "mavros_frame_id", "odom",
                                        "mavros: frame of the pose (ENU)")
         self.mavros_child_frame_id = declare(self, "mavros_child_frame_id", "base_link",

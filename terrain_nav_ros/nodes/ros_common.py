@@ -31,6 +31,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import (
     DurabilityPolicy,
     HistoryPolicy,
@@ -72,8 +73,16 @@ def publish_diagnostics(node: Node, topic: str, period: float,
 
 def declare(node: Node, name: str, default, description: str, *, min_value=None,
             max_value=None, read_only: bool = False):
-    """Declare a parameter with a description and an optional range; return its value."""
+    """Declare a parameter with a description and an optional range; return its value.
+
+    A whole number given for a float parameter (``rate: 30`` in a params file) is taken as
+    that float: rclpy would refuse it, and the node would die, over a missing ``.0``."""
     descriptor = ParameterDescriptor(description=description, read_only=read_only)
+    overrides = getattr(node, "_parameter_overrides", {})
+    given = overrides.get(name)
+    if isinstance(default, float) and given is not None and \
+            given.type_ == Parameter.Type.INTEGER:
+        overrides[name] = Parameter(name, Parameter.Type.DOUBLE, float(given.value))
     if min_value is not None or max_value is not None:
         lo = min_value if min_value is not None else -sys.float_info.max
         hi = max_value if max_value is not None else sys.float_info.max
@@ -284,9 +293,14 @@ def run(node_factory: Callable[[], Node], args=None) -> int:
     # A crash in a C extension (rclpy, DDS) prints every thread's Python stack to stderr,
     # which the graph runner shows with the node's name.
     faulthandler.enable()
-    rclpy.init(args=args)
     node = executor = None
     code = 0
+    try:
+        rclpy.init(args=args)     # a bad node name or remapping fails here
+    except Exception as err:
+        print(f"fatal: {type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}",
+              file=sys.stderr)
+        return 1
     try:
         node = node_factory()
         check_parameters_known(node)
