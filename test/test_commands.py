@@ -6,6 +6,8 @@ non-zero exit. Every case runs the real command in a subprocess. Last, the CI su
 from __future__ import annotations
 
 import importlib.util
+import os
+import re
 import signal
 import subprocess
 import sys
@@ -205,3 +207,25 @@ def test_an_interrupted_replay_writes_its_report_marked_partial(bag_dir, tmp_pat
 def test_fault_cases_ci_subset_are_answered_well(case, tmp_path):
     verdict, detail = case.run(tmp_path)
     assert verdict == faults.GOOD, f"{case.fault}: {case.name}: {verdict}: {detail}"
+
+
+@pytest.mark.parametrize("env, words", [
+    ({"ROS_DOMAIN_ID": "300"}, "ROS_DOMAIN_ID=300: must be a whole number 0-232"),
+    ({"ROS_DOMAIN_ID": "abc"}, "ROS_DOMAIN_ID=abc"),
+    ({"ROS_DOMAIN_ID": "-1"}, "ROS_DOMAIN_ID=-1"),
+    ({"RMW_IMPLEMENTATION": "rmw_nonexistent"}, "RMW_IMPLEMENTATION=rmw_nonexistent: not "
+                                                "installed here"),
+])
+def test_a_ros_environment_no_node_could_start_in_is_one_line(env, words):
+    """Else every node dies at start-up with rcl's message, or the runner with a
+    traceback; the ROS-free commands do not care."""
+    from terrain_nav_ros.tools.cli import _check_ros_environment
+    from terrain_nav_ros.tools.errors import InputError
+
+    with pytest.raises(InputError, match=re.escape(words)):
+        _check_ros_environment(env)
+    _check_ros_environment({"ROS_DOMAIN_ID": "42", "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp"})
+    proc = subprocess.run([str(a) for a in faults.terrain_nav("graph", "--duration", 1)],
+                          env={**os.environ, **env}, capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 2 and words in proc.stderr

@@ -314,11 +314,35 @@ def _input_error_hint(err: BaseException) -> str | None:
     return None
 
 
+# the commands that start ROS nodes (evaluate, simulate and prepare need no DDS)
+_ROS_COMMANDS = ("graph", "demo", "replay", "bag")
+# Fast DDS maps a domain to UDP ports: 0-232 fit (beyond, the ports overflow)
+_MAX_DOMAIN_ID = 232
+
+
+def _check_ros_environment(env):
+    """InputError for a ROS_DOMAIN_ID no node could join, or an RMW this install lacks:
+    else every node dies at start-up with rcl's message, or the runner with a traceback."""
+    domain = env.get("ROS_DOMAIN_ID", "").strip()
+    if domain and not (domain.isdigit() and int(domain) <= _MAX_DOMAIN_ID):
+        raise InputError(f"ROS_DOMAIN_ID={domain}: must be a whole number 0-{_MAX_DOMAIN_ID}")
+    rmw = env.get("RMW_IMPLEMENTATION", "").strip()
+    if rmw:   # rcl loads lib<rmw>.so from the install's lib folders
+        folders = [Path(sys.prefix) / "lib"]
+        folders += [Path(p) / "lib" for p in env.get("AMENT_PREFIX_PATH", "").split(":") if p]
+        folders += [Path(p) for p in env.get("LD_LIBRARY_PATH", "").split(":") if p]
+        if not any((folder / f"lib{rmw}.so").is_file() for folder in folders):
+            raise InputError(f"RMW_IMPLEMENTATION={rmw}: not installed here (unset it for "
+                             "the default, rmw_fastrtps_cpp)")
+
+
 def _run(args) -> int:
     """Run a command; bad input is one line on stderr and exit status 2."""
     prog = " ".join(["terrain-nav", args.command] + ([args.bag_command]
                                                       if args.command == "bag" else []))
     try:
+        if args.command in _ROS_COMMANDS:
+            _check_ros_environment(os.environ)
         return args.func(args)
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
