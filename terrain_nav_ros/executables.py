@@ -22,3 +22,7 @@ NODES = {
 TOOLS = {
     "terrain-nav": "terrain_nav_ros.tools.cli:main",
 }
+
+#: Set by the graph runner to its pid: a node it started stops when the runner is gone
+#: (killed with SIGKILL, or died in C code), not to go on publishing into the next run.
+SUPERVISOR_VARIABLE = "TERRAIN_NAV_SUPERVISOR_PID"

@@ -290,3 +290,32 @@ def test_the_graphs_dds_profile_reaches_every_node_unless_one_is_set(tmp_path, m
     actions[2].args[0].kwargs["on_shutdown"](None, Context())
     assert not run_dir.exists()
     assert [a.kwargs["name"] for a in actions[3:]] == [n.name for n in spec.nodes]
+
+
+
+def test_nodes_stop_when_the_runner_is_killed(tmp_path):
+    """A runner killed with SIGKILL (or dead in C code) cannot stop its nodes: they see it
+    gone and stop themselves, not to go on publishing into the next run."""
+    import subprocess
+
+    graph = tmp_path / "graph.yaml"
+    graph.write_text("nodes:\n  - {name: ekf, executable: ekf}\n")
+    runner = subprocess.Popen([sys.executable, "-m", "terrain_nav_ros.tools.cli", "graph",
+                               "--config", str(graph)], stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True)
+    node_pid = None
+    try:
+        for line in runner.stdout:
+            if "started ekf (pid" in line:
+                node_pid = int(line.split("(pid ")[1].split(")")[0])
+            if "nodes up" in line:
+                break
+        assert node_pid is not None
+        runner.kill()
+        runner.wait(timeout=10)
+        node = psutil.Process(node_pid)
+        node.wait(timeout=15)       # gone within its one-second check and its shutdown
+    finally:
+        runner.kill()
+        if node_pid is not None and psutil.pid_exists(node_pid):
+            os.kill(node_pid, signal.SIGKILL)

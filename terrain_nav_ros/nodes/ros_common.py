@@ -15,6 +15,7 @@ import difflib
 import faulthandler
 import functools
 import importlib
+import os
 import re
 import sys
 from collections.abc import Callable
@@ -39,6 +40,8 @@ from rclpy.qos import (
     ReliabilityPolicy,
     qos_profile_sensor_data,
 )
+
+from ..executables import SUPERVISOR_VARIABLE
 
 # Camera, IMU and other streams: best effort, newest wins (REP 2003).
 SENSOR_QOS = qos_profile_sensor_data
@@ -283,6 +286,21 @@ def message_class(msgtype: str):
         raise LookupError(f"message type {msgtype} is not available here: {err}") from err
 
 
+def _stop_with_supervisor(node: Node) -> None:
+    """Shut rclpy down once the process that started this node, by its
+    :data:`SUPERVISOR_VARIABLE`, is no longer its parent (checked every second)."""
+    supervisor = os.environ.get(SUPERVISOR_VARIABLE, "")
+    if not supervisor.isdigit():
+        return
+
+    def check():
+        if os.getppid() != int(supervisor):
+            node.get_logger().error(f"the graph runner (pid {supervisor}) is gone: stopping")
+            rclpy.try_shutdown(context=node.context)
+
+    node.create_timer(1.0, check, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+
 def run(node_factory: Callable[[], Node], args=None) -> int:
     """The Jazzy main() pattern: init, spin, clean shutdown on Ctrl-C or external shutdown.
 
@@ -304,6 +322,7 @@ def run(node_factory: Callable[[], Node], args=None) -> int:
     try:
         node = node_factory()
         check_parameters_known(node)
+        _stop_with_supervisor(node)
         # held until rclpy is shut down (see spin): a metamap node once died with SIGSEGV
         # in destroy_node after Ctrl-C when the executor had already been freed
         executor = make_executor(node, node_executor(node))

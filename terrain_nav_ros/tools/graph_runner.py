@@ -51,7 +51,7 @@ from pathlib import Path
 import yaml
 
 from ..core.estimation.checkpoint import RUN_DIR_VARIABLE
-from ..executables import NODES
+from ..executables import NODES, SUPERVISOR_VARIABLE
 
 # A respawned node is started again this long after it died [s] ...
 RESPAWN_DELAY = 0.5
@@ -316,7 +316,8 @@ class GraphRunner:
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                 stdin=subprocess.DEVNULL, text=True, bufsize=1,
                                 env={**self.spec.environment(),
-                                     RUN_DIR_VARIABLE: str(self.run_dir)},
+                                     RUN_DIR_VARIABLE: str(self.run_dir),
+                                     SUPERVISOR_VARIABLE: str(os.getpid())},
                                 start_new_session=True)
         self.procs[spec.name] = proc
         # a log file per node, appended to by its later lives
