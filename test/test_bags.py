@@ -233,3 +233,27 @@ def test_a_changed_copy_keeps_drops_and_replaces_messages(tmp_path):
     texts = [bags.decode(m).data for m in bags.read(copy)]
     assert texts == [str(i) for i in range(20)] + [f"{i}!" for i in range(20, 30)]
     assert (copy / "mission.yaml").read_text() == "name: talk\n"
+
+
+def test_a_flushed_recording_survives_its_writer_being_killed(tmp_path):
+    """What a recorder had flushed (every second) is in the file, readable as a bag cut
+    short, though the writer never closed it (SIGKILL): before, a short recording left
+    0 bytes."""
+    import shutil
+
+    from rosbags.typesys.stores.ros2_jazzy import std_msgs__msg__String as String
+
+    writer = bags.BagWriter(tmp_path / "live")
+    writer.open()
+    for i in range(5):
+        writer.write_message("/chatter", 10**9 + i, String(data=f"hello {i}"),
+                             "std_msgs/msg/String")
+    writer.flush()
+    writer.write_message("/chatter", 10**9 + 5, String(data="lost"), "std_msgs/msg/String")
+    # the file as a SIGKILL would leave it: no footer, no metadata.yaml
+    (tmp_path / "killed").mkdir()
+    shutil.copy(tmp_path / "live" / "live.mcap", tmp_path / "killed" / "killed.mcap")
+    assert bags.is_damaged(tmp_path / "killed")
+    got = [bags.decode(m).data for m in bags.read(tmp_path / "killed", ["/chatter"])]
+    assert got == [f"hello {i}" for i in range(5)]
+    writer.close()

@@ -7,6 +7,7 @@ The bag is closed cleanly on Ctrl-C, SIGTERM or shutdown, so it is always readab
 
 from __future__ import annotations
 
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
@@ -27,6 +28,8 @@ class BagRecorder(Node):
         self.exclude = [t for t in declare(self, "exclude", [""], "topics never recorded") if t]
         period = declare(self, "discovery_period", 0.25, "how often to look for new topics [s]",
                          min_value=0.01)
+        flush = declare(self, "flush_period", 1.0, "how often what was recorded is written "
+                        "to the file, for a recorder that is killed [s]", min_value=0.05)
         check_parameters_known(self)  # before the bag is created
         if not self.output:
             raise ValueError("parameter 'output' is required")
@@ -35,6 +38,8 @@ class BagRecorder(Node):
         self.count = 0
         self.subs = {}
         self.create_timer(period, self._discover)
+        self.create_timer(flush, self.writer.flush,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(f"recording to {self.output}")
 
     def _wanted(self, topic: str) -> bool:

@@ -128,6 +128,19 @@ class BagWriter:
             self._writer.close()
             self._open = False
 
+    def flush(self) -> None:
+        """Write the messages so far to the file as a chunk of their own: a recorder killed
+        with SIGKILL then loses only what came after (the MCAP writer holds up to 1 MB in
+        memory, and nothing reached the file of a short recording); the bag it leaves is
+        read as cut short (:func:`read` salvages its chunks)."""
+        # rosbags' MCAP writer closes a chunk at 1 MB only; no public call for it
+        storage = getattr(self._writer, "storage", None)
+        if not self._open or storage is None or not hasattr(storage, "close_chunk"):
+            return
+        if storage.chunk.msgs:
+            storage.close_chunk()
+        storage.bio.flush()
+
     def has_topic(self, topic: str) -> bool:
         return topic in self._connections
 
