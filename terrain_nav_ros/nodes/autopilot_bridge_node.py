@@ -75,7 +75,7 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import NavSatFix
+from sensor_msgs.msg import NavSatFix, NavSatStatus
 
 from ..core.estimation.autopilot_frames import RateLimiter, ResetCounter, horizontal_accuracy
 from ..core.estimation.strapdown import quat_to_matrix
@@ -312,9 +312,14 @@ class AutopilotBridge(Node):
         # the ekf's word counts at once: a NavSatFix may come before the next odometry
         if not self._sending or self._last_odometry is None or self._health_reason():
             return
-        stamp, _status, lla, cov, _cov_type = cv.navsatfix_to_arrays(msg)
+        stamp, status, lla, cov, cov_type = cv.navsatfix_to_arrays(msg)
         if not (np.isfinite(lla).all() and np.isfinite(cov).all()):
             self.held_back["non-finite NavSatFix"] += 1
+            return
+        if status < NavSatStatus.STATUS_FIX or cov_type == NavSatFix.COVARIANCE_TYPE_UNKNOWN:
+            # (the ekf always sends a fix with its covariance: another publisher's is not
+            # passed on as a 3D fix of zero error)
+            self.held_back["NavSatFix without a fix or its covariance"] += 1
             return
         if not self.gps_limiter.ready(stamp):
             return
