@@ -144,6 +144,26 @@ def camera_clock_back(topic, at, decode):
     return msg
 
 
+def camera_stamp_ahead(topic, at, decode):
+    """One camera frame (and its CameraInfo) of 30-31 s stamped an hour ahead: a driver's
+    glitch, a PTP step. The frames after it must not all be "out of order" for an hour."""
+    if topic not in (*CAMERA_TOPICS, "/camera/camera_info") or not 30.0 <= at < 31.0:
+        return None
+    msg = decode()
+    msg.header.stamp.sec += 3600
+    return msg
+
+
+def gnss_at_zero_first(topic, at, decode):
+    """The receiver's first second of fixes at latitude and longitude 0 (its placeholder
+    before a fix, with the fix status already set): the filter must not start there."""
+    if topic != "/gnss/fix" or at >= 1.0:
+        return None
+    msg = decode()
+    msg.latitude = msg.longitude = 0.0
+    return msg
+
+
 def frozen_baro(topic, at, decode):
     """Barometer stuck at 90 kPa (~990 m, the aircraft is near 3.8 km) from 25 s on."""
     if topic != "/baro/pressure" or at < 25.0:
@@ -640,6 +660,9 @@ def cases() -> list[Case]:
             frozen_camera(25.0, 15.0), "camera frozen", 12)),
         Case("camera clock 2 s back for 10 s", "flight", _flight(
             camera_clock_back, "older than the newest estimate", 8)),
+        Case("one camera frame stamped 1 h ahead at 30 s", "flight", _flight(
+            camera_stamp_ahead)),
+        Case("GNSS at (0, 0) for its first second", "flight", _flight(gnss_at_zero_first)),
         Case("camera lens covered for 10 s (black frames)", "flight", _flight(
             covered_lens, "image is constant", 10)),
         Case("barometer stuck at 90 kPa from 25 s", "flight", _flight(frozen_baro)),
