@@ -325,3 +325,29 @@ def test_an_imu_orientation_is_taken_only_where_there_is_one():
     assert variance == pytest.approx(math.radians(3.0) ** 2)
     msg.orientation_covariance = [1e-4, 0, 0, 0, 2e-4, 0, 0, 0, 1e-3]
     assert cv.imu_orientation(msg)[1] == pytest.approx(2e-4)
+
+
+def test_a_minutiae_message_beyond_what_a_node_can_hold_or_of_no_place_is_refused():
+    """A NaN ENU origin would travel through renderer, extractor and matcher to fail each
+    frame there; a set of 10^5 minutiae or a 40000 px square raster would take the matcher
+    gigabytes. Each is a ConversionError where the message is read."""
+    from terrain_nav_msgs.msg import MinutiaArray
+    from terrain_nav_ros.core.features.minutia_set import MinutiaSet
+
+    georef = GeoReference(0.0, 0.0, 10.0, 64, 64)
+    n = cv.MAX_MINUTIAE + 1
+    many = MinutiaSet(np.full(n, 5.0), np.full(n, 5.0), np.zeros(n), np.ones(n, np.uint8),
+                      np.ones(n), georef=georef)
+    header = cv.make_header(1, "map")
+    with pytest.raises(cv.ConversionError, match=f"{n} minutiae: at most"):
+        cv.msg_to_minutiae(cv.minutiae_to_msg(many, header, MinutiaArray.SOURCE_CAMERA))
+    few = many.subset(np.arange(3))
+    for origin in ((math.nan, 0.0, 0.0), (0.0, 0.0, math.inf), (95.0, 0.0, 0.0)):
+        msg = cv.minutiae_to_msg(few, header, MinutiaArray.SOURCE_CAMERA, origin)
+        with pytest.raises(cv.ConversionError, match="is no place on Earth"):
+            cv.msg_to_minutiae(msg)
+    huge = cv.minutiae_to_msg(few, header, MinutiaArray.SOURCE_CAMERA)
+    huge.georef.width = huge.georef.height = 40000
+    huge.crease_pixels = [5]
+    with pytest.raises(cv.ConversionError, match="at most 67 M pixels"):
+        cv.msg_to_creases(huge)

@@ -38,6 +38,7 @@ FIX_DELAY = 0.3
 OUTLIER_TIMES = (30.0, 44.0)
 NON_PD_TIME = 25.0
 BAD_HEIGHT_TIME = 27.0    # a fix whose projection height is negative
+WRONG_FRAME_TIME = 29.0   # a fix in another frame (utm), 300 m off
 NAN_IMU_TIME = 35.005
 BAD_STAMPS = {"past": (40.005, -5.0), "future": (42.005, 3600.0)}   # arrival, stamp offset
 LOOP_S = 8.0
@@ -77,6 +78,7 @@ def _events(truth, imu, rng):
         ev.append((t + FIX_DELAY, 2, int(truth.at(t))))
     ev.append((NON_PD_TIME + FIX_DELAY + 0.05, 2, "non_pd"))
     ev.append((BAD_HEIGHT_TIME + FIX_DELAY, 2, "bad_height"))
+    ev.append((WRONG_FRAME_TIME + FIX_DELAY + 0.05, 2, "wrong_frame"))
     for t in np.arange(0.1, truth.t[-1] + 1e-9, 0.1):
         ev.append((t, 3, int(truth.at(t))))
     ev.sort(key=lambda e: (e[0], e[1]))
@@ -166,17 +168,20 @@ def flight():
                 np.diag([1.5**2, 1.5**2, 3.0**2])))
         elif kind == 2:
             cov = np.diag([400.0, 400.0, 400.0, -1, -1, -1])
-            height = 0.0
+            height, frame = 0.0, "map"
+            if k == "wrong_frame":
+                k, frame = int(truth.at(WRONG_FRAME_TIME)), "utm"
             if k == "non_pd":
                 k = int(truth.at(NON_PD_TIME))
                 cov = np.diag([400.0, -400.0, 400.0, -1, -1, -1])
             elif k == "bad_height":   # refused: drawing no noise leaves the flight's as it was
                 k, height = int(truth.at(BAD_HEIGHT_TIME)), -1.0
-            p = truth.position[k] + (rng.normal(0, 20.0, 3) if height == 0.0 else 0.0)
+            p = truth.position[k] + (rng.normal(0, 20.0, 3) if height == 0.0 and
+                                     frame == "map" else 0.0) + (300.0 if frame != "map" else 0)
             if not replay and any(abs(truth.t[k] - o) < 1e-6 for o in OUTLIER_TIMES):
                 p[:2] += 500.0 * np.array([0.6, -0.8])
             pubs["fix"].publish(cv.arrays_to_pva_fix(
-                cv.make_header(_stamp(truth.t[k]), "map"), PvaFix.STATUS_POSITION, p,
+                cv.make_header(_stamp(truth.t[k]), frame), PvaFix.STATUS_POSITION, p,
                 [0, 0, 0, 1], cov, projection_height=height))
         else:
             alt = truth.position[k, 2] + 250.0 + rng.normal(0, 1.5)
@@ -311,6 +316,7 @@ def test_bad_input_is_refused_and_the_node_survives(flight):
     assert int(filt["rejected_input/imu:non_finite_value"]) == 1
     assert int(filt["rejected_input/fix:covariance_not_positive_definite"]) == 1
     assert int(filt["rejected_input/fix:projection_height_negative_or_not_finite"]) == 1
+    assert int(filt["rejected_input/fix:wrong_frame"]) == 1
     assert "imu refused: non_finite_value" in log
     assert "fix refused: covariance_not_positive_definite" in log
     assert flight["alive"], log

@@ -23,11 +23,13 @@ def _peak_tile():
     return heights, georef
 
 
-def _render_view(client, pose_z):
+def _render_view(client, pose_z, size=(64, 48)):
     from terrain_nav_msgs.srv import RenderView
 
+    w, h = size
     request = RenderView.Request(camera_info=cv.intrinsics_to_camera_info(
-        np.array([[100.0, 0, 31.5], [0, 100.0, 23.5], [0, 0, 1]]), [0] * 5, 64, 48))
+        np.array([[100.0 * w / 64, 0, (w - 1) / 2], [0, 100.0 * w / 64, (h - 1) / 2],
+                  [0, 0, 1]]), [0] * 5, w, h))
     request.pose = cv.pose_with_covariance([1000.0, 2000.0, pose_z],
                                            [1.0, 0.0, 0.0, 0.0], np.eye(6)).pose  # nadir
     return call_service(client, RenderView, "/landmark_renderer/render_view", request)
@@ -63,7 +65,10 @@ def test_tile_becomes_a_lit_georeferenced_landmark():
         assert s.node.poll() is None, "node died on a malformed tile"
         view = _render_view(s.client, 3000.0)          # looking straight down at the peak
         underground = _render_view(s.client, 100.0)    # below the terrain: refused
+        huge = _render_view(s.client, 3000.0, (20000, 20000))   # beyond the GL's buffers
+        assert s.node.poll() is None, "node died on a view too large"
     log = s.log
+    assert not huge.success and "at most 4096 px a side" in huge.message
     assert view.success, view.message
     heights = cv.image_to_array(view.terrain_height)
     assert heights.shape == (48, 64) and abs(float(heights[24, 32]) - 800.0) < 5.0  # summit

@@ -67,9 +67,13 @@ def matcher_node():
         s.log = stop(node)
 
 
-def _camera_msg(camera, prior, header, creases=None):
+ORIGIN = (36.5, -84.2, 0.0)    # the ENU origin of the landmark and camera sets
+
+
+def _camera_msg(camera, prior, header, creases=None, origin=ORIGIN):
     """Camera minutiae as projected from the prior position, nadir, 3000 m over a 500 m plane."""
-    msg = cv.minutiae_to_msg(camera, header, MinutiaArray.SOURCE_CAMERA, creases=creases)
+    msg = cv.minutiae_to_msg(camera, header, MinutiaArray.SOURCE_CAMERA, origin,
+                             creases=creases)
     cv.set_projection(msg, [*prior, 3000.0], camera_rotation([0, 0, 0, 1]), 500.0)
     return msg
 
@@ -84,13 +88,15 @@ def test_matcher_publishes_the_true_position_and_explains_no_fix():
         s.client.node.create_subscription(DiagnosticArray, "/matcher/diagnostics",
                                           diagnostics.append, 10)
         s.land_pub.publish(cv.minutiae_to_msg(landmark, header, MinutiaArray.SOURCE_LANDMARK,
-                                              (36.5, -84.2, 0.0)))
+                                              ORIGIN))
         cam_msg = _camera_msg(camera, prior, header)
         sparse = _camera_msg(camera.subset(np.arange(3)), prior, header)
         assert wait_until(lambda: (s.cam_pub.publish(cam_msg),
                                    any(f.status for f in fixes))[1], 30, 0.5)
         before = len(fixes)
         s.cam_pub.publish(sparse)
+        # a camera set of another ENU origin: another map (camera_ingest before its tile)
+        s.cam_pub.publish(_camera_msg(camera, prior, header, origin=(0.0, 0.0, 0.0)))
         s.cam_pub.publish(cv.minutiae_to_msg(MinutiaSet.empty("no drainage: flat",
                                                               camera.georef),
                                              Header(frame_id="map"),
@@ -101,7 +107,7 @@ def test_matcher_publishes_the_true_position_and_explains_no_fix():
                                                 "frame not projected: no CameraInfo"))
         # (late fixes of the repeated camera set may arrive in between)
         assert wait_until(lambda: sum(f.status == PvaFix.STATUS_NO_FIX
-                                      for f in fixes[before:]) >= 3, 20)
+                                      for f in fixes[before:]) >= 4, 20)
         n_reports = len(diagnostics)
         assert wait_until(lambda: len(diagnostics) > n_reports, 10)
         assert s.node.poll() is None
@@ -120,6 +126,8 @@ def test_matcher_publishes_the_true_position_and_explains_no_fix():
     reasons = [f.reason for f in no_fix]
     assert "no camera minutiae: no drainage: flat" in reasons
     assert "no camera minutiae: frame not projected: no CameraInfo" in reasons
+    assert any(r.startswith("the camera set's ENU origin (0.0, 0.0, 0.0) is not the "
+                            "landmark's") for r in reasons)
     level, values = cv.diagnostic_values(diagnostics[-1].status[0])
     assert level == 0, diagnostics[-1].status[0].message
     assert int(values["fixes"]) >= 1 and int(values["no_fixes"]) >= 3
@@ -138,7 +146,7 @@ def test_matcher_checks_the_creases_the_sets_carry():
     with matcher_node() as s:
         fixes = s.fixes
         s.land_pub.publish(cv.minutiae_to_msg(landmark, cv.make_header(5_000_000_000, "map"),
-                                              MinutiaArray.SOURCE_LANDMARK, (36.5, -84.2, 0.0),
+                                              MinutiaArray.SOURCE_LANDMARK, ORIGIN,
                                               creases=land_creases))
         assert wait_until(lambda: (s.cam_pub.publish(messages[6]),
                                    any(f.status for f in fixes))[1], 30, 0.5)
@@ -174,7 +182,7 @@ def test_a_failure_inside_matching_is_an_explicit_no_fix(monkeypatch):
         published = []
         monkeypatch.setattr(node.pub, "publish", published.append)
         node.on_landmark(cv.minutiae_to_msg(landmark, header, MinutiaArray.SOURCE_LANDMARK,
-                                            (36.5, -84.2, 0.0)))
+                                            ORIGIN))
         node.on_camera(_camera_msg(camera, prior, header))
         assert [f.status for f in published] == [PvaFix.STATUS_POSITION_ATTITUDE]
 

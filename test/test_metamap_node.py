@@ -54,6 +54,18 @@ def test_geodetic_request_and_outside_request(metamap_process):
     assert not far.success and "outside" in far.message
 
 
+def test_a_request_beyond_the_service_s_limits_fails_and_the_node_serves_on(metamap_process):
+    """A 40000 px side (OpenCV's remap cannot) or a gsd of 1e9 is success=false with the
+    reason; the next request is served."""
+    for width, height, gsd, words in ((1, 40000, 50.0, "at most 8192 px a side"),
+                                      (16, 16, 1e9, "must be within 0.01-1000")):
+        response = _call(metamap_process, GetDemTile.Request(
+            center_frame=GetDemTile.Request.CENTER_ENU, width=width, height=height, gsd=gsd))
+        assert not response.success and words in response.message, response.message
+    assert _call(metamap_process, GetDemTile.Request(
+        center_frame=GetDemTile.Request.CENTER_ENU, width=16, height=16, gsd=50.0)).success
+
+
 def test_odometry_triggers_a_latched_tile_around_the_aircraft(metamap_process):
     from nav_msgs.msg import Odometry
 
@@ -62,6 +74,7 @@ def test_odometry_triggers_a_latched_tile_around_the_aircraft(metamap_process):
     node.create_subscription(DemTile, "/metamap/tile", tiles.append, LATCHED_QOS)
     pub = node.create_publisher(Odometry, "/nav/odometry", 10)
     odom = Odometry()
+    odom.header.frame_id = "utm"          # another frame's odometry is ignored
     odom.pose.pose.position.x, odom.pose.pose.position.y = 500.0, 800.0
     odom.twist.twist.linear.x = 30.0
     odom.pose.covariance = cv.array_to_covariance(np.diag([100.0, 100, 100, 1, 1, 1]))
@@ -73,6 +86,9 @@ def test_odometry_triggers_a_latched_tile_around_the_aircraft(metamap_process):
     def around_aircraft():
         return [t for t in tiles if cv.msg_to_georef(t.georef).centre[0] > 100.0]
 
+    assert not wait_until(lambda: (pub.publish(odom), bool(around_aircraft()))[1], 2,
+                          period=0.3)
+    odom.header.frame_id = "map"
     assert wait_until(lambda: (pub.publish(odom), bool(around_aircraft()))[1], 20, period=0.3)
     heights, georef = cv.msg_to_dem_tile(around_aircraft()[0])
     west, east, south, north = georef.extent

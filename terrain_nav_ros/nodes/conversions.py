@@ -306,7 +306,12 @@ def georef_to_msg(georef: GeoReference, enu_origin=(0.0, 0.0, 0.0),
 
 
 def msg_to_georef(msg: GeoReferenceMsg) -> GeoReference:
-    """terrain_nav_msgs/GeoReference -> GeoReference (raises ConversionError if invalid)."""
+    """terrain_nav_msgs/GeoReference -> GeoReference (raises ConversionError if invalid,
+    its ENU origin included: every node that reads the message refuses a NaN origin there,
+    not the matcher's fix later)."""
+    lat, lon, alt = enu_origin_of(msg)
+    if not (math.isfinite(alt) and abs(lat) <= 90.0 and abs(lon) <= 360.0):
+        raise ConversionError(f"ENU origin ({lat}, {lon}, {alt}) is no place on Earth")
     try:
         return GeoReference(msg.origin_east, msg.origin_north, msg.gsd, msg.width, msg.height)
     except ValueError as err:
@@ -491,10 +496,20 @@ def _skeleton_pixels(skeleton: np.ndarray | None, shape, what: str) -> np.ndarra
     return np.flatnonzero(skeleton).astype(np.uint32)
 
 
+#: Most minutiae a MinutiaArray may carry (the landmark extractor keeps 5000 by default).
+MAX_MINUTIAE = 10000
+#: Largest raster a MinutiaArray's creases may span (a 8192 px square).
+MAX_SET_PIXELS = 8192 * 8192
+
+
 def msg_to_minutiae(msg: MinutiaArray) -> MinutiaSet:
-    """MinutiaArray -> MinutiaSet with its georeference."""
+    """MinutiaArray -> MinutiaSet with its georeference (at most :data:`MAX_MINUTIAE`: the
+    matcher's work and memory grow with the square of a set's size)."""
     georef = msg_to_georef(msg.georef)
     items = msg.minutiae
+    if len(items) > MAX_MINUTIAE:
+        raise ConversionError(f"{len(items)} minutiae: at most {MAX_MINUTIAE} in a set (the "
+                              "extractor keeps the best by quality)")
     cols = np.fromiter((m.col for m in items), float, len(items))
     rows = np.fromiter((m.row for m in items), float, len(items))
     angles = np.fromiter((m.orientation for m in items), float, len(items))
@@ -521,6 +536,9 @@ def _pixels_skeleton(pixels, msg: MinutiaArray, what: str) -> np.ndarray | None:
     if pixels.size == 0:
         return None
     width, height = int(msg.georef.width), int(msg.georef.height)
+    if width * height > MAX_SET_PIXELS:
+        raise ConversionError(f"a {width} x {height} px {what} raster: at most "
+                              f"{MAX_SET_PIXELS / 1e6:.0f} M pixels")
     if pixels.min() < 0 or pixels.max() >= width * height:
         raise ConversionError(f"{what} pixel index {pixels.max()} outside the "
                               f"{width} x {height} georeference")

@@ -650,6 +650,10 @@ class EkfNode(Node):
         if msg.status not in (PvaFix.STATUS_POSITION, PvaFix.STATUS_POSITION_ATTITUDE):
             self._refuse("fix", "unknown_status", f" {msg.status}")
             return
+        if msg.header.frame_id != self.map_frame:
+            self._refuse("fix", "wrong_frame",
+                         f": {msg.header.frame_id!r}, not {self.map_frame!r}")
+            return
         with_attitude = msg.status == PvaFix.STATUS_POSITION_ATTITUDE
         if not (np.isfinite(fix.position).all() and np.isfinite(fix.quaternion).all()):
             self._refuse("fix", Reason.NON_FINITE.value)

@@ -65,6 +65,9 @@ class LandmarkRendererNode(Node):
                                       min_value=0.0)
         sun_check_period = declare(self, "sun_check_period", 10.0,
                                    "how often the sun's motion is checked [s]", min_value=0.01)
+        self.max_size = declare(self, "max_image_size", 4096,
+                                "largest side of a tile or view rendered [px] (4096: ~15 s and "
+                                "2 GB on llvmpipe)", min_value=16, max_value=16384)
         if self.sun_policy not in ("fixed", "stamp"):
             raise ValueError(f"sun_policy must be 'fixed' or 'stamp', not {self.sun_policy!r}")
         check_parameters_known(self)  # before the OpenGL context is made
@@ -112,6 +115,12 @@ class LandmarkRendererNode(Node):
         out = georef if self.gsd <= 0 else GeoReference.centred(
             *georef.centre, self.gsd, round(georef.width * georef.gsd / self.gsd),
             round(georef.height * georef.gsd / self.gsd))
+        if max(georef.width, georef.height, out.width, out.height) > self.max_size:
+            self.get_logger().error(
+                f"DemTile of {georef.width}x{georef.height} px (landmark {out.width}x"
+                f"{out.height}): at most {self.max_size} px a side (max_image_size); "
+                "no landmark")
+            return
         try:
             self.renderer.set_terrain(filled, georef)
             self.last_tile_msg = msg
@@ -159,6 +168,9 @@ class LandmarkRendererNode(Node):
             return response
         try:
             k, _d, _model, (width, height) = cv.camera_info_to_intrinsics(request.camera_info)
+            if max(width, height) > self.max_size:
+                raise ValueError(f"a {width}x{height} px view: at most {self.max_size} px a "
+                                 "side (max_image_size)")
             camera = PinholeCamera(k[0, 0], k[1, 1], k[0, 2], k[1, 2], width, height)
             p, q = request.pose.position, request.pose.orientation
             from scipy.spatial.transform import Rotation
@@ -169,6 +181,10 @@ class LandmarkRendererNode(Node):
             result = self.renderer.render_perspective(camera, (p.x, p.y, p.z), rotation, sun)
         except (cv.ConversionError, RendererError, ValueError) as err:
             response.message = str(err)
+            return response
+        except Exception as err:   # any other failure: this request fails, the node serves on
+            response.message = f"{type(err).__name__}: {err}"
+            self.get_logger().error(f"render_view failed: {response.message}")
             return response
         header = cv.make_header(self.get_clock().now().to_msg(), "camera_optical")
         response.image = cv.array_to_image(display_u8(result.grey), "mono8", header)

@@ -274,6 +274,14 @@ class MatcherNode(Node):
             self.publish_no_fix(msg.header.stamp, "no landmark covers the camera footprint")
             return False
         land_minutiae, land_index, origin = landmark
+        camera_origin = cv.enu_origin_of(msg.georef)
+        if not np.allclose(camera_origin, origin, rtol=0.0, atol=(1e-7, 1e-7, 1e-3)):
+            # ENU of two origins are two maps: a match would put the fix at the landmark's
+            # coordinates in the camera's map (camera_ingest sends (0, 0, 0) before a tile)
+            self.publish_no_fix(msg.header.stamp,
+                                f"the camera set's ENU origin {tuple(camera_origin)} is not the "
+                                f"landmark's {tuple(origin)}")
+            return False
         if land_index is None:
             self.publish_no_fix(msg.header.stamp,
                                 f"no landmark minutiae: {land_minutiae.reason}")

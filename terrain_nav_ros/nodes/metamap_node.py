@@ -85,6 +85,10 @@ class MetamapNode(Node):
         )
         self.default_size = declare(self, "tile_size", 512, "default service tile size [px]",
                                     min_value=1, max_value=8192)
+        self.max_request = declare(self, "max_service_tile_size", 8192,
+                                   "largest side of a tile the service serves [px] (a "
+                                   "8192 px float32 tile is 256 MB)", min_value=16,
+                                   max_value=16384)
         initial = declare(self, "initial_tile", True,
                           "publish a tile around the ENU origin at start-up, before any "
                           "odometry (lets the EKF learn the origin from it)")
@@ -140,6 +144,11 @@ class MetamapNode(Node):
             gsd = request.gsd or self.gsd
             width = request.width or self.default_size
             height = request.height or self.default_size
+            if max(width, height) > self.max_request:
+                raise ValueError(f"a {width}x{height} px tile: at most {self.max_request} px "
+                                 "a side (max_service_tile_size)")
+            if not 0.01 <= gsd <= 1000.0:
+                raise ValueError(f"gsd {gsd} m/px: must be within 0.01-1000")
             if request.center_frame == GetDemTile.Request.CENTER_GEODETIC:
                 tile = self.metamap.tile_at_geodetic(request.center_x, request.center_y, gsd,
                                                      width, height)
@@ -155,11 +164,19 @@ class MetamapNode(Node):
             response.success = False
             response.message = str(err)
             self.get_logger().warning(f"get_tile refused: {err}")
+        except Exception as err:    # any other failure: this request fails, the node serves on
+            response.success = False
+            response.message = f"{type(err).__name__}: {err}"
+            self.get_logger().error(f"get_tile failed: {response.message}")
         return response
 
     @contained
     def on_odometry(self, msg: Odometry) -> None:
         """Publish a new tile when the predicted footprint leaves the current one."""
+        if msg.header.frame_id != self.frame_id:
+            self.get_logger().warning(f"odometry in {msg.header.frame_id or '(none)'}, not "
+                                      f"{self.frame_id}: ignored", throttle_duration_sec=5.0)
+            return
         p, v = msg.pose.pose.position, msg.twist.twist.linear
         cov = cv.covariance_to_array(msg.pose.covariance, 6)
         values = (p.x, p.y, v.x, v.y, cov[0, 0], cov[1, 1])
