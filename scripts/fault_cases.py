@@ -612,6 +612,18 @@ def cases() -> list[Case]:
             "the DEMs do not cover the area")),
         Case("prepare without suns", "options", _prepare(
             (), "give --suns AZ/EL,... (degrees) or --time ISO8601")),
+        Case("prepare --hours 1e9", "options", _prepare(
+            ("--time", "2024-06-21T08:00:00Z", "--hours", "1e9"), "--hours 1e+09 0-48")),
+        Case("simulate --camera-hfov 120", "options", lambda tmp: judge(terrain_nav(
+            "simulate", "-o", tmp / "out", "--camera-hfov", 120), 2, ("below 90 deg",))),
+        Case("simulate --duration 0.5 (no camera frame)", "options", lambda tmp: judge(
+            terrain_nav("simulate", "-o", tmp / "out", "--duration", 0.5), 2,
+            ("--duration 0.5: must be 2 s",))),
+        Case("simulate --camera-width 10000 --camera-height 10000", "options", lambda tmp:
+             judge(terrain_nav("simulate", "-o", tmp / "out", "--camera-width", 10000,
+                               "--camera-height", 10000), 2, ("100 M pixels, at most",))),
+        Case("replay --lost 1e9 0", "options", _replay(
+            lambda t: make_bag(t / "whole"), ("--lost", "1e9", "0"), "within 1000 km")),
         Case("prepare --area of three numbers", "options", _prepare(
             ("--area", "34.3,-118.1,34.4", "--suns", "120/40"), "give LAT,LON,LAT,LON")),
         Case("graph --config missing", "options", lambda tmp: judge(terrain_nav(

@@ -315,3 +315,27 @@ def test_ctrl_c_exits_130_in_one_line_keeping_the_finished_tiles(dem, tmp_path):
     last = others[0]
     assert "interrupted" in last and "run the same command again" in last
     assert len(list((out / "tiles").glob("*.npz"))) >= 3 * 3
+
+
+def test_a_replay_refuses_an_index_of_another_area_or_gsd_before_any_node(mission):
+    """The matcher would search such an index in vain (and a cold start would project the
+    frames with its area's terrain heights): the replay says so before it starts."""
+    from terrain_nav_ros.tools.errors import InputError
+    from terrain_nav_ros.tools.replay import _check_mission_index, _check_offsets
+
+    index = MissionIndex(mission)
+    here = [index.origin.lat, index.origin.lon, 0.0]
+    _check_mission_index(mission, {"landmark_gsd": index.gsd, "origin": here})
+    for bag_mission, words in (
+            ({"landmark_gsd": index.gsd, "origin": [36.59, -84.25, 0.0]}, "another area"),
+            ({"landmark_gsd": 2 * index.gsd, "origin": here}, "prepare it at --gsd"),
+    ):
+        with pytest.raises(InputError, match=words):
+            _check_mission_index(mission, bag_mission)
+    with pytest.raises(InputError, match="holds no mission index"):
+        _check_mission_index(mission / "nope", {})
+    for lost, kidnap, words in (((1e9, 0.0), None, "within 1000 km"),
+                                ((math.nan, 0.0), None, "finite"),
+                                (None, (-5.0, 0.0, 100.0), "must be >= 0 s")):
+        with pytest.raises(InputError, match=words):
+            _check_offsets(lost, kidnap)

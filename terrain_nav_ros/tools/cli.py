@@ -118,6 +118,35 @@ def _now() -> str:
     return time.strftime("%Y%m%d-%H%M%S")
 
 
+# What one simulated flight may ask for: a day, a 16 M pixel camera, a 2 kHz IMU.
+MAX_SIM_DURATION, MAX_SIM_PIXELS, MAX_IMU_RATE = 86400.0, 4096 * 4096, 2000.0
+
+
+def _check_simulation_size(args):
+    """InputError for a flight the simulator cannot hold in memory, or with no frame."""
+    from .flight_sim import SimConfig
+
+    cfg = SimConfig()
+    duration = args.duration or cfg.duration
+    rate = args.camera_rate or cfg.camera_rate
+    if not (math.isfinite(rate) and math.isfinite(duration)
+            and 2.0 / rate <= duration <= MAX_SIM_DURATION):
+        raise InputError(f"--duration {duration:g}: must be {2.0 / rate:g} s (the first "
+                         f"camera frame and after, at --camera-rate {rate:g}) to "
+                         f"{MAX_SIM_DURATION:g} s")
+    pixels = (args.camera_width or cfg.camera_width) * (args.camera_height or cfg.camera_height)
+    if pixels > MAX_SIM_PIXELS:
+        raise InputError(f"--camera-width x --camera-height: {pixels / 1e6:.3g} M pixels, at "
+                         f"most {MAX_SIM_PIXELS / 1e6:.3g} M")
+    if (args.imu_rate or cfg.imu_rate) > MAX_IMU_RATE:
+        raise InputError(f"--imu-rate {args.imu_rate:g}: at most {MAX_IMU_RATE:g} Hz")
+    if args.sun is not None:
+        azimuth, elevation = args.sun
+        if not (math.isfinite(azimuth) and 0 < elevation <= 90):
+            raise InputError(f"--sun {azimuth:g} {elevation:g}: the elevation must be in "
+                             "(0, 90] deg, the azimuth a number")
+
+
 def _cmd_simulate(args) -> int:
     from dataclasses import fields
 
@@ -125,8 +154,10 @@ def _cmd_simulate(args) -> int:
 
     _check_positive(args, "duration", "speed", "agl", "camera_rate", "camera_width",
                     "camera_height", "camera_hfov", "imu_rate", "landmark_gsd")
-    if args.camera_hfov is not None and args.camera_hfov >= 180:
-        raise InputError(f"--camera-hfov {args.camera_hfov}: must be below 180 deg")
+    if args.camera_hfov is not None and args.camera_hfov >= 90:
+        raise InputError(f"--camera-hfov {args.camera_hfov}: the simulated down-looking "
+                         "camera takes below 90 deg")
+    _check_simulation_size(args)
     if args.gnss_denied_after is not None and not args.gnss_denied_after >= 0:
         raise InputError(f"--gnss-denied-after {args.gnss_denied_after}: must be >= 0 s")
     _check_new(args.output, "-o")

@@ -187,6 +187,10 @@ def _enu_extent(origin: EnuOrigin, area) -> tuple[float, float, float, float]:
     return float(e.min()), float(e.max()), float(n.min()), float(n.max())
 
 
+MIN_SUN_STEP = 0.1   # deg: finer, the index's layers repeat each other (2 deg is the default)
+MAX_HOURS = 48.0     # a flight window of two days at most
+
+
 def _suns(req: PrepareRequest, origin: EnuOrigin, default_step: float):
     """The index's suns and how they were chosen."""
     if req.suns and req.time:
@@ -200,8 +204,9 @@ def _suns(req: PrepareRequest, origin: EnuOrigin, default_step: float):
         raise InputError("the index needs its suns: give --suns AZ/EL,... (degrees) or "
                          "--time ISO8601 --hours H (the flight window)")
     step = default_step if req.sun_step is None else req.sun_step
-    if not step > 0 or not req.hours >= 0:
-        raise InputError(f"--sun-step {step:g} must be > 0 and --hours {req.hours:g} >= 0")
+    if not (MIN_SUN_STEP <= step <= 90.0 and 0 <= req.hours <= MAX_HOURS):
+        raise InputError(f"--sun-step {step:g} must be {MIN_SUN_STEP:g}-90 deg and --hours "
+                         f"{req.hours:g} 0-{MAX_HOURS:g} (a mission's daylight)")
     try:
         start = parse_utc(req.time)
     except ValueError as err:

@@ -190,6 +190,46 @@ def _wrong_types(topics) -> list[str]:
             if t.topic in INPUT_TYPES and t.msgtype != INPUT_TYPES[t.topic]]
 
 
+MAX_OFFSET = 1000e3   # m: a lost or kidnapped aircraft within a mission's reach
+
+
+def _check_offsets(lost_offset, kidnap):
+    """InputError for a --lost or --kidnap that is no place or time of the flight."""
+    east_north = [*(lost_offset or ()), *(kidnap[1:] if kidnap else ())]
+    if not all(math.isfinite(v) and abs(v) <= MAX_OFFSET for v in east_north):
+        raise InputError(f"--lost / --kidnap offsets {east_north}: east and north must be "
+                         f"finite and within {MAX_OFFSET / 1e3:g} km")
+    if kidnap is not None and not (math.isfinite(kidnap[0]) and kidnap[0] >= 0):
+        raise InputError(f"--kidnap at {kidnap[0]} s: must be >= 0 s into the bag")
+
+
+def _check_mission_index(mission_dir: Path, mission: dict):
+    """InputError for a mission index that is incomplete, of another area than the bag's
+    mission, or at another landmark GSD: the matcher would search it in vain."""
+    from ..core.matching.mission_index import MissionIndex, MissionIndexError
+
+    try:
+        index = MissionIndex(mission_dir)
+    except (MissionIndexError, OSError) as err:
+        raise InputError(f"--mission {mission_dir}: {err}") from None
+    missing = index.missing()
+    if missing:
+        raise InputError(f"--mission {mission_dir}: {len(missing)} tile layers missing: run "
+                         "terrain-nav prepare again to complete it")
+    gsd = mission.get("landmark_gsd")
+    if gsd and abs(index.gsd - float(gsd)) > 1e-6 * float(gsd):
+        raise InputError(f"--mission {mission_dir}: prepared at {index.gsd:g} m/px, the bag's "
+                         f"landmarks at {float(gsd):g}: prepare it at --gsd {float(gsd):g}")
+    origin = mission.get("origin")
+    if origin:
+        east, north, _ = index.origin.geodetic_to_enu(float(origin[0]), float(origin[1]), 0.0)
+        west, east_edge, south, north_edge = index.grid.extent
+        if not (west <= east <= east_edge and south <= north <= north_edge):
+            raise InputError(f"--mission {mission_dir}: the bag's mission origin "
+                             f"({float(origin[0]):.4f}, {float(origin[1]):.4f}) is outside "
+                             "the index's area: an index of another area?")
+
+
 def check_inputs(bag: Path, out_dir: Path, rate: float) -> tuple[dict, bags.BagHealth]:
     """Everything a replay needs, checked before any node starts: the options, the bag
     (read in full), its mission.yaml and the DEM it names. Returns (mission, bag health);
@@ -238,9 +278,12 @@ def run_replay(bag: str | Path, out_dir: str | Path, graph_config: str | Path,
     if cold_start and lost_offset is not None:
         raise InputError("give either --cold-start (no pose at all) or --lost E N (a wrong "
                          "one), not both")
+    _check_offsets(lost_offset, kidnap)
     gnss_jammed = lost_offset is not None or cold_start   # the replay leaves /gnss/fix out
     bag, out_dir = Path(bag).resolve(), Path(out_dir).resolve()
     mission, health = check_inputs(bag, out_dir, rate)
+    if mission_dir is not None:
+        _check_mission_index(Path(mission_dir), mission)
     spec = load_graph(graph_config, enable)
     out_dir.mkdir(parents=True, exist_ok=True)
     if kidnap is not None:
