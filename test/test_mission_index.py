@@ -339,3 +339,23 @@ def test_a_replay_refuses_an_index_of_another_area_or_gsd_before_any_node(missio
                                 (None, (-5.0, 0.0, 100.0), "must be >= 0 s")):
         with pytest.raises(InputError, match=words):
             _check_offsets(lost, kidnap)
+
+
+def test_an_area_across_the_antimeridian_is_one_box_not_the_whole_earth():
+    """A DEM in UTM 60 around 180 deg E (pyproj gives its box west > east) and an --area
+    whose corners lie either side of 180: both are the box across it, whose centre is the
+    ENU origin (before, the origin fell at longitude 0 and the index held nothing)."""
+    from affine import Affine
+    from pyproj import Transformer
+
+    from terrain_nav_ros.core.terrain.dem_io import Dem
+    from terrain_nav_ros.tools.prepare import _area_box, _geodetic_bounds
+
+    x, y = Transformer.from_crs("EPSG:4326", "EPSG:32660", always_xy=True).transform(180.0,
+                                                                                     40.0)
+    dem = Dem.from_array(np.zeros((200, 200), np.float32),
+                         Affine(100.0, 0.0, x - 10e3, 0.0, -100.0, y + 10e3), "EPSG:32660")
+    south, west, north, east = _geodetic_bounds([dem])
+    assert 179.8 < west < 180.0 < east < 180.2 and south < 40.0 < north
+    assert _area_box((39.98, 179.95, 40.02, -179.95)) == pytest.approx(
+        (39.98, 179.95, 40.02, 180.05))

@@ -133,13 +133,28 @@ def _open_dems(specs) -> list:
 
 
 def _geodetic_bounds(dems) -> tuple[float, float, float, float]:
-    """(south, west, north, east) in degrees of the DEMs' union."""
+    """(south, west, north, east) in degrees of the DEMs' union: their edges in longitude
+    and latitude, unwrapped about the first one's centre, so that a union across the
+    antimeridian is one box with east beyond 180 (pyproj's own bounds of such a DEM are
+    west > east, or the whole circle)."""
     from pyproj import Transformer
 
-    boxes = [Transformer.from_crs(d.crs, "EPSG:4326", always_xy=True)
-             .transform_bounds(*d.bounds, densify_pts=64) for d in dems]
-    west, south, east, north = np.array(boxes).T
-    return float(south.min()), float(west.min()), float(north.max()), float(east.max())
+    t = np.linspace(0.0, 1.0, 65)
+    lats, lons, centre = [], [], None
+    for d in dems:
+        left, bottom, right, top = d.bounds
+        xs = np.r_[left + t * (right - left), np.full_like(t, right),
+                   right - t * (right - left), np.full_like(t, left)]
+        ys = np.r_[np.full_like(t, bottom), bottom + t * (top - bottom), np.full_like(t, top),
+                   top - t * (top - bottom)]
+        to_lonlat = Transformer.from_crs(d.crs, "EPSG:4326", always_xy=True)
+        lon, lat = to_lonlat.transform(xs, ys)
+        if centre is None:
+            centre = to_lonlat.transform(0.5 * (left + right), 0.5 * (bottom + top))[0]
+        lons.append(centre + (np.asarray(lon) - centre + 180.0) % 360.0 - 180.0)
+        lats.append(np.asarray(lat))
+    lon, lat = np.concatenate(lons), np.concatenate(lats)
+    return float(lat.min()), float(lon.min()), float(lat.max()), float(lon.max())
 
 
 def _area_points(area, n: int = COVERAGE_SAMPLES):
@@ -169,6 +184,8 @@ def _area_box(area) -> tuple[float, float, float, float]:
     lat0, lon0, lat1, lon1 = area
     south, north, west, east = min(lat0, lat1), max(lat0, lat1), min(lon0, lon1), max(lon0,
                                                                                        lon1)
+    if east - west > 180.0:   # corners either side of the antimeridian: the box across it
+        west, east = east, west + 360.0
     if not (-90 <= south < north <= 90 and -180 <= west < east <= 360):
         raise InputError(f"--area {','.join(f'{v:g}' for v in area)}: give two opposite "
                          "corners LAT,LON,LAT,LON of a box with some extent (degrees)")
@@ -254,6 +271,9 @@ def plan_index(req: PrepareRequest, parameters=GRAPH_PARAMETERS) -> IndexPlan:
     finally:
         for d in dems:
             d.close()
+    if terrain is None:   # an index of nothing: no tile would hold a minutia
+        raise InputError("the DEMs hold no heights over the area (all voids or nodata): "
+                         "nothing to index")
     grid = mi.TileGrid.covering(extent, req.gsd, req.tile_px, req.overlap_px)
     suns, sun_source = _suns(req, origin, default_step)
     # absolute: the workers may run elsewhere (another cwd, another machine's shared disk)
