@@ -241,6 +241,9 @@ def _match_gsd(text: str):
     return value
 
 
+MAX_CASES = 10000   # views per scene, size and heading: a study of hours, not of days
+
+
 def _cmd_evaluate_imagery(args) -> int:
     """``evaluate --image IMG --dem DEM`` / ``--scenes YAML``: the real-imagery study."""
     from ..core.matching.params import MatchParams
@@ -262,9 +265,14 @@ def _cmd_evaluate_imagery(args) -> int:
                 if warning:
                     print(f"terrain-nav evaluate: warning: {scene.name}: {warning}",
                           file=sys.stderr)
-        sizes = tuple(int(x) for x in args.sizes.split(","))
-        if min(sizes) < 16 or args.cases < 1 or args.controls < 0:
-            raise ValueError("--sizes must be >= 16 px, --cases >= 1 and --controls >= 0")
+        try:
+            sizes = tuple(int(x) for x in args.sizes.split(","))
+        except ValueError:
+            raise ValueError(f"--sizes {args.sizes}: give whole numbers of pixels, like "
+                             "128,256") from None
+        if min(sizes) < 16 or not 1 <= args.cases <= MAX_CASES or args.controls < 0:
+            raise ValueError(f"--sizes must be >= 16 px, --cases 1-{MAX_CASES} and "
+                             "--controls >= 0")
         headings = ("unknown", "known") if args.heading == "both" else (args.heading,)
         baselines = () if args.no_baselines else tuple(args.baselines.split(","))
         params = MatchParams(view_search=not args.no_view_search)
@@ -340,6 +348,8 @@ def _input_error_hint(err: BaseException) -> str | None:
         return "fix the graph file (--config)"
     if isinstance(err, yaml.YAMLError):
         return "fix the YAML file"
+    if isinstance(err, TimeoutError | ConnectionError):   # (both OSErrors)
+        return "check the address, and that the service there runs"
     if isinstance(err, OSError):
         return "check the path and its permissions"
     return None
