@@ -43,6 +43,9 @@ from .ros_common import (
 # GDAL's default block cache (5% of RAM) would dominate the node's memory on tiled GeoTIFFs.
 os.environ.setdefault("GDAL_CACHEMAX", "64")
 
+#: The tile GSDs served, by parameter and by request [m/px].
+GSD_RANGE = (0.01, 1000.0)
+
 
 class MetamapNode(Node):
     """Serves and publishes DEM tiles on north-up grids of the mission ENU frame."""
@@ -61,7 +64,7 @@ class MetamapNode(Node):
                              "geoid height N at the origin [m]: DEM (orthometric) heights "
                              "become ellipsoidal as H + N")
         self.gsd = declare(self, "gsd", 5.0, "default tile ground sample distance [m/px]",
-                           min_value=0.01, max_value=1000.0)
+                           min_value=GSD_RANGE[0], max_value=GSD_RANGE[1])
         self.frame_id = declare(self, "frame_id", "map", "frame of the tiles (REP 105)")
         interpolation = declare(self, "interpolation", "spline",
                                 "spline | bicubic | bilinear | nearest | idw (dissertation "
@@ -147,8 +150,9 @@ class MetamapNode(Node):
             if max(width, height) > self.max_request:
                 raise ValueError(f"a {width}x{height} px tile: at most {self.max_request} px "
                                  "a side (max_service_tile_size)")
-            if not 0.01 <= gsd <= 1000.0:
-                raise ValueError(f"gsd {gsd} m/px: must be within 0.01-1000")
+            if not GSD_RANGE[0] <= gsd <= GSD_RANGE[1]:
+                raise ValueError(f"gsd {gsd} m/px: must be within {GSD_RANGE[0]:g}-"
+                                 f"{GSD_RANGE[1]:g}")
             if request.center_frame == GetDemTile.Request.CENTER_GEODETIC:
                 tile = self.metamap.tile_at_geodetic(request.center_x, request.center_y, gsd,
                                                      width, height)

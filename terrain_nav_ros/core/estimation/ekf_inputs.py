@@ -350,13 +350,17 @@ class GyroScale:
     def __init__(self, gravity: float):
         self.gravity = gravity
         self.problem: str | None = None
-        self._settled = False
         self._trusted_turns = 0
         self._block_start: float | None = None
         self._gyro = np.zeros(3)
         self._accel = np.zeros(3)
         self._count = 0
         self._turn: list[tuple[float, float]] = []   # (V |w|, a_n) of the turn's blocks
+
+    @property
+    def _settled(self) -> bool:
+        """A problem found, or enough turns trusted: no more checking."""
+        return self.problem is not None or self._trusted_turns >= self.TURNS_TO_TRUST
 
     def add(self, stamp: float, gyro, accel,
             motion: Callable[[], tuple[float, np.ndarray] | None]) -> str | None:
@@ -409,7 +413,5 @@ class GyroScale:
                 f"normal acceleration and speed imply ({turning / len(self._turn):.3g} against "
                 f"{normal / len(self._turn):.3g} m/s^2 on average, V |w| against a_n): rates "
                 + ("in deg/s, not rad/s?" if 30 < ratio < 200 else "in another unit?"))
-            self._settled = True
             return
         self._trusted_turns += 1
-        self._settled = self._trusted_turns >= self.TURNS_TO_TRUST

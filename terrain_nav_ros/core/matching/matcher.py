@@ -316,10 +316,12 @@ def _view_try(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, level: SearchLev
 LOOK_ALIKE_MARGIN = 1.0
 
 
-def _look_alike(a: MinutiaIndex, best: _Scored, scored: list) -> tuple[_Scored, float] | None:
+def _look_alike(a: MinutiaIndex, best: _Scored,
+                scored: list) -> tuple[_Scored, float, float] | None:
     """The strongest registration among ``scored`` that puts the view at another place (its
     creases' centre a quarter of their reach or more from ``best``'s) and scores within
-    :data:`LOOK_ALIKE_MARGIN` of the strongest, with that distance (px); or None."""
+    :data:`LOOK_ALIKE_MARGIN` of the strongest, with that distance (px) and the strongest
+    score; or None."""
     top = max(s.score for s in scored)
     apart = max(5.0, 0.25 * a.crease_reach)
     for s in sorted(scored, key=lambda s: -s.score):
@@ -327,7 +329,7 @@ def _look_alike(a: MinutiaIndex, best: _Scored, scored: list) -> tuple[_Scored, 
             return None
         distance = abs((s.c - best.c) * a.crease_centre + s.t - best.t)
         if distance > apart:
-            return s, distance
+            return s, distance, top
     return None
 
 
@@ -534,7 +536,6 @@ class Matcher:
                                     **p.crease_tolerances)
         ok = score >= p.threshold
         reason = "" if ok else f"score {score:.2f} below threshold {p.threshold:.2f}"
-        look_alike = _look_alike(a, best, scored) if ok and use_creases else None
         fitted_scale = abs(c)
         if ok and scale_change > 0 and \
                 abs(fitted_scale - 1.0) >= scale_change + SCALE_FIT_MARGIN - 1e-3:
@@ -544,11 +545,12 @@ class Matcher:
             reason = (f"scale {fitted_scale:.3f} at the edge of the fit (the prior's "
                       f"+-{scale_change:.0%} and {SCALE_FIT_MARGIN:.0%} more): the height "
                       "above ground is off, or the view is not of this place")
-        elif look_alike is not None:
-            ok, (other, distance) = False, look_alike
+        look_alike = _look_alike(a, best, scored) if ok and use_creases else None
+        if look_alike is not None:
+            ok, (other, distance, top) = False, look_alike
             reason = (f"ambiguous: another place {distance:.0f} px away scores "
                       f"{other.score:.1f}, within {LOOK_ALIKE_MARGIN:g} of the best "
-                      f"({max(s.score for s in scored):.1f}): repeated terrain")
+                      f"({top:.1f}): repeated terrain")
         return MatchResult(
             decision=Decision.MATCH if ok else Decision.NO_MATCH, score=score,
             n_pairings=len(pairs), pairings=pairs, transform=_pixel_transform(c, t),
