@@ -31,7 +31,9 @@ configures the graph to match.
 
 from __future__ import annotations
 
+import heapq
 import math
+import shutil
 import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -281,7 +283,11 @@ def _progress(done: int, total: int, started: float, what: str) -> None:
 
 
 def simulate(cfg: SimConfig, output: str | Path) -> dict:
-    """Fly ``cfg`` and write the bag to ``output`` (a new directory); return a summary."""
+    """Fly ``cfg`` and write the bag to ``output`` (a new directory); return a summary.
+
+    The messages are made as they are written, in stamp order, so memory does not grow with
+    the flight's length; a flight that fails part-way leaves no bag.
+    """
     output = Path(output)
     _cloud_layer(cfg, 0.0)   # bad cloud settings fail before the flight is flown
     rng = np.random.default_rng(cfg.seed)
@@ -291,58 +297,37 @@ def simulate(cfg: SimConfig, output: str | Path) -> dict:
     params = EkfParams()
     imu = simulate_imu(truth, ImuErrorModel.from_params(params), rng)
     msgs = _Messages()
-    origin = metamap.origin
-    out: list[tuple[int, str, str, object]] = []
-
-    dt = 1.0 / cfg.imu_rate
-    gyro_var = params.gyro_noise_density ** 2 / dt
-    accel_var = params.accel_noise_density ** 2 / dt
-    for k in range(1, len(truth)):
-        out.append((t_ns[k], "/imu/data", "sensor_msgs/msg/Imu",
-                    msgs.imu(t_ns[k], imu.gyro[k], imu.accel[k], gyro_var, accel_var)))
-
-    for k in truth.at(np.arange(0.0, truth.t[-1], 1.0 / cfg.truth_rate)):
-        out.append((t_ns[k], "/ground_truth/odometry", "nav_msgs/msg/Odometry",
-                    msgs.odometry(t_ns[k], truth.position[k], truth.quaternion[k],
-                                  truth.velocity[k])))
-
-    baro_idx = truth.at(np.arange(0.0, truth.t[-1], 1.0 / cfg.baro_rate))
-    # Pressure altitude ~ orthometric height; the ENU up differs by a constant the EKF learns.
-    pressure = altitude_to_pressure(truth.position[baro_idx, 2] + origin.alt)
-    pressure += rng.normal(0.0, cfg.baro_sigma, len(baro_idx))
-    for k, p in zip(baro_idx, pressure, strict=True):
-        out.append((t_ns[k], "/baro/pressure", "sensor_msgs/msg/FluidPressure",
-                    msgs.pressure(t_ns[k], p, cfg.baro_sigma ** 2)))
-
-    gnss_idx = truth.at(np.arange(0.0, truth.t[-1], 1.0 / cfg.gnss_rate))
-    noise = rng.normal(0.0, 1.0, (len(gnss_idx), 3)) * [cfg.gnss_sigma, cfg.gnss_sigma,
-                                                       2 * cfg.gnss_sigma]
-    for k, e in zip(gnss_idx, noise, strict=True):
-        denied = truth.t[k] >= cfg.gnss_denied_after
-        if denied and cfg.gnss_denial == "stop":
-            continue
-        lat, lon, alt = origin.enu_to_geodetic(*(truth.position[k] + e))
-        status = -1 if denied else 0
-        if denied:
-            lat = lon = alt = math.nan
-        out.append((t_ns[k], "/gnss/fix", "sensor_msgs/msg/NavSatFix",
-                    msgs.navsat(t_ns[k], lat, lon, alt, status, cfg.gnss_sigma)))
-
-    sun = tuple(cfg.sun) if cfg.sun else _solar(origin, t_ns[0])
-    frames = _render_frames(cfg, metamap, truth, t_ns, msgs, rng, sun)
-    out.extend(frames)
-    out.sort(key=lambda item: item[0])
-
-    with bags.BagWriter(output, compress=True) as writer:
-        writer.add_topic("/tf_static", "tf2_msgs/msg/TFMessage",
-                         bags.qos_profile(reliable=True, transient_local=True, depth=1))
-        writer.write_message("/tf_static", t_ns[0], msgs.static_tf(
-            t_ns[0], "base_link", "camera_optical", R_BODY_OPTICAL_NADIR), "tf2_msgs/msg/TFMessage")
-        for stamp, topic, msgtype, msg in out:
-            writer.write_message(topic, stamp, msg, msgtype)
+    # every random draw but the camera's is made here, the camera's frame by frame after
+    # them: the bag is the same whatever order the streams are merged in
+    streams = [_imu_messages(cfg, params, imu, t_ns, msgs),
+               _truth_messages(cfg, truth, t_ns, msgs),
+               _baro_messages(cfg, truth, metamap.origin, t_ns, msgs, rng),
+               _gnss_messages(cfg, truth, metamap.origin, t_ns, msgs, rng)]
+    sun = tuple(cfg.sun) if cfg.sun else _solar(metamap.origin, t_ns[0])
+    camera = _CameraFrames(cfg, metamap, truth, t_ns, msgs, sun)
+    streams.append(camera.messages(rng))
+    try:
+        writer = bags.BagWriter(output, compress=True)   # refuses an existing one
+    except BaseException:
+        camera.release()
+        raise
+    try:
+        with writer:
+            writer.add_topic("/tf_static", "tf2_msgs/msg/TFMessage",
+                             bags.qos_profile(reliable=True, transient_local=True, depth=1))
+            writer.write_message("/tf_static", t_ns[0], msgs.static_tf(
+                t_ns[0], "base_link", "camera_optical", R_BODY_OPTICAL_NADIR),
+                "tf2_msgs/msg/TFMessage")
+            for stamp, topic, msgtype, msg in heapq.merge(*streams, key=lambda m: m[0]):
+                writer.write_message(topic, stamp, msg, msgtype)
+    except BaseException:
+        shutil.rmtree(output, ignore_errors=True)
+        raise
+    finally:
+        camera.release()
     summary = {
-        "dem": dem_name, "origin": [origin.lat, origin.lon, origin.alt],
-        "duration_s": float(truth.t[-1]), "camera_frames": len(frames) // 2,
+        "dem": dem_name, "origin": [metamap.origin.lat, metamap.origin.lon, metamap.origin.alt],
+        "duration_s": float(truth.t[-1]), "camera_frames": len(camera.idx),
         "gnss_denied_after_s": cfg.gnss_denied_after,
         "altitude_m": float(truth.position[0, 2]),
         "camera_mount": "nadir", "landmark_gsd": cfg.landmark_gsd,
@@ -354,6 +339,54 @@ def simulate(cfg: SimConfig, output: str | Path) -> dict:
     }
     (output / "mission.yaml").write_text(yaml.safe_dump(summary, sort_keys=False))
     return summary
+
+
+def _imu_messages(cfg: SimConfig, params: EkfParams, imu, t_ns, msgs: _Messages):
+    dt = 1.0 / cfg.imu_rate
+    gyro_var = params.gyro_noise_density ** 2 / dt
+    accel_var = params.accel_noise_density ** 2 / dt
+    for k in range(1, len(t_ns)):
+        yield (t_ns[k], "/imu/data", "sensor_msgs/msg/Imu",
+               msgs.imu(t_ns[k], imu.gyro[k], imu.accel[k], gyro_var, accel_var))
+
+
+def _truth_messages(cfg: SimConfig, truth, t_ns, msgs: _Messages):
+    for k in truth.at(np.arange(0.0, truth.t[-1], 1.0 / cfg.truth_rate)):
+        yield (t_ns[k], "/ground_truth/odometry", "nav_msgs/msg/Odometry",
+               msgs.odometry(t_ns[k], truth.position[k], truth.quaternion[k],
+                             truth.velocity[k]))
+
+
+def _baro_messages(cfg: SimConfig, truth, origin: EnuOrigin, t_ns, msgs: _Messages, rng):
+    """The barometer's messages (its noise drawn now, not as they are made)."""
+    idx = truth.at(np.arange(0.0, truth.t[-1], 1.0 / cfg.baro_rate))
+    # Pressure altitude ~ orthometric height; the ENU up differs by a constant the EKF learns.
+    pressure = altitude_to_pressure(truth.position[idx, 2] + origin.alt)
+    pressure += rng.normal(0.0, cfg.baro_sigma, len(idx))
+    return ((t_ns[k], "/baro/pressure", "sensor_msgs/msg/FluidPressure",
+             msgs.pressure(t_ns[k], p, cfg.baro_sigma ** 2))
+            for k, p in zip(idx, pressure, strict=True))
+
+
+def _gnss_messages(cfg: SimConfig, truth, origin: EnuOrigin, t_ns, msgs: _Messages, rng):
+    """The GNSS receiver's messages (its noise drawn now, not as they are made)."""
+    idx = truth.at(np.arange(0.0, truth.t[-1], 1.0 / cfg.gnss_rate))
+    noise = rng.normal(0.0, 1.0, (len(idx), 3)) * [cfg.gnss_sigma, cfg.gnss_sigma,
+                                                   2 * cfg.gnss_sigma]
+
+    def messages():
+        for k, e in zip(idx, noise, strict=True):
+            denied = truth.t[k] >= cfg.gnss_denied_after
+            if denied and cfg.gnss_denial == "stop":
+                continue
+            lat, lon, alt = origin.enu_to_geodetic(*(truth.position[k] + e))
+            status = -1 if denied else 0
+            if denied:
+                lat = lon = alt = math.nan
+            yield (t_ns[k], "/gnss/fix", "sensor_msgs/msg/NavSatFix",
+                   msgs.navsat(t_ns[k], lat, lon, alt, status, cfg.gnss_sigma))
+
+    return messages()
 
 
 class SimInputError(ValueError):
@@ -442,42 +475,62 @@ def _cloud_layer(cfg: SimConfig, ground_height: float) -> CloudLayer:
         raise SimInputError(str(err)) from None
 
 
-def _render_frames(cfg, metamap, truth, t_ns, msgs, rng, sun):
-    cam = pinhole(cfg)
-    dist = cfg.effects.distortion
-    maps = distortion_maps(np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1.0]]),
-                           dist, cam.width, cam.height)
-    idx = truth.at(np.arange(1.0 / cfg.camera_rate, truth.t[-1], 1.0 / cfg.camera_rate))
-    pos = truth.position[idx]
-    margin = 1.5 * (pos[:, 2].max()) * math.tan(math.radians(cfg.camera_hfov))
-    gsd = cfg.render_gsd or metamap.native_gsd / 2
-    west, east = pos[:, 0].min() - margin, pos[:, 0].max() + margin
-    south, north = pos[:, 1].min() - margin, pos[:, 1].max() + margin
-    gsd = max(gsd, (east - west) / 4096, (north - south) / 4096)
-    box = GeoReference(west, north, gsd, int((east - west) / gsd) + 1,
-                       int((north - south) / gsd) + 1)
-    tile = metamap.tile(box)
-    heights = np.where(tile.nodata, np.nanmin(tile.elevation), tile.elevation)
-    renderer = LandmarkRenderer(create_headless_context(), albedo=CAMERA_ALBEDO, shadows=True)
-    renderer.set_terrain(heights, box)
-    if cfg.albedo:
-        renderer.set_photo(drape_photo(cfg.albedo, cfg.albedo_band, metamap, box))
-    clouds = _cloud_layer(cfg, float(np.median(heights)))
-    out = []
-    started = time.monotonic()
-    for n, k in enumerate(idx):
-        r = camera_rotation(truth.quaternion[k])
-        result = renderer.render_perspective(cam, truth.position[k], r, sun=sun)
-        ground = result.hit_enu
-        distance = np.linalg.norm(ground - truth.position[k], axis=-1)
-        radiance, _ = clouds.apply(result.rgb, truth.position[k], ground, sun, truth.t[k])
-        rgb = apply_camera_effects(radiance, distance, cfg.effects, rng, maps)
-        msgtype, image = msgs.image(t_ns[k], rgb, cfg.image_format, cfg.jpeg_quality)
+class _CameraFrames:
+    """The camera's frames, rendered one by one as they are asked for (the renderer, the
+    draped image and the clouds are set up at once, so that their errors come before any
+    bag is written)."""
+
+    def __init__(self, cfg: SimConfig, metamap: MetaMap, truth, t_ns, msgs: _Messages, sun):
+        self.cfg, self.truth, self.t_ns, self.msgs, self.sun = cfg, truth, t_ns, msgs, sun
+        self.cam = cam = pinhole(cfg)
+        self.maps = distortion_maps(
+            np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1.0]]),
+            cfg.effects.distortion, cam.width, cam.height)
+        self.idx = truth.at(np.arange(1.0 / cfg.camera_rate, truth.t[-1], 1.0 / cfg.camera_rate))
+        pos = truth.position[self.idx]
+        margin = 1.5 * (pos[:, 2].max()) * math.tan(math.radians(cfg.camera_hfov))
+        gsd = cfg.render_gsd or metamap.native_gsd / 2
+        west, east = pos[:, 0].min() - margin, pos[:, 0].max() + margin
+        south, north = pos[:, 1].min() - margin, pos[:, 1].max() + margin
+        gsd = max(gsd, (east - west) / 4096, (north - south) / 4096)
+        box = GeoReference(west, north, gsd, int((east - west) / gsd) + 1,
+                           int((north - south) / gsd) + 1)
+        tile = metamap.tile(box)
+        heights = np.where(tile.nodata, np.nanmin(tile.elevation), tile.elevation)
+        self.renderer = LandmarkRenderer(create_headless_context(), albedo=CAMERA_ALBEDO,
+                                         shadows=True)
+        try:
+            self.renderer.set_terrain(heights, box)
+            if cfg.albedo:
+                self.renderer.set_photo(drape_photo(cfg.albedo, cfg.albedo_band, metamap, box))
+        except BaseException:
+            self.release()
+            raise
+        self.clouds = _cloud_layer(cfg, float(np.median(heights)))
+
+    def messages(self, rng):
+        """Each frame's image and CameraInfo messages, in time order."""
+        cfg, truth, msgs = self.cfg, self.truth, self.msgs
         topic = "/camera/image_raw/compressed" if cfg.image_format == "jpeg" \
             else "/camera/image_raw"
-        out.append((t_ns[k], topic, msgtype, image))
-        out.append((t_ns[k], "/camera/camera_info", "sensor_msgs/msg/CameraInfo",
-                    msgs.camera_info(t_ns[k], cam, dist)))
-        _progress(n + 1, len(idx), started, "camera frames")
-    renderer.release()
-    return out
+        started = time.monotonic()
+        for n, k in enumerate(self.idx):
+            stamp = self.t_ns[k]
+            r = camera_rotation(truth.quaternion[k])
+            result = self.renderer.render_perspective(self.cam, truth.position[k], r,
+                                                      sun=self.sun)
+            ground = result.hit_enu
+            distance = np.linalg.norm(ground - truth.position[k], axis=-1)
+            radiance, _ = self.clouds.apply(result.rgb, truth.position[k], ground, self.sun,
+                                            truth.t[k])
+            rgb = apply_camera_effects(radiance, distance, cfg.effects, rng, self.maps)
+            msgtype, image = msgs.image(stamp, rgb, cfg.image_format, cfg.jpeg_quality)
+            yield stamp, topic, msgtype, image
+            yield (stamp, "/camera/camera_info", "sensor_msgs/msg/CameraInfo",
+                   msgs.camera_info(stamp, self.cam, cfg.effects.distortion))
+            _progress(n + 1, len(self.idx), started, "camera frames")
+
+    def release(self):
+        if self.renderer is not None:
+            self.renderer.release()
+            self.renderer = None
