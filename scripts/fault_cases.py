@@ -12,7 +12,7 @@ it to the real ``terrain-nav`` command, node executable or EKF core and judges t
 
 Usage::
 
-    .venv/bin/python scripts/fault_cases.py            # every case (~3 min on 2 cores)
+    .venv/bin/python scripts/fault_cases.py            # every case (~31 min on 2 cores)
     .venv/bin/python scripts/fault_cases.py --ci       # the subset ./tn test runs
     .venv/bin/python scripts/fault_cases.py -k bag     # cases whose name holds "bag"
 
