@@ -409,15 +409,55 @@ def test_waiting_for_says_what_initialisation_needs():
 
 def test_a_pair_of_fixes_too_far_apart_for_an_aircraft_starts_nothing():
     """A bad first fix (a receiver's output before its fix, a false match) and a good one
-    10 s later mean thousands of km/s: the filter drops the older and starts from the good
-    one with the next good one."""
+    10 s later mean thousands of km/s: nothing starts, and the good one starts the filter
+    with the next good one."""
     ekf = TerrainEkf(EkfParams(init_mode="gnss", init_min_fix_interval=10.0))
     ekf.process_gnss(2.0, [-6.3e6, 3.6e5, -5.0e6], np.eye(3))
     out = ekf.process_gnss(12.0, [300.0, 0.0, 500.0], np.eye(3))
     assert out.reason == Reason.INIT_TOO_FAST and not ekf.initialized
-    assert ekf.waiting_for().endswith("after the one at 12.000 s (or one with velocity)")
+    assert ekf.waiting_for().startswith("a gnss measurement 10 s or more after one of those "
+                                        "held since 2.000 s, at 150 m/s or less")
     assert ekf.process_gnss(22.0, [600.0, 0.0, 500.0], np.eye(3)).reason == Reason.INITIALIZED
     np.testing.assert_allclose(ekf.state.velocity, [30.0, 0.0, 0.0], atol=1e-6)
+
+
+def test_a_bad_second_fix_costs_only_itself():
+    """A receiver's 2-D fix at altitude 0 (3500 m below) as the second of the pair: the good
+    first one still starts the filter with the next good fix, not 10 s after the bad one
+    (GNSS jammed by then would leave the filter unstarted for the flight)."""
+    ekf = TerrainEkf(EkfParams(init_mode="gnss", init_min_fix_interval=10.0))
+    assert ekf.process_gnss(2.0, [0.0, 0.0, 3500.0], np.eye(3)).reason == \
+        Reason.WAITING_FOR_INIT
+    assert ekf.process_gnss(12.0, [300.0, 0.0, 0.0], np.eye(3)).reason == Reason.INIT_TOO_FAST
+    out = ekf.process_gnss(12.2, [306.0, 0.0, 3500.0], np.eye(3))
+    assert out.reason == Reason.INITIALIZED
+    np.testing.assert_allclose(ekf.state.position, [306.0, 0.0, 3500.0])
+    np.testing.assert_allclose(ekf.state.velocity, [30.0, 0.0, 0.0], atol=1e-6)
+
+
+@pytest.mark.parametrize("offset", [18.0, -18.0])
+def test_gnss_on_another_clock_starts_nothing(offset):
+    """GNSS stamped in GPS time with the IMU in UTC (18 s apart): started at its stamp the
+    filter refused 18 s of IMU as out of order (or integrated them in one step) and ended
+    540 m off. It is refused as it would be once started, and GNSS on the IMU's clock
+    starts it."""
+    params = EkfParams(init_mode="gnss", init_min_fix_interval=3.0)
+    _, truth, imu = flight(straight_flight(10.0), 5, params)
+    ekf = TerrainEkf(params)
+    reasons = set()
+    for k in range(1, 601):
+        ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
+        if k % 20 == 0:
+            reasons.add(ekf.process_gnss(truth.t[k] + offset, truth.position[k],
+                                         np.eye(3)).reason)
+    assert not ekf.initialized
+    assert reasons == {Reason.TOO_FAR_AHEAD if offset > 0 else Reason.STALE}
+    for k in range(601, 1000):
+        ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
+        if k % 20 == 0:
+            ekf.process_gnss(truth.t[k], truth.position[k], np.eye(3))
+    assert ekf.initialized
+    np.testing.assert_allclose(ekf.state.position, truth.position[999], atol=3.0)
 
 
 def test_init_from_a_late_fix_replays_the_buffered_imu_as_it_is():
@@ -975,6 +1015,30 @@ def test_a_barometer_that_jumps_has_the_jump_taken_off_and_stays_in_use():
     assert d.baro_step == pytest.approx(40.0, abs=8.0)
     assert d.rejected["baro"] <= 2 and d.accepted["baro"] > 550
     assert worst < 10.0, worst
+
+
+def test_a_re_seed_with_a_wrong_height_comes_back_onto_the_barometer():
+    """An operator's set_pose 200 m above the truth, sure of it (5 m): the baro heights
+    that follow are refused, and their streak is no jump of the baro (the height moved, not
+    the baro) nor disputed by the fixes caught before the re-seed: it resets the height onto
+    the baro. Before, the re-seed was taken for a baro step and the height stayed 200 m
+    off."""
+    params = EkfParams(init_mode="pose")
+    rng, truth, imu = flight(straight_flight(60.0), 11, params)
+    ekf = start_filter(truth, params)
+    for k in range(1, len(truth)):
+        ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
+        if k % 100 == 0:
+            ekf.process_fix(truth.t[k], truth.position[k] + rng.normal(0, [5.0, 5.0, 20.0]),
+                            np.diag([25.0, 25.0, 400.0]))
+        if k % 10 == 0:
+            ekf.process_baro(truth.t[k], truth.position[k, 2] + rng.normal(0, 1.5), 4.0)
+        if k == 3000:
+            ekf.set_position(truth.t[k], truth.position[k] + [0.0, 0.0, 200.0],
+                             np.eye(3) * 25.0)
+    d = ekf.diagnostics
+    assert d.baro_steps == 0 and d.position_resets >= 2
+    assert abs(ekf.state.position[2] - truth.position[-1, 2]) < 10.0
 
 
 def test_a_barometer_that_jumps_and_freezes_is_never_fused_again():

@@ -11,6 +11,7 @@ from terrain_nav_ros.core.estimation.ekf_health import (
     HealthLimits,
     NewRecords,
     RefusalLog,
+    SourceUse,
     filter_health,
     filter_values,
     gated_records,
@@ -61,6 +62,12 @@ def test_refused_stamps_and_gated_updates_warn():
     assert health.level == WARN
     assert health.problems == ["2 IMU stamp(s) far from the expected period refused",
                                "3 measurement(s) rejected by the gate"]
+
+
+def test_failed_callbacks_are_an_error_until_the_next_report():
+    health = filter_health(_diagnostics(), 0.0, "", LIMITS, failed=2)
+    assert health.level == ERROR
+    assert health.problems == ["2 message(s) failed in a callback: see the log"]
 
 
 def test_held_relocalisations_warn_and_the_report_says_what_was_found():
@@ -133,3 +140,23 @@ def test_refusal_logs_are_throttled_per_key_and_count_what_they_skipped():
     assert log.text("baro:y", "baro refused: y", 2.0) == "baro refused: y"
     assert log.text("gnss:x", "gnss refused: x", 5.5) == \
         "gnss refused: x (2 more since the last report)"
+
+
+def test_a_baro_that_arrives_and_is_never_used_warns():
+    """A baro in kPa, on another clock or never given its offset is refused whole: the
+    height then drifts, so the filter's health says so, with the last reason."""
+    use = SourceUse("baro")
+    assert use.report() == ""                      # no baro: nothing to say
+    for _ in range(10):
+        use.arrived()
+        use.refused("bad pressure: 96.3 Pa")
+    assert use.report() == "none of 10 since the last report (bad pressure: 96.3 Pa)"
+    use.arrived()
+    use.used()
+    use.arrived()
+    use.refused("gated")
+    assert use.report() == ""                      # one of two used: it is fused
+    health = filter_health(_diagnostics(), 0.0, "", LIMITS,
+                           baro_unused="none of 10 since the last report (x)")
+    assert health.level == WARN
+    assert health.problems == ["baro unused: none of 10 since the last report (x)"]

@@ -89,6 +89,11 @@ def test_gnss_refusals_name_their_reason():
     reason, detail = gnss_refusal(1.0, [46.5, 7.0, 300.0], origin)   # the Alps, not Tennessee
     assert reason == "far_from_the_mission" and " km from the ENU origin" in detail
     assert gnss_refusal(1.0, [41.0, -84.3, 300.0], origin) is None    # 500 km: a long flight
+    # an altitude in millimetres, or far below any ground
+    reason, detail = gnss_refusal(1.0, [36.5, -84.3, 3.5e6], origin)
+    assert reason == "altitude_out_of_range" and "in mm or feet?" in detail
+    assert gnss_refusal(1.0, [36.5, -84.3, -5000.0], origin)[0] == "altitude_out_of_range"
+    assert gnss_refusal(1.0, [36.5, -84.3, -30.0], origin) is None      # the Dead Sea's shore
 
 
 def test_gnss_covariance_falls_back_or_keeps_what_the_fix_knows():
@@ -123,10 +128,10 @@ def test_the_baro_offset_is_learnt_once_the_height_is_known_and_forgotten_on_res
     offset = BaroOffset(math.nan, max_sigma=10.0)
     assert offset.value is None
     assert not offset.learn(10.0, 480.0, _ekf(initialized=False))
-    assert not offset.learn(10.5, 480.0, _ekf(t=10.0))            # not the filter's time
+    assert not offset.learn(11.5, 480.0, _ekf(t=10.0))            # another clock
     assert not offset.learn(10.0, 480.0, _ekf(sigma_z=20.0))      # height not known yet
-    assert offset.learn(10.05, 480.0, _ekf())
-    assert offset.value == pytest.approx(500.0 + 1.0 * 0.05 - 480.0)
+    assert offset.learn(10.15, 480.0, _ekf())                      # a driver's latency
+    assert offset.value == pytest.approx(500.0 + 1.0 * 0.15 - 480.0)
     assert offset.learn(11.0, 0.0, _ekf(initialized=False))        # known: stays
     offset.forget()
     assert offset.value is None

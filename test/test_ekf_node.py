@@ -39,6 +39,8 @@ OUTLIER_TIMES = (30.0, 44.0)
 NON_PD_TIME = 25.0
 BAD_HEIGHT_TIME = 27.0    # a fix whose projection height is negative
 WRONG_FRAME_TIME = 29.0   # a fix in another frame (utm), 300 m off
+UNKNOWN_VELOCITY_TIME = 36.0   # a fix with a velocity of unknown covariance (-1)
+RELOCALISATION_WITH_VELOCITY_TIME = 38.0   # a relocalisation that carries a velocity
 NAN_IMU_TIME = 35.005
 BAD_STAMPS = {"past": (40.005, -5.0), "future": (42.005, 3600.0)}   # arrival, stamp offset
 LOOP_S = 8.0
@@ -180,9 +182,15 @@ def flight():
                                      frame == "map" else 0.0) + (300.0 if frame != "map" else 0)
             if not replay and any(abs(truth.t[k] - o) < 1e-6 for o in OUTLIER_TIMES):
                 p[:2] += 500.0 * np.array([0.6, -0.8])
+            velocity = velocity_cov = None
+            relocalisation = abs(truth.t[k] - RELOCALISATION_WITH_VELOCITY_TIME) < 1e-6
+            if relocalisation or abs(truth.t[k] - UNKNOWN_VELOCITY_TIME) < 1e-6:
+                velocity = truth.velocity[k]
+                velocity_cov = np.eye(3) * (-1.0 if not relocalisation else 4.0)
             pubs["fix"].publish(cv.arrays_to_pva_fix(
                 cv.make_header(_stamp(truth.t[k]), frame), PvaFix.STATUS_POSITION, p,
-                [0, 0, 0, 1], cov, projection_height=height))
+                [0, 0, 0, 1], cov, velocity, velocity_cov, relocalisation=relocalisation,
+                projection_height=height))
         else:
             alt = truth.position[k, 2] + 250.0 + rng.normal(0, 1.5)
             pubs["baro"].publish(FluidPressure(
@@ -317,6 +325,10 @@ def test_bad_input_is_refused_and_the_node_survives(flight):
     assert int(filt["rejected_input/fix:covariance_not_positive_definite"]) == 1
     assert int(filt["rejected_input/fix:projection_height_negative_or_not_finite"]) == 1
     assert int(filt["rejected_input/fix:wrong_frame"]) == 1
+    # a velocity of unknown covariance is left out, its fix taken; a relocalisation's
+    # velocity is never used, and the relocalisation is not refused for it
+    assert int(filt["rejected_input/fix:velocity_without_covariance"]) == 1
+    assert not any(key.endswith("bad_shape") for key in filt)
     assert "imu refused: non_finite_value" in log
     assert "fix refused: covariance_not_positive_definite" in log
     assert flight["alive"], log

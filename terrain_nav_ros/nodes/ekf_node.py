@@ -139,13 +139,20 @@ from ..core.estimation.checkpoint import (
     resume_from,
     save_checkpoint,
 )
-from ..core.estimation.ekf import EkfParams, Outcome, Reason, TerrainEkf
+from ..core.estimation.ekf import (
+    EkfParams,
+    Outcome,
+    Reason,
+    TerrainEkf,
+    is_positive_definite,
+)
 from ..core.estimation.ekf_health import (
     SOURCES,
     HealthLimits,
     NavigationLog,
     NewRecords,
     RefusalLog,
+    SourceUse,
     filter_health,
     filter_values,
     gated_records,
@@ -171,8 +178,10 @@ from .ros_common import (
     EVENTS_EXECUTOR,
     LATCHED_QOS,
     RELIABLE_QOS,
+    contained,
     declare,
     declare_executor,
+    new_failures,
     publish_diagnostics,
     reject_all_changes,
     run,
@@ -371,6 +380,7 @@ class EkfNode(Node):
             self._origin_client = self.create_client(GetDemTile, "/metamap/get_tile")
             self._origin_timer = self.create_timer(1.0, self._ask_origin, clock=steady)
         self.baro = BaroOffset(self.baro_offset_param, self.baro_offset_max_sigma)
+        self.baro_use = SourceUse("baro")
         self._baro_steps_logged = 0
 
         # 0.1 ms slack: epoch stamps as float seconds carry ~0.2 us of rounding, and a 20 ms
@@ -470,10 +480,12 @@ class EkfNode(Node):
                           f"{source} refused: {out.reason.value}")
 
     # ------------------------------------------------------------------ inputs
+    @contained
     def on_tile(self, msg: DemTile):
         """Learn the ENU origin from the metamap's first tile."""
         self._set_origin(msg.georef, "/metamap/tile")
 
+    @contained
     def _ask_origin(self):
         """While the origin is unknown, ask the metamap for a 1-px tile (it carries it)."""
         pending = self._origin_future is not None and not self._origin_future.done()
@@ -498,6 +510,7 @@ class EkfNode(Node):
         self._origin_future = self._origin_client.call_async(request)
         self._origin_future.add_done_callback(self._on_origin_response)
 
+    @contained
     def _on_origin_response(self, future):
         response = future.result()
         if response is None or not response.success:
@@ -519,6 +532,7 @@ class EkfNode(Node):
             return
         self.get_logger().info(f"ENU origin from {source}: {lat:.6f}, {lon:.6f}, {alt:.1f} m")
 
+    @contained
     def on_imu(self, msg: Imu):
         stamp, gyro, accel = cv.imu_to_sample(msg)
         if self.imu_problem is None and self._imu_refused(stamp, gyro, accel):
@@ -638,6 +652,7 @@ class EkfNode(Node):
         self._prev_imu_t = self._imu_span = None
         self.baro.forget()
 
+    @contained
     def on_pva_fix(self, msg: PvaFix):
         if msg.status == PvaFix.STATUS_NO_FIX:
             self.no_fix_count += 1
@@ -665,16 +680,25 @@ class EkfNode(Node):
                 self._refuse("fix", Reason.BAD_QUATERNION.value)
                 return
         position = self.fix_frame.body_position(fix.position, q_body, self.ekf.q)
+        velocity = fix.velocity
+        if velocity is not None and (fix.relocalisation
+                                     or not is_positive_definite(fix.velocity_covariance)):
+            # a relocalisation's velocity is never used; one of unknown covariance (-1 or
+            # zeros) is left out, and the position taken as the fix has it
+            if not fix.relocalisation:
+                self.rejections["fix:velocity_without_covariance"] += 1
+            velocity = None
         cov = fix_covariance(fix.covariance,
-                             fix.velocity_covariance if fix.velocity is not None else None,
+                             fix.velocity_covariance if velocity is not None else None,
                              with_attitude)
-        out = self.ekf.process_fix(fix.stamp, position, cov, velocity=fix.velocity,
+        out = self.ekf.process_fix(fix.stamp, position, cov, velocity=velocity,
                                    quaternion=q_body, source="fix",
                                    relocalisation=fix.relocalisation,
                                    projection_height=fix.projection_height)
         self._report("fix", out, fix.stamp)
         self._navigation_state(self.ekf.diagnostics)
 
+    @contained
     def on_set_pose(self, msg: PoseWithCovarianceStamped):
         """An operator's re-seed of the position (robot_localization's ``set_pose``; the
         orientation is not used): applied at its stamp, not gated."""
@@ -702,16 +726,20 @@ class EkfNode(Node):
             self.get_logger().info(line)
         return state, detail
 
+    @contained
     def on_baro(self, msg: FluidPressure):
         stamp, pressure, variance = cv.fluid_pressure_to_sample(msg)
+        self.baro_use.arrived()
         refused = baro_refusal(stamp, pressure, variance)
         if refused is not None:
             self._refuse("baro", "bad_pressure", refused)
+            self.baro_use.refused(f"bad pressure{refused}")
             return
         altitude = float(pressure_to_altitude(pressure, self.sea_level_pressure))
         if self.baro.value is None:
             if not self.baro.learn(stamp, altitude, self.ekf):
                 self.rejections["baro:waiting_for_offset"] += 1
+                self.baro_use.refused(self._baro_offset_wait(stamp))
                 return
             self.get_logger().info(
                 f"baro offset learnt: ENU up = pressure altitude {self.baro.value:+.1f} m "
@@ -720,6 +748,10 @@ class EkfNode(Node):
         out = self.ekf.process_baro(stamp, altitude + self.baro_offset,
                                     max(sigma, self.baro_sigma) ** 2)
         self._report("baro", out)
+        if out.accepted:
+            self.baro_use.used()
+        else:
+            self.baro_use.refused(out.reason.value)
         d = self.ekf.diagnostics
         if d.baro_steps != self._baro_steps_logged:
             self._baro_steps_logged = d.baro_steps
@@ -727,6 +759,17 @@ class EkfNode(Node):
                 f"baro jumped ({d.baro_steps} so far): {d.baro_step:+.1f} m in all taken off "
                 "its heights (a static port that iced or cleared, a sensor fault?)")
 
+    def _baro_offset_wait(self, stamp: float) -> str:
+        """Why the baro offset is not learnt yet."""
+        if not self.ekf.initialized:
+            return "waiting for the filter to start"
+        if abs(stamp - self.ekf.t) > self.baro.MAX_LAG:
+            return (f"its stamps are {stamp - self.ekf.t:+.1f} s from the IMU's: another "
+                    "clock?")
+        return (f"waiting for a vertical sigma under {self.baro.max_sigma:g} m to learn its "
+                "offset")
+
+    @contained
     def on_gnss(self, msg: NavSatFix):
         stamp, status, lla, cov, cov_type = cv.navsatfix_to_arrays(msg)
         if status < NavSatStatus.STATUS_FIX:
@@ -774,8 +817,11 @@ class EkfNode(Node):
         self._stamps_reported = d.imu_stamps_refused
         new = self._new_records(d.records)
         gated = gated_records(new, self.params.fuse_gnss)
+        failures, new_failed = new_failures(self)
+        baro_unused = self.baro_use.report()   # (before the start: waiting is expected)
         health = filter_health(d, since_imu, self.ekf.waiting_for(), self.health_limits,
-                               refused_now, len(gated), self.imu_problem)
+                               refused_now, len(gated), self.imu_problem, new_failed,
+                               baro_unused if self.ekf.initialized else "")
         for r in gated:
             self._log_refusal(f"{r.source}:{Reason.GATED.value}",
                               f"{r.source} at {r.stamp:.3f} s rejected by the "
@@ -784,6 +830,7 @@ class EkfNode(Node):
                                self.no_fix_count, self.baro.value, self.origin,
                                self.rejections)
         values["navigation_state"], values["navigation"] = self._navigation_state(d)
+        values["failures"] = failures
         statuses = [cv.diagnostic_status("ekf: filter", health.level, health.message, values,
                                          "terrain_nav")]
         for source in SOURCES:

@@ -425,7 +425,7 @@ class TerrainEkf:
         self._history: deque[_Entry] = deque()
         self._log: list[_Measurement] = []
         self._pre_init_imu: deque = deque()
-        self._init_candidate = None
+        self._init_candidates: deque[_Measurement] = deque(maxlen=_INIT_CANDIDATES)
         self._consecutive = Counter()
         self._streak_start: dict[str, float] = {}   # stamp of each source's first rejection
         # (stamp, smallest height error it would have caught) of accepted fixes and GNSS
@@ -536,7 +536,7 @@ class TerrainEkf:
                 P[:DIM_ERR, :DIM_ERR] = given
             else:
                 P = given
-        if P.shape != (DIM_STATE, DIM_STATE) or not _is_pd(P):
+        if P.shape != (DIM_STATE, DIM_STATE) or not is_positive_definite(P):
             return self._refuse("init", Reason.BAD_COVARIANCE)
         pre_init = [s for s in self._pre_init_imu if s[0] > stamp]
         self._clear()
@@ -573,20 +573,26 @@ class TerrainEkf:
     def _init_from_measurement(self, meas: _Measurement) -> Outcome:
         """Initialise from GNSS or fixes: at once when they carry velocity and attitude,
         otherwise from two fixes ``init_min_fix_interval`` apart (velocity by difference,
-        yaw from course, level roll/pitch)."""
+        yaw from course, level roll/pitch) that imply a possible speed. The fixes of the
+        last :data:`_INIT_CANDIDATE_SPAN` s are held as partners, so one wrong fix (a
+        receiver's 2-D fix at altitude 0) costs only itself, first or second."""
         self._init_source_seen = True
         if 3 in meas.rows:
             return self._init_from(meas)
-        first = self._init_candidate
-        if first is None or meas.stamp - first.stamp < self.params.init_min_fix_interval:
-            if first is None or meas.stamp < first.stamp:
-                self._init_candidate = meas
+        p = self.params
+        candidates = self._init_candidates
+        while candidates and meas.stamp - candidates[0].stamp > \
+                p.init_min_fix_interval + _INIT_CANDIDATE_SPAN:
+            candidates.popleft()
+        older = [c for c in candidates if meas.stamp - c.stamp >= p.init_min_fix_interval]
+        candidates.append(meas)
+        if not older:
             return Outcome(True, Reason.WAITING_FOR_INIT)
-        speed = np.linalg.norm(meas.z[:3] - first.z[:3]) / (meas.stamp - first.stamp)
-        if not speed <= self.params.init_max_speed:
-            self._init_candidate = meas    # one of the two is wrong: start again from this
-            return Outcome(False, Reason.INIT_TOO_FAST)
-        return self._init_from(meas, first)
+        for first in sorted(older, key=lambda c: -c.stamp):   # the shortest span first
+            speed = np.linalg.norm(meas.z[:3] - first.z[:3]) / (meas.stamp - first.stamp)
+            if speed <= p.init_max_speed:
+                return self._init_from(meas, first)
+        return Outcome(False, Reason.INIT_TOO_FAST)
 
     def _init_from_relocalisation(self, meas: _Measurement) -> Outcome:
         """Cold start from relocalisations: hold each one until another, far enough apart
@@ -652,11 +658,15 @@ class TerrainEkf:
             return (f"a relocalisation that agrees with the one(s) held at {stamps} s, "
                     f"{max(p.init_min_fix_interval, p.relocalisation_min_interval):g} s or "
                     "more apart")
-        first = self._init_candidate
-        if first is None:
+        if not self._init_candidates:
             return f"a first {p.init_mode} measurement"
-        return (f"a second {p.init_mode} measurement {p.init_min_fix_interval:g} s or more "
-                f"after the one at {first.stamp:.3f} s (or one with velocity)")
+        first = min(c.stamp for c in self._init_candidates)
+        if len(self._init_candidates) == 1:
+            return (f"a second {p.init_mode} measurement {p.init_min_fix_interval:g} s or more "
+                    f"after the one at {first:.3f} s (or one with velocity)")
+        return (f"a {p.init_mode} measurement {p.init_min_fix_interval:g} s or more after one "
+                f"of those held since {first:.3f} s, at {p.init_max_speed:g} m/s or less from "
+                "it (or one with velocity)")
 
     def reset(self):
         """Forget the estimate (keeps counters); re-initialises per ``init_mode``."""
@@ -1029,18 +1039,21 @@ class TerrainEkf:
             return self._refuse(source, Reason.BAD_SHAPE)
         if not (np.isfinite(z).all() and np.isfinite(R).all() and np.isfinite(stamp)):
             return self._refuse(source, Reason.NON_FINITE)
-        if not _is_pd(R):
+        if not is_positive_definite(R):
             return self._refuse(source, Reason.BAD_COVARIANCE)
         meas = _Measurement(float(stamp), next(self._seq), source, z.copy(), 0.5 * (R + R.T),
                             rows, attitude, relocalisation=relocalisation, reset=reset,
                             attitude_lever=lever, body_up=body_up,
                             state_lever=state_lever)
         if not self.initialized:
-            if relocalisation and source == self.params.init_mode:
+            if source != self.params.init_mode:
+                return self._refuse(source, Reason.NOT_INITIALIZED)
+            off_clock = self._off_the_imu_clock(meas.stamp)
+            if off_clock is not None:   # GNSS in GPS time with the IMU in UTC (18 s)
+                return self._refuse(source, off_clock)
+            if relocalisation:
                 return self._init_from_relocalisation(meas)
-            if source == self.params.init_mode:
-                return self._init_from_measurement(meas)
-            return self._refuse(source, Reason.NOT_INITIALIZED)
+            return self._init_from_measurement(meas)
         if any(o.stamp == meas.stamp and o.source == source for o in self._log):
             return self._refuse(source, Reason.DUPLICATE)
         if meas.stamp - self.t > self.params.max_future:
@@ -1055,6 +1068,19 @@ class TerrainEkf:
             return Outcome(True, Reason.QUEUED)
         self._apply_in_past(meas)
         return meas.outcome
+
+    def _off_the_imu_clock(self, stamp: float) -> Reason | None:
+        """Before the start, the screen an initialised filter applies to a measurement's
+        stamp, against the IMU buffered meanwhile: a start at a stamp far from the IMU's
+        would integrate its samples across the gap, or refuse them all as out of order."""
+        if not self._pre_init_imu:
+            return None
+        newest = self._pre_init_imu[-1][0]
+        if stamp - newest > self.params.max_future:
+            return Reason.TOO_FAR_AHEAD
+        if stamp < newest - self.params.history_length:
+            return Reason.STALE
+        return None
 
     def _apply_in_past(self, meas: _Measurement):
         """Rewind to the last history entry at or before the stamp, apply, re-propagate."""
@@ -1271,6 +1297,11 @@ class TerrainEkf:
         P[:, r] = 0.0
         P[np.ix_(r, r)] = meas.R[np.ix_(keep, keep)]
         self._x[r] = z[keep]
+        if 2 in r and meas.source != "baro":
+            # the height moved: the baro's last gap to it says nothing of a jump any more,
+            # nor what fixes caught before of a height the baro now disputes
+            self._last_baro_gap = None
+            self._height_checks.clear()
         if meas.relocalisation:
             return Outcome(True, Reason.RELOCALISATION_RESET)
         if meas.source in _POSITION_SOURCES:
@@ -1455,6 +1486,11 @@ _DRIFT_TESTS = {
 # A baro height differing from the previous accepted one by more than noise allows is a jump
 # only this soon after it (s): across a longer silence the filter may have drifted that far.
 _BARO_JUMP_WINDOW = 1.0
+# Initialising fixes held as partners for a later one: those of the last init_min_fix_interval
+# plus this many seconds (a GNSS outage at start-up of up to that long costs no partner),
+# and at most this many in all (5 Hz GNSS over the span).
+_INIT_CANDIDATE_SPAN = 30.0
+_INIT_CANDIDATES = 512
 # Baro heights repeated bit for bit this many times in a row are a stuck sensor: its noise
 # (a few Pa, over a resolution of about 1 Pa) no longer moves it.
 _BARO_STUCK = 10
@@ -1473,7 +1509,7 @@ def tilt_lever(height: float) -> np.ndarray:
     return float(height) * np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
 
 
-def _is_pd(R: np.ndarray) -> bool:
+def is_positive_definite(R: np.ndarray) -> bool:
     """True for a finite, symmetric (to rounding), positive-definite matrix."""
     if not np.isfinite(R).all():
         return False

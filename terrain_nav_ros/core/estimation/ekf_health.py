@@ -115,7 +115,8 @@ class NavigationLog:
 
 def filter_health(d: EkfDiagnostics, since_imu: float, waiting_for: str,
                   limits: HealthLimits, refused_stamps: int = 0,
-                  gated: int = 0, imu_problem: str | None = None) -> Health:
+                  gated: int = 0, imu_problem: str | None = None,
+                  failed: int = 0, baro_unused: str = "") -> Health:
     """The filter's level and problems.
 
     Parameters
@@ -133,8 +134,19 @@ def filter_health(d: EkfDiagnostics, since_imu: float, waiting_for: str,
     imu_problem : str, optional
         Why the IMU stream is refused for good (:class:`~.ekf_inputs.ImuConvention`,
         :class:`~.ekf_inputs.GyroScale`).
+    failed : int
+        Messages whose callback raised since the previous report (the node logged them and
+        went on).
+    baro_unused : str
+        Why the baro heights that arrived since the previous report were none of them used
+        (:meth:`SourceUse.report`), or "".
     """
     health = Health()
+    if failed:
+        health.worse(ERROR, f"{failed} message(s) failed in a callback: see the log")
+    if baro_unused:
+        # the height then drifts with the accelerometers, the fixes hardly hold it
+        health.worse(WARN, f"baro unused: {baro_unused}")
     if imu_problem:
         health.worse(ERROR, f"IMU refused: {imu_problem}")
     if since_imu > limits.imu_timeout:
@@ -161,6 +173,34 @@ def filter_health(d: EkfDiagnostics, since_imu: float, waiting_for: str,
         health.worse(WARN, f"searching: {d.relocalisation_candidates} relocalisation(s) held, "
                      "none agreed yet")
     return health
+
+
+class SourceUse:
+    """Whether a sensor's messages are used: counted between reports, with the last reason
+    one was not. A stream that arrives and is refused whole (a baro in kPa, on another
+    clock, or never given its offset) must be said, not only counted."""
+
+    def __init__(self, name: str):
+        self.name = name
+        self._arrived = self._used = 0
+        self._why = ""
+
+    def arrived(self) -> None:
+        self._arrived += 1
+
+    def used(self) -> None:
+        self._used += 1
+
+    def refused(self, why: str) -> None:
+        self._why = why
+
+    def report(self) -> str:
+        """Why none of the messages since the last report was used ("" if some were, or
+        none arrived); starts the next period."""
+        text = "" if not self._arrived or self._used else \
+            f"none of {self._arrived} since the last report ({self._why})"
+        self._arrived = self._used = 0
+        return text
 
 
 def gated_records(records, fuse_gnss: bool) -> list:

@@ -122,14 +122,17 @@ def fix_covariance(covariance, velocity_covariance=None,
 
 
 MAX_GNSS_RANGE = 1000e3   # m from the ENU origin: beyond, a fix is of another mission
+# m above the ellipsoid: no aircraft flies outside (a receiver's mm reads 1000 times out)
+GNSS_ALTITUDE_RANGE = (-1000.0, 30000.0)
 
 
 def gnss_refusal(stamp: float, lla, origin: EnuOrigin | None) -> tuple[str, str] | None:
     """Why a GNSS fix (with a fix status) is refused, as ``(reason, detail)``, or None.
 
     Besides values no fix can hold: latitude and longitude both exactly 0, which receivers
-    and drivers put out before their first fix (status already set, or not gated), and a
-    fix over :data:`MAX_GNSS_RANGE` from the mission's origin. Either would start or reset
+    and drivers put out before their first fix (status already set, or not gated), an
+    altitude outside :data:`GNSS_ALTITUDE_RANGE`, and a fix over :data:`MAX_GNSS_RANGE`
+    from the mission's origin. Either would start or reset
     the filter thousands of kilometres off.
     """
     if not (np.isfinite(lla).all() and math.isfinite(stamp)):
@@ -138,6 +141,9 @@ def gnss_refusal(stamp: float, lla, origin: EnuOrigin | None) -> tuple[str, str]
         return "latitude_longitude_out_of_range", f" {lla[:2]}"
     if lla[0] == 0.0 and lla[1] == 0.0:
         return "zero_latitude_longitude", " (0, 0): a receiver's placeholder before its fix"
+    if not GNSS_ALTITUDE_RANGE[0] <= lla[2] <= GNSS_ALTITUDE_RANGE[1]:
+        return "altitude_out_of_range", (f" {lla[2]:.6g} m, not within {GNSS_ALTITUDE_RANGE[0]:g}"
+                                         f"..{GNSS_ALTITUDE_RANGE[1]:g} m (in mm or feet?)")
     if origin is None:
         return "no_enu_origin_yet", ""
     distance = float(np.linalg.norm(origin.geodetic_to_enu(lla[0], lla[1], origin.alt)))
@@ -196,6 +202,11 @@ class BaroOffset:
         Learn once the filter's vertical sigma is below this (m).
     """
 
+    # s between a sample and the filter's time over which the offset is still learnt from
+    # the filter's height carried along its vertical speed: a driver's latency of a few
+    # tenths, not a sample from another clock
+    MAX_LAG = 1.0
+
     def __init__(self, fixed: float, max_sigma: float):
         self.fixed = fixed
         self.max_sigma = max_sigma
@@ -204,10 +215,10 @@ class BaroOffset:
     def learn(self, stamp: float, altitude: float, ekf) -> bool:
         """Set the offset from ``ekf``'s estimate (a :class:`~.ekf.TerrainEkf`) at a baro
         sample of pressure altitude ``altitude`` if its height is known well enough and its
-        time is the sample's; returns whether the offset is known now."""
+        time is within MAX_LAG of the sample's; returns whether the offset is known now."""
         if self.value is not None:
             return True
-        if not ekf.initialized or abs(stamp - ekf.t) > 0.1:
+        if not ekf.initialized or abs(stamp - ekf.t) > self.MAX_LAG:
             return False
         if math.sqrt(ekf.state.covariance[2, 2]) > self.max_sigma:
             return False
