@@ -258,6 +258,8 @@ assert set(EKF_PARAMETERS) == {f.name for f in fields(EkfParams)}, "map every Ek
 # An origin request unanswered this long is sent again (core.estimation.ekf_inputs).
 _ORIGIN_RESEND_S = 5.0
 # Reasons that are normal operation, not worth a warning.
+# Depth of the best-effort baro and GNSS subscriptions: 1 s of a 10 Hz baro, 2 s of 5 Hz GNSS.
+_AIDING_QUEUE_DEPTH = 10
 _QUIET = {Reason.OK, Reason.INITIALIZED, Reason.QUEUED, Reason.WAITING_FOR_INIT,
           Reason.IMU_GAP, Reason.POSITION_RESET, Reason.COMPARED_ONLY, Reason.NOT_INITIALIZED,
           Reason.GATED,   # gate rejections are logged from the diagnostics records (queued
@@ -289,7 +291,8 @@ class EkfNode(Node):
         diag_period = declare(self, "diagnostics_period", 1.0,
                               "diagnostics period, wall clock [s]", min_value=0.01)
         imu_depth = declare(self, "imu_queue_depth", 100,
-                            "IMU subscription depth (best effort) [messages]",
+                            "IMU subscription depth (best effort) [messages]; the baro's and "
+                            "GNSS's are 10",
                             min_value=1, max_value=10000)
         lat = declare(self, "origin_latitude", math.nan,
                       "ENU origin latitude [deg WGS84]; NaN = the metamap's (tile/service)")
@@ -425,8 +428,14 @@ class EkfNode(Node):
         self.create_subscription(PvaFix, "/nav/pva_fix", self.on_pva_fix, RELIABLE_QOS)
         self.create_subscription(PoseWithCovarianceStamped, "/ekf/set_pose", self.on_set_pose,
                                  RELIABLE_QOS)
-        self.create_subscription(FluidPressure, "/baro/pressure", self.on_baro, imu_qos)
-        self.create_subscription(NavSatFix, "/gnss/fix", self.on_gnss, imu_qos)
+        # The aiding sensors' queues hold about as long as the IMU's, not 10-20 s: a node
+        # short of CPU follows the IMU, and baro heights or GNSS fixes queued longer than
+        # the history would all come too late and be refused as stale.
+        aiding_qos = QoSProfile(depth=_AIDING_QUEUE_DEPTH,
+                                reliability=ReliabilityPolicy.BEST_EFFORT,
+                                history=HistoryPolicy.KEEP_LAST)
+        self.create_subscription(FluidPressure, "/baro/pressure", self.on_baro, aiding_qos)
+        self.create_subscription(NavSatFix, "/gnss/fix", self.on_gnss, aiding_qos)
         publish_diagnostics(self, "/nav/ekf/diagnostics", diag_period, self.diagnostics)
         origin = "from the metamap (tile or get_tile)" if self.origin is None else \
             f"{self.origin.lat:.6f}, {self.origin.lon:.6f}, {self.origin.alt:.1f} m"
