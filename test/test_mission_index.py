@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -339,6 +340,40 @@ def test_a_replay_refuses_an_index_of_another_area_or_gsd_before_any_node(missio
                                 (None, (-5.0, 0.0, 100.0), "must be >= 0 s")):
         with pytest.raises(InputError, match=words):
             _check_offsets(lost, kidnap)
+
+
+def test_a_damaged_or_foreign_layer_is_found_before_flight_and_never_searched(mission,
+                                                                             tmp_path):
+    """A layer cut short, empty, or copied from another index (another tile's place or
+    another sun) is named by the replay's check before any node starts; loaded anyway, it
+    is a MissionIndexError, which the search skips (its area is lost, once), not a
+    BadZipFile on every frame."""
+    from terrain_nav_ros.core.matching.params import MatchParams
+    from terrain_nav_ros.core.matching.relocaliser import MissionSearch
+    from terrain_nav_ros.tools.errors import InputError
+    from terrain_nav_ros.tools.replay import _check_mission_index
+
+    copy = tmp_path / "index"
+    shutil.copytree(mission, copy)
+    index = MissionIndex(copy)
+    assert index.damaged() == []
+    cut = index.layer_path(0, 0, 0)
+    cut.write_bytes(cut.read_bytes()[: cut.stat().st_size // 2])
+    index.layer_path(1, 0, 0).write_bytes(b"")
+    shutil.copy(index.layer_path(1, 1, 0), index.layer_path(0, 1, 0))   # another place
+    shutil.copy(index.layer_path(1, 1, 1), index.layer_path(1, 1, 0))   # another sun
+    problems = index.damaged()
+    assert len(problems) == 4
+    assert sum("is damaged" in p for p in problems) == 2
+    assert sum("of another tile or index" in p for p in problems) == 1
+    assert sum("is lit by the sun" in p for p in problems) == 1
+    with pytest.raises(InputError, match="4 tile layer.s. damaged"):
+        _check_mission_index(copy, {"landmark_gsd": index.gsd})
+    for col, row in ((0, 0), (1, 0), (0, 1), (1, 1)):
+        with pytest.raises(MissionIndexError):
+            index.load(col, row, 0)
+    search = MissionSearch(index, MatchParams())
+    assert search.tiles_for(SUNS[0]) == [] and len(search.damaged) == 4
 
 
 def test_an_area_across_the_antimeridian_is_one_box_not_the_whole_earth():

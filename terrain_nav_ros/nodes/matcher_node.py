@@ -188,6 +188,10 @@ class MatcherNode(Node):
         if missing:
             raise MissionIndexError(f"{mission_dir}: {len(missing)} tile layers missing: run "
                                     "terrain-nav prepare again to complete it")
+        damaged = mission.mission.damaged()
+        if damaged:
+            raise MissionIndexError(f"{mission_dir}: {len(damaged)} tile layer(s) damaged, the "
+                                    f"first: {damaged[0]}")
         self.get_logger().info(f"mission index {mission_dir}: {len(mission.mission.tiles())} "
                                f"tiles, {len(mission.mission.suns)} suns")
         return mission

@@ -216,6 +216,10 @@ def _check_mission_index(mission_dir: Path, mission: dict):
     if missing:
         raise InputError(f"--mission {mission_dir}: {len(missing)} tile layers missing: run "
                          "terrain-nav prepare again to complete it")
+    damaged = index.damaged()
+    if damaged:
+        raise InputError(f"--mission {mission_dir}: {len(damaged)} tile layer(s) damaged, "
+                         f"the first: {damaged[0]}")
     gsd = mission.get("landmark_gsd")
     if gsd and abs(index.gsd - float(gsd)) > 1e-6 * float(gsd):
         raise InputError(f"--mission {mission_dir}: prepared at {index.gsd:g} m/px, the bag's "

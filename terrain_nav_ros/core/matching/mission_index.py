@@ -37,6 +37,7 @@ import json
 import math
 import os
 import uuid
+import zipfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -386,25 +387,57 @@ def save_tile(path, layer: TileLayer) -> None:
     _atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
 
 
+# what reading a layer's file that is cut short, empty or not a layer raises
+_UNREADABLE = (KeyError, ValueError, OSError, EOFError, zipfile.BadZipFile)
+
+
+def _opened_layer(path):
+    """The ``.npz`` of a layer, open; MissionIndexError when it cannot be read as one."""
+    try:
+        return np.load(path, allow_pickle=False)
+    except _UNREADABLE as err:
+        raise MissionIndexError(f"{path} is damaged ({type(err).__name__}: {err}): run "
+                                "terrain-nav prepare again with --overwrite") from None
+
+
+def _stored_place(z) -> tuple[GeoReference, tuple]:
+    """The georeference and sun a layer's file holds."""
+    oe, on, gsd, w, h = z["georef"]
+    return (GeoReference(float(oe), float(on), float(gsd), int(w), int(h)),
+            tuple(float(v) for v in z["sun"]))
+
+
+def _georef_values(g: GeoReference) -> tuple:
+    return (g.origin_east, g.origin_north, g.gsd, g.width, g.height)
+
+
 def load_tile(path) -> TileLayer:
-    """Read a layer written by :func:`save_tile`."""
-    with np.load(path, allow_pickle=False) as z:
-        oe, on, gsd, w, h = z["georef"]
-        georef = GeoReference(float(oe), float(on), float(gsd), int(w), int(h))
-        ms = MinutiaSet(z["col"], z["row"], z["angle"], z["kind"], z["quality"],
-                        georef=georef, reason=str(z["reason"]))
-        if len(ms):
-            _derive_extras(ms)
-        ms.extras.update({k[len("extra_"):]: z[k] for k in z.files if k.startswith("extra_")})
+    """Read a layer written by :func:`save_tile`; MissionIndexError when the file is not
+    one (cut short, empty, damaged inside)."""
+    with _opened_layer(path) as z:
+        try:
+            return _read_layer(z)
+        except _UNREADABLE as err:
+            raise MissionIndexError(f"{path} is damaged ({type(err).__name__}: {err}): run "
+                                    "terrain-nav prepare again with --overwrite") from None
 
-        def skeleton(name):
-            if name not in z.files:
-                return None
-            bits = np.unpackbits(z[name], count=georef.width * georef.height)
-            return bits.reshape(georef.shape).astype(bool)
 
-        sun = tuple(float(v) for v in z["sun"])
-        return TileLayer(ms, skeleton("creases"), skeleton("ridges"), georef, sun)
+def _read_layer(z) -> TileLayer:
+    """The layer an open ``.npz`` holds (KeyError, ValueError when it is not one)."""
+    georef, sun = _stored_place(z)
+    ms = MinutiaSet(z["col"], z["row"], z["angle"], z["kind"], z["quality"],
+                    georef=georef, reason=str(z["reason"]))
+    if len(ms):
+        _derive_extras(ms)
+    ms.extras.update({k[len("extra_"):]: z[k] for k in z.files if k.startswith("extra_")})
+
+    def skeleton(name):
+        if name not in z.files:
+            return None
+        bits = np.unpackbits(z[name], count=georef.width * georef.height)
+        return bits.reshape(georef.shape).astype(bool)
+
+    return TileLayer(ms, skeleton("creases"), skeleton("ridges"), georef, sun)
 
 
 # --------------------------------------------------------------------------- the manifest
@@ -567,6 +600,46 @@ class MissionIndex:
         return [(c, r, k) for c, r in self.grid.cells() for k in range(len(self.suns))
                 if not self.layer_path(c, r, k).exists()]
 
+    def damaged(self) -> list[str]:
+        """What is wrong with each layer on disk that cannot be this index's: unreadable
+        (cut short, empty, not a layer), or of another tile or sun (a file copied from
+        another index). Reads only each file's directory and its georeference and sun, so
+        it is quick for a whole area; a layer damaged inside is found when loaded."""
+        problems = []
+        for c, r in self.grid.cells():
+            for k in range(len(self.suns)):
+                path = self.layer_path(c, r, k)
+                if not path.exists():
+                    continue
+                try:
+                    with _opened_layer(path) as z:
+                        place = _stored_place(z)
+                except MissionIndexError as err:
+                    problems.append(str(err))
+                    continue
+                except _UNREADABLE as err:
+                    problems.append(f"{path} is damaged ({type(err).__name__}: {err})")
+                    continue
+                try:
+                    self._check_layer(path, c, r, k, *place)
+                except MissionIndexError as err:
+                    problems.append(str(err))
+        return problems
+
+    def _check_layer(self, path: Path, col: int, row: int, k: int, georef: GeoReference,
+                     sun) -> None:
+        """MissionIndexError unless a layer's georeference and sun are its tile's and
+        layer's in this index."""
+        expected = self.grid.georef(col, row)
+        if not np.allclose(_georef_values(georef), _georef_values(expected), rtol=0.0,
+                           atol=1e-6 * expected.gsd):
+            raise MissionIndexError(
+                f"{path} is of another tile or index: it covers {_georef_values(georef)}, "
+                f"not {_georef_values(expected)}; run terrain-nav prepare again")
+        if not np.allclose(sun, self.suns[k], atol=1e-6):
+            raise MissionIndexError(f"{path} is lit by the sun {tuple(sun)}, not the index's "
+                                    f"{tuple(self.suns[k])}; run terrain-nav prepare again")
+
     def load(self, col: int, row: int, sun) -> TileLayer:
         """The layer of tile (col, row) for ``sun``: a layer index, or (azimuth, elevation)
         for the nearest layer's. Read from disk on each call."""
@@ -578,4 +651,6 @@ class MissionIndex:
         if not path.exists():
             raise MissionIndexError(f"{path} is missing: the preparation did not finish; "
                                     "run terrain-nav prepare again to complete it")
-        return load_tile(path)
+        layer = load_tile(path)
+        self._check_layer(path, col, row, k, layer.georef, layer.sun)
+        return layer

@@ -23,12 +23,16 @@ from .global_search import (
 )
 from .index import MinutiaIndex
 from .matcher import Decision, MatchResult
-from .mission_index import MissionIndex
+from .mission_index import MissionIndex, MissionIndexError
 from .params import MatchParams
 
 # a layer lit this far from the frame's sun shades the creases otherwise (they repeat within
 # a few degrees: the landmark renderer re-renders after 2): say so when nothing was found
 _SUN_GAP_WARNING = 5.0
+# beyond this the search is not made: the creases of a layer lit that far from the frame's
+# sun have moved by a good part of their width, and agreeing relocalisations would share
+# that bias (a layer lit 114 deg away gave relocalisations 120-160 m off, scoring 20-67)
+_SUN_GAP_LIMIT = 10.0
 
 
 class SearchPolicy:
@@ -115,6 +119,7 @@ class MissionSearch:
         self.matcher = relocalisation_matcher(params, mission.grid.tile_px)
         self.layer: int | None = None
         self.tiles: list[SearchTile] = []
+        self.damaged: list[str] = []     # the layer's tiles that could not be read
 
     def sun_at(self, unix_seconds: float) -> tuple[float, float]:
         """(azimuth, elevation) of the sun at the area's centre at a time (deg)."""
@@ -124,13 +129,18 @@ class MissionSearch:
         """The prepared tiles of the layer nearest ``sun`` (loaded on first use)."""
         k = self.mission.nearest_sun(sun)
         if k != self.layer:
+            self.damaged = []
             self.tiles = [self._prepared(t.col, t.row, k) for t in self.mission.tiles()]
             self.tiles = [t for t in self.tiles if t is not None]
             self.layer = k
         return self.tiles
 
     def _prepared(self, col: int, row: int, layer: int) -> SearchTile | None:
-        found = self.mission.load(col, row, layer)
+        try:
+            found = self.mission.load(col, row, layer)
+        except MissionIndexError as err:   # damaged in flight: its area is lost, once
+            self.damaged.append(str(err))
+            return None
         if not len(found.minutiae):
             return None     # a tile without drainage (lake, plain): nothing to search
         index = self.matcher.index(found.minutiae, found.creases, found.ridges)
@@ -153,6 +163,15 @@ class MissionSearch:
                   f"{self.mission.gsd:g} m: prepare the index at the graph's gsd")
         return Relocalisation(MatchResult(Decision.NO_DECISION, reason=reason), reason=reason)
 
+    def _sun_refusal(self, sun) -> Relocalisation | None:
+        """A no-relocalisation when the index holds no layer lit near the frame's sun."""
+        gap = self.layer_sun_gap(sun)
+        if gap <= _SUN_GAP_LIMIT:
+            return None
+        reason = (f"the index's nearest sun is {gap:.0f} deg from the frame's (at most "
+                  f"{_SUN_GAP_LIMIT:g}): prepare it for the flight's hours")
+        return Relocalisation(MatchResult(Decision.NO_DECISION, reason=reason), reason=reason)
+
     def _answer(self, found: Relocalisation, sun,
                 frame_origin: EnuOrigin) -> tuple[Relocalisation, GeoReference | None]:
         if not found.matched:
@@ -160,6 +179,9 @@ class MissionSearch:
             if gap > _SUN_GAP_WARNING:
                 found.reason += (f"; the index's nearest sun is {gap:.0f} deg from the "
                                  "frame's: prepare it for the flight's hours")
+            if self.damaged:
+                found.reason += (f"; {len(self.damaged)} damaged tile(s) not searched: "
+                                 f"{self.damaged[0]}")
             return found, None
         return found, tile_in_frame(found.tile.georef, *found.position, self.mission.origin,
                                     frame_origin)
@@ -173,6 +195,9 @@ class MissionSearch:
         if refused is not None:
             return refused, None
         sun = self.sun_at(unix_seconds)
+        refused = self._sun_refusal(sun)
+        if refused is not None:
+            return refused, None
         return self._answer(relocalise(self.matcher, camera, self.tiles_for(sun)), sun,
                             frame_origin)
 
@@ -187,6 +212,9 @@ class MissionSearch:
             if refused is not None:
                 return refused, None, -1
         sun = self.sun_at(unix_seconds)
+        refused = self._sun_refusal(sun)
+        if refused is not None:
+            return refused, None, -1
         found, k = relocalise_ladder(self.matcher, cameras, self.tiles_for(sun))
         found, georef = self._answer(found, sun, frame_origin)
         return found, georef, (k if georef is not None else -1)
