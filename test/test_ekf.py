@@ -767,15 +767,17 @@ def test_tilt_lever_is_the_shift_of_the_ground_point_below_the_camera():
 
 
 def _ground_matched_flight(projection_height: float, seed=11, imu_fault=None,
-                          heading_sigma=None, route=None, wind=(0.0, 0.0), **params):
+                          heading_sigma=None, route=None, wind=(0.0, 0.0), heading_offset=0.0,
+                          **params):
     """Filter started 1 deg off in roll and pitch; every second a fix made as a ground match
     is, with the filter's own attitude: the truth moved by the filter's tilt error over a
     height of 3000 m (about 50 m per degree), plus 20 m of noise. ``imu_fault(t, gyro,
     accel)`` may change the IMU samples in place. With ``heading_sigma`` (deg) the fixes
     also measure the heading, with that noise, as the matcher's do (roll and pitch left
     unobserved). The ``route`` (4 min of survey by default) is flown in ``wind`` (east,
-    north m/s). ``params`` go to EkfParams. Returns the horizontal errors after the first
-    minute, the filter's final tilt error (deg) and the filter."""
+    north m/s); the fixes' heading is ``heading_offset`` (deg) off (a camera mount's yaw).
+    ``params`` go to EkfParams. Returns the horizontal errors after the first minute, the
+    filter's final tilt error (deg) and the filter."""
     params = EkfParams(init_mode="pose", **params)
     rng, truth, imu = flight(route or survey_flight(240.0), seed, params)
     truth = truth.in_wind(*wind)
@@ -795,7 +797,7 @@ def _ground_matched_flight(projection_height: float, seed=11, imu_fault=None,
             cov = np.diag([20.0 ** 2, 20.0 ** 2, 30.0 ** 2])
             q = None
             if heading_sigma is not None:
-                yaw = np.radians([0.0, 0.0, rng.normal(0.0, heading_sigma)])
+                yaw = np.radians([0.0, 0.0, rng.normal(heading_offset, heading_sigma)])
                 q = quat_multiply(quat_exp(yaw), truth.quaternion[k])
                 cov = np.diag(np.r_[np.diag(cov), UNOBSERVED_TILT_VAR, UNOBSERVED_TILT_VAR,
                                     np.radians(heading_sigma) ** 2])
@@ -805,6 +807,25 @@ def _ground_matched_flight(projection_height: float, seed=11, imu_fault=None,
                 herr.append(np.hypot(*(truth.position[k, :2] - ekf.state.position[:2])))
     tilt = attitude_error(truth.quaternion[-1], ekf.state.quaternion)[:2]
     return np.array(herr), np.degrees(np.hypot(*tilt)), ekf
+
+
+@pytest.mark.parametrize("offset", [90.0, 180.0])
+def test_fixes_whose_heading_never_agreed_are_no_drift_to_follow(offset):
+    """A camera mount yawed 90 or 180 deg that nobody declared: every fix's heading is that
+    far off from the first. Taken for a yaw gyro drift, the heading was reopened onto the
+    fixes' and held there at 0.2 deg sigma, and a replay of the demo ended 2 km off in its
+    next turn. A drift of a reference that never agreed with the filter is not followed:
+    the heading stays the IMU's, and the health says why."""
+    from terrain_nav_ros.core.estimation.ekf_health import HealthLimits, filter_health
+
+    herr, _, ekf = _ground_matched_flight(3000.0, heading_sigma=1.0, heading_offset=offset)
+    d = ekf.diagnostics
+    assert d.heading_disputes >= 1 and d.heading_drifts == 0
+    _, truth, _ = flight(survey_flight(240.0), 11, EkfParams(init_mode="pose"))
+    yaw_error = np.degrees(attitude_error(truth.quaternion[-1], ekf.state.quaternion)[2])
+    assert abs(yaw_error) < 5.0 and d.position_resets == 0, yaw_error
+    health = filter_health(d, 0.0, "", HealthLimits())
+    assert any("check the camera mount's yaw" in p for p in health.problems)
 
 
 def test_a_ground_match_fix_is_modelled_with_the_filters_tilt_error():

@@ -256,6 +256,10 @@ class EkfDiagnostics:
     heading_drifts : int
         Drifts of the heading the fixes that measure one found (a yaw gyro bias that
         stepped).
+    heading_disputes : int
+        Such drifts not followed because no fix's heading had agreed with the filter's yet
+        since it started: a heading off from the first fix on is the camera's (its mount's
+        yaw, an image turned), not a gyro's drift.
     relocalisation_candidates : int
         Relocalisations held, waiting for another to agree (expired ones dropped).
     found : Found or None
@@ -292,6 +296,7 @@ class EkfDiagnostics:
     baro_step: float = 0.0
     tilt_drifts: int = 0
     heading_drifts: int = 0
+    heading_disputes: int = 0
     relocalisation_candidates: int = 0
     found: Found | None = None
     imu_gaps: int = 0
@@ -441,6 +446,9 @@ class TerrainEkf:
         # per source of _DRIFT_TESTS: (stamp, innovation, S) of its latest measurements
         self._drift_windows = {source: deque(maxlen=max(test.windows))
                                for source, test in _DRIFT_TESTS.items()}
+        # the sources of _DRIFT_TESTS whose reference has agreed with the filter (accepted)
+        # since it started: only their drifts are followed
+        self._drift_confirmed: set[str] = set()
         self._reset_armed: set[str] = set()
         self._last_good: NavState | None = None   # set after a time jump, for re-init
         self._init_source_seen = False
@@ -1147,12 +1155,30 @@ class TerrainEkf:
             window.append((meas.stamp, z - H @ self._x, S))
             gate = _gate(self.params.gate_probability(meas.source), len(rows))
             for n in test.windows:   # short ones see a fast drift first, long ones a slow one
-                if len(window) >= n and self._drifted(list(window)[-n:], gate, meas, test):
+                recent = list(window)[-n:]
+                if len(window) >= n and self._drifted(recent, gate, meas, test):
                     window.clear()
-                    setattr(self._diag, test.counter, getattr(self._diag, test.counter) + 1)
+                    if self._disputed(meas, recent):
+                        meas.reopen = None
+                        self._diag.heading_disputes += 1
+                    else:
+                        setattr(self._diag, test.counter,
+                                getattr(self._diag, test.counter) + 1)
                     break
         for states, variance in meas.reopen or ():
             self._widen(states, variance)
+
+    def _disputed(self, meas: _Measurement, window: list) -> bool:
+        """Whether a heading drift :meth:`_drifted` found in ``window`` is the fixes' own:
+        their innovations are over :data:`_HEADING_DISPUTE` (RMS) and none of their headings
+        has agreed with the filter since it started (a camera mount yawed 90 deg, an image
+        turned 180, whose innovations wrap around +-180 and average to anything). A crab in
+        the wind, the widest honest gap between a first heading and the fixes', stays
+        below; a gyro's drift is caught while a few degrees."""
+        if meas.source != "fix" or meas.source in self._drift_confirmed:
+            return False
+        innovations = np.array([w[1] for w in window])
+        return math.sqrt(float(np.mean(innovations ** 2))) > _HEADING_DISPUTE
 
     @staticmethod
     def _drifted(window: list, gate: float, meas: _Measurement, test: _DriftTest) -> bool:
@@ -1349,6 +1375,9 @@ class TerrainEkf:
             d.last_accepted[meas.source] = max(meas.stamp,
                                                d.last_accepted.get(meas.source, -np.inf))
             self._note_height_check(meas)
+            test = _DRIFT_TESTS.get(meas.source)
+            if test is not None and np.isin(test.rows, meas.rows).all():
+                self._drift_confirmed.add(meas.source)
         if first and not meas.relocalisation:   # relocalisations never arm a reset
             if outcome.reason == Reason.POSITION_RESET:
                 d.position_resets += 1
@@ -1420,6 +1449,9 @@ class TerrainEkf:
             return True
         if meas.source not in _POSITION_SOURCES:
             return False
+        if meas.source == "fix" and self._diag.heading_disputes and \
+                "fix" not in self._drift_confirmed:
+            return False   # the fixes' heading is off: their positions are suspect too
         return all(self._diag.last_accepted.get(other, -math.inf) < start
                    for other in _POSITION_SOURCES - {meas.source})
 
@@ -1486,6 +1518,9 @@ _DRIFT_TESTS = {
 # A baro height differing from the previous accepted one by more than noise allows is a jump
 # only this soon after it (s): across a longer silence the filter may have drifted that far.
 _BARO_JUMP_WINDOW = 1.0
+# rad: a lean of the fixes' heading innovations beyond this, before any agreed, is the
+# camera's, not a gyro's drift (:meth:`TerrainEkf._disputed`)
+_HEADING_DISPUTE = math.radians(45.0)
 # Initialising fixes held as partners for a later one: those of the last init_min_fix_interval
 # plus this many seconds (a GNSS outage at start-up of up to that long costs no partner),
 # and at most this many in all (5 Hz GNSS over the span).

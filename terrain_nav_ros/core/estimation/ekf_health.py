@@ -169,6 +169,10 @@ def filter_health(d: EkfDiagnostics, since_imu: float, waiting_for: str,
         health.worse(WARN, f"{refused_stamps} IMU stamp(s) far from the expected period refused")
     if gated:
         health.worse(WARN, f"{gated} measurement(s) rejected by the gate")
+    if d.heading_disputes:
+        health.worse(WARN, f"the fixes' heading never agreed with the filter's ("
+                     f"{d.heading_disputes} drift(s) not followed): check the camera mount's "
+                     "yaw (mount_rpy) and the image's orientation")
     if d.relocalisation_candidates:
         health.worse(WARN, f"searching: {d.relocalisation_candidates} relocalisation(s) held, "
                      "none agreed yet")
@@ -230,6 +234,7 @@ def filter_values(d: EkfDiagnostics, init_mode: str, imu_received: int, imu_dt: 
         "relocalisation_resets": d.relocalisation_resets,
         "baro_steps": d.baro_steps, "baro_step_m": d.baro_step, "tilt_drifts": d.tilt_drifts,
         "heading_drifts": d.heading_drifts,
+        "heading_disputes": d.heading_disputes,
         "relocalisation_candidates": d.relocalisation_candidates,
         "found": "never" if d.found is None else d.found.describe(),
         "imu_received": imu_received, "imu_rate_hz": 1.0 / imu_dt,
