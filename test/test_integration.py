@@ -56,6 +56,10 @@ def test_replay_produces_fixes_and_bounds_the_error(nominal):
     assert nominal["fix_error"]["within_3_sigma"] >= 0.7
     # the baro holds the height (about 2 m RMS)
     assert nominal["fused_height_error"]["max"] <= GSD, nominal["fused_height_error"]
+    # the report says what the ekf did with the fixes: it fused most of them
+    use = nominal["ekf_fix_use"]
+    assert use["fused"] >= 0.7 * fixes["fixes"] and use["fused"] + use["gated"] <= \
+        fixes["fixes"] + 1, (use, fixes)
 
 
 def test_recorded_outputs_are_readable_by_rosbags_and_mcap(nominal):

@@ -91,6 +91,32 @@ def _ekf_health(bag) -> str:
     return last or "it published no diagnostics either"
 
 
+def ekf_fix_use(bag) -> dict | None:
+    """What the EKF did with the matcher's fixes, from its last diagnostics: fused, rejected
+    by its gate, refused before it (by reason), and its last health (level, message). None
+    without diagnostics."""
+    last = None
+    for m in bags.read(bag, ["/nav/ekf/diagnostics"]):
+        last = bags.decode(m)
+    if last is None:
+        return None
+    use = {"fused": 0, "gated": 0, "refused": {}, "level": 0, "health": ""}
+    for status in last.status:
+        values = {kv.key: kv.value for kv in status.values}
+        if status.name == "ekf: filter":
+            # (the replay's end stops the IMU: not a health problem of the flight)
+            use["level"] = int(status.level)
+            use["health"] = "; ".join(part for part in status.message.split("; ")
+                                      if not part.startswith("no IMU for "))
+            use["refused"] = {k.split(":", 1)[1]: int(v) for k, v in values.items()
+                              if k.startswith("rejected_input/fix:")
+                              and not k.endswith(":not_initialized")}
+        elif status.name == "ekf: fix":
+            use["fused"] = int(values.get("accepted", 0))
+            use["gated"] = int(values.get("rejected", 0))
+    return use
+
+
 def _odometry_stopped(input_bag, odometry_end: float, grace: float = 5.0) -> dict | None:
     """Where the fused odometry ended more than ``grace`` s before the bag's IMU did (an
     IMU refused mid-flight): that stamp and the IMU's last, in s from the IMU's first."""
@@ -195,6 +221,7 @@ def analyse(input_bag, output_bag, usage: dict | None = None,
                        "reasons": Counter(reason_kind(f["reason"]) for f in fixes
                                           if f["status"] == 0).most_common(6)}
     result["navigation_events"] = navigation_events(output_bag)
+    result["ekf_fix_use"] = ekf_fix_use(output_bag)
     result["latency"] = {k: v for k, v in _latencies(output_bag).items()}
     t_fused, p_fused, var_fused = _series(output_bag, "/nav/odometry")
     result["series"] = {"fused": (t_fused, p_fused, var_fused), "fixes": good}
@@ -282,6 +309,15 @@ def format_report(r: dict, gsd: float | None = None) -> str:
         lines.append(f"  no fix x{count}: {reason}")
     if "first_after" in f:
         lines.append(f"  first fix {f['first_after']:.0f} s after the start")
+    use = r.get("ekf_fix_use")
+    if use is not None and f["fixes"]:
+        refused = sum(use["refused"].values())
+        lines.append(f"  the ekf fused {use['fused']} of them, its gate rejected "
+                     f"{use['gated']}, it refused {refused}"
+                     + "".join(f"; {n} {why}" for why, n in sorted(use["refused"].items())))
+        if use["fused"] < f["fixes"] // 2:
+            lines.append(f"WARNING: the ekf fused under half the fixes; its last health: "
+                         f"{use['health'] or 'OK'}")
     for event in r.get("navigation_events", []):
         lines.append(f"ekf found: {event}")
     if "fix_error" in r:
