@@ -255,6 +255,32 @@ def covered_lens(topic, at, decode):
     return msg
 
 
+def camera_turned_180(topic, at, decode):
+    """Every camera frame turned 180 deg (a camera mounted the other way round, its mount
+    not declared): its fixes' heading is 180 deg off from the first and must never be
+    taken for a gyro drift."""
+    if topic not in CAMERA_TOPICS:
+        return None
+    import cv2
+    import numpy as np
+
+    msg = decode()
+    image = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_UNCHANGED)
+    msg.data = np.frombuffer(cv2.imencode(".jpg", cv2.rotate(image, cv2.ROTATE_180))[1]
+                             .tobytes(), np.uint8)
+    return msg
+
+
+def gnss_on_gps_time(topic, at, decode):
+    """Every GNSS fix stamped 18 s ahead (GPS time with the IMU in UTC): the filter must
+    not start at those stamps (it started 540 m off and refused every later GNSS)."""
+    if topic != "/gnss/fix":
+        return None
+    msg = decode()
+    msg.header.stamp.sec += 18
+    return msg
+
+
 def geotiff(path: Path) -> Path:
     """A valid 64 x 64 GeoTIFF (UTM 11N)."""
     import numpy as np
@@ -658,6 +684,8 @@ def cases() -> list[Case]:
             node="matcher")),
         Case("matcher: mission index with a tile layer missing", "parameters",
              _partial_mission),
+        Case("matcher: mission index with a tile cut short", "parameters",
+             _damaged_mission),
         Case("IMU in FRD axes (z down)", "flight", _refused_imu(frd_imu, "FRD / NED")),
         Case("IMU acceleration in g", "flight", _refused_imu(imu_in_g, "in g, not m/s^2")),
         Case("gyro in deg/s (demo bag to 80 s: a turn from 61 s)", "flight",
@@ -675,6 +703,10 @@ def cases() -> list[Case]:
         Case("one camera frame stamped 1 h ahead at 30 s", "flight", _flight(
             camera_stamp_ahead)),
         Case("GNSS at (0, 0) for its first second", "flight", _flight(gnss_at_zero_first)),
+        Case("GNSS stamped 18 s ahead (GPS time, IMU in UTC)", "flight",
+             _refused_imu(gnss_on_gps_time, "another clock, GPS time against UTC?")),
+        Case("camera frames turned 180 deg (mount not declared)", "flight",
+             _flight(camera_turned_180)),
         Case("camera lens covered for 10 s (black frames)", "flight", _flight(
             covered_lens, "image is constant", 10)),
         Case("barometer stuck at 90 kPa from 25 s", "flight", _flight(frozen_baro)),
@@ -852,6 +884,20 @@ def _partial_mission(tmp: Path):
     next((index / "tiles").glob("*.npz")).unlink()
     return _node_params(f"    mission_dir: {index}\n", "tile layers missing: run "
                         "terrain-nav prepare again", node="matcher")(tmp)
+
+
+def _damaged_mission(tmp: Path):
+    """A mission index of the small relief GeoTIFF with one tile layer cut to half (a disk
+    that filled, a copy stopped): the matcher refuses it at start-up, naming the file."""
+    index = tmp / "index"
+    subprocess.run(terrain_nav("prepare", "--dem", relief_geotiff(tmp / "relief.tif"), "--gsd",
+                               "60", "--tile", "128", "--overlap", "32", "--suns", "135/45",
+                               "--workers", "1", "--out", index), capture_output=True,
+                   check=True, timeout=300)
+    layer = next((index / "tiles").glob("*.npz"))
+    layer.write_bytes(layer.read_bytes()[: layer.stat().st_size // 2])
+    return _node_params(f"    mission_dir: {index}\n", "tile layer(s) damaged",
+                        node="matcher")(tmp)
 
 
 def _write(path: Path, data) -> Path:

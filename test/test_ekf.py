@@ -444,6 +444,8 @@ def test_gnss_on_another_clock_starts_nothing(offset):
     params = EkfParams(init_mode="gnss", init_min_fix_interval=3.0)
     _, truth, imu = flight(straight_flight(10.0), 5, params)
     ekf = TerrainEkf(params)
+    # one before the IMU comes is held, with nothing to check its stamp against
+    ekf.process_gnss(truth.t[0] + offset, truth.position[0], np.eye(3))
     reasons = set()
     for k in range(1, 601):
         ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
@@ -452,6 +454,7 @@ def test_gnss_on_another_clock_starts_nothing(offset):
                                          np.eye(3)).reason)
     assert not ekf.initialized
     assert reasons == {Reason.TOO_FAR_AHEAD if offset > 0 else Reason.STALE}
+    assert "another clock, GPS time against UTC?" in ekf.waiting_for()
     for k in range(601, 1000):
         ekf.process_imu(truth.t[k], imu.gyro[k], imu.accel[k])
         if k % 20 == 0:

@@ -667,6 +667,12 @@ class TerrainEkf:
                     f"{max(p.init_min_fix_interval, p.relocalisation_min_interval):g} s or "
                     "more apart")
         if not self._init_candidates:
+            off_clock = sum(self._diag.input_rejections[f"{p.init_mode}:{r.value}"]
+                            for r in (Reason.TOO_FAR_AHEAD, Reason.STALE))
+            if off_clock:
+                return (f"a {p.init_mode} measurement on the IMU's clock ({off_clock} "
+                        "refused, stamped far from the IMU's: another clock, GPS time "
+                        "against UTC?)")
             return f"a first {p.init_mode} measurement"
         first = min(c.stamp for c in self._init_candidates)
         if len(self._init_candidates) == 1:
@@ -1058,6 +1064,10 @@ class TerrainEkf:
                 return self._refuse(source, Reason.NOT_INITIALIZED)
             off_clock = self._off_the_imu_clock(meas.stamp)
             if off_clock is not None:   # GNSS in GPS time with the IMU in UTC (18 s)
+                # and those held before the IMU came, on the same clock, go too
+                kept = [c for c in self._init_candidates
+                        if self._off_the_imu_clock(c.stamp) is None]
+                self._init_candidates = deque(kept, maxlen=_INIT_CANDIDATES)
                 return self._refuse(source, off_clock)
             if relocalisation:
                 return self._init_from_relocalisation(meas)
