@@ -217,6 +217,27 @@ def test_an_existing_cluster_is_used_with_scheduler(dem, tmp_path, capsys):
     assert len(MissionIndex(out).load(0, 0, 0).minutiae) > 0
 
 
+def test_a_scheduler_address_where_no_dask_answers_is_refused_in_time(dem, tmp_path, capsys):
+    """An HTTP server where the scheduler should be: the Dask client's own timeout covers
+    the connection only, and it waited for ever on the handshake (11 min, then killed)."""
+    import http.server
+    import threading
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0),
+                                             http.server.SimpleHTTPRequestHandler)
+    server.daemon_threads = True   # its handler waits for ever on the Dask handshake
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        code = cli.main(["prepare", "--dem", str(dem), "--area", "44.40,5.40,44.43,5.44",
+                         "--gsd", "90", "--out", str(tmp_path / "index"), "--tile", "64",
+                         "--overlap", "0", "--suns", "120/40", "--scheduler",
+                         f"tcp://127.0.0.1:{server.server_port}"])
+    finally:
+        server.shutdown()
+    assert code == 2
+    assert "no Dask scheduler answered within 20 s" in capsys.readouterr().err
+
+
 def test_the_nearest_sun_layer_is_picked(mission):
     index = MissionIndex(mission)
     assert index.nearest_sun((112.0, 36.0)) == 0

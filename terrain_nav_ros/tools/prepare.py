@@ -26,6 +26,7 @@ import resource
 import shutil
 import signal
 import sys
+import threading
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -378,7 +379,7 @@ def _client(req: PrepareRequest):
     from dask.distributed import Client, LocalCluster
 
     if req.scheduler:
-        return Client(req.scheduler, timeout="20s"), None
+        return _connect(req.scheduler), None
     # The workers inherit an ignored SIGINT: a Ctrl-C reaches the terminal's whole process
     # group, and a worker stopped by it prints its traceback; the client stops them instead.
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -388,6 +389,38 @@ def _client(req: PrepareRequest):
     finally:
         signal.signal(signal.SIGINT, previous)
     return Client(cluster), cluster
+
+
+# s a scheduler has to answer in: the connection, then the handshake (a peer that is no Dask
+# scheduler, an HTTP server, never completes it, or answers bytes read as a 3 EiB frame)
+_SCHEDULER_TIMEOUT = 20.0
+
+
+def _connect(address: str):
+    """A client of the Dask scheduler at ``address``; TimeoutError (a ConnectionError for
+    what the peer sent) when nothing there answers as one within :data:`_SCHEDULER_TIMEOUT`
+    s, instead of waiting for ever."""
+    from dask.distributed import Client
+
+    result = {}
+
+    def connect():
+        try:
+            result["client"] = Client(address, timeout=f"{_SCHEDULER_TIMEOUT:g}s")
+        except BaseException as err:   # noqa: BLE001 - MemoryError from a stranger's bytes
+            result["error"] = err
+
+    thread = threading.Thread(target=connect, name="dask-connect", daemon=True)
+    thread.start()
+    thread.join(_SCHEDULER_TIMEOUT + 5.0)
+    if "client" in result:
+        return result["client"]
+    err = result.get("error")
+    if isinstance(err, TimeoutError | ConnectionError) or err is None:
+        raise TimeoutError(f"--scheduler {address}: no Dask scheduler answered within "
+                           f"{_SCHEDULER_TIMEOUT:g} s: is it a Dask scheduler's address?")
+    raise ConnectionError(f"--scheduler {address}: not a Dask scheduler's answer "
+                          f"({type(err).__name__}: {str(err)[:80]})")
 
 
 def _directory_bytes(out: Path) -> int:
