@@ -1062,11 +1062,11 @@ class TerrainEkf:
         if not self.initialized:
             if source != self.params.init_mode:
                 return self._refuse(source, Reason.NOT_INITIALIZED)
-            off_clock = self._off_the_imu_clock(meas.stamp)
+            off_clock = self._off_the_imu_clock(meas.stamp, relocalisation)
             if off_clock is not None:   # GNSS in GPS time with the IMU in UTC (18 s)
                 # and those held before the IMU came, on the same clock, go too
                 kept = [c for c in self._init_candidates
-                        if self._off_the_imu_clock(c.stamp) is None]
+                        if self._off_the_imu_clock(c.stamp, False) is None]
                 self._init_candidates = deque(kept, maxlen=_INIT_CANDIDATES)
                 return self._refuse(source, off_clock)
             if relocalisation:
@@ -1087,16 +1087,18 @@ class TerrainEkf:
         self._apply_in_past(meas)
         return meas.outcome
 
-    def _off_the_imu_clock(self, stamp: float) -> Reason | None:
+    def _off_the_imu_clock(self, stamp: float, relocalisation: bool) -> Reason | None:
         """Before the start, the screen an initialised filter applies to a measurement's
         stamp, against the IMU buffered meanwhile: a start at a stamp far from the IMU's
-        would integrate its samples across the gap, or refuse them all as out of order."""
+        would integrate its samples across the gap, or refuse them all as out of order. A
+        relocalisation may be late (a search of the whole area takes seconds): only one
+        ahead of the IMU is refused."""
         if not self._pre_init_imu:
             return None
         newest = self._pre_init_imu[-1][0]
         if stamp - newest > self.params.max_future:
             return Reason.TOO_FAR_AHEAD
-        if stamp < newest - self.params.history_length:
+        if not relocalisation and stamp < newest - self.params.history_length:
             return Reason.STALE
         return None
 
