@@ -145,7 +145,7 @@ def test_refusal_logs_are_throttled_per_key_and_count_what_they_skipped():
 def test_a_baro_that_arrives_and_is_never_used_warns():
     """A baro in kPa, on another clock or never given its offset is refused whole: the
     height then drifts, so the filter's health says so, with the last reason."""
-    use = SourceUse("baro")
+    use = SourceUse()
     assert use.report() == ""                      # no baro: nothing to say
     for _ in range(10):
         use.arrived()

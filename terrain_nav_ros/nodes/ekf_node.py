@@ -257,9 +257,9 @@ assert set(EKF_PARAMETERS) == {f.name for f in fields(EkfParams)}, "map every Ek
 
 # An origin request unanswered this long is sent again (core.estimation.ekf_inputs).
 _ORIGIN_RESEND_S = 5.0
-# Reasons that are normal operation, not worth a warning.
 # Depth of the best-effort baro and GNSS subscriptions: 1 s of a 10 Hz baro, 2 s of 5 Hz GNSS.
 _AIDING_QUEUE_DEPTH = 10
+# Reasons that are normal operation, not worth a warning.
 _QUIET = {Reason.OK, Reason.INITIALIZED, Reason.QUEUED, Reason.WAITING_FOR_INIT,
           Reason.IMU_GAP, Reason.POSITION_RESET, Reason.COMPARED_ONLY, Reason.NOT_INITIALIZED,
           Reason.GATED,   # gate rejections are logged from the diagnostics records (queued
@@ -383,7 +383,7 @@ class EkfNode(Node):
             self._origin_client = self.create_client(GetDemTile, "/metamap/get_tile")
             self._origin_timer = self.create_timer(1.0, self._ask_origin, clock=steady)
         self.baro = BaroOffset(self.baro_offset_param, self.baro_offset_max_sigma)
-        self.baro_use = SourceUse("baro")
+        self.baro_use = SourceUse()
         self._baro_steps_logged = 0
 
         # 0.1 ms slack: epoch stamps as float seconds carry ~0.2 us of rounding, and a 20 ms

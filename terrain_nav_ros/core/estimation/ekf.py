@@ -1167,8 +1167,10 @@ class TerrainEkf:
             window.append((meas.stamp, z - H @ self._x, S))
             gate = _gate(self.params.gate_probability(meas.source), len(rows))
             for n in test.windows:   # short ones see a fast drift first, long ones a slow one
+                if len(window) < n:
+                    continue
                 recent = list(window)[-n:]
-                if len(window) >= n and self._drifted(recent, gate, meas, test):
+                if self._drifted(recent, gate, meas, test):
                     window.clear()
                     if self._disputed(meas, recent):
                         meas.reopen = None

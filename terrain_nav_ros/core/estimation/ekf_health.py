@@ -184,8 +184,7 @@ class SourceUse:
     one was not. A stream that arrives and is refused whole (a baro in kPa, on another
     clock, or never given its offset) must be said, not only counted."""
 
-    def __init__(self, name: str):
-        self.name = name
+    def __init__(self):
         self._arrived = self._used = 0
         self._why = ""
 
