@@ -5,6 +5,7 @@ The node list is not repeated here: it is read from config/graph.yaml, the same 
 
     ros2 launch terrain_nav_ros terrain_nav.launch.py [graph:=/path/graph.yaml] [use_sim_time:=true]
         [enable:=autopilot_bridge]     # nodes the graph file disables, comma-separated
+        [namespace:=uav1]              # every node and topic under /uav1 (default: the file's)
 """
 
 import os
@@ -24,18 +25,33 @@ from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
 from terrain_nav_ros.core.estimation.checkpoint import RUN_DIR_VARIABLE
-from terrain_nav_ros.tools.graph_runner import DDS_PROFILE_VARIABLE, RESPAWN_DELAY, load_graph
+from terrain_nav_ros.tools.graph_runner import (
+    DDS_PROFILE_VARIABLE,
+    RESPAWN_DELAY,
+    TF_REMAPPINGS,
+    load_graph,
+    namespaced_params_files,
+    normalise_namespace,
+)
 
 
-def graph_nodes(graph_path, use_sim_time=False, enable=()):
-    """launch_ros Node actions for every enabled node of a graph file (plus ``enable``)."""
+def graph_nodes(graph_path, use_sim_time=False, enable=(), namespace=None, run_dir=None):
+    """launch_ros Node actions for every enabled node of a graph file (plus ``enable``), in
+    ``namespace`` (default the file's; its params files rewritten into ``run_dir``)."""
     spec = load_graph(graph_path, enable)
-    params_files = [str(p) for p in spec.params_files]
+    if namespace is not None:
+        spec.namespace = normalise_namespace(namespace, "namespace:=")
+    if spec.namespace and not run_dir:
+        run_dir = tempfile.mkdtemp(prefix="terrain_nav_params_")
+    params_files = [str(p) for p in namespaced_params_files(spec.params_files, spec.namespace,
+                                                            run_dir)]
+    tf = list(TF_REMAPPINGS.items()) if spec.namespace else []
     return [
         Node(package="terrain_nav_ros", executable=node.executable, name=node.name,
-             output="screen", respawn=node.respawn, respawn_delay=RESPAWN_DELAY,
+             namespace=spec.namespace, output="screen", respawn=node.respawn,
+             respawn_delay=RESPAWN_DELAY,
              parameters=params_files + [{**node.parameters, "use_sim_time": use_sim_time}],
-             remappings=list(node.remappings.items()))
+             remappings=tf + list(node.remappings.items()))
         for node in spec.nodes
     ]
 
@@ -51,12 +67,14 @@ def _from_arguments(context):
         if env.get(DDS_PROFILE_VARIABLE) else []
     # the run's folder (the ekf's checkpoint, for a respawned ekf), removed at the end as
     # the runner's is: a later launch must not resume from this run's checkpoint
-    if not os.environ.get(RUN_DIR_VARIABLE):
+    run_dir = os.environ.get(RUN_DIR_VARIABLE)
+    if not run_dir:
         run_dir = tempfile.mkdtemp(prefix="terrain_nav_run_")
         actions += [SetEnvironmentVariable(RUN_DIR_VARIABLE, run_dir),
                     RegisterEventHandler(OnShutdown(on_shutdown=lambda event, context:
                                                     shutil.rmtree(run_dir, True)))]
-    return actions + graph_nodes(graph, sim, enable)
+    namespace = LaunchConfiguration("namespace").perform(context) or None
+    return actions + graph_nodes(graph, sim, enable, namespace, run_dir)
 
 
 def generate_launch_description():
@@ -70,5 +88,8 @@ def generate_launch_description():
         DeclareLaunchArgument("enable", default_value="",
                               description="comma-separated nodes that the graph file "
                                           "disables (e.g. autopilot_bridge) to start too"),
+        DeclareLaunchArgument("namespace", default_value="",
+                              description="namespace of every node and topic (e.g. uav1; "
+                                          "default the graph file's, else the root)"),
         OpaqueFunction(function=_from_arguments),
     ])

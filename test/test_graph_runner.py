@@ -19,7 +19,14 @@ from ros_helpers import wait_until
 
 from terrain_nav_ros.core.estimation.checkpoint import RUN_DIR_VARIABLE
 from terrain_nav_ros.tools import bags
-from terrain_nav_ros.tools.graph_runner import GraphError, GraphRunner, load_graph, node_command
+from terrain_nav_ros.tools.graph_runner import (
+    GraphError,
+    GraphRunner,
+    load_graph,
+    namespaced_params_files,
+    node_command,
+    normalise_namespace,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -190,6 +197,9 @@ def test_invalid_graph_files_are_rejected_with_the_reason(tmp_path):
     ("nodes:\n  - {name: my-ekf, executable: ekf}\n", "name must be a ROS node name"),
     ("nodes:\n  - {name: ekf, parameters: [a, b]}\n", "parameters ['a', 'b'] must be a map"),
     ("- ekf\n", "the top level must be a mapping"),
+    ("namespce: uav1\nnodes:\n  - {name: ekf}\n", "unknown keys ['namespce']"),
+    ("namespace: uav-1\nnodes:\n  - {name: ekf}\n", "'uav-1' is no ROS namespace"),
+    ("namespace: [uav1]\nnodes:\n  - {name: ekf}\n", "namespace must be a ROS namespace"),
     ("params_files: [p.yaml]\nnodes:\n  - {name: ekf}\n", "'ekf_typo', which names no node"),
     ("params_files: [q.yaml]\nnodes:\n  - {name: ekf}\n", "key 'gravity' given twice"),
 ])
@@ -276,7 +286,7 @@ def test_the_graphs_dds_profile_reaches_every_node_unless_one_is_set(tmp_path, m
         pass
 
     values = {"graph": str(REPO / "config" / "graph.yaml"), "use_sim_time": "true",
-              "enable": ""}
+              "enable": "", "namespace": ""}
     monkeypatch.setattr(launch_file, "LaunchConfiguration",
                         lambda name: types.SimpleNamespace(perform=lambda ctx: values[name]))
     monkeypatch.delenv(RUN_DIR_VARIABLE, raising=False)
@@ -319,3 +329,79 @@ def test_nodes_stop_when_the_runner_is_killed(tmp_path):
         runner.kill()
         if node_pid is not None and psutil.pid_exists(node_pid):
             os.kill(node_pid, signal.SIGKILL)
+
+
+def test_a_namespace_is_normalised_and_the_params_files_are_rewritten_for_it(tmp_path):
+    """ROS matches a params file's block to the node's full name: ``ekf:`` would not reach
+    ``/uav1/ekf``, which would start on its defaults without a word."""
+    assert normalise_namespace("uav1") == normalise_namespace("/uav1/") == "/uav1"
+    assert normalise_namespace("fleet/uav_2") == "/fleet/uav_2"
+    assert normalise_namespace("") == normalise_namespace("/") == ""
+    for bad in ("uav-1", "1uav", "uav 1", "a//b"):
+        with pytest.raises(GraphError, match="no ROS namespace"):
+            normalise_namespace(bad)
+    params = tmp_path / "p.yaml"
+    params.write_text("ekf:\n  ros__parameters: {gravity: 9.79}\n"
+                      "/matcher:\n  ros__parameters: {x: 1}\n"
+                      "/**:\n  ros__parameters: {use_sim_time: false}\n")
+    assert namespaced_params_files([params], "", tmp_path) == [params]
+    [rewritten] = namespaced_params_files([params], "/uav1", tmp_path / "run")
+    assert rewritten.parent == tmp_path / "run"
+    assert yaml.safe_load(rewritten.read_text()) == {
+        "/uav1/ekf": {"ros__parameters": {"gravity": 9.79}},
+        "/uav1/matcher": {"ros__parameters": {"x": 1}},
+        "/**": {"ros__parameters": {"use_sim_time": False}}}
+
+
+def test_the_launch_file_puts_nodes_params_and_tf_in_the_namespace(tmp_path, monkeypatch):
+    _stub_launch_modules(monkeypatch)
+    spec_path = importlib.util.spec_from_file_location(
+        "terrain_nav_launch", REPO / "launch" / "terrain_nav.launch.py")
+    launch_file = importlib.util.module_from_spec(spec_path)
+    spec_path.loader.exec_module(launch_file)
+    graph = REPO / "config" / "graph.yaml"
+    actions = launch_file.graph_nodes(str(graph), namespace="uav1", run_dir=tmp_path)
+    assert actions and all(a.kwargs["namespace"] == "/uav1" for a in actions)
+    for action in actions:
+        *files, _ = action.kwargs["parameters"]
+        blocks = {key for f in files for key in yaml.safe_load(Path(f).read_text())}
+        assert f"/uav1/{action.kwargs['name']}" in blocks
+        assert all(Path(f).parent == tmp_path for f in files)
+        assert ("/tf", "tf") in action.kwargs["remappings"]
+    # without one, the root, the files as they are and /tf as it is
+    actions = launch_file.graph_nodes(str(graph))
+    assert all(a.kwargs["namespace"] == "" for a in actions)
+    assert all(("/tf", "tf") not in a.kwargs["remappings"] for a in actions)
+
+
+def test_a_graph_in_a_namespace_takes_its_parameters_and_topics_there(tmp_path):
+    """A second aircraft's graph (``--namespace uav1``): the real ekf node comes up as
+    /uav1/ekf with its params file's values, publishing /uav1/nav/odometry and /uav1/tf,
+    and nothing at the root."""
+    from rcl_interfaces.srv import GetParameters
+    from ros_helpers import SpinningNode, call_service
+
+    (tmp_path / "p.yaml").write_text("ekf:\n  ros__parameters: {base_frame: uav1_base}\n")
+    graph = tmp_path / "graph.yaml"
+    graph.write_text("params_files: [p.yaml]\nnamespace: uav1\n"
+                     "nodes:\n  - {name: ekf, executable: ekf}\n")
+    log = io.StringIO()
+    runner = GraphRunner(load_graph(graph), out=log, grace=5.0)
+    probe = SpinningNode("namespace_probe")
+    runner.start()
+    try:
+        runner.wait_until_up(timeout=30)
+        answer = call_service(probe, GetParameters, "/uav1/ekf/get_parameters",
+                              GetParameters.Request(names=["base_frame"]))
+        assert [v.string_value for v in answer.values] == ["uav1_base"]
+
+        def published():
+            return {t for t, _ in probe.node.get_publisher_names_and_types_by_node(
+                "ekf", "/uav1")}
+        assert wait_until(lambda: {"/uav1/nav/odometry", "/uav1/tf",
+                                   "/uav1/nav/ekf/diagnostics"} <= published(), 10), published()
+        assert not {t for t in published() if not t.startswith("/uav1/")} - {"/rosout",
+                                                                             "/parameter_events"}
+    finally:
+        probe.close()
+        runner.shutdown()

@@ -185,22 +185,22 @@ class AutopilotBridge(Node):
 
             self._odometry_type, self._gps_type = VehicleOdometry, SensorGps
             self.pubs["odometry"] = self.create_publisher(
-                VehicleOdometry, "/fmu/in/vehicle_visual_odometry", PX4_QOS)
+                VehicleOdometry, "fmu/in/vehicle_visual_odometry", PX4_QOS)
             if self.px4_sensor_gps:
-                self.pubs["gps"] = self.create_publisher(SensorGps, "/fmu/in/sensor_gps",
+                self.pubs["gps"] = self.create_publisher(SensorGps, "fmu/in/sensor_gps",
                                                          PX4_QOS)
-                self.create_subscription(NavSatFix, "/nav/fix", self.on_navsatfix,
+                self.create_subscription(NavSatFix, "nav/fix", self.on_navsatfix,
                                          RELIABLE_QOS)
         else:
-            self.pubs["odometry"] = self.create_publisher(Odometry, "/mavros/odometry/out",
+            self.pubs["odometry"] = self.create_publisher(Odometry, "mavros/odometry/out",
                                                           RELIABLE_QOS)
             if self.mavros_vision_pose:
                 self.pubs["vision_pose"] = self.create_publisher(
-                    PoseWithCovarianceStamped, "/mavros/vision_pose/pose_cov", RELIABLE_QOS)
-        self.create_subscription(Odometry, "/nav/odometry", self.on_odometry, RELIABLE_QOS)
-        self.create_subscription(DiagnosticArray, "/nav/ekf/diagnostics", self.on_diagnostics,
+                    PoseWithCovarianceStamped, "mavros/vision_pose/pose_cov", RELIABLE_QOS)
+        self.create_subscription(Odometry, "nav/odometry", self.on_odometry, RELIABLE_QOS)
+        self.create_subscription(DiagnosticArray, "nav/ekf/diagnostics", self.on_diagnostics,
                                  RELIABLE_QOS)
-        publish_diagnostics(self, "/autopilot_bridge/diagnostics", diag_period,
+        publish_diagnostics(self, "autopilot_bridge/diagnostics", diag_period,
                             self.diagnostics)
         self.get_logger().info(
             f"target {self.target}: {', '.join(p.topic_name for p in self.pubs.values())} "

@@ -378,9 +378,9 @@ class EkfNode(Node):
         self._origin_future = None
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         if self.origin is None:
-            self._tile_sub = self.create_subscription(DemTile, "/metamap/tile", self.on_tile,
+            self._tile_sub = self.create_subscription(DemTile, "metamap/tile", self.on_tile,
                                                       LATCHED_QOS)
-            self._origin_client = self.create_client(GetDemTile, "/metamap/get_tile")
+            self._origin_client = self.create_client(GetDemTile, "metamap/get_tile")
             self._origin_timer = self.create_timer(1.0, self._ask_origin, clock=steady)
         self.baro = BaroOffset(self.baro_offset_param, self.baro_offset_max_sigma)
         self.baro_use = SourceUse()
@@ -418,15 +418,15 @@ class EkfNode(Node):
         # executor polls per IMU sample (~1 % of a core at 200 Hz for the four), and an
         # incompatible subscriber logs the mismatch on its own side.
         quiet = PublisherEventCallbacks(use_default_callbacks=False)
-        self.odom_pub = self.create_publisher(Odometry, "/nav/odometry", RELIABLE_QOS,
+        self.odom_pub = self.create_publisher(Odometry, "nav/odometry", RELIABLE_QOS,
                                               event_callbacks=quiet)
         self.tf_pub = self.create_publisher(TFMessage, "/tf", 100, event_callbacks=quiet) \
             if self.publish_tf else None
-        self.navsat_pub = self.create_publisher(NavSatFix, "/nav/fix", RELIABLE_QOS,
+        self.navsat_pub = self.create_publisher(NavSatFix, "nav/fix", RELIABLE_QOS,
                                                 event_callbacks=quiet)
-        self.create_subscription(Imu, "/imu/data", self.on_imu, imu_qos)
-        self.create_subscription(PvaFix, "/nav/pva_fix", self.on_pva_fix, RELIABLE_QOS)
-        self.create_subscription(PoseWithCovarianceStamped, "/ekf/set_pose", self.on_set_pose,
+        self.create_subscription(Imu, "imu/data", self.on_imu, imu_qos)
+        self.create_subscription(PvaFix, "nav/pva_fix", self.on_pva_fix, RELIABLE_QOS)
+        self.create_subscription(PoseWithCovarianceStamped, "ekf/set_pose", self.on_set_pose,
                                  RELIABLE_QOS)
         # The aiding sensors' queues hold about as long as the IMU's, not 10-20 s: a node
         # short of CPU follows the IMU, and baro heights or GNSS fixes queued longer than
@@ -434,9 +434,9 @@ class EkfNode(Node):
         aiding_qos = QoSProfile(depth=_AIDING_QUEUE_DEPTH,
                                 reliability=ReliabilityPolicy.BEST_EFFORT,
                                 history=HistoryPolicy.KEEP_LAST)
-        self.create_subscription(FluidPressure, "/baro/pressure", self.on_baro, aiding_qos)
-        self.create_subscription(NavSatFix, "/gnss/fix", self.on_gnss, aiding_qos)
-        publish_diagnostics(self, "/nav/ekf/diagnostics", diag_period, self.diagnostics)
+        self.create_subscription(FluidPressure, "baro/pressure", self.on_baro, aiding_qos)
+        self.create_subscription(NavSatFix, "gnss/fix", self.on_gnss, aiding_qos)
+        publish_diagnostics(self, "nav/ekf/diagnostics", diag_period, self.diagnostics)
         origin = "from the metamap (tile or get_tile)" if self.origin is None else \
             f"{self.origin.lat:.6f}, {self.origin.lon:.6f}, {self.origin.alt:.1f} m"
         self.get_logger().info(f"init_mode={self.params.init_mode}, ENU origin {origin}, "

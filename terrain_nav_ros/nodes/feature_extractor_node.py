@@ -91,16 +91,16 @@ class FeatureExtractorNode(Node):
         for name, source, qos in (("camera", MinutiaArray.SOURCE_CAMERA, RELIABLE_QOS),
                                   ("landmark", MinutiaArray.SOURCE_LANDMARK, LATCHED_QOS)):
             self.outputs[name] = (
-                self.create_publisher(MinutiaArray, f"/{name}/minutiae", qos),
-                self.create_publisher(Image, f"/{name}/creases", qos), source)
+                self.create_publisher(MinutiaArray, f"{name}/minutiae", qos),
+                self.create_publisher(Image, f"{name}/creases", qos), source)
         # numba's kernels load on first use (seconds; compiled, tens of seconds): not on the
         # first frame's clock, and before subscribing (a replay waits for the subscribers)
         warm_up()
-        self.create_subscription(GeoImage, "/camera/image_ground",
+        self.create_subscription(GeoImage, "camera/image_ground",
                                  lambda m: self.on_image(m, "camera"), RELIABLE_QOS)
-        self.create_subscription(GeoImage, "/landmark/image",
+        self.create_subscription(GeoImage, "landmark/image",
                                  lambda m: self.on_image(m, "landmark"), LATCHED_QOS)
-        publish_diagnostics(self, "/feature_extractor/diagnostics", diagnostics_period,
+        publish_diagnostics(self, "feature_extractor/diagnostics", diagnostics_period,
                             self.diagnostics)
 
     def _build(self, overrides=None, ridges=None) -> FeatureExtractor:

@@ -76,9 +76,9 @@ class LandmarkRendererNode(Node):
                                          albedo=albedo, shadows=self.shadows)
         info = self.renderer.ctx.info
         self.get_logger().info(f"OpenGL: {info['GL_RENDERER']} ({info['GL_VERSION']})")
-        self.pub = self.create_publisher(GeoImage, "/landmark/image", LATCHED_QOS)
-        self.create_subscription(DemTile, "/metamap/tile", self.on_tile, LATCHED_QOS)
-        self.create_service(RenderView, "/landmark_renderer/render_view", self.on_render_view)
+        self.pub = self.create_publisher(GeoImage, "landmark/image", LATCHED_QOS)
+        self.create_subscription(DemTile, "metamap/tile", self.on_tile, LATCHED_QOS)
+        self.create_service(RenderView, "landmark_renderer/render_view", self.on_render_view)
         self.rendered = 0
         self.last_tile_msg: DemTile | None = None
         self.rendered_sun = None   # the sun of the latest landmark

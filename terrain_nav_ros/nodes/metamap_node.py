@@ -108,9 +108,9 @@ class MetamapNode(Node):
         o = self.metamap.origin
         self.enu_origin = (o.lat, o.lon, o.alt)
         self.source_crs = str(dems[0].crs) if dems[0].crs is not None else "local"
-        self.tile_pub = self.create_publisher(DemTileMsg, "/metamap/tile", LATCHED_QOS)
-        self.create_service(GetDemTile, "/metamap/get_tile", self.on_get_tile)
-        self.create_subscription(Odometry, "/nav/odometry", self.on_odometry, RELIABLE_QOS)
+        self.tile_pub = self.create_publisher(DemTileMsg, "metamap/tile", LATCHED_QOS)
+        self.create_service(GetDemTile, "metamap/get_tile", self.on_get_tile)
+        self.create_subscription(Odometry, "nav/odometry", self.on_odometry, RELIABLE_QOS)
         self.get_logger().info(
             f"loaded {', '.join(d.name for d in dems)}; ENU origin {o.lat:.6f}, {o.lon:.6f}; "
             f"native GSD {self.metamap.native_gsd:.1f} m")

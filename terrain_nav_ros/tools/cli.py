@@ -21,7 +21,7 @@ DEFAULT_BAG = REPO / "bags" / "jacksboro_demo"
 
 
 def _cmd_graph(args) -> int:
-    from .graph_runner import GraphError, load_graph, run_graph
+    from .graph_runner import GraphError, load_graph, normalise_namespace, run_graph
 
     _check_positive(args, "duration")
     try:
@@ -32,6 +32,11 @@ def _cmd_graph(args) -> int:
         return 2
     if args.only:
         spec.nodes = [n for n in spec.nodes if n.name in args.only]
+    if args.namespace is not None:
+        try:
+            spec.namespace = normalise_namespace(args.namespace, "--namespace")
+        except GraphError as err:
+            raise InputError(str(err)) from err
     if args.until_exit and args.until_exit not in [n.name for n in spec.nodes]:
         raise InputError(f"--until-exit {args.until_exit}: not a node this graph runs "
                          f"({', '.join(n.name for n in spec.nodes)})")
@@ -416,6 +421,9 @@ def build_parser() -> argparse.ArgumentParser:
     graph.add_argument("--only", nargs="+", help="run only these nodes")
     graph.add_argument("--enable", nargs="+", metavar="NODE",
                        help="also run these nodes the graph file disables (enabled: false)")
+    graph.add_argument("--namespace", metavar="NS",
+                       help="run every node and topic under this namespace (e.g. uav1; "
+                            "default the graph file's, else the root)")
     graph.add_argument("--use-sim-time", action="store_true",
                        help="set use_sim_time on every node (when a bag publishes /clock)")
     graph.add_argument("--duration", type=float, help="stop after this many seconds")

@@ -4,6 +4,7 @@ The graph is described once, in a YAML file (``config/graph.yaml``)::
 
     params_files: [terrain_nav.yaml]   # ROS 2 parameters files, relative to this file
     dds_profile: fastdds.xml           # Fast DDS XML profile for every node (optional)
+    namespace: uav1                    # the nodes' namespace (optional; default the root)
     nodes:
       - name: metamap                  # node name; its block in the params files
         executable: metamap            # an entry of terrain_nav_ros.executables.NODES
@@ -12,6 +13,13 @@ The graph is described once, in a YAML file (``config/graph.yaml``)::
         enabled: true                  # false: started only when asked for by name
         parameters: {gsd: 5.0}         # overrides on top of the params files
         remappings: {/in: /out}
+
+With a namespace (the file's ``namespace``, or ``--namespace`` on the command line,
+``namespace:=`` for the launch file), every node and topic is under it (``/uav1/nav/odometry``,
+``/uav1/fmu/in/vehicle_visual_odometry``: a second aircraft's graph on the same network, or
+PX4's ``UXRCE_DDS_NS``), ``/tf`` and ``/tf_static`` too (``/uav1/tf``, as navigation2 does);
+``/clock`` stays shared. The params files' node blocks are rewritten to the nodes' full names
+for it (:func:`namespaced_params_files`).
 
 A node with ``enabled: false`` (an optional output such as the autopilot bridge) is left out
 unless :func:`load_graph` is given its name in ``enable`` (``--enable NAME`` on the command
@@ -60,6 +68,9 @@ RESPAWN_LIMIT = 3
 RESPAWN_WINDOW = 60.0
 
 
+_GRAPH_KEYS = {"params_files", "dds_profile", "namespace", "nodes"}
+
+
 class GraphError(RuntimeError):
     """The graph description is invalid, or the graph could not be brought up."""
 
@@ -84,6 +95,7 @@ class GraphSpec:
     nodes: list[NodeSpec]
     params_files: list[Path] = field(default_factory=list)
     dds_profile: Path | None = None   # Fast DDS profile XML for every node (graph.yaml)
+    namespace: str = ""   # the nodes' namespace, "/uav1" ("": the root)
 
     def environment(self, base=None) -> dict:
         """The nodes' environment: ``base`` (default this process's) with the graph's Fast
@@ -93,6 +105,9 @@ class GraphSpec:
             env[DDS_PROFILE_VARIABLE] = str(self.dds_profile)
         return env
 
+
+# In a namespace, the transforms go to its own /tf as well (relative names resolve in it).
+TF_REMAPPINGS = {"/tf": "tf", "/tf_static": "tf_static"}
 
 # the variable rmw_fastrtps reads its XML profile from
 DDS_PROFILE_VARIABLE = "FASTRTPS_DEFAULT_PROFILES_FILE"
@@ -112,7 +127,12 @@ def load_graph(path: str | Path, enable=()) -> GraphSpec:
     except (OSError, yaml.YAMLError) as err:
         raise GraphError(f"cannot read graph file {path}: {err}") from err
     doc = {} if doc is None else doc
-    _expect(doc, dict, f"{path}: the top level", "a mapping (params_files, dds_profile, nodes)")
+    _expect(doc, dict, f"{path}: the top level",
+            "a mapping (params_files, dds_profile, namespace, nodes)")
+    unknown = set(doc) - _GRAPH_KEYS
+    if unknown:
+        raise GraphError(f"{path}: unknown keys {sorted(unknown)} (known: "
+                         f"{', '.join(sorted(_GRAPH_KEYS))})")
     names = doc.get("params_files") or []
     names = [names] if isinstance(names, str) else names
     _expect(names, list, f"{path}: params_files", "a file name or a list of them")
@@ -144,13 +164,50 @@ def load_graph(path: str | Path, enable=()) -> GraphSpec:
         profile = (path.parent / doc["dds_profile"]).resolve()
         if not profile.is_file():
             raise GraphError(f"{path}: dds_profile {profile} does not exist")
-    return GraphSpec(nodes, params_paths, profile)
+    namespace = doc.get("namespace") or ""
+    _expect(namespace, str, f"{path}: namespace", "a ROS namespace such as uav1")
+    return GraphSpec(nodes, params_paths, profile, normalise_namespace(namespace, path))
+
+
+# a ROS name token: a letter or underscore, then letters, digits and underscores
+_NAME_TOKEN = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+def normalise_namespace(text: str, where="namespace") -> str:
+    """A ROS namespace as the nodes' ``__ns`` takes it: ``uav1`` and ``/uav1/`` are
+    ``/uav1``; ``""`` and ``/`` are the root, ``""``. Anything else is a GraphError."""
+    tokens = text.strip().strip("/").split("/") if text.strip().strip("/") else []
+    bad = [t for t in tokens if not _NAME_TOKEN.match(t)]
+    if bad:
+        raise GraphError(f"{where}: {text!r} is no ROS namespace ({bad[0]!r}: names are "
+                         "letters, digits and underscores, not starting with a digit)")
+    return "".join(f"/{t}" for t in tokens)
+
+
+def namespaced_params_files(params_files, namespace: str, out_dir: Path) -> list[Path]:
+    """The params files with each node's block keyed by its full name in ``namespace``,
+    written to ``out_dir`` (the files themselves without a namespace).
+
+    ROS matches a block to the node's fully qualified name: ``ekf:`` does not reach
+    ``/uav1/ekf``, whose parameters would silently stay at their defaults. Wildcard blocks
+    (``/**``) match anywhere and are kept as they are.
+    """
+    if not namespace:
+        return [Path(p) for p in params_files]
+    rewritten = []
+    for path in map(Path, params_files):
+        doc = yaml.safe_load(path.read_text()) or {}
+        blocks = {key if str(key).startswith("/*") else f"{namespace}/{str(key).strip('/')}":
+                  value for key, value in doc.items()}
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
+        target = Path(out_dir) / f"{path.stem}{namespace.replace('/', '.')}{path.suffix}"
+        target.write_text(yaml.safe_dump(blocks, sort_keys=False))
+        rewritten.append(target)
+    return rewritten
 
 
 _NODE_KEYS = {"name": str, "executable": str, "required": bool, "enabled": bool,
               "respawn": bool, "parameters": dict, "remappings": dict}
-# a ROS node name: a letter or underscore, then letters, digits and underscores
-_NODE_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 
 def _node_spec(path: Path, entry) -> NodeSpec:
@@ -165,7 +222,7 @@ def _node_spec(path: Path, entry) -> NodeSpec:
             _expect(entry[key], kind, f"{path}: node {name}: {key} {entry[key]!r}",
                     {bool: "true or false (unquoted)", str: "a string",
                      dict: "a mapping"}[kind])
-    if not isinstance(name, str) or not _NODE_NAME.match(name):
+    if not isinstance(name, str) or not _NAME_TOKEN.match(name):
         raise GraphError(f"{path}: node entry {entry!r}: name must be a ROS node name "
                          "(letters, digits, underscores; not starting with a digit)")
     spec = NodeSpec(name=name, executable=entry.get("executable") or name,
@@ -224,8 +281,9 @@ def _yaml_scalar(value) -> str:
 
 
 def node_command(spec: NodeSpec, params_files=(), extra_parameters: dict | None = None,
-                 ) -> list[str]:
-    """The command line that starts one node with its parameters and remappings."""
+                 namespace: str = "") -> list[str]:
+    """The command line that starts one node with its parameters and remappings, in
+    ``namespace`` (normalised; its params files rewritten for it) with ``/tf`` in it."""
     script = Path(sys.executable).parent / spec.executable
     if script.exists():
         cmd = [str(script)]
@@ -236,6 +294,10 @@ def node_command(spec: NodeSpec, params_files=(), extra_parameters: dict | None 
         cmd = [sys.executable, "-c", f"import sys; from {module} import {function}; "
                f"sys.exit({function}())"]
     cmd += ["--ros-args", "-r", f"__node:={spec.name}"]
+    if namespace:
+        cmd += ["-r", f"__ns:={namespace}"]
+        cmd += [arg for source, target in TF_REMAPPINGS.items()
+                for arg in ("-r", f"{source}:={target}")]
     for params_file in params_files:
         cmd += ["--params-file", str(params_file)]
     for key, value in {**spec.parameters, **(extra_parameters or {})}.items():
@@ -291,6 +353,7 @@ class GraphRunner:
         self._respawn_at: dict[str, float] = {}   # nodes waiting to be started again
         self._up = False   # past start-up: nodes that die from now on may be respawned
         self.run_dir: Path | None = None   # the folder the nodes share ($TERRAIN_NAV_RUN_DIR)
+        self.params_files: list[Path] = []   # the spec's, rewritten for its namespace
         self._own_run_dir = False
         self._pumps: list[threading.Thread] = []
         self._lock = threading.Lock()
@@ -308,11 +371,15 @@ class GraphRunner:
         given = os.environ.get(RUN_DIR_VARIABLE) or self.log_dir
         self._own_run_dir = not given
         self.run_dir = Path(given or tempfile.mkdtemp(prefix="terrain_nav_run_"))
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.params_files = namespaced_params_files(self.spec.params_files,
+                                                    self.spec.namespace, self.run_dir)
         for spec in self.spec.nodes:
             self._launch(spec)
 
     def _launch(self, spec: NodeSpec) -> None:
-        cmd = node_command(spec, self.spec.params_files, self.extra_parameters)
+        cmd = node_command(spec, self.params_files, self.extra_parameters,
+                           self.spec.namespace)
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                 stdin=subprocess.DEVNULL, text=True, bufsize=1,
                                 env={**self.spec.environment(),
@@ -354,6 +421,7 @@ class GraphRunner:
         rclpy.init(context=context)
         probe = rclpy.create_node("_terrain_nav_graph_probe", context=context)
         try:
+            namespace = self.spec.namespace or "/"
             wanted = {n.name for n in self.spec.nodes}
             while time.monotonic() - start < timeout:
                 if self._stop.is_set():
@@ -361,7 +429,8 @@ class GraphRunner:
                 self._check_exits()
                 if self.died:
                     raise GraphError(f"node(s) died during start-up: {', '.join(self.died)}")
-                seen = {name for name, _ in probe.get_node_names_and_namespaces()}
+                seen = {name for name, ns in probe.get_node_names_and_namespaces()
+                        if ns == namespace}
                 # Nodes that already finished normally (e.g. a short bag) count as up.
                 if wanted <= seen | set(self.exit_codes):
                     elapsed = time.monotonic() - start
