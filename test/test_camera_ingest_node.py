@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from nav_msgs.msg import Odometry
 from ros_helpers import SpinningNode, start_node, stop, wait_until
+from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Header
 
@@ -275,3 +276,80 @@ def test_a_cold_start_without_a_mission_index_says_so_for_every_frame():
     finally:
         client.close()
         stop(node)
+
+
+def test_the_camera_mount_comes_from_tf_static_through_the_frames_between():
+    """A robot description's mount (``base_link -> camera_link -> camera_optical`` on
+    /tf_static, the camera rolled 15 deg) beats ``mount_rpy``: the image
+    centre lands where that tilt puts it, and the diagnostics say where the mount came from."""
+    import math
+
+    from diagnostic_msgs.msg import DiagnosticArray
+    from tf2_msgs.msg import TFMessage
+
+    from terrain_nav_ros.core.camera.camera_mount import R_BODY_OPTICAL_NADIR, mount_rotation
+    from terrain_nav_ros.nodes.ros_common import TF_STATIC_QOS
+
+    roll = math.radians(15.0)
+    tilt = Rotation.from_matrix(mount_rotation(roll, 0, 0) @ R_BODY_OPTICAL_NADIR.T).as_quat()
+    optical = Rotation.from_matrix(R_BODY_OPTICAL_NADIR).as_quat()
+    static = TFMessage(transforms=[
+        *cv.tf_message(cv.make_header(0, "base_link"), "camera_link", (0, 0, 0), tilt).transforms,
+        *cv.tf_message(cv.make_header(0, "camera_link"), "camera_optical", (0, 0, 0),
+                       optical).transforms])
+    node = start_node("camera_ingest", {"gsd": 5.0, "diagnostics_period": 0.3,
+                                        "mount_rpy": [0.0, 3.0, 0.0]})
+    client = SpinningNode("ingest_tf_client")
+    got, diagnostics = [], []
+    try:
+        n = client.node
+        n.create_subscription(GeoImage, "/camera/image_ground",
+                              lambda m: got.append(m) if not m.reason else None, 10)
+        n.create_subscription(DiagnosticArray, "/camera_ingest/diagnostics",
+                              diagnostics.append, 10)
+        n.create_publisher(TFMessage, "/tf_static", TF_STATIC_QOS).publish(static)
+        pubs = {t: n.create_publisher(m, t, q) for t, m, q in (
+            ("/camera/image_raw", Image, 10), ("/camera/camera_info", CameraInfo, 10),
+            ("/nav/odometry", Odometry, 10), ("/metamap/tile", DemTile, LATCHED_QOS))}
+        assert wait_until(lambda: all(p.get_subscription_count() for p in pubs.values()), 20)
+        info = cv.intrinsics_to_camera_info(np.array([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2],
+                                                      [0, 0, 1]]), [0] * 5, W, H)
+        tile = GeoReference.centred(1000.0, 2000.0, 20.0, 200, 200)
+        pubs["/metamap/tile"].publish(cv.dem_tile_to_msg(
+            np.full(tile.shape, 100.0, np.float32), tile, Header(frame_id="map"),
+            enu_origin=ORIGIN))
+        stamp = [1_750_000_000 * 10**9]
+
+        def publish_and_check():
+            stamp[0] += 10**6
+            frame = _frame(stamp[0])
+            odom = Odometry(header=cv.make_header(stamp[0], "map"))
+            odom.pose = cv.pose_with_covariance(CAMERA, [0, 0, 0, 1], np.eye(6))  # east
+            pubs["/camera/camera_info"].publish(info)
+            pubs["/nav/odometry"].publish(odom)
+            pubs["/camera/image_raw"].publish(frame)
+            return bool(got) and bool(diagnostics)
+
+        assert wait_until(publish_and_check, 30, period=0.3), stop(node)
+        assert wait_until(lambda: "camera_optical" in str(diagnostics[-1]), 10), \
+            (stop(node), str(diagnostics[-1]))
+    finally:
+        client.close()
+        log = stop(node)
+    image, georef, _ = cv.msg_to_geo_image(got[-1])
+    from scipy import ndimage
+
+    labels, count = ndimage.label(image > 150)
+    assert count == 2, log
+    centres = ndimage.center_of_mass(image > 150, labels, [1, 2])
+    ground = sorted(zip(*georef.pixel_to_enu([c for _, c in centres], [r for r, _ in centres]),
+                        strict=True), key=lambda p: -p[1])
+    # Heading east, the mount rolled 15 deg (right wing down, FLU): the optical axis leans
+    # to the left wing, north, by 1000 m x tan(15 deg) = 268 m (mount_rpy's 3 deg pitch
+    # would have put it 52 m east).
+    np.testing.assert_allclose(ground[0], (1000.0, 2000.0 + 1000.0 * math.tan(roll)),
+                               atol=3.0)
+    _, values = cv.diagnostic_values(diagnostics[-1].status[0])
+    assert values["mount"] == ("/tf_static base_link -> camera_optical: roll 15.0, "
+                               "pitch 0.0, yaw 0.0 deg")
+    assert "differs by 15.3 deg from /tf_static's base_link -> camera_optical" in log

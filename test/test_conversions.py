@@ -351,3 +351,21 @@ def test_a_minutiae_message_beyond_what_a_node_can_hold_or_of_no_place_is_refuse
     huge.crease_pixels = [5]
     with pytest.raises(cv.ConversionError, match="at most 67 M pixels"):
         cv.msg_to_creases(huge)
+
+
+def test_static_rotations_leave_out_what_is_no_rotation():
+    from tf2_msgs.msg import TFMessage
+
+    def tf(parent, child, q):
+        return cv.tf_message(cv.make_header(0, parent), child, (0, 0, 0), q).transforms[0]
+
+    rotations, refused = cv.static_rotations(TFMessage(transforms=[
+        tf("base_link", "camera_link", (0, 0, 0, 2.0)),        # not unit: normalised
+        tf("base_link", "lidar", (0, 0, 0, 0)),
+        tf("base_link", "imu", (float("nan"), 0, 0, 1)),
+        tf("", "gps", (0, 0, 0, 1))]))
+    assert list(rotations) == ["camera_link"]
+    parent, rotation = rotations["camera_link"]
+    assert parent == "base_link"
+    np.testing.assert_allclose(rotation, np.eye(3))
+    assert len(refused) == 3 and "base_link -> lidar: quaternion" in refused[0]

@@ -236,3 +236,27 @@ def test_mean_height_near_says_why_there_is_none():
         None, "the DEM has no heights under the aircraft (nodata or voids)")
     assert mean_height_near(heights, georef, 5000.0, 500.0, 100.0) == (
         None, "the DEM tile does not reach the aircraft yet")
+
+
+def test_a_mount_is_chained_through_static_frames_and_read_back_as_angles():
+    """``base_link -> camera_link -> camera_optical`` composes to the mount; a frame not
+    under the base, or a loop, is no mount (the parameter is used instead)."""
+    from terrain_nav_ros.core.camera.camera_mount import (
+        R_BODY_OPTICAL_NADIR,
+        chained_rotation,
+        mount_angles,
+        mount_rotation,
+    )
+
+    angles = (0.05, -0.2, 0.4)
+    tilt = mount_rotation(*angles) @ R_BODY_OPTICAL_NADIR.T
+    tree = {"camera_link": ("base_link", tilt), "camera_optical": ("camera_link",
+                                                                   R_BODY_OPTICAL_NADIR)}
+    chained = chained_rotation(tree, "base_link", "camera_optical")
+    np.testing.assert_allclose(chained, mount_rotation(*angles), atol=1e-12)
+    np.testing.assert_allclose(mount_angles(chained), angles, atol=1e-12)
+    np.testing.assert_allclose(chained_rotation(tree, "base_link", "base_link"), np.eye(3))
+    assert chained_rotation(tree, "base_link", "gimbal_optical") is None
+    assert chained_rotation(tree, "body", "camera_optical") is None
+    looped = {"a": ("b", np.eye(3)), "b": ("a", np.eye(3))}
+    assert chained_rotation(looped, "base_link", "a") is None

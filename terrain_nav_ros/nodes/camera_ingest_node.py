@@ -2,10 +2,12 @@
 
 Subscribes to the camera (``/camera/image_raw`` as sensor_msgs/Image in any common encoding,
 or ``/camera/image_raw/compressed`` with ``image_transport: compressed``), its
-``/camera/camera_info``, the navigation estimate ``/nav/odometry`` and the DEM tile
-``/metamap/tile``. Each frame is undistorted with the CameraInfo lens model and projected
-onto the mean terrain plane under the view (homography from the pose interpolated at the
-frame's stamp), then published as a ``terrain_nav_msgs/GeoImage`` on ``/camera/image_ground``
+``/camera/camera_info``, the navigation estimate ``/nav/odometry``, the DEM tile
+``/metamap/tile`` and ``/tf_static`` (the camera's mount: ``base_frame`` -> the images'
+frame_id, else the ``mount_rpy`` parameter; the diagnostics' ``mount`` says which). Each
+frame is undistorted with the CameraInfo lens model and projected onto the mean terrain
+plane under the view (homography from the pose interpolated at the frame's stamp), then
+published as a ``terrain_nav_msgs/GeoImage`` on ``/camera/image_ground``
 with a validity mask. A frame that cannot be projected (no estimate or tile yet, no
 calibration, camera above the horizon, undecodable image, a frozen camera repeating its
 last image or a stamp that does not move forward; three frames in a row that go forward
@@ -42,7 +44,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, FluidPressure, Image, I
 
 from terrain_nav_msgs.msg import DemTile, GeoImage
 
-from ..core.camera.camera_mount import camera_rotation, mount_rotation
+from ..core.camera.camera_mount import camera_rotation
 from ..core.camera.frame_guard import FrameGuard
 from ..core.camera.ground_projection import (
     CameraIntrinsics,
@@ -66,6 +68,7 @@ from .ros_common import (
     LATCHED_QOS,
     RELIABLE_QOS,
     SENSOR_QOS,
+    CameraMount,
     contained,
     declare,
     publish_diagnostics,
@@ -91,9 +94,11 @@ class CameraIngestNode(Node):
             "ground farther than this x height above ground is not projected [-]",
             min_value=0.1)
         transport = declare(self, "image_transport", "raw", "raw | compressed")
-        mount = [math.radians(v) for v in declare(
-            self, "mount_rpy", [0.0, 0.0, 0.0],
-            "camera tilt from the nadir mount, roll/pitch/yaw about body FLU [deg]")]
+        mount_rpy = declare(self, "mount_rpy", [0.0, 0.0, 0.0],
+                            "camera tilt from the nadir mount, roll/pitch/yaw about body FLU "
+                            "[deg], where /tf_static does not link base_frame to the camera")
+        base_frame = declare(self, "base_frame", "base_link",
+                             "the aircraft's body frame in /tf_static (the camera's mount)")
         self.max_pose_gap = declare(self, "max_pose_gap", 0.25,
                                     "largest time between a frame and the estimate [s]",
                                     min_value=0.0)
@@ -132,7 +137,7 @@ class CameraIngestNode(Node):
         self.max_baro_age = declare(self, "max_baro_age", 2.0,
                                     "cold start: largest time between a frame and the "
                                     "barometer sample used [s]", min_value=0.0)
-        self.r_body_optical = mount_rotation(*mount)
+        self.mount = CameraMount(self, base_frame, mount_rpy)
         self.attitude = CruiseAttitude(math.radians(tilt_sigma), math.radians(turn_rate),
                                        levelled_sigma=math.radians(levelled_sigma))
         self.baro: tuple[float, float] | None = None     # (stamp s, pressure Pa)
@@ -159,21 +164,21 @@ class CameraIngestNode(Node):
         self._reported = (0, 0)   # projected and not projected at the last report
         self._started_wall = time.monotonic()
         self.last_frame_wall: float | None = None
-        self.pub = self.create_publisher(GeoImage, "/camera/image_ground", RELIABLE_QOS)
+        self.pub = self.create_publisher(GeoImage, "camera/image_ground", RELIABLE_QOS)
         if transport == "compressed":
-            self.create_subscription(CompressedImage, "/camera/image_raw/compressed",
+            self.create_subscription(CompressedImage, "camera/image_raw/compressed",
                                      self.on_compressed, SENSOR_QOS)
         elif transport == "raw":
-            self.create_subscription(Image, "/camera/image_raw", self.on_image, SENSOR_QOS)
+            self.create_subscription(Image, "camera/image_raw", self.on_image, SENSOR_QOS)
         else:
             raise ValueError(f"image_transport must be 'raw' or 'compressed', not {transport!r}")
-        self.create_subscription(CameraInfo, "/camera/camera_info", self.on_info, SENSOR_QOS)
-        self.create_subscription(Odometry, "/nav/odometry", self.on_odometry, RELIABLE_QOS)
-        self.create_subscription(DemTile, "/metamap/tile", self.on_tile, LATCHED_QOS)
+        self.create_subscription(CameraInfo, "camera/camera_info", self.on_info, SENSOR_QOS)
+        self.create_subscription(Odometry, "nav/odometry", self.on_odometry, RELIABLE_QOS)
+        self.create_subscription(DemTile, "metamap/tile", self.on_tile, LATCHED_QOS)
         if self.cold_start:
-            self.create_subscription(FluidPressure, "/baro/pressure", self.on_baro, SENSOR_QOS)
-            self.create_subscription(Imu, "/imu/data", self.on_imu, SENSOR_QOS)
-        publish_diagnostics(self, "/camera_ingest/diagnostics", diagnostics_period,
+            self.create_subscription(FluidPressure, "baro/pressure", self.on_baro, SENSOR_QOS)
+            self.create_subscription(Imu, "imu/data", self.on_imu, SENSOR_QOS)
+        publish_diagnostics(self, "camera_ingest/diagnostics", diagnostics_period,
                             self.diagnostics)
 
     def _area_terrain(self, mission_dir: str):
@@ -309,7 +314,8 @@ class CameraIngestNode(Node):
         if pose is None:
             self.drop(reason, header)
             return
-        camera = CameraPose(pose.position, camera_rotation(pose.quaternion, self.r_body_optical))
+        camera = CameraPose(pose.position, camera_rotation(
+            pose.quaternion, self.mount.rotation(header.frame_id)))
         # Terrain plane: mean height near nadir, then over the footprint it implies.
         plane, why = self.terrain_height(pose.position[0], pose.position[1], 200.0)
         if plane is None:
@@ -393,7 +399,7 @@ class CameraIngestNode(Node):
             float(pressure_to_altitude(self.baro[1], self.sea_level_pressure)), t.low,
             t.median, t.high, self.tile_origin[2], roll=roll, pitch=pitch,
             tilt_sigma=tilt_sigma, altitude_sigma=self.baro_altitude_sigma,
-            r_body_optical=self.r_body_optical)
+            r_body_optical=self.mount.rotation(header.frame_id))
         if view is None:
             self.drop(why, header)
             return
@@ -451,7 +457,7 @@ class CameraIngestNode(Node):
         values = {"projected": self.published, "projected_pose_free": self.pose_free_published,
                   "not_projected": not_projected,
                   "frames_since_last_report": new_projected + new_dropped,
-                  "time_since_last_frame": since}
+                  "time_since_last_frame": since, "mount": self.mount.describe()}
         values.update({f"not projected: {k}": n for k, n in self.drops.most_common()})
         message = "; ".join(problems) or f"{new_projected} frame(s) projected since the last report"
         return [cv.diagnostic_status("camera_ingest", level, message, values, "terrain_nav")]

@@ -694,6 +694,26 @@ def tf_message(header: Header, child_frame_id: str, translation, quaternion) -> 
     return TFMessage(transforms=[tf])
 
 
+def static_rotations(msg: TFMessage) -> tuple[dict, list[str]]:
+    """The rotations of a ``/tf_static`` message: ``{child: (parent, R_parent_child)}``, and
+    why any transform was left out (a quaternion of zero or non-finite length, no frame
+    names). A quaternion a little off unit length is normalised, as tf2 does."""
+    rotations, refused = {}, []
+    for tf in msg.transforms:
+        r = tf.transform.rotation
+        q = np.array([r.x, r.y, r.z, r.w], float)
+        norm = float(np.linalg.norm(q))
+        if not tf.header.frame_id or not tf.child_frame_id:
+            refused.append(f"a transform without frame names ({tf.header.frame_id!r} -> "
+                           f"{tf.child_frame_id!r})")
+        elif not np.isfinite(norm) or norm < 1e-6:
+            refused.append(f"{tf.header.frame_id} -> {tf.child_frame_id}: quaternion "
+                           f"{q.tolist()} is no rotation")
+        else:
+            rotations[tf.child_frame_id] = (tf.header.frame_id, quat_to_matrix(q / norm))
+    return rotations, refused
+
+
 def diagnostic_status(name: str, level: int, message: str, values: dict,
                       hardware_id: str = "") -> DiagnosticStatus:
     """diagnostic_msgs/DiagnosticStatus; ``level`` is 0 OK, 1 WARN, 2 ERROR, 3 STALE; values

@@ -12,7 +12,9 @@ when there is no fix the message has ``status = STATUS_NO_FIX`` and the reason.
 counts fixes and no-fixes (by reason) and times the answers.
 
 The fix is the aircraft (``base_link``) pose: the camera's lever arm (centimetres) is
-neglected and its attitude is the prior's turned back through the camera mount. The
+neglected and its attitude is the prior's turned back through the camera mount (from
+``/tf_static``, ``base_frame`` -> the CameraInfo's frame_id, as camera_ingest's; else
+``mount_rpy``). The
 registration's rotation is the prior's heading error, so with ``publish_heading`` the heading
 is measured too (``STATUS_POSITION_ATTITUDE``, roll and pitch with a 10-degree sigma that
 leaves the filter's own untouched); otherwise only the position (``STATUS_POSITION``, rotation
@@ -44,7 +46,6 @@ from sensor_msgs.msg import CameraInfo
 
 from terrain_nav_msgs.msg import DemTile, MinutiaArray, PvaFix
 
-from ..core.camera.camera_mount import mount_rotation
 from ..core.camera.ground_projection import CameraIntrinsics, CameraPose, ground_to_image
 from ..core.camera.pose_free import scale_range
 from ..core.matching.fix_stream import (
@@ -74,6 +75,7 @@ from .ros_common import (
     LATCHED_QOS,
     RELIABLE_QOS,
     SENSOR_QOS,
+    CameraMount,
     check_parameters_known,
     contained,
     declare,
@@ -132,9 +134,11 @@ class MatcherNode(Node):
             min_value=0.0))
         max_landmarks = declare(self, "max_landmarks", 4, "landmark sets kept for pairing",
                                 min_value=1, max_value=64)
-        mount = [math.radians(v) for v in declare(
-            self, "mount_rpy", [0.0, 0.0, 0.0],
-            "camera tilt from the nadir mount, roll/pitch/yaw about body FLU [deg]")]
+        mount_rpy = declare(self, "mount_rpy", [0.0, 0.0, 0.0],
+                            "camera tilt from the nadir mount, roll/pitch/yaw about body FLU "
+                            "[deg], where /tf_static does not link base_frame to the camera")
+        base_frame = declare(self, "base_frame", "base_link",
+                             "the aircraft's body frame in /tf_static (the camera's mount)")
         self.frame_id = declare(self, "frame_id", "map", "frame of the fixes")
         diagnostics_period = declare(self, "diagnostics_period", 1.0,
                                      "period of /matcher/diagnostics, wall clock [s]",
@@ -154,7 +158,8 @@ class MatcherNode(Node):
             "barometer's [m]", min_value=0.0)
         check_parameters_known(self)  # before the matcher is built and its kernels loaded
         self.add_on_set_parameters_callback(reject_all_changes)
-        self.r_body_optical = mount_rotation(*mount)
+        self.mount = CameraMount(self, base_frame, mount_rpy)
+        self.camera_frame = ""   # the CameraInfo's frame_id: the mount's end in /tf_static
         self.matcher = Matcher(settings_from_parameters(self, "match", MatchParams()))
         self.mission = self._open_mission(mission_dir)
         self.policy = SearchPolicy(after_no_fixes)
@@ -162,20 +167,20 @@ class MatcherNode(Node):
         self.velocity = FixVelocity(velocity_gap)
         self.tally = AnswerTally()
         self.last_camera_wall: float | None = None
-        self.pub = self.create_publisher(PvaFix, "/nav/pva_fix", RELIABLE_QOS)
+        self.pub = self.create_publisher(PvaFix, "nav/pva_fix", RELIABLE_QOS)
         self.dem = None          # (heights, georef) of the latest DEM tile
         self.camera_model: CameraIntrinsics | None = None
         # numba's kernels load on first use (~0.4 s; compiled, tens of seconds): not on the
         # first frame's clock, and before subscribing, so that a node with subscribers
         # answers at speed (a replay waits for them)
         warm_up(self.matcher.params)
-        self.create_subscription(MinutiaArray, "/landmark/minutiae", self.on_landmark,
+        self.create_subscription(MinutiaArray, "landmark/minutiae", self.on_landmark,
                                  LATCHED_QOS)
-        self.create_subscription(MinutiaArray, "/camera/minutiae", self.on_camera, RELIABLE_QOS)
-        self.create_subscription(DemTile, "/metamap/tile", self.on_tile, LATCHED_QOS)
-        self.create_subscription(CameraInfo, "/camera/camera_info", self.on_info, SENSOR_QOS)
+        self.create_subscription(MinutiaArray, "camera/minutiae", self.on_camera, RELIABLE_QOS)
+        self.create_subscription(DemTile, "metamap/tile", self.on_tile, LATCHED_QOS)
+        self.create_subscription(CameraInfo, "camera/camera_info", self.on_info, SENSOR_QOS)
         self._started_wall = time.monotonic()
-        publish_diagnostics(self, "/matcher/diagnostics", diagnostics_period,
+        publish_diagnostics(self, "matcher/diagnostics", diagnostics_period,
                             self.diagnostics)
 
     def _open_mission(self, mission_dir: str) -> MissionSearch | None:
@@ -205,6 +210,7 @@ class MatcherNode(Node):
 
     @contained
     def on_info(self, msg: CameraInfo) -> None:
+        self.camera_frame = msg.header.frame_id
         try:
             k, d, model, (width, height) = cv.camera_info_to_intrinsics(msg)
         except cv.ConversionError:
@@ -423,8 +429,8 @@ class MatcherNode(Node):
     def publish_fix(self, stamp, stamp_s: float, fix: PvaFixEstimate, origin,
                     tilt_variance: float = UNOBSERVED_TILT_VAR) -> None:
         inflate_covariance(fix, self.covariance_scale)
-        r_enu_body = fix_attitude(fix, self.r_body_optical, self.use_heading, self.heading_floor,
-                                  tilt_variance)
+        r_enu_body = fix_attitude(fix, self.mount.rotation(self.camera_frame), self.use_heading,
+                                  self.heading_floor, tilt_variance)
         quaternion = Rotation.from_matrix(r_enu_body).as_quat()
         out = PvaFix(header=cv.make_header(stamp, self.frame_id), status=fix.status,
                      reason=fix.reason, similarity=float(fix.similarity),

@@ -15,11 +15,13 @@ import difflib
 import faulthandler
 import functools
 import importlib
+import math
 import os
 import re
 import sys
 from collections.abc import Callable
 
+import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import (
@@ -40,8 +42,11 @@ from rclpy.qos import (
     ReliabilityPolicy,
     qos_profile_sensor_data,
 )
+from tf2_msgs.msg import TFMessage
 
+from ..core.camera.camera_mount import chained_rotation, mount_angles, mount_rotation
 from ..executables import SUPERVISOR_VARIABLE
+from . import conversions as cv
 
 # Camera, IMU and other streams: best effort, newest wins (REP 2003).
 SENSOR_QOS = qos_profile_sensor_data
@@ -53,6 +58,11 @@ LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL,
                          history=HistoryPolicy.KEEP_LAST)
 
+
+# /tf_static as tf2's static broadcasters publish it: every transform stays for late joiners.
+TF_STATIC_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                           durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                           history=HistoryPolicy.KEEP_LAST)
 
 # diagnostic_msgs/DiagnosticStatus levels
 DIAG_OK, DIAG_WARN, DIAG_ERROR = 0, 1, 2
@@ -342,3 +352,60 @@ def run(node_factory: Callable[[], Node], args=None) -> int:
         rclpy.try_shutdown()
         del executor
     return code
+
+
+class CameraMount:
+    """The camera's mount, body -> optical rotation: from ``/tf_static`` when it links
+    ``base_frame`` to the camera's frame (the frame_id of its images and CameraInfo, through
+    any static frames between, e.g. ``base_link -> camera_link -> camera_optical``), else
+    the node's ``mount_rpy`` parameter.
+
+    A robot description (robot_state_publisher, a static_transform_publisher) is where an
+    integrator declares a camera's mount; the parameter is for a graph without one. A
+    ``/tf_static`` mount that differs from a non-zero ``mount_rpy`` by more than
+    :data:`MISMATCH_DEG` is logged once: the transform is used.
+    """
+
+    MISMATCH_DEG = 0.5
+
+    def __init__(self, node: Node, base_frame: str, mount_rpy_deg):
+        self.node, self.base_frame = node, base_frame
+        self.mount_rpy = [float(v) for v in mount_rpy_deg]
+        self.parameter = mount_rotation(*(math.radians(v) for v in self.mount_rpy))
+        self.rotations: dict = {}
+        self.used = ("mount_rpy", self.parameter)   # source, rotation of the last frame
+        self._warned: set = set()
+        node.create_subscription(TFMessage, "/tf_static", self.on_tf_static, TF_STATIC_QOS)
+
+    def on_tf_static(self, msg) -> None:
+        rotations, refused = cv.static_rotations(msg)
+        self.rotations.update(rotations)
+        for why in refused:
+            self.node.get_logger().warning(f"/tf_static: {why}; left out")
+
+    def rotation(self, camera_frame: str):
+        """Body -> optical rotation for frames of ``camera_frame``."""
+        found = chained_rotation(self.rotations, self.base_frame, camera_frame) \
+            if camera_frame else None
+        if found is None:
+            self.used = ("mount_rpy", self.parameter)
+            return self.parameter
+        self.used = (f"/tf_static {self.base_frame} -> {camera_frame}", found)
+        self._check_parameter(camera_frame, found)
+        return found
+
+    def _check_parameter(self, camera_frame: str, found) -> None:
+        angle = np.degrees(np.arccos(np.clip((np.trace(found.T @ self.parameter) - 1) / 2,
+                                             -1.0, 1.0)))
+        if any(self.mount_rpy) and angle > self.MISMATCH_DEG and camera_frame not in \
+                self._warned:
+            self._warned.add(camera_frame)
+            self.node.get_logger().warning(
+                f"mount_rpy {self.mount_rpy} deg differs by {angle:.1f} deg from /tf_static's "
+                f"{self.base_frame} -> {camera_frame}: using /tf_static's")
+
+    def describe(self) -> str:
+        """The last frame's mount and where it came from, for the diagnostics."""
+        source, rotation = self.used
+        roll, pitch, yaw = (math.degrees(a) for a in mount_angles(rotation))
+        return f"{source}: roll {roll:.1f}, pitch {pitch:.1f}, yaw {yaw:.1f} deg"

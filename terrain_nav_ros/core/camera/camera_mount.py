@@ -27,3 +27,30 @@ def mount_rotation(roll: float = 0.0, pitch: float = 0.0, yaw: float = 0.0) -> n
 def camera_rotation(q_enu_body, r_body_optical=R_BODY_OPTICAL_NADIR) -> np.ndarray:
     """Optical -> ENU rotation from the body attitude quaternion ``[x, y, z, w]``."""
     return quat_to_matrix(np.asarray(q_enu_body, float)) @ r_body_optical
+
+
+def chained_rotation(transforms: dict, base: str, frame: str) -> np.ndarray | None:
+    """Rotation ``base`` -> ``frame`` through static transforms, or None when ``frame`` does
+    not hang under ``base`` (a frame missing, or a loop).
+
+    ``transforms`` maps each child frame to ``(parent, R_parent_child)``, as a tree of
+    ``/tf_static`` holds them (``base_link -> camera_link -> camera_optical``); the columns
+    of the result are ``frame``'s axes in ``base``, as :func:`mount_rotation`'s are.
+    """
+    rotation, seen = np.eye(3), set()
+    while frame != base:
+        if frame in seen or frame not in transforms:
+            return None
+        seen.add(frame)
+        parent, r_parent_child = transforms[frame]
+        rotation = r_parent_child @ rotation
+        frame = parent
+    return rotation
+
+
+def mount_angles(r_body_optical: np.ndarray) -> tuple[float, float, float]:
+    """Roll, pitch, yaw (rad, FLU) of a mount, the inverse of :func:`mount_rotation`."""
+    from scipy.spatial.transform import Rotation
+
+    tilt = np.asarray(r_body_optical, float) @ R_BODY_OPTICAL_NADIR.T
+    return tuple(float(a) for a in Rotation.from_matrix(tilt).as_euler("xyz"))
