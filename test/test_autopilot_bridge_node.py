@@ -305,6 +305,8 @@ def test_estimates_the_autopilot_must_not_get_are_held_back_with_the_reason(monk
             "odometry in utm -> base_link, not map -> base_link": odometry(frame="utm"),
             "odometry in map -> (none), not map -> base_link": odometry(child=""),
             "estimate older than max_estimate_age": odometry(age=3600.0),
+            "estimate stamped ahead of the node's clock (max_estimate_lead)":
+                odometry(age=-3600.0),
             "quaternion not of unit length": odometry(q=2.0 * Q),
             "non-finite estimate": odometry(v=np.array([np.nan, 0.0, 0.0])),
             "position covariance not positive (unknown)": odometry(cov=np.zeros((6, 6))),
@@ -315,6 +317,73 @@ def test_estimates_the_autopilot_must_not_get_are_held_back_with_the_reason(monk
         assert sent == [] and dict(node.held_back) == {reason: 1 for reason in bad}
         node.on_odometry(odometry())
         assert sent == ["odometry"]
+        # a late one (PX4 would drop it, and take the next for a reset) is not sent and
+        # stops nothing: the counter stays
+        node.on_odometry(odometry(age=0.5))
+        node.on_odometry(odometry(age=-0.05))
+        assert sent == ["odometry"] * 2 and node.resets.value == 0
+        assert node.held_back["estimate not after the last one (late, out of order)"] == 1
+    finally:
+        node.destroy_node()
+        context.try_shutdown()
+
+
+def test_the_reset_counter_moves_once_at_a_respawn_or_a_reset_and_not_for_a_glitch(
+        monkeypatch):
+    """What PX4 takes for a reset of its vision states: a respawned ekf resuming 30 m off
+    after a second's silence (below the 50 m jump threshold), and an ekf reset it reports
+    at once with the estimate time of its first estimate after it, each move the counter
+    once, at that estimate; one held-back glitch (a NaN rate variance) does not. The node
+    in this process, its callbacks called directly."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from terrain_nav_ros.nodes.autopilot_bridge_node import AutopilotBridge
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = AutopilotBridge(context=context, parameter_overrides=[
+        rclpy.parameter.Parameter("max_estimate_age", value=0.0),
+        rclpy.parameter.Parameter("rate", value=0.0)])
+    try:
+        sent = []
+        monkeypatch.setattr(node, "_publish", lambda key, msg: sent.append(msg.reset_counter))
+        v_body = quat_to_matrix(Q).T @ V_ENU
+
+        def diagnostics(resets, at):
+            node.on_diagnostics(DiagnosticArray(status=[cv.diagnostic_status(
+                "ekf: filter", 0, "ok", {"initialized": True, "resets": 0,
+                                         "position_resets": resets,
+                                         "last_reset_stamp": f"{at:.6f}"})]))
+
+        def fly(t0, t1, offset=0.0, twist_cov=TWIST_COV):
+            for t in np.arange(t0, t1 - 1e-9, 0.02):
+                header = cv.make_header(T0_NS + round(t * 1e9), "map")
+                node.on_odometry(cv.odometry_msg(header, "base_link", _position(0.0) + V_ENU * t
+                                                 + [offset, 0, 0], Q, POSE_COV, v_body, OMEGA,
+                                                 twist_cov))
+
+        diagnostics(0, math.nan)
+        fly(0.0, 2.0)
+        bad_rate = TWIST_COV.copy()
+        bad_rate[4, 4] = np.nan
+        fly(2.0, 2.02, twist_cov=bad_rate)                 # held back: a glitch
+        fly(2.02, 3.0)
+        assert set(sent) == {0}
+        # the ekf re-seeded 30 m east at 3.0 s: reported before that estimate
+        diagnostics(1, 3.0 + T0_NS * 1e-9)
+        fly(3.0, 4.0, 30.0)
+        assert sent[-50:] == [1] * 50
+        # it dies, and its respawn resumes from the checkpoint 1 s later, 30 m further
+        fly(5.0, 6.0, 60.0)
+        diagnostics(0, math.nan)                           # a new process's count
+        fly(6.0, 7.0, 60.0)
+        assert sent[-100:] == [2] * 100 and node.resets.count == 2
+        # an ekf without diagnostics: require_diagnostics false is enough to send
+        node.ekf_status = None
+        assert node._health_reason() == "no ekf diagnostics yet"
+        node.require_diagnostics = False
+        assert node._health_reason() is None
     finally:
         node.destroy_node()
         context.try_shutdown()

@@ -199,8 +199,6 @@ def test_reset_counter_counts_filter_resets_jumps_and_wraps():
     assert rc.observe_pose(2.0, [61.0, 80.0, 0], v)             # relocalised by 80 m
     assert rc.value == 2
     assert rc.observe_pose(1.0, [61.0, 80.0, 0], v)             # time ran backwards
-    rc.forget_pose()
-    assert not rc.observe_pose(50.0, [1e4, 0, 0], v)            # nothing to compare with
     for _ in range(300):
         rc.bump()
     assert rc.value == (3 + 300) % 256 and rc.count == 303
@@ -212,3 +210,39 @@ def test_horizontal_accuracy_is_the_long_axis():
     assert math.isclose(horizontal_accuracy(np.diag([9.0, 4.0, 100.0])), 3.0)
     cov = np.array([[5.0, 4.0, 0.0], [4.0, 5.0, 0.0], [0.0, 0.0, 1.0]])
     assert math.isclose(horizontal_accuracy(cov), 3.0)
+
+
+def test_a_reset_counter_moves_once_per_discontinuity_whoever_tells_it_first():
+    """PX4 EKF2 resets its vision states at each change of the counter: a filter reset
+    must change it once, at its first estimate, whether the filter's count (diagnostics)
+    or the estimate's jump comes first; a gap in the estimates (a respawned filter resuming
+    from its checkpoint) is a reset though the position moved less than the threshold."""
+    v = np.array([30.0, 0.0, 0.0])
+
+    def flight(rc, t0, t1, x0=0.0):
+        return [rc.observe_pose(t, [x0 + 30.0 * (t - t0), 0, 0], v)
+                for t in np.arange(t0, t1, 0.02)]
+
+    # a 300 m relocalisation: the jump first, then the count that reports it
+    rc = ResetCounter(jump_threshold=50.0, max_gap=0.5)
+    rc.observe_filter_resets(0, float("nan"))
+    flight(rc, 0.0, 1.0)
+    assert rc.observe_pose(1.0, [330.0, 0, 0], v) and rc.value == 1
+    assert not rc.observe_filter_resets(1, 1.0) and rc.value == 1
+    # ... the count first (the ekf reports at once), then the jump of that estimate
+    assert rc.observe_filter_resets(2, 2.0) and rc.value == 2
+    flight(rc, 1.02, 2.0, 330.6)
+    assert not rc.observe_pose(2.0, [700.0, 0, 0], v) and rc.value == 2
+    assert not any(flight(rc, 2.02, 3.0, 700.6)) and rc.value == 2
+    # a 30 m re-seed (below the jump threshold): the count alone moves it, once
+    assert rc.observe_filter_resets(3, 3.0) and rc.value == 3
+    assert not any(flight(rc, 3.0, 4.0, 730.0)) and rc.value == 3
+    # the filter dies; its respawn resumes 1.5 s later 30 m off, its count back at 0
+    assert rc.observe_pose(5.5, [790.0, 0, 0], v) and rc.value == 4
+    assert not rc.observe_filter_resets(0, float("nan")) and rc.value == 4
+    # a count with no stamp (another filter) still moves it
+    assert rc.observe_filter_resets(1) and rc.value == 5
+    # without the gap rule, a new process's count is all there is to go by
+    no_gap = ResetCounter(50.0)
+    no_gap.observe_filter_resets(4)
+    assert no_gap.observe_filter_resets(0) and no_gap.value == 1

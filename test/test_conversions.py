@@ -296,13 +296,14 @@ def test_sensor_gps_without_a_velocity_says_so_and_stationary_course_is_unknown(
     from px4_msgs.msg import SensorGps
 
     cov = np.diag([16.0, 9.0, 25.0])
-    msg = cv.fill_sensor_gps(SensorGps(), 2_000_000_999, 3_000_000_000, 36.5, -84.3, 400.0,
+    msg = cv.fill_sensor_gps(SensorGps(), 2_000_000_999, 36.5, -84.3, 400.0,
                              -31.0, cov, None, None, SensorGps.FIX_TYPE_3D)
-    assert (msg.timestamp_sample, msg.timestamp) == (2_000_000, 3_000_000)
+    # dated by the estimate, not by its sending: PX4 takes timestamp as the sample's time
+    assert (msg.timestamp_sample, msg.timestamp) == (2_000_000, 2_000_000)
     assert msg.altitude_msl_m == pytest.approx(431.0)
     assert (msg.eph, msg.epv) == pytest.approx((4.0, 5.0))
     assert not msg.vel_ned_valid and np.isnan(msg.vel_n_m_s) and np.isnan(msg.cog_rad)
-    still = cv.fill_sensor_gps(SensorGps(), 0, 0, 0.0, 0.0, 0.0, 0.0, cov, [0.0, 0.0, 0.0],
+    still = cv.fill_sensor_gps(SensorGps(), 0, 0.0, 0.0, 0.0, 0.0, cov, [0.0, 0.0, 0.0],
                                np.eye(3) * 0.04, SensorGps.FIX_TYPE_3D)
     assert still.vel_ned_valid and still.s_variance_m_s == pytest.approx(0.2)
     assert still.c_variance_rad == pytest.approx(np.pi)
@@ -369,3 +370,19 @@ def test_static_rotations_leave_out_what_is_no_rotation():
     assert parent == "base_link"
     np.testing.assert_allclose(rotation, np.eye(3))
     assert len(refused) == 3 and "base_link -> lidar: quaternion" in refused[0]
+
+
+def test_vehicle_odometry_variances_unknown_or_beyond_float32_are_nan():
+    """PX4 reads NaN as unknown (and uses its EKF2_EV*_NOISE); REP 103's -1 and a variance
+    float32 cannot hold would reach it as a negative or an infinite one."""
+    from px4_msgs.msg import VehicleOdometry
+
+    pose_cov = np.diag([4.0, 9.0, 16.0, -1.0, -1.0, -1.0])
+    twist_cov = np.diag([1e40, 0.25, 0.0, 0.01, 0.01, 0.01])
+    msg = cv.fill_vehicle_odometry(VehicleOdometry(), 10**9, 10**9, [1, 2, 3], [0, 0, 0, 1],
+                                   pose_cov, [30, 0, 0], [0, 0, 0], twist_cov, 0, 100)
+    np.testing.assert_allclose(msg.position_variance, [9.0, 4.0, 16.0])   # N, E, D
+    assert np.isnan(msg.orientation_variance).all()
+    # body (FLU, heading east) 1e40, 0.25, 0 -> N 0.25, E 1e40, D 0
+    assert msg.velocity_variance[0] == pytest.approx(0.25)
+    assert np.isnan(msg.velocity_variance[1:]).all()

@@ -361,6 +361,9 @@ def test_time_jump_backwards_resets_and_reinitialises(flight):
     _, filt = rec.filter_status()["ekf: filter"]
     assert int(filt["resets"]) == 1
     assert "time jumped back" in flight["log"]
+    # the reset is dated by the first estimate after it (for the autopilot bridge)
+    assert float(filt["last_reset_stamp"]) == pytest.approx(
+        cv.stamp_to_ns(after[0].header.stamp) * 1e-9, abs=1e-6)
 
 
 def test_camera_attitude_is_moved_to_the_body():

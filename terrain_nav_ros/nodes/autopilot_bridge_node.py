@@ -79,6 +79,7 @@ from sensor_msgs.msg import NavSatFix, NavSatStatus
 
 from ..core.estimation.autopilot_frames import RateLimiter, ResetCounter, horizontal_accuracy
 from ..core.estimation.strapdown import quat_to_matrix
+from ..core.stamp_order import Order, StampOrder
 from . import conversions as cv
 from .ros_common import (
     DIAG_ERROR,
@@ -136,6 +137,10 @@ class AutopilotBridge(Node):
         jump = declare(self, "reset_jump_threshold", 50.0,
                        "a position step this far beyond the velocity's prediction bumps "
                        "the PX4 reset_counter [m]; 0 = never", min_value=0.0)
+        gap = declare(self, "reset_after_gap", 0.5,
+                      "estimates further apart than this in estimate time (a respawned ekf, "
+                      "output held back) bump the PX4 reset_counter [s]; 0 = never",
+                      min_value=0.0)
         self.px4_sensor_gps = declare(self, "px4_sensor_gps", False,
                                       "px4: also publish SensorGps on /fmu/in/sensor_gps")
         gps_rate = declare(self, "gps_rate", 5.0, "px4: largest SensorGps rate [Hz]",
@@ -162,6 +167,10 @@ class AutopilotBridge(Node):
             self, "max_estimate_age", 2.0,
             "send nothing older than this by the node's clock (sim time in a replay) [s]; "
             "0 = no limit", min_value=0.0)
+        self.max_estimate_lead = declare(
+            self, "max_estimate_lead", 0.5,
+            "send nothing stamped further than this ahead of the node's clock [s]; 0 = no "
+            "limit", min_value=0.0)
         diag_period = declare(self, "diagnostics_period", 1.0,
                               "diagnostics period, wall clock [s]", min_value=0.01,
                               max_value=3600.0)
@@ -169,11 +178,11 @@ class AutopilotBridge(Node):
 
         self.limiter = RateLimiter(rate)
         self.gps_limiter = RateLimiter(gps_rate)
-        self.resets = ResetCounter(jump)
+        self.resets = ResetCounter(jump, gap)
+        self.order = StampOrder()   # odometry stamps: a late one is dropped, a new clock taken
         self.ekf_status = None          # (level, message, values) of "ekf: filter"
         self._ekf_status_wall = None
         self._sending = False           # the last estimate went out
-        self._sent_once = False
         self._last_odometry = None      # (stamp s, ENU velocity, 3x3 ENU velocity covariance)
         self.sent = Counter()
         self.held_back = Counter()
@@ -216,23 +225,23 @@ class AutopilotBridge(Node):
                 self._ekf_status_wall = time.monotonic()
                 resets = sum(int(values.get(key, 0)) for key in (
                     "resets", "position_resets", "relocalisation_resets"))
-                if self.resets.observe_filter_resets(resets):
+                at = float(values.get("last_reset_stamp", "nan"))
+                if self.resets.observe_filter_resets(resets, at):
                     self.get_logger().info(f"ekf reset (count {resets}): reset_counter "
                                            f"now {self.resets.value}")
 
     def _health_reason(self) -> str | None:
         """Why the ekf's own word holds every output back (None: it does not)."""
-        if not (self.require_diagnostics or self.stop_on_error):
-            return None
-        if self.ekf_status is None:
-            return "no ekf diagnostics yet"
-        if time.monotonic() - self._ekf_status_wall > self.diagnostics_timeout:
-            return "ekf diagnostics stale"
+        missing = "no ekf diagnostics yet" if self.ekf_status is None else \
+            "ekf diagnostics stale" if time.monotonic() - self._ekf_status_wall > \
+            self.diagnostics_timeout else None
+        if missing is not None:   # (without require_diagnostics, no word is no ERROR)
+            return missing if self.require_diagnostics else None
         level, _message, values = self.ekf_status
         if self.require_diagnostics and values.get("initialized") != "True":
             return "ekf not initialised"
         if self.stop_on_error and level >= DIAG_ERROR:
-            return "ekf reports ERROR"
+            return "ekf reports " + ("ERROR" if level == DIAG_ERROR else "STALE")
         return None
 
     def _hold_back_reason(self, msg: Odometry, t: float, pose_cov: np.ndarray, position,
@@ -253,6 +262,8 @@ class AutopilotBridge(Node):
         now = self.get_clock().now().nanoseconds * 1e-9
         if self.max_estimate_age > 0 and now > 0 and now - t > self.max_estimate_age:
             return "estimate older than max_estimate_age"
+        if self.max_estimate_lead > 0 and now > 0 and t - now > self.max_estimate_lead:
+            return "estimate stamped ahead of the node's clock (max_estimate_lead)"
         health = self._health_reason()
         if health is not None:
             return health
@@ -273,10 +284,13 @@ class AutopilotBridge(Node):
             self._sending = False
             self._last_odometry = None
             return
-        if not self._sending:
-            if self._sent_once:
-                self.resets.bump()           # what comes now may be anywhere
-            self.resets.forget_pose()
+        if self.order.check(t) == Order.BEHIND:
+            # a late one (PX4 drops a sample older than its newest, and the next would then
+            # be a reset): not sent, and it stops nothing; three in a row that go on are a
+            # new clock (a bag loop), taken
+            self.held_back["estimate not after the last one (late, out of order)"] += 1
+            return
+        if not self._sending:   # (a gap or jump since the last one sent bumps the counter)
             self.limiter.reset()
             self.get_logger().info(f"output to {self.target} (re)started, reset_counter "
                                    f"{self.resets.value}")
@@ -289,7 +303,6 @@ class AutopilotBridge(Node):
                                    f"{self.resets.value}")
         if not self.limiter.ready(t):
             return
-        self._sent_once = True
         stamp_ns = cv.stamp_to_ns(msg.header.stamp)
         if self.target == "px4":
             out = cv.fill_vehicle_odometry(
@@ -328,8 +341,7 @@ class AutopilotBridge(Node):
         gps = self._gps_type
         fix_type = gps.FIX_TYPE_3D if horizontal_accuracy(cov) <= self.gps_max_eph \
             else gps.FIX_TYPE_NONE
-        out = cv.fill_sensor_gps(gps(), cv.stamp_to_ns(msg.header.stamp),
-                                 self.get_clock().now().nanoseconds, *lla,
+        out = cv.fill_sensor_gps(gps(), cv.stamp_to_ns(msg.header.stamp), *lla,
                                  self.geoid_undulation, cov, velocity if fresh else None,
                                  velocity_cov, fix_type)
         self._publish("gps", out)

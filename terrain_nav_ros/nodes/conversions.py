@@ -757,17 +757,26 @@ def fill_vehicle_odometry(out, stamp_ns: int, now_ns: int, position, quaternion,
     out.velocity = af.enu_to_ned(velocity_enu).astype(np.float32)
     out.angular_velocity = af.flu_to_frd(angular).astype(np.float32)
     pose_ned = af.covariance_enu_to_ned(pose_cov)
-    out.position_variance = np.diag(pose_ned)[:3].astype(np.float32)
-    out.orientation_variance = np.diag(pose_ned)[3:].astype(np.float32)
+    out.position_variance = _px4_variances(np.diag(pose_ned)[:3])
+    out.orientation_variance = _px4_variances(np.diag(pose_ned)[3:])
     velocity_cov = af.covariance_enu_to_ned(
         af.body_to_world_covariance(np.asarray(twist_cov, float)[:3, :3], q))
-    out.velocity_variance = np.diag(velocity_cov).astype(np.float32)
+    out.velocity_variance = _px4_variances(np.diag(velocity_cov))
     out.reset_counter = int(reset_counter) % 256
     out.quality = int(quality)
     return out
 
 
-def fill_sensor_gps(out, stamp_ns: int, now_ns: int, lat: float, lon: float,
+def _px4_variances(variances) -> np.ndarray:
+    """Variances as float32 for PX4, NaN ("unknown": EKF2 then takes its noise parameter)
+    where one is not a positive number float32 holds (REP 103's -1 for unknown, a value
+    beyond 3.4e38), never a negative or infinite one."""
+    v = np.asarray(variances, float)
+    good = np.isfinite(v) & (v > 0) & (v <= np.finfo(np.float32).max)
+    return np.where(good, v, np.nan).astype(np.float32)
+
+
+def fill_sensor_gps(out, stamp_ns: int, lat: float, lon: float,
                     ellipsoid_height: float, geoid_undulation: float, position_cov_enu,
                     velocity_enu, velocity_cov_enu, fix_type: int):
     """Fill a ``px4_msgs/SensorGps`` with a fused estimate standing in for a receiver.
@@ -776,11 +785,12 @@ def fill_sensor_gps(out, stamp_ns: int, now_ns: int, lat: float, lon: float,
     error ellipse, ``epv``: vertical, ``s_variance_m_s``: speed, despite its name a sigma in
     PX4); what a navigation filter does not have stays unknown: no satellites, DOPs NaN,
     jamming and spoofing unknown, no UTC time, no dual-antenna heading. ``velocity_enu`` None
-    leaves the velocity invalid.
+    leaves the velocity invalid. Both ``timestamp`` and ``timestamp_sample`` are the
+    estimate's stamp: PX4 dates a GNSS sample by ``timestamp`` (less ``EKF2_GPS_DELAY``),
+    which SensorGps defines as the position's and velocity's time, not the sending's.
     """
     nan = float("nan")
-    out.timestamp = af.ns_to_px4_us(now_ns)
-    out.timestamp_sample = af.ns_to_px4_us(stamp_ns)
+    out.timestamp = out.timestamp_sample = af.ns_to_px4_us(stamp_ns)
     out.latitude_deg, out.longitude_deg = float(lat), float(lon)
     out.altitude_ellipsoid_m = float(ellipsoid_height)
     out.altitude_msl_m = float(ellipsoid_height) - float(geoid_undulation)

@@ -436,7 +436,10 @@ class EkfNode(Node):
                                 history=HistoryPolicy.KEEP_LAST)
         self.create_subscription(FluidPressure, "baro/pressure", self.on_baro, aiding_qos)
         self.create_subscription(NavSatFix, "gnss/fix", self.on_gnss, aiding_qos)
-        publish_diagnostics(self, "nav/ekf/diagnostics", diag_period, self.diagnostics)
+        self.publish_diagnostics_now = publish_diagnostics(self, "nav/ekf/diagnostics",
+                                                           diag_period, self.diagnostics)
+        self._resets_published = 0            # resets counted up to the last odometry
+        self._last_reset_stamp = math.nan     # estimate time of the first one after a reset
         origin = "from the metamap (tile or get_tile)" if self.origin is None else \
             f"{self.origin.lat:.6f}, {self.origin.lon:.6f}, {self.origin.alt:.1f} m"
         self.get_logger().info(f"init_mode={self.params.init_mode}, ENU origin {origin}, "
@@ -806,6 +809,13 @@ class EkfNode(Node):
         twist_cov[3:, 3:] = P[9:12, 9:12] + np.eye(3) * (
             self.params.gyro_noise_density ** 2 / self._imu_dt)
         header = cv.make_header(stamp_msg, self.map_frame)
+        d = self.ekf.diagnostics
+        resets = d.resets + d.position_resets + d.relocalisation_resets
+        if resets != self._resets_published:
+            # said before the estimate it moved: the autopilot bridge marks that estimate a
+            # reset (PX4's reset_counter), not one a report period later
+            self._resets_published, self._last_reset_stamp = resets, t
+            self.publish_diagnostics_now()
         self.odom_pub.publish(cv.odometry_msg(header, self.base_frame, s.position,
                                               s.quaternion, s.pose_covariance(), v_body, w,
                                               twist_cov))
@@ -840,6 +850,7 @@ class EkfNode(Node):
                                self.rejections)
         values["navigation_state"], values["navigation"] = self._navigation_state(d)
         values["failures"] = failures
+        values["last_reset_stamp"] = f"{self._last_reset_stamp:.6f}"   # (a stamp's digits)
         statuses = [cv.diagnostic_status("ekf: filter", health.level, health.message, values,
                                          "terrain_nav")]
         for source in SOURCES:

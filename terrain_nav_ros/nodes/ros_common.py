@@ -72,7 +72,8 @@ def publish_diagnostics(node: Node, topic: str, period: float,
                         report: Callable[[], list[DiagnosticStatus]]):
     """Publish ``report()`` as a ``diagnostic_msgs/DiagnosticArray`` on ``topic`` every
     ``period`` s of wall time (a steady clock: reports also flow when sim time stands still,
-    e.g. a paused bag). Returns the timer."""
+    e.g. a paused bag). Returns the function that publishes one at once (an event that must
+    not wait for the period)."""
     quiet = PublisherEventCallbacks(use_default_callbacks=False)
     pub = node.create_publisher(DiagnosticArray, topic, RELIABLE_QOS, event_callbacks=quiet)
 
@@ -81,7 +82,8 @@ def publish_diagnostics(node: Node, topic: str, period: float,
         msg.header.stamp = node.get_clock().now().to_msg()
         pub.publish(msg)
 
-    return node.create_timer(period, tick, clock=Clock(clock_type=ClockType.STEADY_TIME))
+    node.create_timer(period, tick, clock=Clock(clock_type=ClockType.STEADY_TIME))
+    return tick
 
 
 def declare(node: Node, name: str, default, description: str, *, min_value=None,

@@ -8,13 +8,10 @@ bit-identical consecutive frames mean a frozen source, and a stamp that does not
 forward means a repeated or out-of-order frame. :class:`FrameGuard` tells both apart from
 good frames, for camera_ingest to answer them with a no-fix and its reason.
 
-A clock that jumps back (a bag played with ``--loop``, a simulator or driver restarted at
-zero), or one frame stamped far ahead (a glitch, a PTP step), would leave every later frame
-"out of order" until the new clock passed the old one: an hour of frames for a stamp an hour
-ahead. Frames behind the last one that go forward among themselves, :attr:`CONFIRM` of them
-in a row, are a new clock: the guard starts again from them, as the ekf does from IMU
-samples that go on from a jump (``time_jump_confirm``). Repeated stamps never go forward, so
-they never restart it.
+A clock that jumps back, or one frame stamped far ahead, is told apart from frames out of
+order by :class:`~terrain_nav_ros.core.stamp_order.StampOrder`: :attr:`CONFIRM` frames in a
+row behind the last one that go forward among themselves are a new clock, and the guard
+starts again from them.
 
 An image of one value (a covered lens, a black night frame, a frame saturated by glare) has
 no noise left to differ by, so its repeats are not taken for a frozen source: they pass, and
@@ -24,6 +21,8 @@ the extractor answers them for what they are (a constant image, no drainage).
 from __future__ import annotations
 
 import numpy as np
+
+from ..stamp_order import Order, StampOrder
 
 
 class FrameGuard:
@@ -40,11 +39,14 @@ class FrameGuard:
 
     def __init__(self, max_frozen_report: int = 1000):
         self.max_frozen_report = max_frozen_report
-        self._stamp: float | None = None
+        self._order = StampOrder(self.CONFIRM)
         self._image: np.ndarray | None = None
-        self._behind: list[float] = []   # the latest frames behind the last new one
         self.frozen_run = 0
-        self.restarts = 0
+
+    @property
+    def restarts(self) -> int:
+        """New clocks taken so far."""
+        return self._order.restarts
 
     def check(self, stamp: float, image: np.ndarray) -> str:
         """Why the frame at ``stamp`` [s] must not be used, or "" when it is a new frame.
@@ -52,33 +54,22 @@ class FrameGuard:
         Only a frame that passes becomes the image the next ones are compared with, so a
         frozen source is caught for as long as it repeats it.
         """
-        if self._stamp is not None and not stamp > self._stamp and not self._new_clock(stamp):
+        last = self._order.last
+        order = self._order.check(stamp)
+        if order == Order.BEHIND:
             return (f"frame repeated or out of order: stamp {stamp:.3f} s is not after the "
-                    f"previous frame's {self._stamp:.3f} s")
-        self._behind.clear()
+                    f"previous frame's {last:.3f} s")
+        if order == Order.NEW_CLOCK:
+            self._image = None
         if (self._image is not None and image.shape == self._image.shape
                 and image.dtype == self._image.dtype and np.array_equal(image, self._image)
                 and not _constant(image)):   # (the range only of a repeated frame)
             self.frozen_run = min(self.frozen_run + 1, self.max_frozen_report)
-            self._stamp = stamp
             return (f"camera frozen: the image of the last new frame again, {self.frozen_run} "
                     "frame(s) in a row (a real sensor's frames always differ)")
         self.frozen_run = 0
-        self._stamp, self._image = stamp, image.copy()
+        self._image = image.copy()
         return ""
-
-
-    def _new_clock(self, stamp: float) -> bool:
-        """Whether ``stamp``, behind the last new frame, completes :attr:`CONFIRM` frames in
-        a row that go forward from each other: then the guard restarts from it."""
-        if self._behind and not stamp > self._behind[-1]:
-            self._behind.clear()
-        self._behind.append(stamp)
-        if len(self._behind) < self.CONFIRM:
-            return False
-        self._stamp, self._image = None, None
-        self.restarts += 1
-        return True
 
 
 def _constant(image: np.ndarray) -> bool:

@@ -252,28 +252,47 @@ class RateLimiter:
         return True
 
 
+# Estimate times this close are the same estimate's (stamps carried as float seconds) [s].
+_SAME_TIME = 1e-6
+
+
 class ResetCounter:
     """PX4's ``reset_counter``: a uint8 that moves on whenever the estimate jumps.
 
     The consumer (PX4 EKF2) resets its external-vision states instead of rejecting the new
-    data when the counter changes. It moves on when the source filter counts a reset
-    (:meth:`observe_filter_resets`), when the estimate starts again after an interruption
-    (:meth:`bump`), or when consecutive positions jump by more than ``jump_threshold`` beyond
-    what the velocity explains (:meth:`observe_pose`; a relocalisation by a fix).
+    data when the counter changes, so it must change on the first estimate after a
+    discontinuity, and only then (each change is a reset in EKF2). It moves on:
+
+    * when consecutive estimates jump by more than ``jump_threshold`` beyond what the
+      velocity explains (:meth:`observe_pose`; a relocalisation by a fix);
+    * when they are more than ``max_gap`` apart in estimate time (nothing vouches for the
+      estimate's continuity across a gap: a respawned filter resuming from its checkpoint,
+      output held back for a while), or time runs backwards (a new clock);
+    * when the source filter counts a reset (:meth:`observe_filter_resets`) that no jump or
+      gap at or after its stamp has already announced (a filter reports its resets beside
+      its estimates, in diagnostics, which may come before or after the estimate after the
+      reset: the one counter change serves both);
+    * on :meth:`bump`.
 
     Parameters
     ----------
     jump_threshold : float
         Position step beyond the velocity prediction that counts as a reset [m]; 0 disables
         the check.
+    max_gap : float
+        Largest estimate-time step between consecutive estimates that is not a reset [s];
+        0 disables the check.
     """
 
-    def __init__(self, jump_threshold: float = 0.0):
+    def __init__(self, jump_threshold: float = 0.0, max_gap: float = 0.0):
         self.jump_threshold = jump_threshold
+        self.max_gap = max_gap
         self.value = 0
         self.count = 0
         self._filter_resets: int | None = None
         self._last: tuple[float, np.ndarray, np.ndarray] | None = None
+        self._bumped_at: float | None = None   # estimate time of the last bump by a pose
+        self._announced: float | None = None   # a filter reset counted before its estimate
 
     def bump(self) -> int:
         """Move the counter on (wrapping at 256); return the new value."""
@@ -281,16 +300,27 @@ class ResetCounter:
         self.value = (self.value + 1) % 256
         return self.value
 
-    def observe_filter_resets(self, total: int) -> bool:
-        """Take the source's running count of resets; bump if it grew. True if bumped."""
+    def observe_filter_resets(self, total: int, at: float | None = None) -> bool:
+        """Take the source's running count of resets, the last of them at estimate time
+        ``at`` (None or NaN: unknown); bump if it grew, unless a jump or gap at or after
+        ``at`` already did. A count that drops is a new filter process, announced by the
+        gap before its first estimate (with ``max_gap`` set). True if bumped."""
         previous, self._filter_resets = self._filter_resets, int(total)
-        if previous is not None and self._filter_resets != previous:
-            self.bump()
-            return True
-        return False
+        if previous is None or self._filter_resets == previous:
+            return False
+        if self._filter_resets < previous and self.max_gap > 0:
+            return False
+        if at is not None and math.isfinite(at):
+            if self._bumped_at is not None and self._bumped_at >= at - _SAME_TIME:
+                return False
+            if self._last is None or self._last[0] < at - _SAME_TIME:
+                self._announced = at   # its estimate is still to come: no second bump then
+        self.bump()
+        return True
 
     def observe_pose(self, t: float, position, velocity) -> bool:
-        """Take one estimate; bump if it jumped (or time ran backwards). True if bumped."""
+        """Take one estimate; bump if it jumped, came after a gap, or time ran backwards.
+        True if bumped."""
         position = np.asarray(position, dtype=float)
         velocity = np.asarray(velocity, dtype=float)
         last, self._last = self._last, (t, position, velocity)
@@ -298,17 +328,17 @@ class ResetCounter:
             return False
         t0, p0, v0 = last
         dt = t - t0
-        jumped = dt < 0
+        jumped = dt < 0 or (self.max_gap > 0 and dt > self.max_gap)
         if not jumped and self.jump_threshold > 0:
             predicted = p0 + 0.5 * (v0 + velocity) * dt
             jumped = float(np.linalg.norm(position - predicted)) > self.jump_threshold
+        if self._announced is not None and t >= self._announced - _SAME_TIME:
+            self._announced = None   # the filter's reset, already counted
+            return False
         if jumped:
             self.bump()
+            self._bumped_at = t
         return bool(jumped)
-
-    def forget_pose(self) -> None:
-        """Drop the last estimate (after an interruption nothing is compared across it)."""
-        self._last = None
 
 
 def horizontal_accuracy(cov_enu) -> float:
