@@ -2,6 +2,8 @@
 arrives before the calibration, or cannot be decoded, comes out without an image and with the
 reason, and does not kill the node."""
 
+import time
+
 import numpy as np
 import pytest
 from nav_msgs.msg import Odometry
@@ -353,3 +355,61 @@ def test_the_camera_mount_comes_from_tf_static_through_the_frames_between():
     assert values["mount"] == ("/tf_static base_link -> camera_optical: roll 15.0, "
                                "pitch 0.0, yaw 0.0 deg")
     assert "differs by 15.3 deg from /tf_static's base_link -> camera_optical" in log
+
+
+def test_a_frame_ahead_of_the_estimate_waits_for_it():
+    """A filter short of CPU publishes its estimate after the camera's frame: the frame
+    waits (max_estimate_wait) and is projected with the estimate that comes, not refused
+    as "newest estimate is ... older than the frame"; one the estimate never reaches is
+    answered when its wait runs out, saying so."""
+    node = start_node("camera_ingest", {"gsd": 5.0, "max_estimate_wait": 3.0})
+    client = SpinningNode("ingest_wait_client")
+    got = []
+    try:
+        n = client.node
+        n.create_subscription(GeoImage, "/camera/image_ground", got.append, 10)
+        pubs = {t: n.create_publisher(m, t, q) for t, m, q in (
+            ("/camera/image_raw", Image, 10), ("/camera/camera_info", CameraInfo, 10),
+            ("/nav/odometry", Odometry, 10), ("/metamap/tile", DemTile, LATCHED_QOS))}
+        assert wait_until(lambda: all(p.get_subscription_count() for p in pubs.values()), 20)
+        info = cv.intrinsics_to_camera_info(np.array([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2],
+                                                      [0, 0, 1]]), [0] * 5, W, H)
+        tile = GeoReference.centred(1000.0, 2000.0, 20.0, 200, 200)
+        pubs["/metamap/tile"].publish(cv.dem_tile_to_msg(
+            np.full(tile.shape, 100.0, np.float32), tile, Header(frame_id="map"),
+            enu_origin=ORIGIN))
+        stamp = 1_750_000_000 * 10**9
+
+        def odometry(at_ns):
+            odom = Odometry(header=cv.make_header(at_ns, "map"))
+            odom.pose = cv.pose_with_covariance(CAMERA, [0, 0, 0, 1], np.eye(6))
+            return odom
+
+        # the calibration and a first estimate, 2 s before the frames
+        sent = [stamp - 2 * 10**9]
+
+        def first_frames():
+            sent.append(sent[-1] + 10**6)
+            pubs["/camera/camera_info"].publish(info)
+            pubs["/nav/odometry"].publish(odometry(sent[-1]))
+            pubs["/camera/image_raw"].publish(_frame(sent[-1]))
+            return any(not m.reason for m in got)
+
+        assert wait_until(first_frames, 20, period=0.3), stop(node)
+        time.sleep(0.5)
+        count = len(got)
+        pubs["/camera/image_raw"].publish(_frame(stamp))
+        time.sleep(1.0)
+        assert len(got) == count, "the frame did not wait for its estimate"
+        pubs["/nav/odometry"].publish(odometry(stamp + 5 * 10**7))
+        assert wait_until(lambda: len(got) > count, 5), stop(node)
+        waited = got[count]
+        # a frame no estimate reaches: answered once its wait runs out
+        pubs["/camera/image_raw"].publish(_frame(stamp + 10**9))
+        assert wait_until(lambda: len(got) > count + 1, 10), stop(node)
+        abandoned = got[count + 1]
+    finally:
+        client.close()
+        stop(node)
+    assert cv.stamp_to_ns(waited.header.stamp) == stamp and not waited.reason
+    assert "older than the frame (after waiting 3 s for it)" in abandoned.reason

@@ -14,6 +14,9 @@ last image or a stamp that does not move forward; three frames in a row that go 
 behind the last one are a new clock, taken with a warning) is still published, as a GeoImage
 without an image whose ``reason`` says why, so that the matcher answers it with a no-fix; a
 throttled log line says so too, and ``/camera_ingest/diagnostics`` counts each reason.
+A frame newer than the newest estimate (a filter short of CPU lags behind the camera) waits
+for it, up to ``max_estimate_wait`` s of wall time, and is projected as it arrives; frames
+behind it wait in order.
 
 Cold start (``cold_start: true``, with the ``mission_dir`` the matcher searches): while
 there is no estimate at a frame's stamp (the ekf publishes none before it is initialised),
@@ -35,10 +38,11 @@ from __future__ import annotations
 import math
 import re
 import time
-from collections import Counter
+from collections import Counter, deque
 
 import numpy as np
 from nav_msgs.msg import Odometry
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, CompressedImage, FluidPressure, Image, Imu
 
@@ -78,6 +82,8 @@ from .ros_common import (
 # cold start: frames this long after the last odometry are projected pose-free again (the
 # filter was reset); within it, a frame without a pose is a no-fix as without cold start (s)
 COLD_START_GAP = 2.0
+# Frames waiting for the estimate at most (raw frames are megabytes; at 1-10 Hz a second's)
+_MAX_WAITING = 10
 
 
 class CameraIngestNode(Node):
@@ -106,6 +112,10 @@ class CameraIngestNode(Node):
                                      "largest time a frame's stamp may lag the newest "
                                      "estimate (older: a late frame or a camera clock that "
                                      "jumped back) [s]", min_value=0.0)
+        self.max_estimate_wait = declare(
+            self, "max_estimate_wait", 1.0,
+            "a frame newer than the newest estimate waits this long for it (a filter short "
+            "of CPU lags), wall clock [s]; 0 = not held", min_value=0.0)
         self.frame_id = declare(self, "frame_id", "map", "frame of the ground images")
         self.orthorectify = declare(self, "orthorectify", True,
                                     "use the DEM tile's height for every ground pixel (true "
@@ -149,6 +159,8 @@ class CameraIngestNode(Node):
         self.poses = PoseBuffer(horizon=5.0, max_extrapolation=self.max_pose_gap,
                                 max_age=self.max_frame_age)
         self.frames = FrameGuard()
+        self.waiting: deque = deque()   # (wall s, image, encoding, header) for the estimate
+        self.waited = Counter()         # frames that waited: projected, not
         self.intrinsics: CameraIntrinsics | None = None
         self.calibration_problem = "no CameraInfo received yet"
         self.tile: tuple[np.ndarray, GeoReference] | None = None
@@ -180,6 +192,9 @@ class CameraIngestNode(Node):
             self.create_subscription(Imu, "imu/data", self.on_imu, SENSOR_QOS)
         publish_diagnostics(self, "camera_ingest/diagnostics", diagnostics_period,
                             self.diagnostics)
+        if self.max_estimate_wait > 0:
+            self.create_timer(0.1, self._release_waiting,
+                              clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def _area_terrain(self, mission_dir: str):
         """The mission area's terrain heights for a cold start, or None and why not (said
@@ -238,6 +253,7 @@ class CameraIngestNode(Node):
             self._odometry_span = (min(first, t), max(last, t))
         if reason:
             self.get_logger().warning(f"odometry ignored: {reason}", throttle_duration_sec=5.0)
+        self._release_waiting()
 
     @contained
     def on_tile(self, msg: DemTile) -> None:
@@ -296,23 +312,46 @@ class CameraIngestNode(Node):
         if refused:
             self.drop(refused, header)
             return
+        self._project_or_drop(image, encoding, header, may_wait=True)
+
+    def _project_or_drop(self, image: np.ndarray, encoding: str, header, may_wait: bool):
         try:
-            self._project(image, encoding, header)
+            self._project(image, encoding, header, may_wait)
         except Exception as err:
             self.drop(f"projection failed: {type(err).__name__}: {err}", header)
             raise   # logged and counted by @contained
 
-    def _project(self, image: np.ndarray, encoding: str, header) -> None:
+    def _release_waiting(self) -> None:
+        """Project the frames that waited for the estimate, in order, as it reaches them or
+        their wait runs out (then they are no-fixes saying how far behind it was)."""
+        now = time.monotonic()
+        while self.waiting:
+            since, image, encoding, header = self.waiting[0]
+            if self.poses.ahead(cv.stamp_to_sec(header.stamp)) and \
+                    now - since < self.max_estimate_wait and len(self.waiting) <= _MAX_WAITING:
+                return
+            self.waiting.popleft()
+            self.waited["in vain" if self.poses.ahead(cv.stamp_to_sec(header.stamp))
+                        else "reached"] += 1
+            self._project_or_drop(image, encoding, header, may_wait=False)
+
+    def _project(self, image: np.ndarray, encoding: str, header, may_wait: bool) -> None:
         if self.intrinsics is None or self.calibration_problem:
             self.drop(self.calibration_problem or "no CameraInfo", header)
             return
-        pose, reason = self.poses.at(cv.stamp_to_sec(header.stamp))
-        if pose is None and self.cold_start and self._without_odometry(
-                cv.stamp_to_sec(header.stamp)):
+        stamp = cv.stamp_to_sec(header.stamp)
+        pose, reason = self.poses.at(stamp)
+        if pose is None and self.cold_start and self._without_odometry(stamp):
             self._project_pose_free(image, encoding, header)
             return
+        if may_wait and self.max_estimate_wait > 0 and (self.waiting or (
+                pose is None and self.poses.ahead(stamp))):
+            self.waiting.append((time.monotonic(), image, encoding, header))
+            self._release_waiting()   # (more than _MAX_WAITING: the oldest goes)
+            return
         if pose is None:
-            self.drop(reason, header)
+            self.drop(reason + (f" (after waiting {self.max_estimate_wait:g} s for it)"
+                                if not may_wait and self.poses.ahead(stamp) else ""), header)
             return
         camera = CameraPose(pose.position, camera_rotation(
             pose.quaternion, self.mount.rotation(header.frame_id)))
@@ -455,6 +494,8 @@ class CameraIngestNode(Node):
             problems.append(f"{new_dropped} frame(s) not projected, none projected: "
                             f"{self.drops.most_common(1)[0][0]}")
         values = {"projected": self.published, "projected_pose_free": self.pose_free_published,
+                  "waited_for_estimate": sum(self.waited.values()),
+                  "waited_in_vain": self.waited["in vain"],
                   "not_projected": not_projected,
                   "frames_since_last_report": new_projected + new_dropped,
                   "time_since_last_frame": since, "mount": self.mount.describe()}

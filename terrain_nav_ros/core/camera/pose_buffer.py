@@ -74,6 +74,11 @@ class PoseBuffer:
             self._poses.popleft()
         return ""
 
+    def ahead(self, stamp: float) -> bool:
+        """Whether ``stamp`` is past what the poses answer, the estimate still to come
+        (False without any pose: there may be none coming)."""
+        return bool(self._poses) and stamp > self._poses[-1].stamp + self.max_extrapolation
+
     def at(self, stamp: float) -> tuple[StampedPose | None, str]:
         """Pose at ``stamp`` and "" or None and why it is unavailable."""
         if not self._poses:
