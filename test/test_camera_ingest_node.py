@@ -33,6 +33,29 @@ def _frame(stamp_ns):
 ORIGIN = (46.5, 7.5, 0.0)
 
 
+def _inputs(node):
+    """Publishers of camera_ingest's inputs, once it listens, with the flat terrain's tile
+    published (latched); and the camera's CameraInfo."""
+    pubs = {t: node.create_publisher(m, t, q) for t, m, q in (
+        ("/camera/image_raw", Image, 10), ("/camera/camera_info", CameraInfo, 10),
+        ("/nav/odometry", Odometry, 10), ("/metamap/tile", DemTile, LATCHED_QOS))}
+    assert wait_until(lambda: all(p.get_subscription_count() for p in pubs.values()), 20)
+    tile = GeoReference.centred(1000.0, 2000.0, 20.0, 200, 200)
+    pubs["/metamap/tile"].publish(cv.dem_tile_to_msg(
+        np.full(tile.shape, 100.0, np.float32), tile, Header(frame_id="map"),
+        enu_origin=ORIGIN))
+    info = cv.intrinsics_to_camera_info(np.array([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2],
+                                                  [0, 0, 1]]), [0] * 5, W, H)
+    return pubs, info
+
+
+def _odometry(at_ns):
+    """The camera's pose, heading east, at ``at_ns``."""
+    odom = Odometry(header=cv.make_header(at_ns, "map"))
+    odom.pose = cv.pose_with_covariance(CAMERA, [0, 0, 0, 1], np.eye(6))
+    return odom
+
+
 def test_frames_are_projected_to_the_right_place_and_bad_frames_explained():
     from diagnostic_msgs.msg import DiagnosticArray
 
@@ -310,25 +333,14 @@ def test_the_camera_mount_comes_from_tf_static_through_the_frames_between():
         n.create_subscription(DiagnosticArray, "/camera_ingest/diagnostics",
                               diagnostics.append, 10)
         n.create_publisher(TFMessage, "/tf_static", TF_STATIC_QOS).publish(static)
-        pubs = {t: n.create_publisher(m, t, q) for t, m, q in (
-            ("/camera/image_raw", Image, 10), ("/camera/camera_info", CameraInfo, 10),
-            ("/nav/odometry", Odometry, 10), ("/metamap/tile", DemTile, LATCHED_QOS))}
-        assert wait_until(lambda: all(p.get_subscription_count() for p in pubs.values()), 20)
-        info = cv.intrinsics_to_camera_info(np.array([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2],
-                                                      [0, 0, 1]]), [0] * 5, W, H)
-        tile = GeoReference.centred(1000.0, 2000.0, 20.0, 200, 200)
-        pubs["/metamap/tile"].publish(cv.dem_tile_to_msg(
-            np.full(tile.shape, 100.0, np.float32), tile, Header(frame_id="map"),
-            enu_origin=ORIGIN))
+        pubs, info = _inputs(n)
         stamp = [1_750_000_000 * 10**9]
 
         def publish_and_check():
             stamp[0] += 10**6
             frame = _frame(stamp[0])
-            odom = Odometry(header=cv.make_header(stamp[0], "map"))
-            odom.pose = cv.pose_with_covariance(CAMERA, [0, 0, 0, 1], np.eye(6))  # east
             pubs["/camera/camera_info"].publish(info)
-            pubs["/nav/odometry"].publish(odom)
+            pubs["/nav/odometry"].publish(_odometry(stamp[0]))
             pubs["/camera/image_raw"].publish(frame)
             return bool(got) and bool(diagnostics)
 
@@ -368,30 +380,15 @@ def test_a_frame_ahead_of_the_estimate_waits_for_it():
     try:
         n = client.node
         n.create_subscription(GeoImage, "/camera/image_ground", got.append, 10)
-        pubs = {t: n.create_publisher(m, t, q) for t, m, q in (
-            ("/camera/image_raw", Image, 10), ("/camera/camera_info", CameraInfo, 10),
-            ("/nav/odometry", Odometry, 10), ("/metamap/tile", DemTile, LATCHED_QOS))}
-        assert wait_until(lambda: all(p.get_subscription_count() for p in pubs.values()), 20)
-        info = cv.intrinsics_to_camera_info(np.array([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2],
-                                                      [0, 0, 1]]), [0] * 5, W, H)
-        tile = GeoReference.centred(1000.0, 2000.0, 20.0, 200, 200)
-        pubs["/metamap/tile"].publish(cv.dem_tile_to_msg(
-            np.full(tile.shape, 100.0, np.float32), tile, Header(frame_id="map"),
-            enu_origin=ORIGIN))
+        pubs, info = _inputs(n)
         stamp = 1_750_000_000 * 10**9
-
-        def odometry(at_ns):
-            odom = Odometry(header=cv.make_header(at_ns, "map"))
-            odom.pose = cv.pose_with_covariance(CAMERA, [0, 0, 0, 1], np.eye(6))
-            return odom
-
         # the calibration and a first estimate, 2 s before the frames
         sent = [stamp - 2 * 10**9]
 
         def first_frames():
             sent.append(sent[-1] + 10**6)
             pubs["/camera/camera_info"].publish(info)
-            pubs["/nav/odometry"].publish(odometry(sent[-1]))
+            pubs["/nav/odometry"].publish(_odometry(sent[-1]))
             pubs["/camera/image_raw"].publish(_frame(sent[-1]))
             return any(not m.reason for m in got)
 
@@ -401,7 +398,7 @@ def test_a_frame_ahead_of_the_estimate_waits_for_it():
         pubs["/camera/image_raw"].publish(_frame(stamp))
         time.sleep(1.0)
         assert len(got) == count, "the frame did not wait for its estimate"
-        pubs["/nav/odometry"].publish(odometry(stamp + 5 * 10**7))
+        pubs["/nav/odometry"].publish(_odometry(stamp + 5 * 10**7))
         assert wait_until(lambda: len(got) > count, 5), stop(node)
         waited = got[count]
         # a frame no estimate reaches: answered once its wait runs out

@@ -234,12 +234,18 @@ def _stub_launch_modules(monkeypatch):
         monkeypatch.setitem(sys.modules, name, module)
 
 
-def test_launch_file_starts_the_same_nodes_as_the_runner(tmp_path, monkeypatch):
+def _launch_file(monkeypatch):
+    """launch/terrain_nav.launch.py loaded as a module, over the stubs."""
     _stub_launch_modules(monkeypatch)
-    spec_path = importlib.util.spec_from_file_location(
+    spec = importlib.util.spec_from_file_location(
         "terrain_nav_launch", REPO / "launch" / "terrain_nav.launch.py")
-    launch_file = importlib.util.module_from_spec(spec_path)
-    spec_path.loader.exec_module(launch_file)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_launch_file_starts_the_same_nodes_as_the_runner(tmp_path, monkeypatch):
+    launch_file = _launch_file(monkeypatch)
     graphs = [_graph_file(tmp_path, tmp_path / "a", tmp_path / "b")]
     if (REPO / "config" / "graph.yaml").exists():
         graphs.append(REPO / "config" / "graph.yaml")
@@ -275,12 +281,8 @@ def test_the_graphs_dds_profile_reaches_every_node_unless_one_is_set(tmp_path, m
     bad.write_text("dds_profile: none.xml\nnodes:\n  - {name: a, executable: bag_player}\n")
     with pytest.raises(GraphError, match="dds_profile"):
         load_graph(bad)
-    _stub_launch_modules(monkeypatch)
     monkeypatch.delenv(DDS_PROFILE_VARIABLE, raising=False)
-    spec_path = importlib.util.spec_from_file_location(
-        "terrain_nav_launch", REPO / "launch" / "terrain_nav.launch.py")
-    launch_file = importlib.util.module_from_spec(spec_path)
-    spec_path.loader.exec_module(launch_file)
+    launch_file = _launch_file(monkeypatch)
 
     class Context:
         pass
@@ -354,11 +356,7 @@ def test_a_namespace_is_normalised_and_the_params_files_are_rewritten_for_it(tmp
 
 
 def test_the_launch_file_puts_nodes_params_and_tf_in_the_namespace(tmp_path, monkeypatch):
-    _stub_launch_modules(monkeypatch)
-    spec_path = importlib.util.spec_from_file_location(
-        "terrain_nav_launch", REPO / "launch" / "terrain_nav.launch.py")
-    launch_file = importlib.util.module_from_spec(spec_path)
-    spec_path.loader.exec_module(launch_file)
+    launch_file = _launch_file(monkeypatch)
     graph = REPO / "config" / "graph.yaml"
     actions = launch_file.graph_nodes(str(graph), namespace="uav1", run_dir=tmp_path)
     assert actions and all(a.kwargs["namespace"] == "/uav1" for a in actions)
