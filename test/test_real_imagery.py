@@ -666,3 +666,37 @@ def test_an_image_with_control_points_in_degrees_is_studied_like_its_georeferenc
     seen = scene.valid[2:h, 2:w] & twin.valid[2:h, 2:w]
     a, b = scene.image[2:h, 2:w][seen], twin.image[2:h, 2:w][seen]
     assert seen.mean() > 0.9 and np.corrcoef(a, b)[0, 1] > 0.95
+
+
+def test_a_sensor_s_banding_is_no_fix_kilometres_off(shared_data):
+    """Views of PA November's ridges with a sensor's banding (+-40 grey levels every 16
+    rows), and of flat grey with that banding alone: the banding is taken off the view
+    (it played the camera's frame), so the terrain is still localised where it is, and the
+    flat grey is no drainage. Before, the stripes were matched to ridges parallel to them:
+    banded views accepted 1-5 km off, and flat grey at scores up to 19.5."""
+    from terrain_nav_ros.core.matching.matcher import Matcher
+    from terrain_nav_ros.core.matching.params import MatchParams
+    from terrain_nav_ros.tools import real_imagery as ri
+    from terrain_nav_ros.tools.cli import _graph_threshold
+
+    scene = load_scene(shared_data / "imagery" / "pa_ridgevalley_l7_20021125.tif",
+                       shared_data / "imagery" / "pa_ridgevalley_dem30m_utm18.tif",
+                       band=4, sun=(159.5, 26.2))
+    ri.render_landmark([scene])
+    params, threshold = MatchParams(), _graph_threshold()
+    matcher, extractor = Matcher(params, threshold=-1e9), ri._Extractor(params, "dem")
+    cases = ri._cut_cases(scene, 128, 6, False, 3.0, np.random.default_rng(11))
+    banding = 40.0 * np.sin(2 * np.pi * np.arange(128) / 16)[:, None]
+    flat = np.random.default_rng(0).normal(128.0, 2.0, (128, 128))
+    found = 0
+    for case in cases:
+        region = extractor.region_index(matcher, scene, case.region)
+        for view, terrain in ((case.view + banding, True), (flat + banding, False)):
+            banded = ri._Case(np.clip(view, 0, 255).astype(np.uint8), case.region,
+                              case.truth, case.valid, case.cut)
+            result = ri._localise(matcher, extractor, scene, banded, region)
+            if result["score"] < threshold:
+                continue
+            assert terrain and result["err"] <= 3.0, (terrain, result["score"], result["err"])
+            found += 1
+    assert found >= 4, found

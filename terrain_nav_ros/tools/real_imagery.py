@@ -57,6 +57,7 @@ import cv2
 import numpy as np
 from affine import Affine
 
+from ..core.camera.destripe import destripe
 from ..core.features.clouds import CloudParams, cloud_cover
 from ..core.features.hillshade import (
     FAINT_SHADING_R,
@@ -509,6 +510,8 @@ class _Extractor:
         """The index of ``grey`` (a view or a landmark region of ``scene``, observed where
         ``valid``, as camera_ingest's mask tells the extractor) and the factor per axis of
         its decimation."""
+        if not region:          # a view plays the camera's frame: its sensor's stripes
+            grey = destripe(grey, valid)
         grey, f = _decimated(grey, self.factor(scene))
         if valid is not None:   # a decimated pixel is observed when all it averages are
             valid = _decimated(valid.astype(np.float32), self.factor(scene))[0] > 0.999

@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 
 from ..terrain.georef import GeoReference
+from .destripe import destripe
 
 __all__ = [
     "CameraIntrinsics",
@@ -383,8 +384,9 @@ class GroundImage:
 
 
 def grey_frame(image, intr: CameraIntrinsics, bgr: bool) -> tuple[np.ndarray, str]:
-    """The frame as one grey channel, and why it does not fit ``intr`` ("" when it does)."""
-    img = _to_grey(image, bgr)
+    """The frame as one grey channel, its sensor's row and column stripes taken off
+    (:func:`~.destripe.destripe`), and why it does not fit ``intr`` ("" when it does)."""
+    img = destripe(_to_grey(image, bgr))
     if img.shape != (intr.height, intr.width):
         return img, (f"image size {img.shape[::-1]} differs from CameraInfo "
                      f"{intr.width}x{intr.height}")
