@@ -304,6 +304,24 @@ def test_renderer_reuses_gl_objects_across_tiles(renderer):
     np.testing.assert_allclose(second.hit_enu[..., 2], first.hit_enu[..., 2] + 10.0, atol=0.05)
 
 
+
+def test_framebuffers_are_kept_for_the_last_sizes_only(renderer):
+    """A long flight renders tiles of ever new sizes (they follow the position's
+    uncertainty): only the last few sizes' framebuffers stay, and a size rendered again
+    after its framebuffer went is rendered the same."""
+    from terrain_nav_ros.core.render.renderer import _KEPT_FRAMEBUFFERS
+
+    sizes = list(range(40, 40 + 2 * (_KEPT_FRAMEBUFFERS + 3), 2))
+    first = {}
+    for n in sizes + sizes[:1]:
+        h, g = peak_tile(n=n)
+        renderer.set_terrain(h, g)
+        image = renderer.render_nadir().hit_enu[..., 2]
+        first.setdefault(n, image)
+        assert len(renderer._fbos) <= _KEPT_FRAMEBUFFERS
+    np.testing.assert_array_equal(image, first[sizes[0]])
+
+
 # ----------------------------------------------------------------------------- bad input
 def test_bad_terrain_is_rejected(renderer):
     h, g = peak_tile(n=32)

@@ -63,6 +63,7 @@ from ..core.camera.pose_buffer import PoseBuffer, StampedPose
 from ..core.camera.pose_free import CruiseAttitude, pose_free_view
 from ..core.estimation.baro import SEA_LEVEL_PRESSURE, pressure_to_altitude
 from ..core.matching.mission_index import MissionIndex, MissionIndexError
+from ..core.matching.pva_fix import reason_kind
 from ..core.render.sun import sun_at
 from ..core.terrain.georef import GeoReference
 from . import conversions as cv
@@ -286,7 +287,9 @@ class CameraIngestNode(Node):
     # -- projection ------------------------------------------------------------------------
     def drop(self, reason: str, header) -> None:
         """Tell the graph why this frame has no ground image (and count the reason)."""
-        key = re.split(r"[:(]", reason)[0].strip()[:60]   # the reason without its details
+        # the reason without its details or numbers (a lag's seconds: one key per value
+        # grew the diagnostics without bound over a long flight)
+        key = reason_kind(re.split(r"[:(]", reason)[0].strip())[:60]
         self.drops[key] += 1
         self.pub.publish(cv.unprojected_frame_msg(cv.make_header(header.stamp, self.frame_id),
                                                   f"frame not projected: {reason}"))

@@ -48,6 +48,10 @@ __all__ = [
 ]
 
 
+# Framebuffers kept, one per render size, the sizes used last (see ``_fbo``).
+_KEPT_FRAMEBUFFERS = 4
+
+
 # ----------------------------------------------------------------------------- errors
 class RendererError(RuntimeError):
     """A rendering request that cannot be carried out."""
@@ -895,8 +899,18 @@ class LandmarkRenderer:
         self._photo = False
 
     def _fbo(self, width: int, height: int):
+        """The framebuffer of a size, kept for the next render of it; only the
+        :data:`_KEPT_FRAMEBUFFERS` sizes used last are kept (a landmark tile's size follows
+        the position's uncertainty: a long flight renders hundreds, 10-34 MB each)."""
         key = (width, height)
-        if key not in self._fbos:
+        if key in self._fbos:
+            self._fbos[key] = self._fbos.pop(key)   # (now the last used)
+        else:
+            while len(self._fbos) >= _KEPT_FRAMEBUFFERS:
+                oldest = self._fbos.pop(next(iter(self._fbos)))
+                for texture in oldest.color_attachments:
+                    texture.release()
+                oldest.release()
             attachments = [self.ctx.texture((width, height), 4, dtype="f4") for _ in range(2)]
             self._fbos[key] = self.ctx.framebuffer(color_attachments=attachments)
         return self._fbos[key]
