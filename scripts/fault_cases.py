@@ -255,6 +255,28 @@ def covered_lens(topic, at, decode):
     return msg
 
 
+def banded_frames(topic, at, decode):
+    """Camera frames of 25-45 s with a sensor's row banding (+-40 grey levels every 16
+    rows, a clock coupling into the readout): matched as they were, the stripes found
+    ridges parallel to them kilometres off; taken off, the frames are fixes as before."""
+    if topic not in CAMERA_TOPICS or not 25.0 <= at < 45.0:
+        return None
+    import cv2
+    import numpy as np
+
+    msg = decode()
+    compressed = topic.endswith("compressed")
+    image = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_UNCHANGED) \
+        if compressed else np.frombuffer(bytes(msg.data), np.uint8).reshape(
+            msg.height, msg.width, -1)
+    rows = 40.0 * np.sin(2 * np.pi * np.arange(image.shape[0]) / 16)
+    banded = np.clip(image.astype(np.float32) + rows.reshape(-1, *[1] * (image.ndim - 1)),
+                     0, 255).astype(np.uint8)
+    msg.data = np.frombuffer(cv2.imencode(".jpg", banded)[1].tobytes() if compressed
+                             else banded.tobytes(), np.uint8)
+    return msg
+
+
 def camera_turned_180(topic, at, decode):
     """Every camera frame turned 180 deg (a camera mounted the other way round, its mount
     not declared): its fixes' heading is 180 deg off from the first and must never be
@@ -709,6 +731,8 @@ def cases() -> list[Case]:
              _flight(camera_turned_180)),
         Case("camera lens covered for 10 s (black frames)", "flight", _flight(
             covered_lens, "image is constant", 10)),
+        Case("camera frames banded for 20 s (a sensor's row banding)", "flight",
+             _fixes_near_truth(banded_frames, 25.0, 45.0)),
         Case("barometer stuck at 90 kPa from 25 s", "flight", _flight(frozen_baro)),
         Case("barometer in hPa", "flight", _flight(baro_in_hpa)),
         Case("barometer frozen at its 25 s reading in a climb", "flight",
@@ -770,6 +794,46 @@ def _flight(change: Callable | None, reason: str = "", at_least: int = 0,
         unanswered = fixes["in_bag"] - fixes["frames"]
         return (GOOD if said >= at_least and unanswered <= (8 if kill else 0) else POOR), detail
     return run
+
+
+def _fixes_near_truth(change: Callable, start: float, end: float) -> Callable:
+    """As :func:`_flight`, and BAD when any fix is off the truth by more than 3 landmark
+    pixels (60 m), POOR when the frames of ``start``-``end`` s made fewer than half the
+    fixes they would: what the change does to a frame must not become a wrong fix."""
+    flight = _flight(change)
+
+    def run(tmp: Path):
+        verdict, detail = flight(tmp)
+        report = _last_report(tmp)
+        if report is None:
+            return verdict, detail
+        worst = report["fix_error"]["max"]
+        made = _fixes_between(tmp, start, end)
+        detail += f", fix error max {worst:.1f} m, {made} fixes in {start:g}-{end:g} s"
+        if worst > 3 * 20.0:
+            return BAD, detail
+        return (verdict if made >= 0.5 * (end - start) else POOR), detail
+    return run
+
+
+def _last_report(tmp: Path) -> dict | None:
+    import yaml
+
+    path = tmp / "out" / "report.yaml"
+    return yaml.safe_load(path.read_text()) if path.exists() else None
+
+
+def _fixes_between(tmp: Path, start: float, end: float) -> int:
+    """Fixes (status not NO_FIX) of the replay's frames stamped ``start``-``end`` s after
+    its first camera frame."""
+    from terrain_nav_ros.tools import bags
+
+    stamps = [bags.decode(m) for m in bags.read(tmp / "out" / "outputs", ["/nav/pva_fix"])]
+    if not stamps:
+        return 0
+    first = min(s.header.stamp.sec + 1e-9 * s.header.stamp.nanosec for s in stamps)
+    return sum(1 for s in stamps if s.status != 0 and start <= s.header.stamp.sec
+               + 1e-9 * s.header.stamp.nanosec - first < end)
 
 
 def _refused_imu(change: Callable, words: str, bag: str = "jacksboro_short") -> Callable:
