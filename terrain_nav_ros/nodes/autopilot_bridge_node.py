@@ -232,9 +232,12 @@ class AutopilotBridge(Node):
 
     def _health_reason(self) -> str | None:
         """Why the ekf's own word holds every output back (None: it does not)."""
-        missing = "no ekf diagnostics yet" if self.ekf_status is None else \
-            "ekf diagnostics stale" if time.monotonic() - self._ekf_status_wall > \
-            self.diagnostics_timeout else None
+        if self.ekf_status is None:
+            missing = "no ekf diagnostics yet"
+        elif time.monotonic() - self._ekf_status_wall > self.diagnostics_timeout:
+            missing = "ekf diagnostics stale"
+        else:
+            missing = None
         if missing is not None:   # (without require_diagnostics, no word is no ERROR)
             return missing if self.require_diagnostics else None
         level, _message, values = self.ekf_status

@@ -161,7 +161,7 @@ class CameraIngestNode(Node):
                                 max_age=self.max_frame_age)
         self.frames = FrameGuard()
         self.waiting: deque = deque()   # (wall s, image, encoding, header) for the estimate
-        self.waited = Counter()         # frames that waited: projected, not
+        self.waited = Counter()         # frames that waited: "reached", "in vain"
         self.intrinsics: CameraIntrinsics | None = None
         self.calibration_problem = "no CameraInfo received yet"
         self.tile: tuple[np.ndarray, GeoReference] | None = None
@@ -324,18 +324,19 @@ class CameraIngestNode(Node):
             self.drop(f"projection failed: {type(err).__name__}: {err}", header)
             raise   # logged and counted by @contained
 
+    @contained   # (also the wait timer's callback: a frame that fails is counted there)
     def _release_waiting(self) -> None:
         """Project the frames that waited for the estimate, in order, as it reaches them or
         their wait runs out (then they are no-fixes saying how far behind it was)."""
         now = time.monotonic()
         while self.waiting:
             since, image, encoding, header = self.waiting[0]
-            if self.poses.ahead(cv.stamp_to_sec(header.stamp)) and \
-                    now - since < self.max_estimate_wait and len(self.waiting) <= _MAX_WAITING:
+            ahead = self.poses.ahead(cv.stamp_to_sec(header.stamp))
+            if ahead and now - since < self.max_estimate_wait and \
+                    len(self.waiting) <= _MAX_WAITING:
                 return
             self.waiting.popleft()
-            self.waited["in vain" if self.poses.ahead(cv.stamp_to_sec(header.stamp))
-                        else "reached"] += 1
+            self.waited["in vain" if ahead else "reached"] += 1
             self._project_or_drop(image, encoding, header, may_wait=False)
 
     def _project(self, image: np.ndarray, encoding: str, header, may_wait: bool) -> None:
