@@ -128,3 +128,22 @@ def test_switched_off_and_bad_settings():
     with pytest.raises(ValueError, match="grey"):
         cloud_mask(np.zeros((8, 8, 3), np.uint8))
     assert cloud_cover(np.zeros((0, 0), np.uint8)).fraction == 0.0
+
+
+@pytest.mark.parametrize("exposure", ["bright haze", "under-exposed", "over-exposed"])
+def test_a_frame_s_gain_and_offset_are_not_cloud(exposure):
+    """Haze toward a bright airlight and a short exposure keep the terrain's relative
+    contrast: the frame is no cloudier than the clear one. An over-exposed frame's clipped
+    patches are cloud-like, but not the textured terrain around them. (Before: 99 %, 95 %
+    and 93 % of real Landsat views "mostly cloud".)"""
+    terrain = TERRAIN.astype(np.float32)
+    frame = {"bright haze": 0.15 * terrain + 0.85 * 230.0,
+             "under-exposed": np.floor(0.15 * terrain),
+             "over-exposed": terrain * (255.0 / np.percentile(terrain, 70.0))}[exposure]
+    frame = np.clip(np.rint(frame), 0, 255).astype(np.uint8)
+    cover = cloud_cover(frame)
+    clipped = float(np.mean(frame == 255))
+    assert cover.reason == "" and cover.fraction <= clipped + 0.1, (cover, clipped)
+    # ... while a cloud under the same haze is still found
+    hazy_cloud = _clouded(_cloud_cover_of(0.85)).astype(np.float32) * 0.15 + 0.85 * 230.0
+    assert cloud_cover(np.rint(hazy_cloud).astype(np.uint8)).reason.startswith("mostly cloud")

@@ -14,8 +14,10 @@ views of the Athabasca icefield, masking the clipped snow cost 3 of 18 views loc
 edges follow the valleys), and over views with synthetic clouds it did not help (18 of 36
 against 19 unmasked). Thin cloud, haze and small or dim clouds are not found here: they lower
 the contrast or add a few albedo edges, and the matcher's significance test, calibrated on
-real non-PVA pairs, keeps them from becoming wrong fixes. Only camera frames are checked; a
-landmark render has no cloud.
+real non-PVA pairs, keeps them from becoming wrong fixes. Nor are a frame's gain and offset
+taken for cloud: texture is judged against the frame's own, and brightness against its
+terrain's, so a frame under bright haze or under-exposed is no cloudier than a clear one.
+Only camera frames are checked; a landmark render has no cloud.
 
 Levels are fractions of the frame's full scale: the integer range of its dtype (uint8 255,
 uint16 65535), and 1.0 for float frames (the ROS ``32FC1`` convention for intensity).
@@ -50,10 +52,13 @@ class CloudParams:
     enabled : bool
         False: no pixel is taken for cloud.
     bright_level : float
-        A cloud's core is at least this fraction of the full scale, in (0, 1], or, when that
-        is lower, at least as bright as 90 % of the frame's textured pixels and ``min_ratio``
-        times its ground (an auto-exposed camera makes a frame that is mostly cloud
-        mid-grey); the rest of the cloud is featureless and connected to such a core.
+        A cloud's core is at least this fraction of the full scale, in (0, 1], or
+        ``min_ratio`` times the frame's ground when that is lower (an auto-exposed camera
+        makes a frame that is mostly cloud mid-grey), and in any case at least as bright as
+        90 % of the frame's textured pixels (the terrain of a frame under bright haze, or
+        over-exposed, is as bright as a cloud, but a cloud outshines it). The rest of the
+        cloud is featureless and connected to such a core, and its edge, bright but
+        textured, is the bright pixels within the texture window's reach of it.
     min_ratio : float
         How many times brighter than the frame's ground (the darker quarter of its textured
         pixels) a cloud's core is at least, >= 1; the rest of the cloud the square root of
@@ -65,6 +70,10 @@ class CloudParams:
         ... and its local standard deviation (Gaussian window ``texture_sigma``) at most this
         fraction of the full scale: terrain under the sun shows shading at the crease scale,
         a cloud top or a clipped snowfield does not.
+    relative_texture : float
+        ... or, when that is lower, at most this share of the frame's own texture (the
+        98th percentile of its local standard deviation), in (0, 1]: haze and
+        under-exposure lower the texture of the whole frame, a cloud only its own.
     texture_sigma : float
         Window (px) of the local standard deviation, about the creases' scale.
     min_area : int
@@ -83,6 +92,7 @@ class CloudParams:
     bright_level: float = 0.78
     min_ratio: float = 2.0
     max_texture: float = 0.025
+    relative_texture: float = 0.2
     texture_sigma: float = 2.0
     min_area: int = 64
     margin: int = 2
@@ -92,6 +102,7 @@ class CloudParams:
         _check(0.0 < self.bright_level <= 1.0, "bright_level must be in (0, 1]")
         _check(self.min_ratio >= 1.0, "min_ratio must be >= 1")
         _check(0.0 < self.max_texture < 1.0, "max_texture must be in (0, 1)")
+        _check(0.0 < self.relative_texture <= 1.0, "relative_texture must be in (0, 1]")
         _check(0.3 <= self.texture_sigma <= 20.0, "texture_sigma must be in [0.3, 20] px")
         _check(self.min_area >= 1, "min_area must be >= 1 px")
         _check(0 <= self.margin <= 50, "margin must be in [0, 50] px")
@@ -149,31 +160,52 @@ def cloud_mask(image: np.ndarray, valid: np.ndarray | None = None,
     level = img.astype(np.float32) * np.float32(1.0 / full_scale(img))
     ok = ok & np.isfinite(level)
     level[~ok] = 0.0
-    featureless = _local_variance(level, ok, p.texture_sigma) <= np.float32(p.max_texture) ** 2
+    variance = _local_variance(level, ok, p.texture_sigma)
+    featureless = ok & (variance <= _featureless_variance(variance, ok, p))
     textured = ok & ~featureless
     ground = _terrain_level(level, textured, _GROUND_PERCENTILE)
-    high = min(p.bright_level, max(_terrain_level(level, textured, _CLOUD_PERCENTILE),
-                                   p.min_ratio * ground))
+    high = min(p.bright_level, p.min_ratio * ground)
+    outshone = _terrain_level(level, textured, _CLOUD_PERCENTILE)
+    if math.isfinite(outshone):   # a hazy or over-exposed frame's terrain is bright too
+        high = max(high, outshone)
     low = min(p.bright_level, math.sqrt(p.min_ratio) * ground)
     bright = ok & (level >= high)
     core = bright & featureless
     if not core.any():
         return core
-    # A cloud is a bright region with a featureless core. Its edge, where the window
-    # straddles the ground, is bright but not featureless; the rest of it may be dimmer
-    # (vignetting, a thinner part) but stays featureless and above most of the ground.
-    cloudy = bright | (ok & featureless & (level >= low))
+    # A cloud is a featureless region with a bright core; the rest of it may be dimmer
+    # (vignetting, a thinner part) but stays above most of the ground. Its edge, where the
+    # texture window straddles the ground, is bright but not featureless: the bright pixels
+    # within the window's reach join it, and only those (a bright frame, hazy or
+    # over-exposed, is not one cloud for its clipped patches).
+    body = core | (featureless & (level >= low))
+    reach = int(math.ceil(4.0 * p.texture_sigma))   # cv2's window for float
+    cloudy = body | (_dilated(body, reach) & bright)
     n, labels = cv2.connectedComponents(cloudy.astype(np.uint8), connectivity=8)
     area = np.bincount(labels.ravel(), minlength=n)
     cored = np.bincount(labels[core], minlength=n) > 0
     keep = cored & (area >= p.min_area)
-    keep[0] = False   # not bright
-    mask = keep[labels]
-    if p.margin and mask.any():
-        size = 2 * p.margin + 1
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
-        mask = cv2.dilate(mask.astype(np.uint8), kernel).astype(bool)
-    return mask & ok
+    keep[0] = False   # not cloud
+    return _dilated(keep[labels], p.margin) & ok
+
+
+def _featureless_variance(variance: np.ndarray, ok: np.ndarray, p: CloudParams) -> float:
+    """The local variance at or below which a pixel is featureless: ``max_texture``
+    squared, or less in a frame of little contrast (haze, under-exposure), where it is the
+    share ``relative_texture`` of the frame's own texture (its 98th percentile: the ground
+    and the clouds' edges). A frame's gain and offset then do not decide what is cloud."""
+    if not ok.any():
+        return 0.0
+    own = float(np.percentile(variance[ok][:: max(1, int(ok.sum()) // 50000)], 98.0))
+    return min(p.max_texture ** 2, p.relative_texture ** 2 * own)
+
+
+def _dilated(mask: np.ndarray, radius: int) -> np.ndarray:
+    if radius <= 0:
+        return mask
+    size = 2 * radius + 1
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+    return cv2.dilate(mask.astype(np.uint8), kernel).astype(bool)
 
 
 def _local_variance(level: np.ndarray, ok: np.ndarray, sigma: float) -> np.ndarray:
