@@ -556,9 +556,22 @@ def _localise(matcher: Matcher, extractor: _Extractor, scene: Scene, case: _Case
     r = matcher.localise(view, ref)
     dt = time.perf_counter() - t0
     return {"score": float(r.score), "err": view_error(r, case, f_view, f_region),
-            "time": dt, "reason": r.reason,
+            "time": dt, "reason": r.reason, "vetoed": _vetoed(r),
             "too_little": any(k in r.reason for k in _TOO_LITTLE), "view_index": view,
             "creases": r.creases, "ridges": r.ridges}
+
+
+def _vetoed(result) -> bool:
+    """Whether the matcher refused ``result`` for all its score: the study's matcher has no
+    threshold of its own, so a refusal is one of the graph's vetoes (another place scoring
+    as well, a scale at the edge of the fit), and the graph would give no fix."""
+    return not result.matched and math.isfinite(result.score)
+
+
+def _accepted(score: float, vetoed: bool, thr: float) -> bool:
+    """What the graph would do with a registration of ``score``: a fix at ``thr``, unless
+    vetoed."""
+    return score >= thr and not vetoed
 
 
 def _evidence_parts(creases, ridges) -> dict:
@@ -688,6 +701,7 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
                     log(f"  {scene.name} {size} px, heading {heading}: {m['success']}/"
                         f"{m['cases']} localised, {m['wrong']} wrong, "
                         f"{m['no_fix_too_little_drainage']} too little drainage, "
+                        f"{m['vetoed']} vetoed, "
                         f"{m['time_ms_median']:.0f} ms")
     finally:
         cv2.setNumThreads(cv_threads)
@@ -720,7 +734,8 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
         "rows": rows,
         "skipped": skipped,
         "non_pva": {"comparisons": int(len(non)),
-                    "accepted": int((non >= thr).sum()),
+                    "accepted": sum(_accepted(x["score"], x["vetoed"], thr) for x in non_pva),
+                    "vetoed": sum(x["score"] >= thr and x["vetoed"] for x in non_pva),
                     "max_score": float(non.max()) if len(non) else math.nan,
                     "calibrated_threshold": float(calibrated),
                     "calibrated_threshold_1e-4": float(calibrate_threshold(non, 1e-4))
@@ -728,7 +743,7 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
                     "scores": [float(x) for x in non],
                     "by_size": _non_pva_by_size(non_pva, thr),
                     "pva_success_at_calibrated": _success_at(rows, pva_scores, calibrated),
-                    "accepted_cases": [x for x in non_pva if x["score"] >= thr]},
+                    "accepted_cases": [x for x in non_pva if x["score"] >= thr]},   # vetoed too
         "seconds": time.perf_counter() - t_all,
     }
     summary["totals"] = _totals(rows, [128, 256, 512])
@@ -762,7 +777,7 @@ def _study_cases(study: _StudyRun, scene: Scene, per_scene: dict, size: int, hea
     (appended to ``study.non_pva``): the scene's row of the report."""
     cs, known, thr = per_scene[scene.name], heading == "known", study.threshold
     extractor, success_px = study.extractor, study.success_px
-    rec = {"err": [], "acc": [], "time": [], "few": [], "cases": []}
+    rec = {"err": [], "acc": [], "time": [], "few": [], "vetoed": [], "cases": []}
     base = {m: {"err": [], "time": []} for m in study.baselines}
     pva_scores = []
     # errors in matching pixels: a view finer than its DEM is localised to the DEM's cell
@@ -774,20 +789,28 @@ def _study_cases(study: _StudyRun, scene: Scene, per_scene: dict, size: int, hea
         r = _localise(matcher, extractor, scene, case, region_index)
         r["err"] /= per_px
         rec["err"].append(r["err"])
-        rec["acc"].append(r["score"] >= thr)
+        accepted = _accepted(r["score"], r["vetoed"], thr)
+        rec["acc"].append(accepted)
         rec["time"].append(r["time"])
-        rec["few"].append(r["too_little"] and not r["score"] >= thr)
+        rec["few"].append(r["too_little"] and not accepted)
+        rec["vetoed"].append(r["vetoed"] and r["score"] >= thr)
         rec["cases"].append({"err_px": r["err"], "err_m": r["err"] * per_px * scene.gsd,
                              "score": r["score"], "reason": r["reason"],
+                             "vetoed": r["vetoed"],
                              **_evidence_parts(r["creases"], r["ridges"])})
-        pva_scores.append((scene.name, size, heading, r["score"], r["err"] <= success_px))
+        pva_scores.append((scene.name, size, heading, r["score"], r["vetoed"],
+                           r["err"] <= success_px))
         for method in study.baselines:
             e, dt = _baseline(method, case, region, known, study.n_rotations)
             base[method]["err"].append(e / per_px)
             base[method]["time"].append(dt)
         _controls(study, scene, per_scene, case, k, size, heading, matcher, r["view_index"])
     row = {"scene": scene.name, "size": size, "heading": heading,
-           "minutiae": _summary(rec["err"], rec["acc"], rec["time"], success_px, rec["few"]),
+           "minutiae": {**_summary(rec["err"], rec["acc"], rec["time"], success_px, rec["few"]),
+                        "vetoed": int(np.sum(rec["vetoed"])),
+                        "vetoed_at_truth": int(np.sum(np.asarray(rec["vetoed"], bool)
+                                                      & (np.asarray(rec["err"])
+                                                         <= success_px)))},
            "pva_scores": pva_scores, "cases": rec["cases"]}
     for method, b in base.items():
         row[method] = _summary(b["err"], np.isfinite(b["err"]), b["time"], success_px)
@@ -809,26 +832,32 @@ def _controls(study: _StudyRun, scene: Scene, per_scene: dict, case: _Case, k: i
                                                      study.rng, 1)]
     for other, box in regions:
         ref, _ = study.extractor.region_index(matcher, other, box)
+        r = matcher.localise(view_index, ref)
         study.non_pva.append({"view_scene": scene.name, "region_scene": other.name,
-                              "size": size, "heading": heading,
-                              "score": float(matcher.localise(view_index, ref).score)})
+                              "size": size, "heading": heading, "score": float(r.score),
+                              "vetoed": _vetoed(r), "reason": r.reason})
 
 
 def _non_pva_by_size(non_pva: list[dict], thr: float) -> dict:
     """Comparisons, accepts and the highest score of the controls per view size."""
     out = {}
     for size in sorted({x["size"] for x in non_pva}):
-        scores = np.array([x["score"] for x in non_pva if x["size"] == size])
-        out[str(size)] = {"comparisons": int(len(scores)), "accepted": int((scores >= thr).sum()),
-                          "max_score": float(scores.max())}
+        of_size = [x for x in non_pva if x["size"] == size]
+        out[str(size)] = {"comparisons": len(of_size),
+                          "accepted": sum(_accepted(x["score"], x["vetoed"], thr)
+                                          for x in of_size),
+                          "vetoed": sum(x["score"] >= thr and x["vetoed"] for x in of_size),
+                          "max_score": max(x["score"] for x in of_size)}
     return out
 
 
 def _success_at(rows, pva_scores, thr) -> dict:
     if not math.isfinite(thr):
         return {}
-    ok = sum(1 for *_, score, right in pva_scores if right and score >= thr)
-    wrong = sum(1 for *_, score, right in pva_scores if not right and score >= thr)
+    ok = sum(1 for *_, score, vetoed, right in pva_scores
+             if right and _accepted(score, vetoed, thr))
+    wrong = sum(1 for *_, score, vetoed, right in pva_scores
+                if not right and _accepted(score, vetoed, thr))
     return {"success": ok, "wrong": wrong, "cases": len(pva_scores)}
 
 
@@ -846,7 +875,8 @@ def _totals(rows, sizes) -> dict:
                     "cases": n, "success": sum(x["success"] for x in have),
                     "wrong": sum(x["wrong"] for x in have),
                     "no_fix_too_little_drainage": sum(x.get("no_fix_too_little_drainage", 0)
-                                                      for x in have)}
+                                                      for x in have),
+                    "vetoed": sum(x.get("vetoed", 0) for x in have)}
     return out
 
 
@@ -934,39 +964,48 @@ def _report(summary: dict, pngs: list[str]) -> str:
         lines += ["", "Input warnings (what was read as no data, and why; a doubtful sun):",
                   ""] + notes
     head = "| scene | view px | heading | cases | " + " | ".join(
-        f"{m} ok / wrong / ms" for m in methods) + " | minutiae: too little drainage |"
-    lines += ["", "## Localisation", "", head, "|" + "---|" * (5 + len(methods))]
+        f"{m} ok / wrong / ms" for m in methods) + (" | minutiae: too little drainage | "
+                                                     "minutiae: vetoed (at their place) |")
+    lines += ["", "## Localisation", "",
+              "A view over the threshold that the graph's vetoes refuse (another place "
+              "scoring as well; a scale at the edge of the fit) is not localised.", "",
+              head, "|" + "---|" * (6 + len(methods))]
     for r in summary["rows"]:
         cells = [f"{r[m]['success']} / {r[m]['wrong']} / {_fmt(r[m]['time_ms_median'])}"
                  if m in r else "-" for m in methods]
         lines.append(f"| {r['scene']} | {r['size']} | {r['heading']} | "
                      f"{r['minutiae']['cases']} | " + " | ".join(cells)
-                     + f" | {r['minutiae']['no_fix_too_little_drainage']} |")
+                     + f" | {r['minutiae']['no_fix_too_little_drainage']} | "
+                     f"{r['minutiae'].get('vetoed', 0)} "
+                     f"({r['minutiae'].get('vetoed_at_truth', 0)}) |")
     if summary["skipped"]:
         lines += ["", "Not studied (no view of the size fits in the scene, turned, on valid "
                   "pixels): " + ", ".join(f"{x['scene']} {x['size']} px ({x['heading']})"
                                           for x in summary["skipped"]) + "."]
     lines += ["", "Over all scenes, views of 128-512 px:", "",
-              "| heading / method | cases | localised | wrong | too little drainage |",
-              "|---|---|---|---|---|"]
+              "| heading / method | cases | localised | wrong | too little drainage | vetoed |",
+              "|---|---|---|---|---|---|"]
     for key, t in sorted(summary["totals"].items()):
         rate = 100.0 * t["success"] / max(t["cases"], 1)
         lines.append(f"| {key} | {t['cases']} | {t['success']} ({rate:.0f} %) | "
-                     f"{t['wrong']} | {t['no_fix_too_little_drainage']} |")
+                     f"{t['wrong']} | {t['no_fix_too_little_drainage']} | "
+                     f"{t['vetoed'] if key.endswith('minutiae') else '-'} |")
     nv = summary["non_pva"]
     at = nv["pva_success_at_calibrated"]
     lines += ["", "## Controls (non-PVA)", "",
               f"{nv['comparisons']} comparisons of views with regions that do not hold them "
               f"(other scenes, and far parts of the same scene): **{nv['accepted']} accepted** "
-              f"at threshold {st['threshold']:g}; highest score {_fmt(nv['max_score'], '.2f')}. "
+              f"at threshold {st['threshold']:g} ({nv['vetoed']} more over it, vetoed); "
+              f"highest score {_fmt(nv['max_score'], '.2f')}. "
               f"Threshold calibrated on them for a false-match rate of "
               f"{st['false_match_rate']:g}: {_fmt(nv['calibrated_threshold'], '.2f')} "
               f"(1e-4, from the fitted tail: {_fmt(nv['calibrated_threshold_1e-4'], '.2f')})"
               + (f", at which {at['success']} of {at['cases']} views are localised and "
                  f"{at['wrong']} accepted wrong." if at else "."), "",
-              "", "| view px | comparisons | accepted | highest score |", "|---|---|---|---|"]
-    lines += [f"| {size} | {b['comparisons']} | {b['accepted']} | {b['max_score']:.2f} |"
-              for size, b in nv["by_size"].items()]
+              "", "| view px | comparisons | accepted | vetoed | highest score |",
+              "|---|---|---|---|---|"]
+    lines += [f"| {size} | {b['comparisons']} | {b['accepted']} | {b['vetoed']} | "
+              f"{b['max_score']:.2f} |" for size, b in nv["by_size"].items()]
     lines += ["", f"Run time {summary['seconds']:.0f} s.", ""]
     lines += [f"![{p}]({p})" for p in pngs]
     return "\n".join(lines) + "\n"

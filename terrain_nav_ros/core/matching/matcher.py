@@ -314,23 +314,44 @@ def _view_try(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, level: SearchLev
 #: log10 of the likelihood ratio within which a registration at another place makes the best
 #: ambiguous: a look-alike of the view's terrain (repeated relief, a ridge along its strike).
 LOOK_ALIKE_MARGIN = 1.0
+#: Registrations at other places (the strongest, as scored) weighed as the best was before
+#: the best is taken for unambiguous.
+_LOOK_ALIKE_CANDIDATES = 3
 
 
-def _look_alike(a: MinutiaIndex, best: _Scored,
-                scored: list) -> tuple[_Scored, float, float] | None:
-    """The strongest registration among ``scored`` that puts the view at another place (its
-    creases' centre a quarter of their reach or more from ``best``'s) and scores within
-    :data:`LOOK_ALIKE_MARGIN` of the strongest, with that distance (px) and the strongest
-    score; or None."""
-    top = max(s.score for s in scored)
+def _look_alike(a: MinutiaIndex, b: MinutiaIndex, best: _Scored, scored: list,
+                search_area: float, p: MatchParams) -> tuple[_Scored, float] | None:
+    """The strongest registration that puts the view at another place (its creases' centre
+    a quarter of their reach or more from ``best``'s) and, weighed as ``best`` was, scores
+    within :data:`LOOK_ALIKE_MARGIN` of it; with that distance (px). None if there is none.
+
+    ``scored`` holds the registrations as the search scored them; ``best`` has since been
+    moved onto B's creases and, on a large set, had its ridges weighed, which can add tens
+    to a score. So the strongest at other places are moved and weighed too before they are
+    compared with it: like with like (compared as scored, two chance registrations at -1
+    would veto one at 19)."""
     apart = max(5.0, 0.25 * a.crease_reach)
+
+    def distance(s: _Scored) -> float:
+        return abs((s.c - best.c) * a.crease_centre + s.t - best.t)
+
+    candidates = []
     for s in sorted(scored, key=lambda s: -s.score):
-        if s.score < top - LOOK_ALIKE_MARGIN:
-            return None
-        distance = abs((s.c - best.c) * a.crease_centre + s.t - best.t)
-        if distance > apart:
-            return s, distance, top
-    return None
+        if len(candidates) == _LOOK_ALIKE_CANDIDATES:
+            break
+        if distance(s) > apart and \
+                not any(_same_transform(a, s.c, s.t, c.c, c.t, 2.0) for c in candidates):
+            candidates.append(s)
+    strongest = None
+    for s in candidates:
+        weighed = _refined_on_creases(a, b, s, search_area, a.radius, p,
+                                      radii=p.crease_rescue_radii)
+        if best.ridges is not None:
+            weighed = with_ridge_evidence(a, b, weighed, p)
+        if distance(weighed) > apart and weighed.score >= best.score - LOOK_ALIKE_MARGIN \
+                and (strongest is None or weighed.score > strongest.score):
+            strongest = weighed
+    return None if strongest is None else (strongest, distance(strongest))
 
 
 def _better(best: _Scored | None, other: _Scored | None) -> _Scored | None:
@@ -523,9 +544,10 @@ class Matcher:
         if best is None:
             base.reason = "no consistent transform"
             return base
+        of_n = math.log10(max(len(scored), 1))   # the best of n registrations scored
         if use_creases:
             best = _with_ridges_chosen(a, b, best, scored, search_area, p)
-            best = replace(best, score=best.score - math.log10(max(len(scored), 1)))  # of n
+            best = replace(best, score=best.score - of_n)
         c, t, pairs, score = best.c, best.t, best.pairs, best.score
         n_ao, n_bo = best.n_overlap
         cov, rms = _covariance(a.z[pairs[:, 0]], b.z[pairs[:, 1]], c, t, p.estimate_scale,
@@ -545,12 +567,13 @@ class Matcher:
             reason = (f"scale {fitted_scale:.3f} at the edge of the fit (the prior's "
                       f"+-{scale_change:.0%} and {SCALE_FIT_MARGIN:.0%} more): the height "
                       "above ground is off, or the view is not of this place")
-        look_alike = _look_alike(a, best, scored) if ok and use_creases else None
+        look_alike = _look_alike(a, b, replace(best, score=score + of_n), scored,
+                                 search_area, p) if ok and use_creases else None
         if look_alike is not None:
-            ok, (other, distance, top) = False, look_alike
+            ok, (other, distance) = False, look_alike
             reason = (f"ambiguous: another place {distance:.0f} px away scores "
-                      f"{other.score:.1f}, within {LOOK_ALIKE_MARGIN:g} of the best "
-                      f"({top:.1f}): repeated terrain")
+                      f"{other.score - of_n:.1f}, within {LOOK_ALIKE_MARGIN:g} of the best "
+                      f"({score:.1f}): repeated terrain")
         return MatchResult(
             decision=Decision.MATCH if ok else Decision.NO_MATCH, score=score,
             n_pairings=len(pairs), pairings=pairs, transform=_pixel_transform(c, t),
