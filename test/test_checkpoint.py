@@ -32,7 +32,7 @@ def test_a_checkpoint_reads_back_as_written(tmp_path):
     save_checkpoint(path, Checkpoint(state, origin, -12.5))   # replaced
     back = load_checkpoint(path)
     for name in ("position", "velocity", "quaternion", "gyro_bias", "accel_bias",
-                 "covariance", "wind"):
+                 "covariance", "wind", "baro_bias"):
         np.testing.assert_array_equal(getattr(back.state, name), getattr(state, name))
     assert back.state.stamp == state.stamp == pytest.approx(101.0)
     assert back.origin == origin and back.baro_offset == -12.5

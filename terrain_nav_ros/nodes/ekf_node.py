@@ -43,13 +43,15 @@ Subscribed:
   operator's re-seed of the position (robot_localization's ``set_pose``; the orientation is
   not used), applied at its stamp without a gate.
 * ``/baro/pressure`` (sensor_msgs/FluidPressure): ISA pressure altitude
-  (:mod:`~terrain_nav_ros.core.estimation.baro`, ``sea_level_pressure``) plus a constant offset
-  to ENU up. The core has no baro-bias state, so the offset is ``baro_offset`` or, when that is
-  NaN, learnt once: the filter's own height at the first baro sample after its vertical
-  sigma fell below ``baro_offset_max_sigma`` (from GNSS, the initial pose or fixes). It is
-  forgotten and learnt again after a time-jump reset. The filter refuses a baro height
-  repeated bit for bit ten times in a row (a stuck sensor) and takes the jump of a baro
-  that steps off its later heights (logged; ``baro_step_m`` in the diagnostics).
+  (:mod:`~terrain_nav_ros.core.estimation.baro`, ``sea_level_pressure``) plus an offset to
+  ENU up: ``baro_offset`` or, when that is NaN, learnt once: the filter's own height at the
+  first baro sample after its vertical sigma fell below ``baro_offset_max_sigma`` (from GNSS,
+  the initial pose or fixes). It is forgotten and learnt again after a time-jump reset. What
+  the offset gets wrong, and the weather's drift, the filter estimates as its baro-bias state
+  (``init_baro_bias_sigma``, ``baro_bias_random_walk``; ``baro_bias_m`` in the
+  diagnostics). The filter refuses a baro height repeated bit for bit ten times in a row (a
+  stuck sensor) and takes the jump of a baro that steps off its later heights (logged;
+  ``baro_step_m`` in the diagnostics).
 * ``/gnss/fix`` (sensor_msgs/NavSatFix, optional): to initialise (``init_mode: gnss``), fused
   while available (``fuse_gnss: true``) or only scored against the estimate
   (``fuse_gnss: false``: NIS in the diagnostics). ``STATUS_NO_FIX`` and NaN are refused.
@@ -246,6 +248,10 @@ EKF_PARAMETERS = {
                         "starts at zero [m/s]", 1e-3, 100.0),
     "wind_random_walk": ("how fast the wind may change, per component [m/s/sqrt(s)]",
                          0.0, 10.0),
+    "init_baro_bias_sigma": ("1-sigma of the baro bias at start: the error of the offset "
+                             "that puts pressure altitude into ENU up [m]", 1e-3, 1e4),
+    "baro_bias_random_walk": ("how fast the baro bias may change (weather: ~8 m per hPa) "
+                              "[m/sqrt(s)]", 0.0, 100.0),
     "sideslip_sigma": ("1-sigma of the sideslip, measured as zero (coordinated flight of a "
                        "fixed wing); 0 = not measured [m/s]", 0.0, 100.0),
     "sideslip_gate_probability": ("chi-square gate probability for the sideslip", 1e-6, 1.0),
@@ -629,7 +635,7 @@ class EkfNode(Node):
             self.get_logger().warning(f"not resuming from {self._checkpoint_path}: {err}")
             return
         out = self.ekf.initialize(stamp, s.position, s.velocity, s.quaternion, s.covariance,
-                                  s.gyro_bias, s.accel_bias, s.wind)
+                                  s.gyro_bias, s.accel_bias, s.wind, s.baro_bias)
         if not out.accepted:
             self.get_logger().warning(f"not resuming: the filter refused the checkpoint "
                                       f"({out.reason.value})")

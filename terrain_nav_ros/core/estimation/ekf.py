@@ -6,7 +6,7 @@ apply to an INS).
 
 State
 -----
-``kf.x`` (17 x 1) and ``kf.P`` (17 x 17) follow this order:
+``kf.x`` (18 x 1) and ``kf.P`` (18 x 18) follow this order:
 
 ======  ==============  ===================================================================
 index   symbol          meaning
@@ -18,12 +18,20 @@ index   symbol          meaning
 9:12    b_g             gyro bias, body FLU (rad/s)
 12:15   b_a             accelerometer bias, body FLU (m/s^2)
 15:17   w               wind, east and north (m/s): the ground velocity less the air's
+17      b_baro          baro bias (m): the barometer's height less the true height
 ======  ==============  ===================================================================
 
 The wind is no IMU state: the accelerometer levelling needs it (a turn's centripetal
 acceleration is the air velocity's) and the sideslip of a fixed wing in coordinated flight,
 which is about zero, measures it (the crab between the heading and the track), as autopilot
 EKFs without an airspeed sensor do.
+
+The baro bias is what the weather and the offset that put the pressure altitude into ENU up
+add to the barometer: it starts at ``init_baro_bias_sigma`` (the offset is learnt from the
+filter's own height), wanders at ``baro_bias_random_walk`` (a pressure change of 1 hPa is
+~8 m) and is observed wherever another reference measures the height (GNSS; fixes only
+weakly, their height being the prior's). Without it a baro of 10 Hz, taken as white noise,
+made the height sigma a few decimetres around a bias of metres.
 
 The nominal attitude is the unit quaternion ``q`` (``[x, y, z, w]``, body -> ENU) kept beside
 ``kf.x``; the true attitude is ``Exp(dtheta) * q``. Position, velocity and biases are additive,
@@ -112,11 +120,16 @@ from .strapdown import (
     skew,
 )
 
-# The filter's states: the mechanisation's error states, then the wind (east, north).
+# The filter's states: the mechanisation's error states, the wind (east, north), the baro
+# bias.
 IDX_W = slice(DIM_ERR, DIM_ERR + 2)
-DIM_STATE = DIM_ERR + 2
+IDX_BARO = DIM_ERR + 2
+DIM_STATE = DIM_ERR + 3
+# The baro measures the height and its own bias.
+_BARO_LEVER = np.zeros((1, DIM_STATE))
+_BARO_LEVER[0, IDX_BARO] = 1.0
 
-__all__ = ["DIM_STATE", "IDX_W", "EkfDiagnostics", "EkfParams", "NavState", "Outcome",
+__all__ = ["DIM_STATE", "IDX_BARO", "IDX_W", "EkfDiagnostics", "EkfParams", "NavState", "Outcome",
            "Reason", "TerrainEkf", "UpdateRecord", "tilt_lever"]
 
 
@@ -199,10 +212,12 @@ class NavState:
         Body -> ENU ``[x, y, z, w]``.
     gyro_bias, accel_bias : ndarray, (3,)
         Body frame (rad/s, m/s^2).
-    covariance : ndarray, (17, 17)
+    covariance : ndarray, (18, 18)
         Error-state covariance in the documented state order.
     wind : ndarray, (2,)
         East and north (m/s): where the air moves to.
+    baro_bias : float
+        The barometer's height less the true height (m).
     """
 
     stamp: float
@@ -213,6 +228,7 @@ class NavState:
     accel_bias: np.ndarray
     covariance: np.ndarray
     wind: np.ndarray
+    baro_bias: float = 0.0
 
     def pose_covariance(self) -> np.ndarray:
         """6x6 covariance of (position, attitude about ENU axes), the ROS Pose layout."""
@@ -279,6 +295,10 @@ class EkfDiagnostics:
         Wind estimate, east and north (m/s).
     wind_sigma : float
         sqrt of the sum of its two variances (m/s).
+    baro_bias, baro_bias_sigma : float
+        The barometer's bias estimate and its sigma (m).
+    height_sigma : float
+        1-sigma of the height (m).
     """
 
     initialized: bool = False
@@ -306,6 +326,9 @@ class EkfDiagnostics:
     horizontal_sigma: float = float("nan")
     wind: tuple = (float("nan"), float("nan"))
     wind_sigma: float = float("nan")
+    baro_bias: float = float("nan")
+    baro_bias_sigma: float = float("nan")
+    height_sigma: float = float("nan")
 
     def time_since(self, source: str = "fix") -> float | None:
         """Seconds since the last accepted measurement of ``source`` (None if never)."""
@@ -404,6 +427,7 @@ class TerrainEkf:
         self._Q1[i3 + 12, i3 + 12] = p.accel_bias_random_walk**2
         wind = np.arange(IDX_W.start, IDX_W.stop)
         self._Q1[wind, wind] = p.wind_random_walk**2
+        self._Q1[IDX_BARO, IDX_BARO] = p.baro_bias_random_walk**2
         self._Q2[i3, i3 + 3] = self._Q2[i3 + 3, i3] = qa / 2.0
         self._Q3[i3, i3] = qa / 3.0
         self._seq = itertools.count()
@@ -464,7 +488,7 @@ class TerrainEkf:
         x = self._x
         return NavState(self.t, x[IDX_P].copy(), x[IDX_V].copy(), self.q.copy(),
                         x[IDX_BG].copy(), x[IDX_BA].copy(), self.kf.P.copy(),
-                        x[IDX_W].copy())
+                        x[IDX_W].copy(), float(x[IDX_BARO]))
 
     @property
     def diagnostics(self) -> EkfDiagnostics:
@@ -488,6 +512,10 @@ class TerrainEkf:
             (math.nan, math.nan)
         d.wind_sigma = float(np.sqrt(np.trace(P[IDX_W, IDX_W]))) if self.initialized else \
             math.nan
+        known = self.initialized
+        d.baro_bias = float(self._x[IDX_BARO]) if known else math.nan
+        d.baro_bias_sigma = float(np.sqrt(P[IDX_BARO, IDX_BARO])) if known else math.nan
+        d.height_sigma = float(np.sqrt(P[2, 2])) if known else math.nan
 
     def _now(self) -> float | None:
         """Filter time, or before initialisation the newest IMU stamp buffered (None if none)."""
@@ -497,16 +525,17 @@ class TerrainEkf:
 
     # ------------------------------------------------------------------ initialisation
     def default_covariance(self) -> np.ndarray:
-        """Initial 17x17 covariance from the ``init_*_sigma`` parameters."""
+        """Initial 18x18 covariance from the ``init_*_sigma`` parameters."""
         p = self.params
         sig = np.r_[[p.init_position_sigma] * 3, [p.init_velocity_sigma] * 3,
                     [p.init_roll_pitch_sigma] * 2, p.init_yaw_sigma,
                     [p.init_gyro_bias_sigma] * 3, [p.init_accel_bias_sigma] * 3,
-                    [p.init_wind_sigma] * 2]
+                    [p.init_wind_sigma] * 2, p.init_baro_bias_sigma]
         return np.diag(sig**2)
 
     def initialize(self, stamp: float, position, velocity, quaternion, covariance=None,
-                   gyro_bias=None, accel_bias=None, wind=None) -> Outcome:
+                   gyro_bias=None, accel_bias=None, wind=None,
+                   baro_bias: float = 0.0) -> Outcome:
         """Start (or restart) the filter from a full state at ``stamp``.
 
         Parameters
@@ -517,13 +546,16 @@ class TerrainEkf:
             ENU (m, m/s).
         quaternion : array_like, (4,)
             Body -> ENU ``[x, y, z, w]``.
-        covariance : array_like, (17, 17) or (15, 15), optional
-            Error covariance in the state order; default :meth:`default_covariance`. Without
-            the wind's rows (15 x 15), the wind starts uncorrelated at ``init_wind_sigma``.
+        covariance : array_like, (18, 18), (17, 17) or (15, 15), optional
+            Error covariance in the state order; default :meth:`default_covariance`. The
+            states it leaves out (the baro bias; the wind too, at 15 x 15) start
+            uncorrelated at their ``init_*_sigma``.
         gyro_bias, accel_bias : array_like, (3,), optional
             Initial bias estimates (default zero).
         wind : array_like, (2,), optional
             Initial wind, east and north (m/s; default zero).
+        baro_bias : float, optional
+            Initial baro bias (m).
 
         Returns
         -------
@@ -540,8 +572,9 @@ class TerrainEkf:
         P = self.default_covariance()
         if covariance is not None:
             given = np.array(covariance, float)
-            if given.shape == (DIM_ERR, DIM_ERR):   # the IMU states alone
-                P[:DIM_ERR, :DIM_ERR] = given
+            n = given.shape[0] if given.ndim == 2 else 0
+            if given.shape == (n, n) and n in (DIM_ERR, IDX_BARO):   # the leading states
+                P[:n, :n] = given
             else:
                 P = given
         if P.shape != (DIM_STATE, DIM_STATE) or not is_positive_definite(P):
@@ -556,6 +589,7 @@ class TerrainEkf:
             x[IDX_BA] = accel_bias
         if wind is not None:
             x[IDX_W] = wind
+        x[IDX_BARO] = baro_bias
         self.kf.x = x.reshape(-1, 1).copy()
         self._x = self.kf.x[:, 0]
         self.kf.P = 0.5 * (P + P.T)
@@ -1040,7 +1074,7 @@ class TerrainEkf:
             return self._refuse("baro", Reason.STUCK)
         return self._submit(stamp, "baro", np.atleast_1d(altitude - self._diag.baro_step),
                             np.atleast_2d(np.asarray(variance, dtype=float)), np.array([2]),
-                            None)
+                            None, state_lever=_BARO_LEVER)
 
     def _submit(self, stamp, source, z, covariance, rows, attitude,
                 relocalisation: bool = False, reset: bool = False, lever=None,
@@ -1130,7 +1164,7 @@ class TerrainEkf:
         elif meas.relocalisation:
             outcome = self._relocalise(meas)
         else:
-            gap = float(meas.z[0]) - self._x[2] if meas.source == "baro" else None
+            gap = self._baro_gap(meas) if meas.source == "baro" else None
             if gap is not None and meas.outcome is None and self._baro_probation:
                 meas.probation = True
                 self._baro_probation -= 1
@@ -1406,6 +1440,10 @@ class TerrainEkf:
                     self._arm_reset(meas.source)
         meas.outcome = outcome
 
+    def _baro_gap(self, meas: _Measurement) -> float:
+        """How far a baro height is from the filter's height with its bias (m)."""
+        return float(meas.z[0]) - self._x[2] - self._x[IDX_BARO]
+
     def _note_baro_gap(self, meas: _Measurement, outcome: Outcome, gap: float):
         """Whether a baro streak begins with a jump: its first rejected height differs from
         the filter by far more than the last accepted one did, within a second (the 1-dof
@@ -1455,7 +1493,7 @@ class TerrainEkf:
         if meas.source == "baro":
             if self._baro_jumped:
                 return False
-            gap = abs(float(meas.z[0]) - self._x[2])
+            gap = abs(self._baro_gap(meas))
             checks = [c for c in self._height_checks if c[0] < start][-1:] + \
                 [c for c in self._height_checks if c[0] >= start]
             return not any(caught <= gap for _, caught in checks)

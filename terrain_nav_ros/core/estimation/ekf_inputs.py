@@ -190,7 +190,8 @@ def baro_refusal(stamp: float, pressure: float, variance: float) -> str | None:
 class BaroOffset:
     """ENU up minus pressure altitude: set, or learnt once from the filter's own height.
 
-    The core has no baro-bias state, so the offset is constant: ``fixed`` when finite, else
+    The offset is constant (what it gets wrong, the filter's baro-bias state takes up):
+    ``fixed`` when finite, else
     learnt at the first sample after the filter's vertical sigma fell below ``max_sigma``
     (from GNSS, the initial pose or fixes), and forgotten after a time-jump reset.
 

@@ -161,6 +161,13 @@ class EkfParams:
     wind_random_walk : float
         How fast the wind may change, per horizontal component (m/s/sqrt(s)). Default 0.1
         (1 m/s in 100 s).
+    init_baro_bias_sigma : float
+        1-sigma of the baro bias at initialisation (m): the error of the offset that puts the
+        pressure altitude into ENU up (the ekf node learns it from the filter's height once
+        its sigma is below ``baro_offset_max_sigma``, 10 m, or it is set). Default 10.0.
+    baro_bias_random_walk : float
+        How fast the baro bias may change (m/sqrt(s)): the weather's pressure changes, ~8 m
+        per hPa. Default 0.1 (6 m in an hour).
     sideslip_sigma : float
         1-sigma of the sideslip, measured as zero every ``level_period`` (m/s of lateral air
         velocity): a fixed wing in coordinated flight, with the IMU's x axis along its
@@ -208,6 +215,8 @@ class EkfParams:
     level_gate_probability: float = 0.999
     init_wind_sigma: float = 10.0
     wind_random_walk: float = 0.1
+    init_baro_bias_sigma: float = 10.0
+    baro_bias_random_walk: float = 0.1
     sideslip_sigma: float = 1.0
     sideslip_gate_probability: float = 0.999
 
@@ -230,6 +239,10 @@ class EkfParams:
             raise ValueError("EkfParams.level_sigma and sideslip_sigma must be >= 0 and "
                              f"level_period > 0, got {self.level_sigma}, "
                              f"{self.sideslip_sigma}, {self.level_period}")
+        if self.init_baro_bias_sigma <= 0 or self.baro_bias_random_walk < 0:
+            raise ValueError("EkfParams.init_baro_bias_sigma must be > 0 and "
+                             f"baro_bias_random_walk >= 0, got {self.init_baro_bias_sigma}, "
+                             f"{self.baro_bias_random_walk}")
         if self.init_wind_sigma <= 0 or self.wind_random_walk < 0:
             raise ValueError("EkfParams.init_wind_sigma must be > 0 and wind_random_walk >= 0, "
                              f"got {self.init_wind_sigma}, {self.wind_random_walk}")
