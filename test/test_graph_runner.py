@@ -119,7 +119,7 @@ def test_a_respawned_node_that_dies_is_started_again(tmp_path):
         runner.shutdown()
     text = log.getvalue()
     assert status == 0, text
-    assert "NODE DIED: player (signal SIGKILL); respawning it in 0.5 s" in text
+    assert "NODE DIED: player (signal SIGKILL); respawning it in 0.1 s" in text
     assert text.count("started player") == 2 and runner.respawns == {"player": 1}
     assert runner.died == []
     # both lives write to one log

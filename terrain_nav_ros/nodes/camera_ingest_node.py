@@ -62,7 +62,6 @@ from ..core.camera.orthorectify import heights_on, orthorectify
 from ..core.camera.pose_buffer import PoseBuffer, StampedPose
 from ..core.camera.pose_free import CruiseAttitude, pose_free_view
 from ..core.estimation.baro import SEA_LEVEL_PRESSURE, pressure_to_altitude
-from ..core.matching.mission_index import MissionIndex, MissionIndexError
 from ..core.matching.pva_fix import reason_kind
 from ..core.render.sun import sun_at
 from ..core.terrain.georef import GeoReference
@@ -204,6 +203,8 @@ class CameraIngestNode(Node):
         if not mission_dir:
             return None, ("cold start: no mission index (camera_ingest's mission_dir) for the "
                           "area's terrain heights")
+        from ..core.matching.mission_index import MissionIndex, MissionIndexError
+
         try:
             terrain = MissionIndex(mission_dir).terrain()
         except MissionIndexError as err:

@@ -62,7 +62,7 @@ from ..core.estimation.checkpoint import RUN_DIR_VARIABLE
 from ..executables import NODES, SUPERVISOR_VARIABLE
 
 # A respawned node is started again this long after it died [s] ...
-RESPAWN_DELAY = 0.5
+RESPAWN_DELAY = 0.1
 # ... unless it died this many times within this window [s]: a crash loop, given up on.
 RESPAWN_LIMIT = 3
 RESPAWN_WINDOW = 60.0

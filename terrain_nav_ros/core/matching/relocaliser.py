@@ -10,6 +10,7 @@ for the frame's sun, prepared, and searches them (:func:`.global_search.relocali
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 from ..render.sun import sun_at, sun_separation
 from ..terrain.geodesy import EnuOrigin
@@ -23,8 +24,10 @@ from .global_search import (
 )
 from .index import MinutiaIndex
 from .matcher import Decision, MatchResult
-from .mission_index import MissionIndex, MissionIndexError
 from .params import MatchParams
+
+if TYPE_CHECKING:   # imported when a search opens a tile: a node without one starts sooner
+    from .mission_index import MissionIndex
 
 # a layer lit this far from the frame's sun shades the creases otherwise (they repeat within
 # a few degrees: the landmark renderer re-renders after 2): say so when nothing was found
@@ -136,6 +139,8 @@ class MissionSearch:
         return self.tiles
 
     def _prepared(self, col: int, row: int, layer: int) -> SearchTile | None:
+        from .mission_index import MissionIndexError
+
         try:
             found = self.mission.load(col, row, layer)
         except MissionIndexError as err:   # damaged in flight: its area is lost, once
