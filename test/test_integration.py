@@ -54,8 +54,12 @@ def test_replay_produces_fixes_and_bounds_the_error(nominal):
     assert fused["rms"] <= 3 * GSD and fused["final"] <= GSD, fused
     assert fused["rms"] < dr["rms"], (fused, dr)
     assert nominal["fix_error"]["within_3_sigma"] >= 0.7
-    # the baro holds the height (about 2 m RMS)
-    assert nominal["fused_height_error"]["max"] <= GSD, nominal["fused_height_error"]
+    # the baro holds the height (0.2 m RMS), and the ekf's sigmas cover the errors: the
+    # height's too, since the offset learnt for the baro is a bias the filter estimates
+    # (before, 7 % of the height errors were within 3 sigma)
+    height = nominal["fused_height_error"]
+    assert height["max"] <= GSD, height
+    assert fused["within_3_sigma"] >= 0.9 and height["within_3_sigma"] >= 0.9, (fused, height)
     # the report says what the ekf did with the fixes: it fused most of them
     use = nominal["ekf_fix_use"]
     assert use["fused"] >= 0.7 * fixes["fixes"] and use["fused"] + use["gated"] <= \

@@ -55,7 +55,8 @@ def plain(value):
 
 
 def _series(bag, topic):
-    """(stamps, positions, horizontal covariance traces) of an Odometry topic."""
+    """(stamps, positions, (horizontal covariance trace, height variance)) of an Odometry
+    topic."""
     t, p, var = [], [], []
     for m in bags.read(bag, [topic]):
         msg = bags.decode(m)
@@ -63,8 +64,8 @@ def _series(bag, topic):
         t.append(_stamp(msg))
         p.append((pos.x, pos.y, pos.z))
         cov = np.asarray(msg.pose.covariance).reshape(6, 6)
-        var.append(max(cov[0, 0], 0.0) + max(cov[1, 1], 0.0))
-    return np.array(t), np.array(p).reshape(-1, 3), np.array(var)
+        var.append((max(cov[0, 0], 0.0) + max(cov[1, 1], 0.0), max(cov[2, 2], 0.0)))
+    return np.array(t), np.array(p).reshape(-1, 3), np.array(var).reshape(-1, 2)
 
 
 def _fixes(bag):
@@ -252,8 +253,10 @@ def analyse(input_bag, output_bag, usage: dict | None = None,
     window = t_truth - t0 >= denied
     if len(t_fused):
         te, err, up = _position_errors(t_fused, p_fused, t_truth[window], p_truth[window])
-        result["fused_error"] = _stats(err)
-        result["fused_height_error"] = _stats(up)
+        # consistency: the share of the errors within 3 of the covariance's sigmas
+        sigma = np.sqrt([np.interp(te, t_fused, v) for v in var_fused.T]).reshape(2, -1)
+        result["fused_error"] = {**_stats(err), "within_3_sigma": _within(err, sigma[0])}
+        result["fused_height_error"] = {**_stats(up), "within_3_sigma": _within(up, sigma[1])}
         if len(te):
             result["fused_error"]["first_after"] = float(te[0] - t0)
         if mission.get("landmark_gsd") and len(te):
@@ -262,8 +265,7 @@ def analyse(input_bag, output_bag, usage: dict | None = None,
             reached = np.flatnonzero(err <= bound)
             result["fused_error"]["first_below_2_gsd_after"] = \
                 float(te[reached[0]] - t0) if len(reached) else math.nan
-        result["series"]["fused_error"] = (te - t0, err,
-                                           3 * np.sqrt(np.interp(te, t_fused, var_fused)))
+        result["series"]["fused_error"] = (te - t0, err, 3 * sigma[0])
     origin = mission.get("origin")
     if origin:
         t_dr, p_dr = dead_reckoning(input_bag, EnuOrigin(*origin), denied, t0)
@@ -275,11 +277,20 @@ def analyse(input_bag, output_bag, usage: dict | None = None,
     return result
 
 
+def _within(err: np.ndarray, sigma: np.ndarray) -> float:
+    return float(np.mean(err <= 3.0 * sigma)) if len(err) else math.nan
+
+
 def _stats(err: np.ndarray) -> dict:
     if not len(err):
         return {"rms": math.nan, "max": math.nan, "final": math.nan, "samples": 0}
     return {"rms": float(np.sqrt(np.mean(err ** 2))), "max": float(err.max()),
             "final": float(err[-1]), "samples": int(len(err))}
+
+
+def _consistency(stats: dict) -> str:
+    within = stats.get("within_3_sigma", math.nan)
+    return "" if math.isnan(within) else f"; within 3 sigma {100 * within:.0f}%"
 
 
 def format_report(r: dict, gsd: float | None = None) -> str:
@@ -333,11 +344,12 @@ def format_report(r: dict, gsd: float | None = None) -> str:
                 e = r[key]
                 extra = f" = {e['rms'] / gsd:.1f} GSD" if gsd and key == "fused_error" else ""
                 lines.append(f"  {label:26s} RMS {e['rms']:8.1f} m{extra}, max {e['max']:8.1f} m,"
-                             f" final {e['final']:8.1f} m")
+                             f" final {e['final']:8.1f} m" + _consistency(e))
                 if key == "fused_error" and "fused_height_error" in r:
                     h = r["fused_height_error"]
                     lines.append(f"  {'fused height':26s} RMS {h['rms']:8.1f} m, max "
-                                 f"{h['max']:8.1f} m, final {h['final']:8.1f} m")
+                                 f"{h['max']:8.1f} m, final {h['final']:8.1f} m"
+                                 + _consistency(h))
                 if key == "fused_error" and e.get("first_after", 0.0) > 1.0:
                     lines.append(f"  first estimate {e['first_after']:.0f} s after the start")
                 if key == "fused_error" and "below_2_gsd_after" in e:
