@@ -147,3 +147,11 @@ def test_a_frame_s_gain_and_offset_are_not_cloud(exposure):
     # ... while a cloud under the same haze is still found
     hazy_cloud = _clouded(_cloud_cover_of(0.85)).astype(np.float32) * 0.15 + 0.85 * 230.0
     assert cloud_cover(np.rint(hazy_cloud).astype(np.uint8)).reason.startswith("mostly cloud")
+
+
+def test_an_overcast_frame_with_sensor_noise_is_mostly_cloud():
+    """A frame all cloud has only its sensor's noise for texture: judged against that
+    texture alone, no pixel of it would be featureless."""
+    rng = np.random.default_rng(3)
+    overcast = np.clip(rng.normal(230.0, 2.0, (200, 200)), 0, 255).astype(np.uint8)
+    assert cloud_cover(overcast).reason.startswith("mostly cloud")

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .creases import _check
+from .creases import _check, estimate_noise
 
 __all__ = ["CloudParams", "CloudCover", "full_scale", "cloud_mask", "cloud_cover"]
 
@@ -161,7 +161,8 @@ def cloud_mask(image: np.ndarray, valid: np.ndarray | None = None,
     ok = ok & np.isfinite(level)
     level[~ok] = 0.0
     variance = _local_variance(level, ok, p.texture_sigma)
-    featureless = ok & (variance <= _featureless_variance(variance, ok, p))
+    quantum = 1.0 / full_scale(img) if np.issubdtype(img.dtype, np.integer) else 0.0
+    featureless = ok & (variance <= _featureless_variance(level, variance, ok, quantum, p))
     textured = ok & ~featureless
     ground = _terrain_level(level, textured, _GROUND_PERCENTILE)
     high = min(p.bright_level, p.min_ratio * ground)
@@ -189,15 +190,25 @@ def cloud_mask(image: np.ndarray, valid: np.ndarray | None = None,
     return _dilated(keep[labels], p.margin) & ok
 
 
-def _featureless_variance(variance: np.ndarray, ok: np.ndarray, p: CloudParams) -> float:
+# Local variance up to this many times the pixel noise's is noise alone (the estimate over a
+# sigma-2 window spreads by ~20 %: its 98th percentile is ~1.4 times the noise's variance).
+_NOISE_VARIANCE_MARGIN = 2.25
+
+
+def _featureless_variance(level: np.ndarray, variance: np.ndarray, ok: np.ndarray,
+                          quantum: float, p: CloudParams) -> float:
     """The local variance at or below which a pixel is featureless: ``max_texture``
     squared, or less in a frame of little contrast (haze, under-exposure), where it is the
     share ``relative_texture`` of the frame's own texture (its 98th percentile: the ground
-    and the clouds' edges). A frame's gain and offset then do not decide what is cloud."""
+    and the clouds' edges), but never below what the pixel noise alone gives (a frame that
+    is all cloud has only noise for texture). A frame's gain and offset then do not decide
+    what is cloud."""
     if not ok.any():
         return 0.0
     own = float(np.percentile(variance[ok][:: max(1, int(ok.sum()) // 50000)], 98.0))
-    return min(p.max_texture ** 2, p.relative_texture ** 2 * own)
+    noise = max(estimate_noise(level, ok), quantum / math.sqrt(12.0))
+    return min(p.max_texture ** 2, max(p.relative_texture ** 2 * own,
+                                       _NOISE_VARIANCE_MARGIN * noise ** 2))
 
 
 def _dilated(mask: np.ndarray, radius: int) -> np.ndarray:
