@@ -255,11 +255,10 @@ def covered_lens(topic, at, decode):
     return msg
 
 
-def banded_frames(topic, at, decode):
-    """Camera frames of 25-45 s with a sensor's row banding (+-40 grey levels every 16
-    rows, a clock coupling into the readout): matched as they were, the stripes found
-    ridges parallel to them kilometres off; taken off, the frames are fixes as before."""
-    if topic not in CAMERA_TOPICS or not 25.0 <= at < 45.0:
+def _frames_changed(topic, at, decode, start: float, end: float, change: Callable):
+    """The camera frame of ``topic`` at ``at`` s with its pixels (uint8, as decoded) put
+    through ``change`` when ``start`` <= at < ``end``; None for any other message."""
+    if topic not in CAMERA_TOPICS or not start <= at < end:
         return None
     import cv2
     import numpy as np
@@ -269,12 +268,38 @@ def banded_frames(topic, at, decode):
     image = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_UNCHANGED) \
         if compressed else np.frombuffer(bytes(msg.data), np.uint8).reshape(
             msg.height, msg.width, -1)
-    rows = 40.0 * np.sin(2 * np.pi * np.arange(image.shape[0]) / 16)
-    banded = np.clip(image.astype(np.float32) + rows.reshape(-1, *[1] * (image.ndim - 1)),
-                     0, 255).astype(np.uint8)
-    msg.data = np.frombuffer(cv2.imencode(".jpg", banded)[1].tobytes() if compressed
-                             else banded.tobytes(), np.uint8)
+    changed = np.clip(change(image.astype(np.float32)), 0, 255).astype(np.uint8)
+    msg.data = np.frombuffer(cv2.imencode(".jpg", changed)[1].tobytes() if compressed
+                             else changed.tobytes(), np.uint8)
     return msg
+
+
+def banded_frames(topic, at, decode):
+    """Camera frames of 25-45 s with a sensor's row banding (+-40 grey levels every 16
+    rows, a clock coupling into the readout): matched as they were, the stripes found
+    ridges parallel to them kilometres off; taken off, the frames are fixes as before."""
+    import numpy as np
+
+    def banded(image):
+        rows = 40.0 * np.sin(2 * np.pi * np.arange(image.shape[0]) / 16)
+        return image + rows.reshape(-1, *[1] * (image.ndim - 1))
+    return _frames_changed(topic, at, decode, 25.0, 45.0, banded)
+
+
+def hazy_frames(topic, at, decode):
+    """Camera frames of 25-45 s under haze toward a bright sky (85 % of each pixel the
+    airlight, 230): the terrain keeps its relative contrast, and the cloud check once
+    refused such frames as "mostly cloud"."""
+    return _frames_changed(topic, at, decode, 25.0, 45.0,
+                           lambda image: 0.15 * image + 0.85 * 230.0)
+
+
+def underexposed_frames(topic, at, decode):
+    """Camera frames of 25-45 s exposed 0.15 x as long (the brightest pixel ~38 of 255):
+    once refused as "mostly cloud" too."""
+    import numpy as np
+
+    return _frames_changed(topic, at, decode, 25.0, 45.0, lambda image: np.floor(0.15 * image))
 
 
 def camera_turned_180(topic, at, decode):
@@ -733,6 +758,10 @@ def cases() -> list[Case]:
             covered_lens, "image is constant", 10)),
         Case("camera frames banded for 20 s (a sensor's row banding)", "flight",
              _fixes_near_truth(banded_frames, 25.0, 45.0)),
+        Case("camera frames under bright haze for 20 s", "flight",
+             _fixes_near_truth(hazy_frames, 25.0, 45.0)),
+        Case("camera frames under-exposed (x0.15) for 20 s", "flight",
+             _fixes_near_truth(underexposed_frames, 25.0, 45.0)),
         Case("barometer stuck at 90 kPa from 25 s", "flight", _flight(frozen_baro)),
         Case("barometer in hPa", "flight", _flight(baro_in_hpa)),
         Case("barometer frozen at its 25 s reading in a climb", "flight",
