@@ -574,6 +574,11 @@ def _accepted(score: float, vetoed: bool, thr: float) -> bool:
     return score >= thr and not vetoed
 
 
+def _refused(score: float, vetoed: bool, thr: float) -> bool:
+    """A registration over ``thr`` that the graph's vetoes would refuse (no fix)."""
+    return score >= thr and vetoed
+
+
 def _evidence_parts(creases, ridges) -> dict:
     """A case's crease and ridge scores (the ridges' given the valleys', with the
     dependence measured between them) for ``results.json``; None where not scored."""
@@ -735,7 +740,7 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
         "skipped": skipped,
         "non_pva": {"comparisons": int(len(non)),
                     "accepted": sum(_accepted(x["score"], x["vetoed"], thr) for x in non_pva),
-                    "vetoed": sum(x["score"] >= thr and x["vetoed"] for x in non_pva),
+                    "vetoed": sum(_refused(x["score"], x["vetoed"], thr) for x in non_pva),
                     "max_score": float(non.max()) if len(non) else math.nan,
                     "calibrated_threshold": float(calibrated),
                     "calibrated_threshold_1e-4": float(calibrate_threshold(non, 1e-4))
@@ -793,7 +798,7 @@ def _study_cases(study: _StudyRun, scene: Scene, per_scene: dict, size: int, hea
         rec["acc"].append(accepted)
         rec["time"].append(r["time"])
         rec["few"].append(r["too_little"] and not accepted)
-        rec["vetoed"].append(r["vetoed"] and r["score"] >= thr)
+        rec["vetoed"].append(_refused(r["score"], r["vetoed"], thr))
         rec["cases"].append({"err_px": r["err"], "err_m": r["err"] * per_px * scene.gsd,
                              "score": r["score"], "reason": r["reason"],
                              "vetoed": r["vetoed"],
@@ -846,7 +851,8 @@ def _non_pva_by_size(non_pva: list[dict], thr: float) -> dict:
         out[str(size)] = {"comparisons": len(of_size),
                           "accepted": sum(_accepted(x["score"], x["vetoed"], thr)
                                           for x in of_size),
-                          "vetoed": sum(x["score"] >= thr and x["vetoed"] for x in of_size),
+                          "vetoed": sum(_refused(x["score"], x["vetoed"], thr)
+                                        for x in of_size),
                           "max_score": max(x["score"] for x in of_size)}
     return out
 

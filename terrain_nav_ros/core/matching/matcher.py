@@ -545,9 +545,10 @@ class Matcher:
             base.reason = "no consistent transform"
             return base
         of_n = math.log10(max(len(scored), 1))   # the best of n registrations scored
+        chosen = best       # as weighed, before the correction, to compare look-alikes with
         if use_creases:
-            best = _with_ridges_chosen(a, b, best, scored, search_area, p)
-            best = replace(best, score=best.score - of_n)
+            chosen = _with_ridges_chosen(a, b, best, scored, search_area, p)
+            best = replace(chosen, score=chosen.score - of_n)
         c, t, pairs, score = best.c, best.t, best.pairs, best.score
         n_ao, n_bo = best.n_overlap
         cov, rms = _covariance(a.z[pairs[:, 0]], b.z[pairs[:, 1]], c, t, p.estimate_scale,
@@ -567,8 +568,8 @@ class Matcher:
             reason = (f"scale {fitted_scale:.3f} at the edge of the fit (the prior's "
                       f"+-{scale_change:.0%} and {SCALE_FIT_MARGIN:.0%} more): the height "
                       "above ground is off, or the view is not of this place")
-        look_alike = _look_alike(a, b, replace(best, score=score + of_n), scored,
-                                 search_area, p) if ok and use_creases else None
+        look_alike = _look_alike(a, b, chosen, scored, search_area, p) \
+            if ok and use_creases else None
         if look_alike is not None:
             ok, (other, distance) = False, look_alike
             reason = (f"ambiguous: another place {distance:.0f} px away scores "
