@@ -65,6 +65,8 @@ def test_recorded_bag_is_readable_by_the_mcap_package(recorded_bag):
     with open(mcap_file, "rb") as stream:
         reader = make_reader(stream)
         seen = [(channel.topic, schema.name) for schema, channel, _ in reader.iter_messages()]
+        chunks = reader.get_summary().chunk_indexes
+    assert chunks and {c.compression for c in chunks} == {"zstd"}   # the recorder's default
     assert seen.count(("/chatter", "std_msgs/msg/String")) == N
     assert seen.count(("/nav/pva_fix", "terrain_nav_msgs/msg/PvaFix")) == N
 
@@ -235,15 +237,16 @@ def test_a_changed_copy_keeps_drops_and_replaces_messages(tmp_path):
     assert (copy / "mission.yaml").read_text() == "name: talk\n"
 
 
-def test_a_flushed_recording_survives_its_writer_being_killed(tmp_path):
+@pytest.mark.parametrize("compress", [True, False])
+def test_a_flushed_recording_survives_its_writer_being_killed(tmp_path, compress):
     """What a recorder had flushed (every second) is in the file, readable as a bag cut
     short, though the writer never closed it (SIGKILL): before, a short recording left
-    0 bytes."""
+    0 bytes. Compressed chunks are salvaged as well."""
     import shutil
 
     from rosbags.typesys.stores.ros2_jazzy import std_msgs__msg__String as String
 
-    writer = bags.BagWriter(tmp_path / "live")
+    writer = bags.BagWriter(tmp_path / "live", compress=compress)
     writer.open()
     for i in range(5):
         writer.write_message("/chatter", 10**9 + i, String(data=f"hello {i}"),

@@ -30,10 +30,13 @@ class BagRecorder(Node):
                          min_value=0.01)
         flush = declare(self, "flush_period", 1.0, "how often what was recorded is written "
                         "to the file, for a recorder that is killed [s]", min_value=0.05)
+        compress = declare(self, "compress", True,
+                           "zstd-compress the bag's chunks (an uncompressed flight bag "
+                           "takes ~17 MB a minute)")
         check_parameters_known(self)  # before the bag is created
         if not self.output:
             raise ValueError("parameter 'output' is required")
-        self.writer = bags.BagWriter(self.output)
+        self.writer = bags.BagWriter(self.output, compress=compress)
         self.writer.open()
         self.count = 0
         self.subs = {}

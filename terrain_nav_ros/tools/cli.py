@@ -93,7 +93,7 @@ def _cmd_bag_play(args) -> int:
 
 def _cmd_bag_record(args) -> int:
     _check_new(args.output, "-o")
-    params = {"output": str(Path(args.output).resolve())}
+    params = {"output": str(Path(args.output).resolve()), "compress": not args.no_compress}
     if args.topics:
         params["topics"] = args.topics
     if args.exclude:
@@ -451,6 +451,9 @@ def build_parser() -> argparse.ArgumentParser:
     record.add_argument("-o", "--output", required=True, help="new bag directory")
     record.add_argument("--topics", nargs="+", help="only these topics (default: all)")
     record.add_argument("--exclude", nargs="+", help="never these topics")
+    record.add_argument("--no-compress", action="store_true",
+                        help="write the chunks uncompressed (default: zstd, as ros2 bag "
+                             "record --compression-mode storage)")
     record.set_defaults(func=_cmd_bag_record)
     for name, text in (("demo", "the main job: replay the default bag through the graph and "
                                 "report"), ("replay", "replay any bag through the graph and "
