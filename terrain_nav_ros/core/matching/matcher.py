@@ -344,8 +344,7 @@ def _look_alike(a: MinutiaIndex, b: MinutiaIndex, best: _Scored, scored: list,
             candidates.append(s)
     strongest = None
     for s in candidates:
-        weighed = _refined_on_creases(a, b, s, search_area, a.radius, p,
-                                      radii=p.crease_rescue_radii)
+        weighed = _refined_on_creases(a, b, s, search_area, a.radius, p)
         if best.ridges is not None:
             weighed = with_ridge_evidence(a, b, weighed, p)
         if distance(weighed) > apart and weighed.score >= best.score - LOOK_ALIKE_MARGIN \
