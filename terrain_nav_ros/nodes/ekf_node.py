@@ -32,6 +32,9 @@ Subscribed:
   (``fix_pose_frame: base_link``, what the matcher publishes), or a camera's
   (``camera_optical``: optical centre, optical-frame orientation) moved to ``base_link`` with
   ``camera_mount_rpy`` and ``camera_lever_arm``, for matchers that publish camera poses.
+  A fix from a frame projected onto the ground (``projection_height`` > 0) moves with the
+  attitude's error and with the camera mount's, which the filter estimates
+  (``init_camera_mount_sigma``; ``camera_mount_*_deg`` in the diagnostics).
   Late and out-of-order fixes are applied at their own stamp by the core (state history of
   ``history_length`` s). A fix marked ``relocalisation`` (found by a search of the whole
   mission area) is fused when the gate accepts it; otherwise it is held, and the position
@@ -250,6 +253,11 @@ EKF_PARAMETERS = {
                          0.0, 10.0),
     "init_baro_bias_sigma": ("1-sigma of the baro bias at start: the error of the offset "
                              "that puts pressure altitude into ENU up [m]", 1e-3, 1e4),
+    "init_camera_mount_sigma": ("1-sigma of the camera mount's error about body x and y at "
+                                "start: how well camera_mount_rpy points the camera [rad]",
+                                1e-6, 0.5),
+    "camera_mount_random_walk": ("how fast the camera mount's error may change "
+                                 "[rad/sqrt(s)]", 0.0, 0.01),
     "baro_bias_random_walk": ("how fast the baro bias may change (weather: ~8 m per hPa) "
                               "[m/sqrt(s)]", 0.0, 100.0),
     "sideslip_sigma": ("1-sigma of the sideslip, measured as zero (coordinated flight of a "
@@ -635,7 +643,8 @@ class EkfNode(Node):
             self.get_logger().warning(f"not resuming from {self._checkpoint_path}: {err}")
             return
         out = self.ekf.initialize(stamp, s.position, s.velocity, s.quaternion, s.covariance,
-                                  s.gyro_bias, s.accel_bias, s.wind, s.baro_bias)
+                                  s.gyro_bias, s.accel_bias, s.wind, s.baro_bias,
+                                  s.camera_mount)
         if not out.accepted:
             self.get_logger().warning(f"not resuming: the filter refused the checkpoint "
                                       f"({out.reason.value})")

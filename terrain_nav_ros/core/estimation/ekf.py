@@ -6,7 +6,7 @@ apply to an INS).
 
 State
 -----
-``kf.x`` (18 x 1) and ``kf.P`` (18 x 18) follow this order:
+``kf.x`` (20 x 1) and ``kf.P`` (20 x 20) follow this order:
 
 ======  ==============  ===================================================================
 index   symbol          meaning
@@ -19,6 +19,8 @@ index   symbol          meaning
 12:15   b_a             accelerometer bias, body FLU (m/s^2)
 15:17   w               wind, east and north (m/s): the ground velocity less the air's
 17      b_baro          baro bias (m): the barometer's height less the true height
+18:20   mu              camera mount error, a small rotation about body x and y (rad): the
+                        camera's true mount is ``Exp(mu)`` times the declared one
 ======  ==============  ===================================================================
 
 The wind is no IMU state: the accelerometer levelling needs it (a turn's centripetal
@@ -32,6 +34,17 @@ filter's own height), wanders at ``baro_bias_random_walk`` (a pressure change of
 ~8 m) and is observed wherever another reference measures the height (GNSS; fixes only
 weakly, their height being the prior's). Without it a baro of 10 Hz, taken as white noise,
 made the height sigma a few decimetres around a bias of metres.
+
+The camera mount error is how far the camera's boresight is off the mount the graph declares
+(``camera_mount_rpy``): a frame projected onto the ground with the filter's attitude and the
+declared mount lands ``height x mu`` from where it should, so a mount off by 2 degrees put every
+ground fix 60 m off at 1700 m above ground, and the filter, taking the fixes for truth, followed
+them. It turns the ray as the attitude error does (:func:`tilt_lever`), but about body axes: it
+rotates with the heading, while the attitude's tilt is levelled by the accelerometers. GNSS
+beside the fixes observes it at once; without GNSS, turns do (the fixes' offset swings with the
+heading, the IMU's dead reckoning does not). It starts at ``init_camera_mount_sigma`` and
+wanders at ``camera_mount_random_walk``. A turn of the mount about the boresight does not move
+a nadir fix and is not estimated.
 
 The nominal attitude is the unit quaternion ``q`` (``[x, y, z, w]``, body -> ENU) kept beside
 ``kf.x``; the true attitude is ``Exp(dtheta) * q``. Position, velocity and biases are additive,
@@ -121,16 +134,17 @@ from .strapdown import (
 )
 
 # The filter's states: the mechanisation's error states, the wind (east, north), the baro
-# bias.
+# bias, the camera mount's error (about body x and y).
 IDX_W = slice(DIM_ERR, DIM_ERR + 2)
 IDX_BARO = DIM_ERR + 2
-DIM_STATE = DIM_ERR + 3
+IDX_MOUNT = slice(DIM_ERR + 3, DIM_ERR + 5)
+DIM_STATE = DIM_ERR + 5
 # The baro measures the height and its own bias.
 _BARO_LEVER = np.zeros((1, DIM_STATE))
 _BARO_LEVER[0, IDX_BARO] = 1.0
 
-__all__ = ["DIM_STATE", "IDX_BARO", "IDX_W", "EkfDiagnostics", "EkfParams", "NavState", "Outcome",
-           "Reason", "TerrainEkf", "UpdateRecord", "tilt_lever"]
+__all__ = ["DIM_STATE", "IDX_BARO", "IDX_MOUNT", "IDX_W", "EkfDiagnostics", "EkfParams",
+           "NavState", "Outcome", "Reason", "TerrainEkf", "UpdateRecord", "tilt_lever"]
 
 
 class Reason(StrEnum):
@@ -212,12 +226,14 @@ class NavState:
         Body -> ENU ``[x, y, z, w]``.
     gyro_bias, accel_bias : ndarray, (3,)
         Body frame (rad/s, m/s^2).
-    covariance : ndarray, (18, 18)
+    covariance : ndarray, (20, 20)
         Error-state covariance in the documented state order.
     wind : ndarray, (2,)
         East and north (m/s): where the air moves to.
     baro_bias : float
         The barometer's height less the true height (m).
+    camera_mount : ndarray, (2,)
+        The camera mount's error about body x and y (rad).
     """
 
     stamp: float
@@ -229,6 +245,7 @@ class NavState:
     covariance: np.ndarray
     wind: np.ndarray
     baro_bias: float = 0.0
+    camera_mount: np.ndarray = field(default_factory=lambda: np.zeros(2))
 
     def pose_covariance(self) -> np.ndarray:
         """6x6 covariance of (position, attitude about ENU axes), the ROS Pose layout."""
@@ -299,6 +316,10 @@ class EkfDiagnostics:
         The barometer's bias estimate and its sigma (m).
     height_sigma : float
         1-sigma of the height (m).
+    camera_mount : tuple
+        The camera mount's error about body x and y (rad).
+    camera_mount_sigma : float
+        sqrt of the sum of its two variances (rad).
     """
 
     initialized: bool = False
@@ -329,6 +350,8 @@ class EkfDiagnostics:
     baro_bias: float = float("nan")
     baro_bias_sigma: float = float("nan")
     height_sigma: float = float("nan")
+    camera_mount: tuple = (float("nan"), float("nan"))
+    camera_mount_sigma: float = float("nan")
 
     def time_since(self, source: str = "fix") -> float | None:
         """Seconds since the last accepted measurement of ``source`` (None if never)."""
@@ -428,6 +451,8 @@ class TerrainEkf:
         wind = np.arange(IDX_W.start, IDX_W.stop)
         self._Q1[wind, wind] = p.wind_random_walk**2
         self._Q1[IDX_BARO, IDX_BARO] = p.baro_bias_random_walk**2
+        mount = np.arange(IDX_MOUNT.start, IDX_MOUNT.stop)
+        self._Q1[mount, mount] = p.camera_mount_random_walk**2
         self._Q2[i3, i3 + 3] = self._Q2[i3 + 3, i3] = qa / 2.0
         self._Q3[i3, i3] = qa / 3.0
         self._seq = itertools.count()
@@ -488,7 +513,7 @@ class TerrainEkf:
         x = self._x
         return NavState(self.t, x[IDX_P].copy(), x[IDX_V].copy(), self.q.copy(),
                         x[IDX_BG].copy(), x[IDX_BA].copy(), self.kf.P.copy(),
-                        x[IDX_W].copy(), float(x[IDX_BARO]))
+                        x[IDX_W].copy(), float(x[IDX_BARO]), x[IDX_MOUNT].copy())
 
     @property
     def diagnostics(self) -> EkfDiagnostics:
@@ -516,6 +541,10 @@ class TerrainEkf:
         d.baro_bias = float(self._x[IDX_BARO]) if known else math.nan
         d.baro_bias_sigma = float(np.sqrt(P[IDX_BARO, IDX_BARO])) if known else math.nan
         d.height_sigma = float(np.sqrt(P[2, 2])) if known else math.nan
+        d.camera_mount = tuple(float(m) for m in self._x[IDX_MOUNT]) if known else \
+            (math.nan, math.nan)
+        d.camera_mount_sigma = float(np.sqrt(np.trace(P[IDX_MOUNT, IDX_MOUNT]))) if known \
+            else math.nan
 
     def _now(self) -> float | None:
         """Filter time, or before initialisation the newest IMU stamp buffered (None if none)."""
@@ -525,17 +554,18 @@ class TerrainEkf:
 
     # ------------------------------------------------------------------ initialisation
     def default_covariance(self) -> np.ndarray:
-        """Initial 18x18 covariance from the ``init_*_sigma`` parameters."""
+        """Initial 20x20 covariance from the ``init_*_sigma`` parameters."""
         p = self.params
         sig = np.r_[[p.init_position_sigma] * 3, [p.init_velocity_sigma] * 3,
                     [p.init_roll_pitch_sigma] * 2, p.init_yaw_sigma,
                     [p.init_gyro_bias_sigma] * 3, [p.init_accel_bias_sigma] * 3,
-                    [p.init_wind_sigma] * 2, p.init_baro_bias_sigma]
+                    [p.init_wind_sigma] * 2, p.init_baro_bias_sigma,
+                    [p.init_camera_mount_sigma] * 2]
         return np.diag(sig**2)
 
     def initialize(self, stamp: float, position, velocity, quaternion, covariance=None,
                    gyro_bias=None, accel_bias=None, wind=None,
-                   baro_bias: float = 0.0) -> Outcome:
+                   baro_bias: float = 0.0, camera_mount=None) -> Outcome:
         """Start (or restart) the filter from a full state at ``stamp``.
 
         Parameters
@@ -546,16 +576,18 @@ class TerrainEkf:
             ENU (m, m/s).
         quaternion : array_like, (4,)
             Body -> ENU ``[x, y, z, w]``.
-        covariance : array_like, (18, 18), (17, 17) or (15, 15), optional
+        covariance : array_like, (20, 20), (18, 18), (17, 17) or (15, 15), optional
             Error covariance in the state order; default :meth:`default_covariance`. The
-            states it leaves out (the baro bias; the wind too, at 15 x 15) start
-            uncorrelated at their ``init_*_sigma``.
+            states it leaves out (the camera mount; the baro bias too, at 17 x 17; the wind
+            too, at 15 x 15) start uncorrelated at their ``init_*_sigma``.
         gyro_bias, accel_bias : array_like, (3,), optional
             Initial bias estimates (default zero).
         wind : array_like, (2,), optional
             Initial wind, east and north (m/s; default zero).
         baro_bias : float, optional
             Initial baro bias (m).
+        camera_mount : array_like, (2,), optional
+            Initial camera mount error about body x and y (rad; default zero).
 
         Returns
         -------
@@ -573,7 +605,7 @@ class TerrainEkf:
         if covariance is not None:
             given = np.array(covariance, float)
             n = given.shape[0] if given.ndim == 2 else 0
-            if given.shape == (n, n) and n in (DIM_ERR, IDX_BARO):   # the leading states
+            if given.shape == (n, n) and n in (DIM_ERR, IDX_BARO, IDX_MOUNT.start):   # leading
                 P[:n, :n] = given
             else:
                 P = given
@@ -590,6 +622,8 @@ class TerrainEkf:
         if wind is not None:
             x[IDX_W] = wind
         x[IDX_BARO] = baro_bias
+        if camera_mount is not None:
+            x[IDX_MOUNT] = camera_mount
         self.kf.x = x.reshape(-1, 1).copy()
         self._x = self.kf.x[:, 0]
         self.kf.P = 0.5 * (P + P.T)
@@ -1309,6 +1343,8 @@ class TerrainEkf:
             H[np.arange(len(z)), meas.rows] = 1.0
         if meas.attitude_lever is not None:
             H[:, IDX_TH] += meas.attitude_lever
+            # the camera mount's error turns the ray as the attitude's does, about body axes
+            H[:, IDX_MOUNT] += meas.attitude_lever @ quat_to_matrix(self.q)[:, :2]
         if meas.state_lever is not None:
             H += meas.state_lever
         return z, H
@@ -1361,9 +1397,11 @@ class TerrainEkf:
         tilt is unobserved, so adopting them outright can throw the filter further off. A
         levelling's reset is of the tilt: onto the levelling, with the velocity and gyro
         biases reopened and the roll and pitch biases to the drift rate of the streak."""
-        z, _ = self._innovation(meas)
+        z, H = self._innovation(meas)
         if meas.state_lever is not None:   # what the rows measure besides the state's lever
             z = z - meas.state_lever @ self._x
+        if meas.attitude_lever is not None:   # (the attitude's error is 0 between updates)
+            z = z - H[:, IDX_MOUNT] @ self._x[IDX_MOUNT]
         keep = meas.rows < 3 if meas.source != "level" else np.ones(len(meas.rows), bool)
         r = meas.rows[keep]
         P = self.kf.P
@@ -1531,8 +1569,8 @@ _LEAN_ROWS = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
 # the barometer's streaks reset the height unless one of them measured it).
 _POSITION_SOURCES = frozenset({"fix", "gnss"})
 # States a divergence reset reopens (:meth:`TerrainEkf._reopen_dead_reckoning`): after fixes,
-# velocity, attitude and biases; after baro heights, the vertical velocity and the
-# accelerometer biases.
+# velocity, attitude, biases and the camera mount (a fix's own bias); after baro heights,
+# the vertical velocity and the accelerometer biases.
 _DEAD_RECKONING = np.arange(IDX_V.start, DIM_STATE)
 _VERTICAL_CHANNEL = np.r_[IDX_V.stop - 1, np.arange(IDX_BA.start, IDX_BA.stop)]
 # ... after levellings: the velocity (integrated with the drifted tilt), the gyro biases and

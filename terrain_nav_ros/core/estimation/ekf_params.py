@@ -168,6 +168,13 @@ class EkfParams:
     baro_bias_random_walk : float
         How fast the baro bias may change (m/sqrt(s)): the weather's pressure changes, ~8 m
         per hPa. Default 0.1 (6 m in an hour).
+    init_camera_mount_sigma : float
+        1-sigma of the camera mount's error about body x and y at initialisation (rad): how
+        well the declared mount (``camera_mount_rpy``) points the camera. Default 1 degree
+        (a mount set from drawings); a boresight calibration gets it to ~0.1 degree.
+    camera_mount_random_walk : float
+        How fast the mount's error may change (rad/sqrt(s)): a rigid mount flexing with
+        temperature and load. Default 1e-5 (0.03 degree in an hour).
     sideslip_sigma : float
         1-sigma of the sideslip, measured as zero every ``level_period`` (m/s of lateral air
         velocity): a fixed wing in coordinated flight, with the IMU's x axis along its
@@ -217,6 +224,8 @@ class EkfParams:
     wind_random_walk: float = 0.1
     init_baro_bias_sigma: float = 10.0
     baro_bias_random_walk: float = 0.1
+    init_camera_mount_sigma: float = float(np.deg2rad(1.0))
+    camera_mount_random_walk: float = 1e-5
     sideslip_sigma: float = 1.0
     sideslip_gate_probability: float = 0.999
 
@@ -239,6 +248,10 @@ class EkfParams:
             raise ValueError("EkfParams.level_sigma and sideslip_sigma must be >= 0 and "
                              f"level_period > 0, got {self.level_sigma}, "
                              f"{self.sideslip_sigma}, {self.level_period}")
+        if self.init_camera_mount_sigma <= 0 or self.camera_mount_random_walk < 0:
+            raise ValueError("EkfParams.init_camera_mount_sigma must be > 0 and "
+                             "camera_mount_random_walk >= 0, got "
+                             f"{self.init_camera_mount_sigma}, {self.camera_mount_random_walk}")
         if self.init_baro_bias_sigma <= 0 or self.baro_bias_random_walk < 0:
             raise ValueError("EkfParams.init_baro_bias_sigma must be > 0 and "
                              f"baro_bias_random_walk >= 0, got {self.init_baro_bias_sigma}, "
