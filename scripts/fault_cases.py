@@ -327,26 +327,20 @@ def camera_tilted(pitch_deg: float, roll_deg: float = 0.0,
     tilt error, once ended 110 m off; it estimates the mount's tilt now."""
     maps = {}
 
-    def change(topic, at, decode):
-        if topic not in CAMERA_TOPICS:
-            return None
+    def tilted(image):
         import cv2
-        import numpy as np
 
         from terrain_nav_ros.tools import bags
         from terrain_nav_ros.tools.cli import REPO
 
-        msg = decode()
-        image = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_UNCHANGED)
         if "xy" not in maps:
             info = bags.decode(next(iter(bags.read(REPO / "bags" / bag,
                                                    ["/camera/camera_info"]))))
             maps["xy"] = _tilted_camera_maps(info, pitch_deg, roll_deg)
-        tilted = cv2.remap(image, *maps["xy"], cv2.INTER_LINEAR,
-                           borderMode=cv2.BORDER_REFLECT_101)
-        msg.data = np.frombuffer(cv2.imencode(".jpg", tilted)[1].tobytes(), np.uint8)
-        return msg
-    return change
+        return cv2.remap(image, *maps["xy"], cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REFLECT_101)
+
+    return lambda topic, at, decode: _frames_changed(topic, at, decode, 0.0, math.inf, tilted)
 
 
 def _tilted_camera_maps(info, pitch_deg: float, roll_deg: float):
