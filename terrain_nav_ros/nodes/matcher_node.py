@@ -328,8 +328,10 @@ class MatcherNode(Node):
         if not fix.valid:
             self.publish_no_fix(msg.header.stamp, f"relocalisation: {fix.reason}", fix)
             return
-        # the ekf holds relocalisations and compares them by their covariances alone
-        add_prior_tilt(fix, fix.projection_height, self.tilt_sigma)
+        # the ekf holds relocalisations and compares them by their covariances alone; their
+        # height, from the registration's scale, is as doubtful as the search's scale range
+        add_prior_tilt(fix, fix.projection_height, self.tilt_sigma,
+                       self.mission.matcher.params.search_scale)
         fix.relocalisation = True
         self.get_logger().info(f"relocalised ({why}) in tile {found.tile.key}, area score "
                                f"{found.score:.1f} over {found.searched} tiles")
