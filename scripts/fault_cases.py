@@ -142,11 +142,12 @@ def focal_length_off(factor: float) -> Callable:
     def change(topic, at, decode):
         if topic != "/camera/camera_info":
             return None
+        import numpy as np
+
         msg = decode()
-        for i in (0, 4):
-            msg.k[i] *= factor
-        for i in (0, 5):
-            msg.p[i] *= factor
+        msg.k, msg.p = np.array(msg.k, float), np.array(msg.p, float)
+        msg.k[[0, 4]] *= factor
+        msg.p[[0, 5]] *= factor
         return msg
     return change
 

@@ -1344,7 +1344,7 @@ class TerrainEkf:
         tested = self._gate_test(meas)
         if tested is None:
             return Outcome(False, Reason.BAD_COVARIANCE)
-        nis, gate = tested[2:]
+        nis, gate = tested[2:4]
         # A gate ~4 sigma wide around a lost estimate is no check on a mission-wide search.
         trusted = math.sqrt(self.kf.P[0, 0] + self.kf.P[1, 1]) <= \
             self.params.relocalisation_fuse_max_sigma
@@ -1392,29 +1392,33 @@ class TerrainEkf:
             H += meas.state_lever
         return z, H
 
-    def _gate_test(self, meas: _Measurement):
-        """``(z, H, nis, gate)`` of a measurement at the current filter time, or None when
-        its innovation covariance is not positive definite."""
+    def _gate_test(self, meas: _Measurement, keep: np.ndarray | None = None):
+        """``(z, H, nis, gate, R)`` of a measurement (of its rows ``keep``, by default all)
+        at the current filter time, or None when its innovation covariance is not positive
+        definite."""
         z, H = self._innovation(meas)
+        R = meas.R
+        if keep is not None:
+            z, H, R = z[keep], H[keep], R[np.ix_(keep, keep)]
         y = z - H @ self._x
-        S = H @ self.kf.P @ H.T + meas.R
+        S = H @ self.kf.P @ H.T + R
         try:
             L = np.linalg.cholesky(S)
         except np.linalg.LinAlgError:
             return None
         w = np.linalg.solve(L, y)
-        return z, H, float(w @ w), _gate(self.params.gate_probability(meas.source), len(z))
+        return z, H, float(w @ w), _gate(self.params.gate_probability(meas.source), len(z)), R
 
     def _update(self, meas: _Measurement) -> Outcome:
         tested = self._gate_test(meas)
         if tested is None:
             return Outcome(False, Reason.BAD_COVARIANCE)
-        z, H, nis, gate = tested
+        z, H, nis, gate, R = tested
         if meas.source == "gnss" and not self.params.fuse_gnss:
             return Outcome(False, Reason.COMPARED_ONLY, nis, gate)
         if meas.probation:
             return Outcome(False, Reason.PROBATION, nis, gate)
-        reason, R = Reason.OK, meas.R
+        reason = Reason.OK
         if nis > gate:
             tested = self._gate_test_without_height(meas)
             if tested is None:
@@ -1438,20 +1442,8 @@ class TerrainEkf:
         if all(self._diag.last_accepted.get(source, -math.inf) < meas.stamp - _HEIGHT_HELD_FOR
                for source in ("baro", "gnss")):
             return None
-        keep = meas.rows != 2
-        tested = self._gate_test(meas)
-        if tested is None:
-            return None
-        z, H = tested[0][keep], tested[1][keep]
-        R = meas.R[np.ix_(keep, keep)]
-        y = z - H @ self._x
-        try:
-            L = np.linalg.cholesky(H @ self.kf.P @ H.T + R)
-        except np.linalg.LinAlgError:
-            return None
-        w = np.linalg.solve(L, y)
-        gate = _gate(self.params.gate_probability(meas.source), len(z))
-        return (z, H, float(w @ w), gate, R) if float(w @ w) <= gate else None
+        tested = self._gate_test(meas, keep=meas.rows != 2)
+        return tested if tested is not None and tested[2] <= tested[3] else None
 
     def _inject_attitude(self):
         """Fold dtheta into the quaternion, zero it and rotate P with the reset Jacobian."""
