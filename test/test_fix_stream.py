@@ -60,9 +60,6 @@ def test_the_prior_tilt_widens_a_valid_fix_only():
     expected = 4.0 + (500.0 * math.radians(0.2)) ** 2
     np.testing.assert_allclose(np.diag(fix.covariance)[:3], [expected, expected, 9.0])
     assert fix.projection_height == 0.0     # the filter must not model it a second time
-    scaled = _fix()
-    add_prior_tilt(scaled, 500.0, 0.0, scale_sigma=0.1)   # a height from the scale
-    np.testing.assert_allclose(np.diag(scaled.covariance)[:3], [4.0, 4.0, 9.0 + 50.0 ** 2])
     none = PvaFixEstimate(STATUS_NO_FIX, "no match")
     add_prior_tilt(none, 500.0, 1.0)                      # nothing to widen, no error
     assert np.isnan(none.covariance).all()

@@ -83,9 +83,14 @@ def test_a_ground_match_s_height_comes_from_its_measured_scale():
     assert fix.position[2] == pytest.approx(100.0 + 0.97 * 1000.0)
     assert np.sqrt(fix.covariance[2, 2]) == pytest.approx(0.002 * 1000.0)
     assert fix.projection_height == 1000.0
+    # a relocalisation's plane lies under the estimate, not under the camera: its height
+    # stays the prior's, as does that of a registration without a measured scale
+    relocalised = fix_from_ground_match(result, geo, geo, prior, np.eye(3), 100.0,
+                                        height_from_scale=False)
     result.scale_measured = result.scale_variance = np.nan
     fix = fix_from_ground_match(result, geo, geo, prior, np.eye(3), 100.0)
-    assert fix.position[2] == 1100.0 and np.sqrt(fix.covariance[2, 2]) == pytest.approx(100.0)
+    for f in (relocalised, fix):
+        assert f.position[2] == 1100.0 and np.sqrt(f.covariance[2, 2]) == pytest.approx(100.0)
 
 
 @pytest.fixture(scope="module")

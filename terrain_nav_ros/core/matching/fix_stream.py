@@ -68,17 +68,14 @@ class LandmarkSets:
 
 
 def add_prior_tilt(fix: PvaFixEstimate, height_above_ground: float,
-                   tilt_sigma: float, scale_sigma: float = 0.0) -> None:
+                   tilt_sigma: float) -> None:
     """Add, in place, the horizontal error a prior tilt error of ``tilt_sigma`` (rad) makes
     in a ground-projected frame ``height_above_ground`` (m) up: a valid fix's horizontal
-    variances grow by ``(height * tilt_sigma)**2``, its height's by ``(height *
-    scale_sigma)**2`` (a camera scale error: a focal length off the CameraInfo's), and its
-    ``projection_height`` becomes 0 (the errors are in the covariance now, for a fix whose
-    projection attitude is not the filter's, or that the filter compares by its covariance
-    alone)."""
+    variances grow by ``(height * tilt_sigma)**2``, and its ``projection_height`` becomes 0
+    (the error is in the covariance now, for a fix whose projection attitude is not the
+    filter's, or that the filter compares by its covariance alone)."""
     if fix.valid:
         fix.covariance[:2, :2] += np.eye(2) * (height_above_ground * tilt_sigma) ** 2
-        fix.covariance[2, 2] += (height_above_ground * scale_sigma) ** 2
         fix.projection_height = 0.0
 
 

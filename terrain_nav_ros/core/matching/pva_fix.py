@@ -124,7 +124,8 @@ def fix_from_ground_match(result: MatchResult, camera_georef: GeoReference,
                           landmark_georef: GeoReference, prior_position,
                           prior_rotation, ground_height: float,
                           landmark_sigma: float = 0.0,
-                          height_sigma: float | None = None) -> PvaFixEstimate:
+                          height_sigma: float | None = None,
+                          height_from_scale: bool = True) -> PvaFixEstimate:
     """Camera position from a localisation of a ground-projected camera set.
 
     Parameters
@@ -147,6 +148,10 @@ def fix_from_ground_match(result: MatchResult, camera_georef: GeoReference,
     height_sigma : float, optional
         1-sigma of the height when the registration has no scale (default: 10% of the height
         above ground, i.e. "barely measured").
+    height_from_scale : bool
+        Take the height from the registration's measured scale. False: the prior's, with
+        ``height_sigma`` (a relocalisation: the plane the frame was projected on lies under
+        the estimate, not under the camera, and the scale measures the height above it).
 
     Returns
     -------
@@ -171,10 +176,11 @@ def fix_from_ground_match(result: MatchResult, camera_georef: GeoReference,
     # ground-image distances shrink by prior_agl / true_agl: the fitted scale restores them
     gsd_ratio = landmark_georef.gsd / camera_georef.gsd
     a, b = result.transform[0, 0], result.transform[0, 1]
-    if math.isfinite(result.scale_measured) and math.isfinite(result.scale_variance):
+    if height_from_scale and math.isfinite(result.scale_measured) and \
+            math.isfinite(result.scale_variance):
         z = ground_height + result.scale_measured * gsd_ratio * agl
         var_z = result.scale_variance * (gsd_ratio * agl) ** 2
-    elif result.scale_estimated and np.isfinite(result.covariance).all():
+    elif height_from_scale and result.scale_estimated and np.isfinite(result.covariance).all():
         # d|c|/d(a, b) = (a, b) / |c|
         g = np.array([a, b]) / max(np.hypot(a, b), 1e-12)
         var_s = float(g @ result.covariance[:2, :2] @ g) * gsd_ratio ** 2
