@@ -134,6 +134,24 @@ def uncalibrated_camera(topic, at, decode):
     return msg
 
 
+def focal_length_off(factor: float) -> Callable:
+    """A :func:`~terrain_nav_ros.tools.bags.changed_copy` change: every CameraInfo's focal
+    length ``factor`` times the lens's (a calibration of another lens, a zoom's step). The
+    ground projection is ``1 / factor`` too large, its nadir point where it was: the
+    registration's scale, which measures the height above ground, is off by the factor."""
+    def change(topic, at, decode):
+        if topic != "/camera/camera_info":
+            return None
+        import numpy as np
+
+        msg = decode()
+        msg.k, msg.p = np.array(msg.k, float), np.array(msg.p, float)
+        msg.k[[0, 4]] *= factor
+        msg.p[[0, 5]] *= factor
+        return msg
+    return change
+
+
 def camera_clock_back(topic, at, decode):
     """Camera frames and CameraInfo of 30-40 s stamped 2 s early: a camera clock that jumped
     back (the first two are out of order; the rest move on, 2 s behind the navigation)."""
@@ -832,6 +850,12 @@ def cases() -> list[Case]:
         Case("IMU silent for 3 s", "flight", _flight(imu_gap)),
         Case("CameraInfo with a zero K for 10 s", "flight", _flight(
             uncalibrated_camera, "not calibrated", 8)),
+        Case("CameraInfo focal length 10 % long (not declared)", "flight",
+             _flight(focal_length_off(1.1))),
+        Case("CameraInfo focal length 10 % short (not declared)", "flight",
+             _flight(focal_length_off(0.9))),
+        Case("GNSS jammed from the start (replay --lost 0 0)", "flight",
+             _flight(None, options=("--lost", "0", "0"))),
         Case("IMU stamp 5 s in the past, GNSS gone", "ekf", _ekf_stamp(-5.0)),
         Case("IMU stamp 1 h ahead, GNSS gone", "ekf", _ekf_stamp(3600.0), ci=True),
     ]
@@ -846,15 +870,15 @@ def _prepare(options: tuple, words: str):
 
 
 def _flight(change: Callable | None, reason: str = "", at_least: int = 0,
-            kill: str = "") -> Callable:
+            kill: str = "", options: tuple = ()) -> Callable:
     """The short bag changed by ``change`` (:func:`~terrain_nav_ros.tools.bags.changed_copy`)
     and replayed: GOOD when the fused error, horizontal and height, stays bounded (3 x 20
     m), every frame is answered and, with ``reason``, at least ``at_least`` frames get a
     no-fix saying it. With ``kill``, that node is killed (SIGKILL) 20 s into the flight: GOOD
     also needs it respawned, and the frames of its restart (up to 8: the respawn delay and
-    the node's start-up, 2-5 s) may go unanswered."""
+    the node's start-up, 2-5 s) may go unanswered. ``options`` go to ``replay``."""
     def run(tmp: Path):
-        report, failed = _replayed(tmp, change, kill)
+        report, failed = _replayed(tmp, change, kill, options=options)
         if report is None:
             return BAD, failed
         fixes, fused = report["fixes"], report["fused_error"]
@@ -967,9 +991,10 @@ def gyro_in_deg_until_80_s(topic, at, decode):
 
 
 def _replayed(tmp: Path, change: Callable | None, kill: str = "",
-              bag: str = "jacksboro_short") -> tuple[dict | None, str]:
-    """``bag`` (of bags/) changed by ``change`` (None: as it is) replayed, ``kill`` killed in
-    it (:func:`_replay_killing`): its report.yaml, or None and why there is none."""
+              bag: str = "jacksboro_short", options: tuple = ()) -> tuple[dict | None, str]:
+    """``bag`` (of bags/) changed by ``change`` (None: as it is) replayed with ``options``,
+    ``kill`` killed in it (:func:`_replay_killing`): its report.yaml, or None and why there
+    is none."""
     import yaml
 
     from terrain_nav_ros.tools import bags
@@ -978,7 +1003,7 @@ def _replayed(tmp: Path, change: Callable | None, kill: str = "",
     bag = REPO / "bags" / bag
     if change is not None:
         bag = bags.changed_copy(bag, tmp / "bag", change)
-    cmd = terrain_nav("replay", "--bag", bag, "--out", tmp / "out")
+    cmd = terrain_nav("replay", "--bag", bag, "--out", tmp / "out", *options)
     try:
         code, err = _replay_killing(cmd, tmp, kill) if kill else _replay_plain(cmd)
     except subprocess.TimeoutExpired:

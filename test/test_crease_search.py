@@ -301,6 +301,27 @@ def test_a_view_whose_scale_is_off_the_prior_is_no_fix(region, scale, found):
             (r.decision, r.scale, r.reason)
 
 
+@pytest.mark.parametrize("scale", [0.97, 1.0, 1.04])
+def test_a_localisation_measures_its_scale_on_the_creases(region, scale):
+    """Whatever fitted the transform (the minutiae's rigid fit keeps the prior's scale), a
+    localisation measures the view's scale on the creases with the scale free: the height
+    above ground the view was seen from. A comparison of blocks (no scale prior) does not."""
+    from synthetic_minutiae import crossing_minutiae
+
+    _, skel = region
+    view, _ = _scaled_view(skel, 200, 150, 192, 25.0, scale)
+    matcher = Matcher()
+    a, b = (matcher.index(crossing_minutiae(s), s) for s in (view, skel))
+    r = matcher.localise(a, b)
+    assert r.decision == Decision.MATCH, r.reason
+    sigma = math.sqrt(r.scale_variance)
+    assert abs(r.scale_measured - 1.0 / scale) < max(3.0 * sigma, 0.004), \
+        (r.scale_measured, sigma, r.scale)
+    assert 1e-4 < sigma < 0.01
+    block = matcher.compare(a, matcher.index(crossing_minutiae(view), view))
+    assert block.decision == Decision.MATCH and math.isnan(block.scale_measured)
+
+
 def test_a_large_search_runs_coarse_and_registers_as_the_fine_one(region):
     """The view's search in the 512 px region is over the fine level's budget: it runs at
     the coarse level (an eighth of the work) and the coarse-to-fine ICP pulls its proposals

@@ -16,6 +16,7 @@ from terrain_nav_ros.core.estimation.ekf import (
     DIM_STATE,
     IDX_BARO,
     IDX_MOUNT,
+    IDX_SCALE,
     EkfParams,
     Reason,
     TerrainEkf,
@@ -55,7 +56,7 @@ def start_filter(truth, params, rng=None, k=0):
     """Filter initialised at epoch ``k``: truth perturbed by a draw from P0 (or exact)."""
     ekf = TerrainEkf(params)
     P0 = ekf.default_covariance()
-    # the baro bias and the camera mount are drawn apart, after the other states
+    # the baro bias and the camera's mount and scale are drawn apart, after the other states
     # (uncorrelated with them in P0)
     e = np.r_[rng.multivariate_normal(np.zeros(IDX_BARO), P0[:IDX_BARO, :IDX_BARO]),
               rng.normal(0.0, np.sqrt(np.diag(P0)[IDX_BARO:]))] if rng is not None else \
@@ -63,18 +64,18 @@ def start_filter(truth, params, rng=None, k=0):
     q0 = quat_multiply(quat_exp(-e[6:9]), truth.quaternion[k])   # truth = Exp(e) * est
     out = ekf.initialize(truth.t[k], truth.position[k] - e[:3], truth.velocity[k] - e[3:6],
                          q0, P0, wind=-e[15:17], baro_bias=-e[17],   # still air, true baro
-                         camera_mount=-e[18:20])                     # and camera mount
+                         camera_mount=-e[18:20], camera_scale=-e[20])  # and camera
     assert out.reason == Reason.INITIALIZED
     return ekf
 
 
 def error_state(truth, imu, k, state):
-    """20-vector truth - estimate in the filter's state order (the simulated air is still,
-    its baro unbiased, its camera mount as declared)."""
+    """21-vector truth - estimate in the filter's state order (the simulated air is still,
+    its baro unbiased, its camera mounted as declared and of the declared scale)."""
     return np.r_[truth.position[k] - state.position, truth.velocity[k] - state.velocity,
                  attitude_error(truth.quaternion[k], state.quaternion),
                  imu.gyro_bias[k] - state.gyro_bias, imu.accel_bias[k] - state.accel_bias,
-                 -state.wind, -state.baro_bias, -state.camera_mount]
+                 -state.wind, -state.baro_bias, -state.camera_mount, -state.camera_scale]
 
 
 def run(ekf, truth, imu, fixes=None, baro=None, delay=0.0, every=1.0):
@@ -168,7 +169,7 @@ def _monte_carlo_nees(scenario, params, runs=8):
 
 @pytest.mark.parametrize("scenario", list(SCENARIOS))
 def test_nees_consistency(scenario):
-    """Monte Carlo NEES of the full 20-state within the chi-square 95 % bounds for >= 90 %
+    """Monte Carlo NEES of the full 21-state within the chi-square 95 % bounds for >= 90 %
     of the epochs, and the per-run NEES inside its own bounds for most epochs.
 
     Truth initial errors and biases are drawn from the filter's prior. Averaging over runs
@@ -785,7 +786,7 @@ def test_gnss_compare_only():
 
 def test_process_noise_closed_form():
     """The filter's cached Q(dt) equals the documented closed form for any IMU period, and
-    the wind, the baro bias and the camera mount walk by their random walks."""
+    the wind, the baro bias and the camera's mount and scale walk by their random walks."""
     from terrain_nav_ros.core.estimation.strapdown import process_noise
 
     p = EkfParams()
@@ -797,6 +798,7 @@ def test_process_noise_closed_form():
         expected[15:17, 15:17] = np.eye(2) * p.wind_random_walk**2 * dt
         expected[IDX_BARO, IDX_BARO] = p.baro_bias_random_walk**2 * dt
         expected[IDX_MOUNT, IDX_MOUNT] = np.eye(2) * p.camera_mount_random_walk**2 * dt
+        expected[IDX_SCALE, IDX_SCALE] = p.camera_scale_random_walk**2 * dt
         np.testing.assert_allclose(ekf._process_noise(dt), expected, rtol=1e-12, atol=0)
 
 
@@ -928,6 +930,66 @@ def test_an_undeclared_camera_mount_tilt_is_estimated_from_the_turns():
     # and the sigma is honest: the error within 3 of it
     sigma = np.sqrt(np.diag(ekf.state.covariance)[IDX_MOUNT])
     assert np.all(np.abs(np.radians([1.0, 2.0]) - ekf.state.camera_mount) < 3 * sigma)
+
+
+def _scaled_height_flight(scale_error: float, baro_bias: float, seed=21, **params):
+    """4 min of survey with a 2 Hz baro ``baro_bias`` m off and, every second, a ground
+    match whose height comes from its scale: the truth's, with the camera's scale error
+    ``scale_error`` over the height above ground (3000 m, +-300 m with the terrain), 3 m
+    of noise. The filter starts at the truth, the baro bias unknown (``params`` go to
+    EkfParams). Returns the height errors and sigmas of the last minute, the filter and the
+    fixes' outcomes."""
+    params = EkfParams(init_mode="pose", **params)
+    rng, truth, imu = flight(survey_flight(240.0), seed, params)
+    t_baro, alt, _ = simulate_baro(truth, rng, period=0.5, sigma=1.5)
+    ekf = start_filter(truth, params)
+    baro_at = dict(zip(np.round(t_baro, 6), alt + baro_bias, strict=True))
+    height, outcomes = [], []
+    for k in range(1, len(truth)):
+        t = truth.t[k]
+        ekf.process_imu(t, imu.gyro[k], imu.accel[k])
+        if round(t, 6) in baro_at:
+            ekf.process_baro(t, baro_at[round(t, 6)], 1.5**2)
+        if k % int(RATE) == 0:
+            above = 3000.0 + 300.0 * math.sin(2.0 * math.pi * t / 90.0)
+            z = truth.position[k] + np.r_[rng.normal(0, 10.0, 2),
+                                          scale_error * above + rng.normal(0, 3.0)]
+            outcomes.append(ekf.process_fix(t, z, np.diag([10.0**2, 10.0**2, 3.0**2]),
+                                            projection_height=above).reason)
+        if k % int(RATE) == 0 and t > truth.t[-1] - 60.0:
+            height.append((ekf.state.position[2] - truth.position[k, 2],
+                           math.sqrt(ekf.state.covariance[2, 2])))
+    return np.array(height), ekf, outcomes
+
+
+def test_a_camera_scale_error_is_estimated_from_the_fixes_heights():
+    """A ground match's height, from its scale, is off by the camera's scale error (a focal
+    length off the CameraInfo's) times the height above ground. With the baro's bias known
+    (learnt from GNSS) the filter estimates that error and the height stays the baro's; with
+    the baro 60 m off and no GNSS ever (lost from the start), the heights above ground the
+    terrain varies tell the scale error from the baro's bias: the height within 2 m (the
+    scale taken as exact instead: 13 m off at a sigma of 0.7 m). A focal length off by 10 %
+    (5 sigma of the prior): each fix's height is left out, its horizontal position fused,
+    and the height stays on the baro."""
+    height, ekf, outcomes = _scaled_height_flight(0.03, 0.0, init_baro_bias_sigma=1.0)
+    found = ekf.state.camera_scale
+    sigma = math.sqrt(ekf.state.covariance[IDX_SCALE, IDX_SCALE])
+    assert abs(found - 0.03) < 3 * sigma and sigma < 0.003, (found, sigma)
+    assert np.abs(height[:, 0]).max() < 5.0
+    assert outcomes.count(Reason.OK) >= 0.9 * len(outcomes)
+
+    lost, ekf, _ = _scaled_height_flight(0.004, 60.0, init_baro_bias_sigma=100.0)
+    assert np.abs(lost[:, 0]).max() < 20.0, np.abs(lost[:, 0]).max()
+    assert np.all(np.abs(lost[:, 0]) < 3 * lost[:, 1])
+    assert abs(ekf.state.baro_bias - 60.0) < 20.0
+
+    focal, ekf, outcomes = _scaled_height_flight(0.10, 0.0, init_baro_bias_sigma=1.0)
+    assert np.abs(focal[:, 0]).max() < 5.0
+    assert outcomes.count(Reason.FUSED_WITHOUT_HEIGHT) >= 0.8 * len(outcomes), \
+        sorted(set(outcomes))
+    d = ekf.diagnostics
+    assert d.position_resets == 0 and d.heights_left_out_in_a_row >= 0.8 * len(outcomes)
+    assert d.heights_left_out == outcomes.count(Reason.FUSED_WITHOUT_HEIGHT)
 
 
 def test_a_divergence_reset_reopens_the_dead_reckoning():

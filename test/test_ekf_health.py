@@ -46,10 +46,15 @@ def test_each_problem_raises_the_level_and_is_named():
         (dict(last_accepted={"gnss": -30.0}), 0.0, ERROR, "no accepted fix for 130 s"),
         (dict(position_sigma=60.0), 0.0, WARN, "position sigma 60 m"),
         (dict(position_sigma=250.0), 0.0, ERROR, "position sigma 250 m"),
+        (dict(heights_left_out_in_a_row=5), 0.0, WARN, "check the CameraInfo's focal length"),
     ]
     for changes, since_imu, level, text in cases:
         health = filter_health(_diagnostics(**changes), since_imu, "gnss", LIMITS)
         assert health.level == level and text in health.message, (changes, health)
+
+
+def test_a_few_fixes_fused_without_their_height_are_no_warning():
+    assert filter_health(_diagnostics(heights_left_out_in_a_row=4), 0.0, "", LIMITS).level == OK
 
 
 def test_the_latest_of_fix_and_gnss_counts_as_the_last_fix():

@@ -69,6 +69,30 @@ def test_ground_match_fix_recovers_position_and_heading():
     assert fix.projection_height == 900.0    # the prior's tilt acts over the camera's height
 
 
+def test_a_ground_match_s_height_comes_from_its_measured_scale():
+    """The view's scale on the creases measures the height above the projection plane: a
+    camera 3 % lower than the prior sees the ground 3 % larger, the registration shrinks
+    it back; without a measured scale the height is the prior's, at 10 % of the height."""
+    geo = GeoReference.centred(0.0, 0.0, 2.0, 128, 128)
+    transform = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    prior = np.array([0.0, 0.0, 1100.0])
+    result = MatchResult(Decision.MATCH, score=20.0, transform=transform, rotation=0.0,
+                         scale=1.0, covariance=np.eye(4) * 1e-6, scale_measured=0.97,
+                         scale_variance=0.002 ** 2)
+    fix = fix_from_ground_match(result, geo, geo, prior, np.eye(3), 100.0)
+    assert fix.position[2] == pytest.approx(100.0 + 0.97 * 1000.0)
+    assert np.sqrt(fix.covariance[2, 2]) == pytest.approx(0.002 * 1000.0)
+    assert fix.projection_height == 1000.0
+    # a relocalisation's plane lies under the estimate, not under the camera: its height
+    # stays the prior's, as does that of a registration without a measured scale
+    relocalised = fix_from_ground_match(result, geo, geo, prior, np.eye(3), 100.0,
+                                        height_from_scale=False)
+    result.scale_measured = result.scale_variance = np.nan
+    fix = fix_from_ground_match(result, geo, geo, prior, np.eye(3), 100.0)
+    for f in (relocalised, fix):
+        assert f.position[2] == 1100.0 and np.sqrt(f.covariance[2, 2]) == pytest.approx(100.0)
+
+
 @pytest.fixture(scope="module")
 def pnp_scene():
     rng = np.random.default_rng(3)

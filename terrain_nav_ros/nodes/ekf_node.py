@@ -34,7 +34,9 @@ Subscribed:
   ``camera_mount_rpy`` and ``camera_lever_arm``, for matchers that publish camera poses.
   A fix from a frame projected onto the ground (``projection_height`` > 0) moves with the
   attitude's error and with the camera mount's, which the filter estimates
-  (``init_camera_mount_sigma``; ``camera_mount_*_deg`` in the diagnostics).
+  (``init_camera_mount_sigma``; ``camera_mount_*_deg`` in the diagnostics). Its height,
+  measured by the registration's scale, carries the camera's scale error, estimated too
+  (``init_camera_scale_sigma``; ``camera_scale_*percent``).
   Late and out-of-order fixes are applied at their own stamp by the core (state history of
   ``history_length`` s). A fix marked ``relocalisation`` (found by a search of the whole
   mission area) is fused when the gate accepts it; otherwise it is held, and the position
@@ -258,6 +260,11 @@ EKF_PARAMETERS = {
                                 1e-6, 0.5),
     "camera_mount_random_walk": ("how fast the camera mount's error may change "
                                  "[rad/sqrt(s)]", 0.0, 0.01),
+    "init_camera_scale_sigma": ("1-sigma of the camera's scale error at start: how far a "
+                                "ground match's height above its plane may be off, in "
+                                "proportion [-]", 1e-6, 0.5),
+    "camera_scale_random_walk": ("how fast the camera's scale error may change [1/sqrt(s)]",
+                                 0.0, 0.01),
     "baro_bias_random_walk": ("how fast the baro bias may change (weather: ~8 m per hPa) "
                               "[m/sqrt(s)]", 0.0, 100.0),
     "sideslip_sigma": ("1-sigma of the sideslip, measured as zero (coordinated flight of a "
@@ -644,7 +651,7 @@ class EkfNode(Node):
             return
         out = self.ekf.initialize(stamp, s.position, s.velocity, s.quaternion, s.covariance,
                                   s.gyro_bias, s.accel_bias, s.wind, s.baro_bias,
-                                  s.camera_mount)
+                                  s.camera_mount, s.camera_scale)
         if not out.accepted:
             self.get_logger().warning(f"not resuming: the filter refused the checkpoint "
                                       f"({out.reason.value})")

@@ -324,7 +324,8 @@ class MatcherNode(Node):
         if not found.matched:
             self.publish_no_fix(msg.header.stamp, f"relocalisation ({why}): {found.reason}")
             return
-        fix = self._ground_fix(found.result, camera.georef, land_georef, projection)
+        fix = self._ground_fix(found.result, camera.georef, land_georef, projection,
+                               height_from_scale=False)
         if not fix.valid:
             self.publish_no_fix(msg.header.stamp, f"relocalisation: {fix.reason}", fix)
             return
@@ -380,14 +381,16 @@ class MatcherNode(Node):
         # its roll and pitch are camera_ingest's, measured apart from the filter
         self.publish_fix(msg.header.stamp, stamp, fix, origin, tilt_variance=tilt_sigma ** 2)
 
-    def _ground_fix(self, result, camera_georef, landmark_georef,
-                    projection) -> PvaFixEstimate:
+    def _ground_fix(self, result, camera_georef, landmark_georef, projection,
+                    height_from_scale: bool = True) -> PvaFixEstimate:
         """The fix of a registration of the ground-projected camera set in a landmark
         raster. Its shift by the projection attitude's tilt error is left to the ekf, whose
-        attitude that is (``projection_height``)."""
+        attitude that is (``projection_height``). Its height is measured by the
+        registration's scale unless ``height_from_scale`` is False (a relocalisation)."""
         position, rotation, plane = projection
         return fix_from_ground_match(result, camera_georef, landmark_georef, position,
-                                     rotation, plane, landmark_sigma=self.landmark_sigma)
+                                     rotation, plane, landmark_sigma=self.landmark_sigma,
+                                     height_from_scale=height_from_scale)
 
     def pnp_fix(self, result, camera, landmark, position, rotation) -> PvaFixEstimate | None:
         """Camera pose by PnP: raw-frame pixels of the camera minutiae against the DEM points

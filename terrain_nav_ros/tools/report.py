@@ -101,7 +101,8 @@ def ekf_fix_use(bag) -> dict | None:
         last = bags.decode(m)
     if last is None:
         return None
-    use = {"fused": 0, "gated": 0, "refused": {}, "level": 0, "health": ""}
+    use = {"fused": 0, "gated": 0, "refused": {}, "level": 0, "health": "",
+           "without_height": 0}
     for status in last.status:
         values = {kv.key: kv.value for kv in status.values}
         if status.name == "ekf: filter":
@@ -112,6 +113,7 @@ def ekf_fix_use(bag) -> dict | None:
             use["refused"] = {k.split(":", 1)[1]: int(v) for k, v in values.items()
                               if k.startswith("rejected_input/fix:")
                               and not k.endswith(":not_initialized")}
+            use["without_height"] = int(values.get("fix_heights_left_out", 0))
         elif status.name == "ekf: fix":
             use["fused"] = int(values.get("accepted", 0))
             use["gated"] = int(values.get("rejected", 0))
@@ -323,8 +325,10 @@ def format_report(r: dict, gsd: float | None = None) -> str:
     use = r.get("ekf_fix_use")
     if use is not None and f["fixes"]:
         refused = sum(use["refused"].values())
-        lines.append(f"  the ekf fused {use['fused']} of them, its gate rejected "
-                     f"{use['gated']}, it refused {refused}"
+        without = use.get("without_height", 0)
+        lines.append(f"  the ekf fused {use['fused']} of them"
+                     + (f" ({without} without their height)" if without else "")
+                     + f", its gate rejected {use['gated']}, it refused {refused}"
                      + "".join(f"; {n} {why}" for why, n in sorted(use["refused"].items())))
         if use["fused"] < f["fixes"] // 2:
             lines.append(f"WARNING: the ekf fused under half the fixes; its last health: "

@@ -6,7 +6,7 @@ apply to an INS).
 
 State
 -----
-``kf.x`` (20 x 1) and ``kf.P`` (20 x 20) follow this order:
+``kf.x`` (21 x 1) and ``kf.P`` (21 x 21) follow this order:
 
 ======  ==============  ===================================================================
 index   symbol          meaning
@@ -21,6 +21,8 @@ index   symbol          meaning
 17      b_baro          baro bias (m): the barometer's height less the true height
 18:20   mu              camera mount error, a small rotation about body x and y (rad): the
                         camera's true mount is ``Exp(mu)`` times the declared one
+20      k               camera scale error: a ground match's height above the projection
+                        plane, measured by its scale, is ``(1 + k)`` times the true one
 ======  ==============  ===================================================================
 
 The wind is no IMU state: the accelerometer levelling needs it (a turn's centripetal
@@ -31,8 +33,8 @@ EKFs without an airspeed sensor do.
 The baro bias is what the weather and the offset that put the pressure altitude into ENU up
 add to the barometer: it starts at ``init_baro_bias_sigma`` (the offset is learnt from the
 filter's own height), wanders at ``baro_bias_random_walk`` (a pressure change of 1 hPa is
-~8 m) and is observed wherever another reference measures the height (GNSS; fixes only
-weakly, their height being the prior's). Without it a baro of 10 Hz, taken as white noise,
+~8 m) and is observed wherever another reference measures the height (GNSS, and the
+fixes whose scale measured their height: below). Without it a baro of 10 Hz, taken as white noise,
 made the height sigma a few decimetres around a bias of metres.
 
 The camera mount error is how far the camera's boresight is off the mount the graph declares
@@ -45,6 +47,16 @@ beside the fixes observes it at once; without GNSS, turns do (the fixes' offset 
 heading, the IMU's dead reckoning does not). It starts at ``init_camera_mount_sigma`` and
 wanders at ``camera_mount_random_walk``. A turn of the mount about the boresight does not move
 a nadir fix and is not estimated.
+
+The camera scale error is what a focal length off the CameraInfo's (or a lens focused
+elsewhere) does to a ground match's height: the registration's scale measures the height
+above the projection plane, ``projection_height``, to about 0.1 %, but times ``(1 + k)``. So
+the fix's height measures ``p_z + k x projection_height``: GNSS or the baro's calibrated bias
+beside the fixes observe ``k``; without them the height above ground's changes over the
+terrain part ``k`` from the baro bias. It starts at ``init_camera_scale_sigma`` and wanders at
+``camera_scale_random_walk``. A fix's height that its gate alone would reject (a focal length
+off by more than the prior allows) is left out and the rest of the fix fused
+(``FUSED_WITHOUT_HEIGHT``): the horizontal position does not depend on the scale.
 
 The nominal attitude is the unit quaternion ``q`` (``[x, y, z, w]``, body -> ENU) kept beside
 ``kf.x``; the true attitude is ``Exp(dtheta) * q``. Position, velocity and biases are additive,
@@ -134,17 +146,19 @@ from .strapdown import (
 )
 
 # The filter's states: the mechanisation's error states, the wind (east, north), the baro
-# bias, the camera mount's error (about body x and y).
+# bias, the camera mount's error (about body x and y), the camera's scale error.
 IDX_W = slice(DIM_ERR, DIM_ERR + 2)
 IDX_BARO = DIM_ERR + 2
 IDX_MOUNT = slice(DIM_ERR + 3, DIM_ERR + 5)
-DIM_STATE = DIM_ERR + 5
+IDX_SCALE = DIM_ERR + 5
+DIM_STATE = DIM_ERR + 6
 # The baro measures the height and its own bias.
 _BARO_LEVER = np.zeros((1, DIM_STATE))
 _BARO_LEVER[0, IDX_BARO] = 1.0
 
-__all__ = ["DIM_STATE", "IDX_BARO", "IDX_MOUNT", "IDX_W", "EkfDiagnostics", "EkfParams",
-           "NavState", "Outcome", "Reason", "TerrainEkf", "UpdateRecord", "tilt_lever"]
+__all__ = ["DIM_STATE", "IDX_BARO", "IDX_MOUNT", "IDX_SCALE", "IDX_W", "EkfDiagnostics",
+           "EkfParams", "NavState", "Outcome", "Reason", "TerrainEkf", "UpdateRecord",
+           "tilt_lever"]
 
 
 class Reason(StrEnum):
@@ -176,6 +190,7 @@ class Reason(StrEnum):
     REINITIALIZED = "reinitialised_from_last_good_state"
     RELOCALISATION_HELD = "relocalisation_held_until_another_agrees"
     RELOCALISATION_RESET = "position_reset_on_agreeing_relocalisations"
+    FUSED_WITHOUT_HEIGHT = "fused_without_its_height"
 
 
 @dataclass(frozen=True)
@@ -226,7 +241,7 @@ class NavState:
         Body -> ENU ``[x, y, z, w]``.
     gyro_bias, accel_bias : ndarray, (3,)
         Body frame (rad/s, m/s^2).
-    covariance : ndarray, (20, 20)
+    covariance : ndarray, (21, 21)
         Error-state covariance in the documented state order.
     wind : ndarray, (2,)
         East and north (m/s): where the air moves to.
@@ -234,6 +249,9 @@ class NavState:
         The barometer's height less the true height (m).
     camera_mount : ndarray, (2,)
         The camera mount's error about body x and y (rad).
+    camera_scale : float
+        The camera's scale error ``k`` (a ground match's height above its plane is
+        ``1 + k`` times the true one).
     """
 
     stamp: float
@@ -246,6 +264,7 @@ class NavState:
     wind: np.ndarray
     baro_bias: float = 0.0
     camera_mount: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    camera_scale: float = 0.0
 
     def pose_covariance(self) -> np.ndarray:
         """6x6 covariance of (position, attitude about ENU axes), the ROS Pose layout."""
@@ -320,6 +339,11 @@ class EkfDiagnostics:
         The camera mount's error about body x and y (rad).
     camera_mount_sigma : float
         sqrt of the sum of its two variances (rad).
+    camera_scale, camera_scale_sigma : float
+        The camera's scale error and its sigma.
+    heights_left_out, heights_left_out_in_a_row : int
+        Fixes fused without their height (``FUSED_WITHOUT_HEIGHT``): in all, and since the
+        last fix fused with it.
     """
 
     initialized: bool = False
@@ -352,6 +376,10 @@ class EkfDiagnostics:
     height_sigma: float = float("nan")
     camera_mount: tuple = (float("nan"), float("nan"))
     camera_mount_sigma: float = float("nan")
+    camera_scale: float = float("nan")
+    camera_scale_sigma: float = float("nan")
+    heights_left_out: int = 0
+    heights_left_out_in_a_row: int = 0
 
     def time_since(self, source: str = "fix") -> float | None:
         """Seconds since the last accepted measurement of ``source`` (None if never)."""
@@ -453,6 +481,7 @@ class TerrainEkf:
         self._Q1[IDX_BARO, IDX_BARO] = p.baro_bias_random_walk**2
         mount = np.arange(IDX_MOUNT.start, IDX_MOUNT.stop)
         self._Q1[mount, mount] = p.camera_mount_random_walk**2
+        self._Q1[IDX_SCALE, IDX_SCALE] = p.camera_scale_random_walk**2
         self._Q2[i3, i3 + 3] = self._Q2[i3 + 3, i3] = qa / 2.0
         self._Q3[i3, i3] = qa / 3.0
         self._seq = itertools.count()
@@ -513,7 +542,8 @@ class TerrainEkf:
         x = self._x
         return NavState(self.t, x[IDX_P].copy(), x[IDX_V].copy(), self.q.copy(),
                         x[IDX_BG].copy(), x[IDX_BA].copy(), self.kf.P.copy(),
-                        x[IDX_W].copy(), float(x[IDX_BARO]), x[IDX_MOUNT].copy())
+                        x[IDX_W].copy(), float(x[IDX_BARO]), x[IDX_MOUNT].copy(),
+                        float(x[IDX_SCALE]))
 
     @property
     def diagnostics(self) -> EkfDiagnostics:
@@ -545,6 +575,8 @@ class TerrainEkf:
             (math.nan, math.nan)
         d.camera_mount_sigma = float(np.sqrt(np.trace(P[IDX_MOUNT, IDX_MOUNT]))) if known \
             else math.nan
+        d.camera_scale = float(self._x[IDX_SCALE]) if known else math.nan
+        d.camera_scale_sigma = float(np.sqrt(P[IDX_SCALE, IDX_SCALE])) if known else math.nan
 
     def _now(self) -> float | None:
         """Filter time, or before initialisation the newest IMU stamp buffered (None if none)."""
@@ -554,18 +586,19 @@ class TerrainEkf:
 
     # ------------------------------------------------------------------ initialisation
     def default_covariance(self) -> np.ndarray:
-        """Initial 20x20 covariance from the ``init_*_sigma`` parameters."""
+        """Initial 21x21 covariance from the ``init_*_sigma`` parameters."""
         p = self.params
         sig = np.r_[[p.init_position_sigma] * 3, [p.init_velocity_sigma] * 3,
                     [p.init_roll_pitch_sigma] * 2, p.init_yaw_sigma,
                     [p.init_gyro_bias_sigma] * 3, [p.init_accel_bias_sigma] * 3,
                     [p.init_wind_sigma] * 2, p.init_baro_bias_sigma,
-                    [p.init_camera_mount_sigma] * 2]
+                    [p.init_camera_mount_sigma] * 2, p.init_camera_scale_sigma]
         return np.diag(sig**2)
 
     def initialize(self, stamp: float, position, velocity, quaternion, covariance=None,
                    gyro_bias=None, accel_bias=None, wind=None,
-                   baro_bias: float = 0.0, camera_mount=None) -> Outcome:
+                   baro_bias: float = 0.0, camera_mount=None,
+                   camera_scale: float = 0.0) -> Outcome:
         """Start (or restart) the filter from a full state at ``stamp``.
 
         Parameters
@@ -576,10 +609,11 @@ class TerrainEkf:
             ENU (m, m/s).
         quaternion : array_like, (4,)
             Body -> ENU ``[x, y, z, w]``.
-        covariance : array_like, (20, 20), (18, 18), (17, 17) or (15, 15), optional
+        covariance : array_like, (21, 21), (20, 20), (18, 18), (17, 17) or (15, 15), optional
             Error covariance in the state order; default :meth:`default_covariance`. The
-            states it leaves out (the camera mount; the baro bias too, at 17 x 17; the wind
-            too, at 15 x 15) start uncorrelated at their ``init_*_sigma``.
+            states it leaves out (the camera scale; the camera mount too, at 18 x 18; the baro
+            bias too, at 17 x 17; the wind too, at 15 x 15) start uncorrelated at their
+            ``init_*_sigma``.
         gyro_bias, accel_bias : array_like, (3,), optional
             Initial bias estimates (default zero).
         wind : array_like, (2,), optional
@@ -588,6 +622,8 @@ class TerrainEkf:
             Initial baro bias (m).
         camera_mount : array_like, (2,), optional
             Initial camera mount error about body x and y (rad; default zero).
+        camera_scale : float, optional
+            Initial camera scale error (default zero).
 
         Returns
         -------
@@ -605,7 +641,8 @@ class TerrainEkf:
         if covariance is not None:
             given = np.array(covariance, float)
             n = given.shape[0] if given.ndim == 2 else 0
-            if given.shape == (n, n) and n in (DIM_ERR, IDX_BARO, IDX_MOUNT.start):   # leading
+            if given.shape == (n, n) and n in (DIM_ERR, IDX_BARO, IDX_MOUNT.start,
+                                               IDX_SCALE):   # the leading states
                 P[:n, :n] = given
             else:
                 P = given
@@ -624,6 +661,7 @@ class TerrainEkf:
         x[IDX_BARO] = baro_bias
         if camera_mount is not None:
             x[IDX_MOUNT] = camera_mount
+        x[IDX_SCALE] = camera_scale
         self.kf.x = x.reshape(-1, 1).copy()
         self._x = self.kf.x[:, 0]
         self.kf.P = 0.5 * (P + P.T)
@@ -1030,8 +1068,10 @@ class TerrainEkf:
             registers the ground point the prior attitude put straight below the camera, so
             its horizontal position carries that attitude's tilt error times this height
             (:func:`tilt_lever`); the update models it instead of treating it as noise, which
-            a stream of fixes with one tilt error would average into a position bias. 0: the
-            fix does not depend on the filter's attitude (PnP, GNSS, pose-free frames).
+            a stream of fixes with one tilt error would average into a position bias. Its
+            height, measured by the registration's scale, carries the camera's scale error
+            times this height. 0: the fix does not depend on the filter's attitude (PnP, GNSS,
+            pose-free frames).
 
         Returns
         -------
@@ -1058,12 +1098,15 @@ class TerrainEkf:
             rows.append(np.arange(6, 9))
         if any(p.shape != (3,) for p in parts):
             return self._refuse(source, Reason.BAD_SHAPE)
-        lever = None
+        lever = state_lever = None
         if projection_height > 0.0:
             lever = np.zeros((3 * len(parts), 3))
             lever[:3] = tilt_lever(projection_height)
+            state_lever = np.zeros((3 * len(parts), DIM_STATE))
+            state_lever[2, IDX_SCALE] = projection_height
         return self._submit(stamp, source, np.concatenate(parts), covariance,
-                            np.concatenate(rows), att, relocalisation, lever=lever)
+                            np.concatenate(rows), att, relocalisation, lever=lever,
+                            state_lever=state_lever)
 
     def set_position(self, stamp: float, position, covariance) -> Outcome:
         """Put the position at ``position`` (ENU, m; 3x3 covariance) at ``stamp``, whatever
@@ -1301,7 +1344,7 @@ class TerrainEkf:
         tested = self._gate_test(meas)
         if tested is None:
             return Outcome(False, Reason.BAD_COVARIANCE)
-        nis, gate = tested[2:]
+        nis, gate = tested[2:4]
         # A gate ~4 sigma wide around a lost estimate is no check on a mission-wide search.
         trusted = math.sqrt(self.kf.P[0, 0] + self.kf.P[1, 1]) <= \
             self.params.relocalisation_fuse_max_sigma
@@ -1349,34 +1392,58 @@ class TerrainEkf:
             H += meas.state_lever
         return z, H
 
-    def _gate_test(self, meas: _Measurement):
-        """``(z, H, nis, gate)`` of a measurement at the current filter time, or None when
-        its innovation covariance is not positive definite."""
+    def _gate_test(self, meas: _Measurement, keep: np.ndarray | None = None):
+        """``(z, H, nis, gate, R)`` of a measurement (of its rows ``keep``, by default all)
+        at the current filter time, or None when its innovation covariance is not positive
+        definite."""
         z, H = self._innovation(meas)
+        R = meas.R
+        if keep is not None:
+            z, H, R = z[keep], H[keep], R[np.ix_(keep, keep)]
         y = z - H @ self._x
-        S = H @ self.kf.P @ H.T + meas.R
+        S = H @ self.kf.P @ H.T + R
         try:
             L = np.linalg.cholesky(S)
         except np.linalg.LinAlgError:
             return None
         w = np.linalg.solve(L, y)
-        return z, H, float(w @ w), _gate(self.params.gate_probability(meas.source), len(z))
+        return z, H, float(w @ w), _gate(self.params.gate_probability(meas.source), len(z)), R
 
     def _update(self, meas: _Measurement) -> Outcome:
         tested = self._gate_test(meas)
         if tested is None:
             return Outcome(False, Reason.BAD_COVARIANCE)
-        z, H, nis, gate = tested
+        z, H, nis, gate, R = tested
         if meas.source == "gnss" and not self.params.fuse_gnss:
             return Outcome(False, Reason.COMPARED_ONLY, nis, gate)
         if meas.probation:
             return Outcome(False, Reason.PROBATION, nis, gate)
+        reason = Reason.OK
         if nis > gate:
-            return Outcome(False, Reason.GATED, nis, gate)
-        self.kf.update(z.reshape(-1, 1), HJacobian=lambda _x: H, Hx=lambda x: H @ x, R=meas.R)
+            tested = self._gate_test_without_height(meas)
+            if tested is None:
+                return Outcome(False, Reason.GATED, nis, gate)
+            (z, H, nis, gate, R), reason = tested, Reason.FUSED_WITHOUT_HEIGHT
+        self.kf.update(z.reshape(-1, 1), HJacobian=lambda _x: H, Hx=lambda x: H @ x, R=R)
         self._x = self.kf.x[:, 0]
         self._inject_attitude()
-        return Outcome(True, Reason.OK, nis, gate)
+        return Outcome(True, reason, nis, gate)
+
+    def _gate_test_without_height(self, meas: _Measurement):
+        """``(z, H, nis, gate, R)`` of a terrain fix with its height row left out, when the
+        rest passes its gate (None otherwise): a ground match's height comes from its scale,
+        its horizontal position from its translation, and a camera whose focal length is off
+        by more than the scale error's prior gets the first wrong, not the second. Only
+        while the baro or GNSS holds the filter's height (accepted within
+        ``_HEIGHT_HELD_FOR`` s): else the height in dispute may be the filter's own, run
+        away with its accelerometers, and the whole fix is gated (a streak resets)."""
+        if meas.source != "fix" or meas.relocalisation or 2 not in meas.rows:
+            return None
+        if all(self._diag.last_accepted.get(source, -math.inf) < meas.stamp - _HEIGHT_HELD_FOR
+               for source in ("baro", "gnss")):
+            return None
+        tested = self._gate_test(meas, keep=meas.rows != 2)
+        return tested if tested is not None and tested[2] <= tested[3] else None
 
     def _inject_attitude(self):
         """Fold dtheta into the quaternion, zero it and rotate P with the reset Jacobian."""
@@ -1460,7 +1527,12 @@ class TerrainEkf:
         if outcome.accepted:
             d.last_accepted[meas.source] = max(meas.stamp,
                                                d.last_accepted.get(meas.source, -np.inf))
-            self._note_height_check(meas)
+            if outcome.reason != Reason.FUSED_WITHOUT_HEIGHT:
+                self._note_height_check(meas)
+            if first and meas.source == "fix":
+                left_out = outcome.reason == Reason.FUSED_WITHOUT_HEIGHT
+                d.heights_left_out += left_out
+                d.heights_left_out_in_a_row = (d.heights_left_out_in_a_row + 1) * left_out
             test = _DRIFT_TESTS.get(meas.source)
             if test is not None and np.isin(test.rows, meas.rows).all():
                 self._drift_confirmed.add(meas.source)
@@ -1508,8 +1580,11 @@ class TerrainEkf:
         if meas.source not in _POSITION_SOURCES or 2 not in meas.rows:
             return
         k = int(np.flatnonzero(meas.rows == 2)[0])
+        variance = meas.R[k, k]
+        if meas.state_lever is not None:   # a ground match's height: the camera scale's doubt
+            variance += float(meas.state_lever[k] @ self.kf.P @ meas.state_lever[k])
         gate = _gate(self.params.gate_probability(meas.source), 1)
-        self._height_checks.append((meas.stamp, math.sqrt(meas.R[k, k] * gate)))
+        self._height_checks.append((meas.stamp, math.sqrt(variance * gate)))
 
     def _diverged_for(self, meas: _Measurement) -> bool:
         """Whether the streak of rejections ``meas`` ends may mean a diverged filter rather
@@ -1522,8 +1597,9 @@ class TerrainEkf:
         in turn). For the barometer, no fix or GNSS accepted meanwhile, nor the last one
         before the streak, measured the height well enough to have caught the filter as far
         off as the baro says: with 3-D fixes a baro stuck 2 km off is rejected for good, but
-        the graph's ground matches echo the filter's height (sigma 10 % of the height above
-        ground), and a filter whose height an accelerometer bias carries away must come
+        a ground match without a measured scale echoes the filter's height (sigma 10 % of
+        the height above ground), a measured one is as good as the camera scale error's
+        sigma allows, and a filter whose height an accelerometer bias carries away must come
         back onto the baro (an inertial vertical channel alone diverges); unless the streak
         began with a jump of the baro (:meth:`_note_baro_gap`). The levelling is the one
         tilt reference: its streaks always reset."""
@@ -1568,8 +1644,12 @@ _LEAN_ROWS = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
 # onto it unless the other agreed with the filter meanwhile (:meth:`TerrainEkf._diverged_for`;
 # the barometer's streaks reset the height unless one of them measured it).
 _POSITION_SOURCES = frozenset({"fix", "gnss"})
+# A fix's height gated alone is left out of it only while the baro or GNSS held the height
+# this recently (s): :meth:`TerrainEkf._gate_test_without_height`.
+_HEIGHT_HELD_FOR = 2.0
 # States a divergence reset reopens (:meth:`TerrainEkf._reopen_dead_reckoning`): after fixes,
-# velocity, attitude, biases and the camera mount (a fix's own bias); after baro heights,
+# velocity, attitude, biases and the camera's mount and scale (a fix's own biases); after
+# baro heights,
 # the vertical velocity and the accelerometer biases.
 _DEAD_RECKONING = np.arange(IDX_V.start, DIM_STATE)
 _VERTICAL_CHANNEL = np.r_[IDX_V.stop - 1, np.arange(IDX_BA.start, IDX_BA.stop)]

@@ -21,6 +21,8 @@ import numpy as np
 from .ekf import EkfDiagnostics
 
 OK, WARN, ERROR = 0, 1, 2
+# Fixes in a row fused without their height before the health names the camera's scale.
+HEIGHTS_LEFT_OUT_WARN = 5
 SOURCES = ("fix", "baro", "gnss", "level", "sideslip")
 
 
@@ -173,6 +175,10 @@ def filter_health(d: EkfDiagnostics, since_imu: float, waiting_for: str,
         health.worse(WARN, f"the fixes' heading never agreed with the filter's ("
                      f"{d.heading_disputes} drift(s) not followed): check the camera mount's "
                      "yaw (mount_rpy) and the image's orientation")
+    if d.heights_left_out_in_a_row >= HEIGHTS_LEFT_OUT_WARN:
+        health.worse(WARN, f"the fixes' heights disagree with the filter's beyond the camera "
+                     f"scale error's prior ({d.heights_left_out_in_a_row} in a row fused "
+                     "without them): check the CameraInfo's focal length")
     if d.relocalisation_candidates:
         health.worse(WARN, f"searching: {d.relocalisation_candidates} relocalisation(s) held, "
                      "none agreed yet")
@@ -231,6 +237,9 @@ def filter_values(d: EkfDiagnostics, init_mode: str, imu_received: int, imu_dt: 
         "camera_mount_roll_deg": math.degrees(d.camera_mount[0]),
         "camera_mount_pitch_deg": math.degrees(d.camera_mount[1]),
         "camera_mount_sigma_deg": math.degrees(d.camera_mount_sigma),
+        "camera_scale_percent": 100.0 * d.camera_scale,
+        "camera_scale_sigma_percent": 100.0 * d.camera_scale_sigma,
+        "fix_heights_left_out": d.heights_left_out,
         "resets": d.resets, "reinitialisations": d.reinitialisations,
         "imu_stamps_refused": d.imu_stamps_refused,
         "position_resets": d.position_resets, "imu_gaps": d.imu_gaps,

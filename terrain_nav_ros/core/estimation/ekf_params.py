@@ -175,6 +175,15 @@ class EkfParams:
     camera_mount_random_walk : float
         How fast the mount's error may change (rad/sqrt(s)): a rigid mount flexing with
         temperature and load. Default 1e-5 (0.03 degree in an hour).
+    init_camera_scale_sigma : float
+        1-sigma of the camera's scale error at initialisation: how far a ground match's
+        height above its plane, measured by the registration's scale, may be off in
+        proportion (the CameraInfo's focal length against the lens's). Default 0.02 (a
+        calibrated lens is within a few tenths of a percent; 2 % leaves room for one
+        focused elsewhere). A height beyond what it allows is left out of the fix.
+    camera_scale_random_walk : float
+        How fast the camera's scale error may change (1/sqrt(s)): the focal length with
+        temperature. Default 1e-5 (0.06 % in an hour).
     sideslip_sigma : float
         1-sigma of the sideslip, measured as zero every ``level_period`` (m/s of lateral air
         velocity): a fixed wing in coordinated flight, with the IMU's x axis along its
@@ -226,6 +235,8 @@ class EkfParams:
     baro_bias_random_walk: float = 0.1
     init_camera_mount_sigma: float = float(np.deg2rad(1.0))
     camera_mount_random_walk: float = 1e-5
+    init_camera_scale_sigma: float = 0.02
+    camera_scale_random_walk: float = 1e-5
     sideslip_sigma: float = 1.0
     sideslip_gate_probability: float = 0.999
 
@@ -252,6 +263,10 @@ class EkfParams:
             raise ValueError("EkfParams.init_camera_mount_sigma must be > 0 and "
                              "camera_mount_random_walk >= 0, got "
                              f"{self.init_camera_mount_sigma}, {self.camera_mount_random_walk}")
+        if self.init_camera_scale_sigma <= 0 or self.camera_scale_random_walk < 0:
+            raise ValueError("EkfParams.init_camera_scale_sigma must be > 0 and "
+                             "camera_scale_random_walk >= 0, got "
+                             f"{self.init_camera_scale_sigma}, {self.camera_scale_random_walk}")
         if self.init_baro_bias_sigma <= 0 or self.baro_bias_random_walk < 0:
             raise ValueError("EkfParams.init_baro_bias_sigma must be > 0 and "
                              f"baro_bias_random_walk >= 0, got {self.init_baro_bias_sigma}, "

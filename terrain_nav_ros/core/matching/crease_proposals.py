@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from .crease_check import CreaseSamples, refine_on_creases
+from .crease_check import CreaseSamples, crease_covariance, refine_on_creases
 from .crease_search import (
     COARSE,
     FINE,
@@ -147,6 +147,34 @@ def _registered(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, proposals,
         else:
             out.append((c, t, _pair(a, b, c, t, p)))
     return out
+
+
+# A registration's scale is known to no better than this many pixels over the RMS radius
+# of the view's creases (measured_scale).
+CREASE_SCALE_FLOOR_PX = 0.25
+
+
+def measured_scale(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, c: complex, t: complex,
+                   scale_change: float) -> tuple[float, float]:
+    """The view's scale against the region and its variance: the fine crease ICP from the
+    registration ``(c, t)`` with the scale free (within the search's reach), and the crease
+    covariance there. A registration fitted rigidly (the minutiae's) carries the prior's
+    scale; this one measures the height above ground. NaN when the creases do not fix it."""
+    reach = scale_change + SCALE_FIT_MARGIN
+    c, t = refine_on_creases(_icp_samples(a, 3.0), b.crease_field, c, t, radius=3.0,
+                             angle_tol=p.crease_angle_tol, ridges=_ridge_channel(a, b, p),
+                             scale=(1.0 - reach, 1.0 + reach))
+    cov = crease_covariance(a.crease_samples, b.crease_field, c, t, **p.crease_tolerances)
+    if not np.isfinite(cov).all() or abs(abs(c) - 1.0) >= reach - 1e-3:
+        return math.nan, math.nan      # not fixed by the creases, or stopped at the bound
+    gradient = np.array([c.real, c.imag]) / abs(c)      # d|c| / d(a, b)
+    # at least a quarter pixel across the view: its crease pixels are not independent (the
+    # render's shading and the camera's albedo move whole creases), which the covariance
+    # takes them for (the short bag's 512 px frames: 0.1 % scatter against 0.04 % claimed)
+    z = a.crease_samples.z
+    floor = (CREASE_SCALE_FLOOR_PX / max(float(np.sqrt(np.mean(np.abs(z - z.mean()) ** 2))),
+                                         1.0)) ** 2
+    return float(abs(c)), max(float(gradient @ cov[:2, :2] @ gradient), floor)
 
 
 def _finer_proposals(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, proposals,

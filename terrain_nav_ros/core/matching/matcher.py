@@ -75,6 +75,7 @@ from .crease_proposals import (
     _search_level,
     _searches_creases,
     _view_search_level,
+    measured_scale,
 )
 from .crease_search import COARSE, COARSER, FINE, SearchLevel
 from .index import MinutiaIndex, _as_index, _generator
@@ -114,6 +115,10 @@ class MatchResult:
     scale : float
     scale_estimated : bool
         Whether the scale was fitted (else it is 1 by construction).
+    scale_measured, scale_variance : float
+        A localisation's scale with the scale free on the creases, whatever fitted the
+        transform (:func:`~.crease_proposals.measured_scale`), and its variance: the height
+        above ground the view was seen from, relative to the prior's. NaN when not measured.
     covariance : ndarray, shape (4, 4)
         Covariance of (a, b, tx, ty) from the fit residuals.
     rms : float
@@ -143,6 +148,8 @@ class MatchResult:
     rotation: float = np.nan
     scale: float = np.nan
     scale_estimated: bool = False
+    scale_measured: float = np.nan
+    scale_variance: float = np.nan
     covariance: np.ndarray = field(default_factory=lambda: np.full((4, 4), np.nan))
     rms: float = np.nan
     n_a: int = 0
@@ -574,11 +581,14 @@ class Matcher:
             reason = (f"ambiguous: another place {distance:.0f} px away scores "
                       f"{other.score - of_n:.1f}, within {LOOK_ALIKE_MARGIN:g} of the best "
                       f"({score:.1f}): repeated terrain")
+        measured = measured_scale(a, b, p, c, t, scale_change) \
+            if ok and use_creases and scale_change > 0 else (np.nan, np.nan)
         return MatchResult(
             decision=Decision.MATCH if ok else Decision.NO_MATCH, score=score,
             n_pairings=len(pairs), pairings=pairs, transform=_pixel_transform(c, t),
             rotation=float(np.angle(c)), scale=float(abs(c)),
-            scale_estimated=p.estimate_scale, covariance=cov, rms=rms,
+            scale_estimated=p.estimate_scale, scale_measured=measured[0],
+            scale_variance=measured[1], covariance=cov, rms=rms,
             n_a=a.n, n_b=b.n, n_overlap=(n_ao, n_bo), expected_chance=best.lam,
             pairing_ratio=len(pairs) ** 2 / max(n_ao * n_bo, 1), creases=best.creases,
             ridges=best.ridges, reason=reason)

@@ -6,7 +6,7 @@ Two ways, matching the two kinds of camera minutiae the pipeline can produce:
   with the prior pose (``camera_ingest``), its minutiae were localised in the landmark with
   :func:`~terrain_nav_ros.core.matching.matcher.localise`. The registration maps the ground point
   the prior put under the camera to where it really is, which moves the camera by the same
-  amount; its rotation corrects the heading and, when a scale was estimated, its scale
+  amount; its rotation corrects the heading and, when a scale was measured, its scale
   corrects the height above ground. Covariance: the registration's (from the pairing
   residuals), the GSD quantisation and the landmark's own georeferencing error. Limitation:
   on a ground-plane projection a tilt error ``d`` at height ``H`` shifts the image by about
@@ -124,7 +124,8 @@ def fix_from_ground_match(result: MatchResult, camera_georef: GeoReference,
                           landmark_georef: GeoReference, prior_position,
                           prior_rotation, ground_height: float,
                           landmark_sigma: float = 0.0,
-                          height_sigma: float | None = None) -> PvaFixEstimate:
+                          height_sigma: float | None = None,
+                          height_from_scale: bool = True) -> PvaFixEstimate:
     """Camera position from a localisation of a ground-projected camera set.
 
     Parameters
@@ -147,6 +148,10 @@ def fix_from_ground_match(result: MatchResult, camera_georef: GeoReference,
     height_sigma : float, optional
         1-sigma of the height when the registration has no scale (default: 10% of the height
         above ground, i.e. "barely measured").
+    height_from_scale : bool
+        Take the height from the registration's measured scale. False: the prior's, with
+        ``height_sigma`` (a relocalisation: the plane the frame was projected on lies under
+        the estimate, not under the camera, and the scale measures the height above it).
 
     Returns
     -------
@@ -169,13 +174,17 @@ def fix_from_ground_match(result: MatchResult, camera_georef: GeoReference,
                                     landmark_georef.gsd)
     cov[:2, :2] += np.eye(2) * (landmark_georef.gsd ** 2 / 12.0 + landmark_sigma ** 2)
     # ground-image distances shrink by prior_agl / true_agl: the fitted scale restores them
-    scale = result.scale * landmark_georef.gsd / camera_georef.gsd
+    gsd_ratio = landmark_georef.gsd / camera_georef.gsd
     a, b = result.transform[0, 0], result.transform[0, 1]
-    if result.scale_estimated and np.isfinite(result.covariance).all():
+    if height_from_scale and math.isfinite(result.scale_measured) and \
+            math.isfinite(result.scale_variance):
+        z = ground_height + result.scale_measured * gsd_ratio * agl
+        var_z = result.scale_variance * (gsd_ratio * agl) ** 2
+    elif height_from_scale and result.scale_estimated and np.isfinite(result.covariance).all():
         # d|c|/d(a, b) = (a, b) / |c|
         g = np.array([a, b]) / max(np.hypot(a, b), 1e-12)
-        var_s = float(g @ result.covariance[:2, :2] @ g) * (scale / result.scale) ** 2
-        z = ground_height + scale * agl
+        var_s = float(g @ result.covariance[:2, :2] @ g) * gsd_ratio ** 2
+        z = ground_height + result.scale * gsd_ratio * agl
         var_z = var_s * agl ** 2
     else:
         z = prior_position[2]
