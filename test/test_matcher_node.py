@@ -1,6 +1,7 @@
 """matcher node: a camera minutiae set projected with a wrong prior position is localised in
 the landmark set and the fix lands on the true position; unmatchable sets get a no-fix reason."""
 
+import time
 from contextlib import contextmanager
 from types import SimpleNamespace
 
@@ -65,6 +66,26 @@ def matcher_node():
     finally:
         client.close()
         s.log = stop(node)
+
+
+@contextmanager
+def matcher_in_process(monkeypatch):
+    """The node in this process, its callbacks to be called directly, and the list its
+    PvaFix messages are published into."""
+    import rclpy
+
+    from terrain_nav_ros.nodes.matcher_node import MatcherNode
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = MatcherNode(context=context)
+    try:
+        published = []
+        monkeypatch.setattr(node.pub, "publish", published.append)
+        yield node, published
+    finally:
+        node.destroy_node()
+        context.try_shutdown()
 
 
 ORIGIN = (36.5, -84.2, 0.0)    # the ENU origin of the landmark and camera sets
@@ -169,18 +190,9 @@ def test_a_failure_inside_matching_is_an_explicit_no_fix(monkeypatch):
     """An unexpected error while matching one frame (fault injected: the matcher raises) is
     logged and counted, and the frame still gets its PvaFix: no fix, with the error as the
     reason. The node in this process, its callbacks called directly."""
-    import rclpy
-
-    from terrain_nav_ros.nodes.matcher_node import MatcherNode
-
     landmark, camera, prior = _sets()
     header = cv.make_header(5_000_000_000, "map")
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    node = MatcherNode(context=context)
-    try:
-        published = []
-        monkeypatch.setattr(node.pub, "publish", published.append)
+    with matcher_in_process(monkeypatch) as (node, published):
         node.on_landmark(cv.minutiae_to_msg(landmark, header, MinutiaArray.SOURCE_LANDMARK,
                                             ORIGIN))
         node.on_camera(_camera_msg(camera, prior, header))
@@ -203,7 +215,26 @@ def test_a_failure_inside_matching_is_an_explicit_no_fix(monkeypatch):
         assert float(values["answer_ms_median"]) > 0   # the frame that matched
         assert float(values["last_fix_pairings"]) >= 10
         assert cv.diagnostic_values(node.diagnostics()[0])[0] == 0   # nothing new: OK
-    finally:
-        node.destroy_node()
-        context.try_shutdown()
 
+
+def test_a_set_that_waited_behind_a_slow_answer_is_skipped_at_once(monkeypatch):
+    """A camera set whose turn comes well after the quickest lately (it queued behind a slow
+    search of the mission index) gets an immediate no-fix saying it was skipped, and the
+    next set on time is matched: the matcher catches up instead of answering late. The node
+    in this process, its callbacks called directly."""
+    landmark, camera, prior = _sets()
+    with matcher_in_process(monkeypatch) as (node, published):
+        now = node.get_clock().now().nanoseconds
+        node.on_landmark(cv.minutiae_to_msg(landmark, cv.make_header(now, "map"),
+                                            MinutiaArray.SOURCE_LANDMARK, ORIGIN))
+        node.on_camera(_camera_msg(camera, prior, cv.make_header(now, "map")))
+        time.sleep(1.6)    # the set stamped 0.1 s later has waited 1.5 s more
+        node.on_camera(_camera_msg(camera, prior, cv.make_header(now + 100_000_000, "map")))
+        node.on_camera(_camera_msg(camera, prior, cv.make_header(
+            node.get_clock().now().nanoseconds, "map")))
+        assert [f.status for f in published] == [PvaFix.STATUS_POSITION_ATTITUDE,
+                                                 PvaFix.STATUS_NO_FIX,
+                                                 PvaFix.STATUS_POSITION_ATTITUDE]
+        late = float(published[1].reason.split("skipped: ")[1].split(" s late")[0])
+        assert late >= 1.4, published[1].reason
+        assert "catches up" in published[1].reason and node.lag.skipped == 1

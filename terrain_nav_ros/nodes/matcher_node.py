@@ -7,7 +7,11 @@ sets carry their crease (and ridge) skeletons, the registration is also checked 
 above the calibrated significance threshold becomes a position fix
 (:func:`.core.matching.pva_fix.fix_from_ground_match`), published as ``terrain_nav_msgs/PvaFix`` on
 ``/nav/pva_fix`` with its covariance, similarity and pairings. Every camera set gets an answer:
-when there is no fix the message has ``status = STATUS_NO_FIX`` and the reason.
+when there is no fix the message has ``status = STATUS_NO_FIX`` and the reason. A set whose
+turn comes more than ``max_frame_lag`` s later than the quickest sets of late (after a slow
+search of the mission index) is answered "skipped" at once, so that the matcher catches up
+rather than answering every later frame after the ekf's history
+(:class:`~terrain_nav_ros.core.matching.fix_stream.FrameLag`).
 ``/matcher/diagnostics`` (diagnostic_msgs/DiagnosticArray, every ``diagnostics_period`` s)
 counts fixes and no-fixes (by reason) and times the answers.
 
@@ -31,7 +35,8 @@ from), the heading the registration's. Without a mission index it is a no-fix sa
 
 What the node decides around the matcher is ROS-free in
 :mod:`terrain_nav_ros.core.matching.fix_stream`: the landmark set a camera set is matched in,
-the fix's tilt allowance, attitude and velocity, and the diagnostics' tallies.
+the fix's tilt allowance, attitude and velocity, the sets too late to match, and the
+diagnostics' tallies.
 """
 
 from __future__ import annotations
@@ -52,6 +57,7 @@ from ..core.matching.fix_stream import (
     UNOBSERVED_TILT_VAR,
     AnswerTally,
     FixVelocity,
+    FrameLag,
     LandmarkSets,
     add_prior_tilt,
     fix_attitude,
@@ -155,6 +161,12 @@ class MatcherNode(Node):
             self, "pose_free_height_sigma", 50.0,
             "cold start: height sigma of a pose-free frame's fix, whose height is the "
             "barometer's [m]", min_value=0.0)
+        max_frame_lag = declare(
+            self, "max_frame_lag", 1.0,
+            "a camera set reaching its turn this much later than the quickest lately is "
+            "answered 'skipped' at once, so that the matcher catches up after a slow search "
+            "(its fix would reach the ekf after history_length); node clock [s]",
+            min_value=0.0)
         check_parameters_known(self)  # before the matcher is built and its kernels loaded
         self.add_on_set_parameters_callback(reject_all_changes)
         self.mount = CameraMount(self, base_frame, mount_rpy)
@@ -165,6 +177,7 @@ class MatcherNode(Node):
         self.landmarks = LandmarkSets(max_landmarks)
         self.velocity = FixVelocity(velocity_gap)
         self.tally = AnswerTally()
+        self.lag = FrameLag(max_frame_lag)
         self.last_camera_wall: float | None = None
         self.pub = self.create_publisher(PvaFix, "nav/pva_fix", RELIABLE_QOS)
         self.dem = None          # (heights, georef) of the latest DEM tile
@@ -238,6 +251,12 @@ class MatcherNode(Node):
     @contained
     def on_camera(self, msg: MinutiaArray) -> None:
         start = self.last_camera_wall = time.monotonic()
+        late = self.lag.skip(cv.stamp_to_sec(msg.header.stamp),
+                             self.get_clock().now().nanoseconds * 1e-9)
+        if late is not None:
+            self.publish_no_fix(msg.header.stamp, f"skipped: {late:.1f} s late (the matcher "
+                                "catches up after a slow search)")
+            return
         try:
             self._answer(msg)
             self.tally.answered(1e3 * (time.monotonic() - start))
