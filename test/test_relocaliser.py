@@ -111,6 +111,27 @@ def test_a_camera_set_is_relocalised_in_the_graph_frame(mission):
     assert math.hypot(got[0] - east, got[1] - north) < 1.5 * index.gsd
 
 
+def test_the_layer_is_loaded_in_the_background_before_the_first_search(mission):
+    """The node has the sun layer of its first frame loaded in a thread: the search that
+    comes later uses those tiles without loading them again; a layer loaded or being loaded
+    starts nothing, nor does a frame whose sun no layer is near (no search would be made)."""
+    index, dem = mission
+    search = MissionSearch(index, MatchParams(threshold=8.6))
+    assert search.prepare_in_background(WHEN + 8 * 3600.0) is None   # the evening sun
+    thread = search.prepare_in_background(WHEN)
+    assert thread is not None and search.prepare_in_background(WHEN + 1.0) is None
+    thread.join(120.0)
+    assert not thread.is_alive()
+    assert search.layer == index.nearest_sun(search.sun_at(WHEN))
+    tiles = search.tiles
+    assert len(tiles) == len(index.tiles()) and search.prepare_in_background(WHEN) is None
+    features = _camera_view(dem, 6000.0, -9000.0, 40.0, search.sun_at(WHEN))
+    found, _ = search.search(search.matcher.index(features.minutiae,
+                                                  features.creases.skeleton(),
+                                                  features.ridges), WHEN, GRAPH_ORIGIN)
+    assert found.matched and search.tiles is tiles
+
+
 def test_a_camera_set_at_another_gsd_is_refused_with_the_reason(mission):
     index, dem = mission
     search = MissionSearch(index, MatchParams(threshold=8.6))

@@ -32,6 +32,8 @@ measures the height above the unknown terrain, not the aircraft's), the horizont
 covariance grown by the height above ground x the attitude's assumed sigma, the roll and
 pitch camera_ingest's with that sigma (levelled apart from the filter: what the ekf starts
 from), the heading the registration's. Without a mission index it is a no-fix saying so.
+With a mission index, the tiles of the sun layer nearest the frames' sun are loaded in a
+background thread from the first frame on, so that the first search is as quick as the next.
 
 What the node decides around the matcher is ROS-free in
 :mod:`terrain_nav_ros.core.matching.fix_stream`: the landmark set a camera set is matched in,
@@ -251,8 +253,11 @@ class MatcherNode(Node):
     @contained
     def on_camera(self, msg: MinutiaArray) -> None:
         start = self.last_camera_wall = time.monotonic()
-        late = self.lag.skip(cv.stamp_to_sec(msg.header.stamp),
-                             self.get_clock().now().nanoseconds * 1e-9)
+        stamp = cv.stamp_to_sec(msg.header.stamp)
+        if self.mission is not None:
+            # the layer a search would use, loaded before it is needed (in a thread)
+            self.mission.prepare_in_background(stamp)
+        late = self.lag.skip(stamp, self.get_clock().now().nanoseconds * 1e-9)
         if late is not None:
             self.publish_no_fix(msg.header.stamp, f"skipped: {late:.1f} s late (the matcher "
                                 "catches up after a slow search)")

@@ -9,6 +9,7 @@ for the frame's sun, prepared, and searches them (:func:`.global_search.relocali
 
 from __future__ import annotations
 
+import threading
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
@@ -105,9 +106,11 @@ class MissionSearch:
     """A mission index as the matcher searches it.
 
     The tiles of one sun layer (the one nearest the frame's sun, computed from the frame's
-    time at the area's centre) are loaded and prepared as landmark regions on the first
-    search under that sun, and kept until the sun has moved nearer another layer (~85 MB a
-    1024 px tile once searched).
+    time at the area's centre) are loaded and prepared as landmark regions, and kept until
+    the sun has moved nearer another layer (~85 MB a 1024 px tile once searched). The node
+    has them prepared in a background thread from the first frame on
+    (:meth:`prepare_in_background`): loading them made the first search of a lost flight
+    5-8 s slower than the next, too late for the filter to take its fix.
 
     Parameters
     ----------
@@ -123,28 +126,55 @@ class MissionSearch:
         self.layer: int | None = None
         self.tiles: list[SearchTile] = []
         self.damaged: list[str] = []     # the layer's tiles that could not be read
+        self._loading = threading.Lock()
+        self._preparing: threading.Thread | None = None
+        self._failed_layer: int | None = None   # not tried again in the background
 
     def sun_at(self, unix_seconds: float) -> tuple[float, float]:
         """(azimuth, elevation) of the sun at the area's centre at a time (deg)."""
         return sun_at(unix_seconds, self.mission.origin.lat, self.mission.origin.lon)
 
     def tiles_for(self, sun) -> list[SearchTile]:
-        """The prepared tiles of the layer nearest ``sun`` (loaded on first use)."""
+        """The prepared tiles of the layer nearest ``sun`` (loaded on first use, or waited
+        for while a background preparation loads them)."""
         k = self.mission.nearest_sun(sun)
-        if k != self.layer:
-            self.damaged = []
-            self.tiles = [self._prepared(t.col, t.row, k) for t in self.mission.tiles()]
-            self.tiles = [t for t in self.tiles if t is not None]
-            self.layer = k
-        return self.tiles
+        with self._loading:
+            if k != self.layer:
+                damaged: list[str] = []
+                tiles = [self._prepared(t.col, t.row, k, damaged) for t in self.mission.tiles()]
+                self.tiles = [t for t in tiles if t is not None]
+                self.damaged, self.layer = damaged, k
+            return self.tiles
 
-    def _prepared(self, col: int, row: int, layer: int) -> SearchTile | None:
+    def prepare_in_background(self, unix_seconds: float) -> threading.Thread | None:
+        """Start loading the layer a search at ``unix_seconds`` would use, in a daemon
+        thread, unless it is loaded, being loaded, or too far from the frame's sun to be
+        searched; the thread, or None. A search meanwhile waits for it. A failure is left
+        to the search, which loads the layer again and meets it."""
+        sun = self.sun_at(unix_seconds)
+        k = self.mission.nearest_sun(sun)
+        if k in (self.layer, self._failed_layer) or self._sun_refusal(sun) is not None \
+                or (self._preparing is not None and self._preparing.is_alive()):
+            return None
+        self._preparing = threading.Thread(target=self._prepare_quietly, args=(sun, k),
+                                           name="mission-layer", daemon=True)
+        self._preparing.start()
+        return self._preparing
+
+    def _prepare_quietly(self, sun, layer: int) -> None:
+        try:
+            self.tiles_for(sun)
+        except Exception:   # noqa: BLE001 - the search meets it again, in the node's callback
+            self._failed_layer = layer
+
+    def _prepared(self, col: int, row: int, layer: int, damaged: list[str]
+                  ) -> SearchTile | None:
         from .mission_index import MissionIndexError
 
         try:
             found = self.mission.load(col, row, layer)
         except MissionIndexError as err:   # damaged in flight: its area is lost, once
-            self.damaged.append(str(err))
+            damaged.append(str(err))
             return None
         if not len(found.minutiae):
             return None     # a tile without drainage (lake, plain): nothing to search
