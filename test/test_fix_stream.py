@@ -14,7 +14,6 @@ from terrain_nav_ros.core.matching.fix_stream import (
     WARN,
     AnswerTally,
     FixVelocity,
-    FrameLag,
     LandmarkSets,
     add_prior_tilt,
     fix_attitude,
@@ -120,30 +119,3 @@ def test_the_tally_reports_counts_times_and_problems():
     assert math.isnan(values["answer_ms_median"]) and values["failures"] == 3
     assert tally.report(110.0, 9.0, 5.0, True, 3, 0, 1)[0] == WARN
 
-
-def test_sets_late_beyond_the_quickest_transit_are_skipped_until_caught_up():
-    """After a slow search the queued sets are skipped, then matching resumes; a constant
-    offset between the camera's clock and the node's skips nothing."""
-    lag = FrameLag(max_lag=1.0, window=30.0)
-    offset = 3600.0     # the camera's clock an hour behind the node's
-    answers = [lag.skip(t, t + offset + 0.2) for t in range(5)]   # 0.2 s upstream
-    assert answers == [None] * 5
-    # the set stamped 4 took a search of 9 s: those of 5-11 s waited in the queue over
-    # 1 s and are skipped at once; those of 12 and 13 s are matched
-    late = [lag.skip(t, 13.0 + offset + 0.2) for t in range(5, 14)]
-    assert np.allclose(late[:7], np.arange(8.0, 1.0, -1.0)) and late[7:] == [None, None]
-    assert lag.skipped == 7
-    # a clock that went back (a bag replayed again) starts afresh, and so does a jump
-    # forgotten after the window
-    assert lag.skip(2.0, 500.0) is None
-    assert lag.skip(3.0, 501.0) is None
-
-
-def test_a_transit_jump_is_skipped_for_the_window_only():
-    """A step in the transit (a clock that jumped ahead) skips sets for the window's span of
-    stamps, not for ever."""
-    lag = FrameLag(max_lag=1.0, window=10.0)
-    for t in range(5):
-        assert lag.skip(t, t + 0.3) is None
-    skipped = [lag.skip(t, t + 5.3) is not None for t in range(5, 20)]
-    assert skipped[:5] == [True] * 5 and not any(skipped[-4:])

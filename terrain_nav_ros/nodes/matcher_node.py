@@ -7,11 +7,10 @@ sets carry their crease (and ridge) skeletons, the registration is also checked 
 above the calibrated significance threshold becomes a position fix
 (:func:`.core.matching.pva_fix.fix_from_ground_match`), published as ``terrain_nav_msgs/PvaFix`` on
 ``/nav/pva_fix`` with its covariance, similarity and pairings. Every camera set gets an answer:
-when there is no fix the message has ``status = STATUS_NO_FIX`` and the reason. A set whose
-turn comes more than ``max_frame_lag`` s later than the quickest sets of late (after a slow
-search of the mission index) is answered "skipped" at once, so that the matcher catches up
-rather than answering every later frame after the ekf's history
-(:class:`~terrain_nav_ros.core.matching.fix_stream.FrameLag`).
+when there is no fix the message has ``status = STATUS_NO_FIX`` and the reason. A set that
+waited more than ``max_queue_wait`` s in the node's queue (behind a slow search of the mission
+index; the middleware's receive time) is answered "skipped" at once, so that the matcher
+catches up rather than answering every later frame after the ekf's history.
 ``/matcher/diagnostics`` (diagnostic_msgs/DiagnosticArray, every ``diagnostics_period`` s)
 counts fixes and no-fixes (by reason) and times the answers.
 
@@ -37,8 +36,7 @@ background thread from the first frame on, so that the first search is as quick 
 
 What the node decides around the matcher is ROS-free in
 :mod:`terrain_nav_ros.core.matching.fix_stream`: the landmark set a camera set is matched in,
-the fix's tilt allowance, attitude and velocity, the sets too late to match, and the
-diagnostics' tallies.
+the fix's tilt allowance, attitude and velocity, and the diagnostics' tallies.
 """
 
 from __future__ import annotations
@@ -59,7 +57,6 @@ from ..core.matching.fix_stream import (
     UNOBSERVED_TILT_VAR,
     AnswerTally,
     FixVelocity,
-    FrameLag,
     LandmarkSets,
     add_prior_tilt,
     fix_attitude,
@@ -163,12 +160,11 @@ class MatcherNode(Node):
             self, "pose_free_height_sigma", 50.0,
             "cold start: height sigma of a pose-free frame's fix, whose height is the "
             "barometer's [m]", min_value=0.0)
-        max_frame_lag = declare(
-            self, "max_frame_lag", 1.0,
-            "a camera set reaching its turn this much later than the quickest lately is "
-            "answered 'skipped' at once, so that the matcher catches up after a slow search "
-            "(its fix would reach the ekf after history_length); node clock [s]",
-            min_value=0.0)
+        self.max_queue_wait = declare(
+            self, "max_queue_wait", 1.0,
+            "a camera set that waited longer than this in the node's queue (behind a slow "
+            "search) is answered 'skipped' at once, so that the matcher catches up; its fix "
+            "would reach the ekf late, after history_length [s]", min_value=0.0)
         check_parameters_known(self)  # before the matcher is built and its kernels loaded
         self.add_on_set_parameters_callback(reject_all_changes)
         self.mount = CameraMount(self, base_frame, mount_rpy)
@@ -179,7 +175,6 @@ class MatcherNode(Node):
         self.landmarks = LandmarkSets(max_landmarks)
         self.velocity = FixVelocity(velocity_gap)
         self.tally = AnswerTally()
-        self.lag = FrameLag(max_frame_lag)
         self.last_camera_wall: float | None = None
         self.pub = self.create_publisher(PvaFix, "nav/pva_fix", RELIABLE_QOS)
         self.dem = None          # (heights, georef) of the latest DEM tile
@@ -190,7 +185,8 @@ class MatcherNode(Node):
         warm_up(self.matcher.params)
         self.create_subscription(MinutiaArray, "landmark/minutiae", self.on_landmark,
                                  LATCHED_QOS)
-        self.create_subscription(MinutiaArray, "camera/minutiae", self.on_camera, RELIABLE_QOS)
+        self.create_subscription(MinutiaArray, "camera/minutiae", self.on_camera_received,
+                                 RELIABLE_QOS)
         self.create_subscription(DemTile, "metamap/tile", self.on_tile, LATCHED_QOS)
         self.create_subscription(CameraInfo, "camera/camera_info", self.on_info, SENSOR_QOS)
         self._started_wall = time.monotonic()
@@ -250,17 +246,22 @@ class MatcherNode(Node):
         self.get_logger().info(f"landmark set with {len(minutiae)} minutiae "
                                f"({minutiae.reason or 'ok'})")
 
+    def on_camera_received(self, msg: MinutiaArray, info) -> None:
+        """rclpy passes a two-argument callback the message's info: when the middleware
+        received it (system clock, ns; 0 where the rmw does not say)."""
+        received = info.get("received_timestamp") if isinstance(info, dict) else None
+        self.on_camera(msg, received or None)
+
     @contained
-    def on_camera(self, msg: MinutiaArray) -> None:
+    def on_camera(self, msg: MinutiaArray, received_ns: int | None = None) -> None:
         start = self.last_camera_wall = time.monotonic()
-        stamp = cv.stamp_to_sec(msg.header.stamp)
         if self.mission is not None:
             # the layer a search would use, loaded before it is needed (in a thread)
-            self.mission.prepare_in_background(stamp)
-        late = self.lag.skip(stamp, self.get_clock().now().nanoseconds * 1e-9)
-        if late is not None:
-            self.publish_no_fix(msg.header.stamp, f"skipped: {late:.1f} s late (the matcher "
-                                "catches up after a slow search)")
+            self.mission.prepare_in_background(cv.stamp_to_sec(msg.header.stamp))
+        waited = 0.0 if received_ns is None else (time.time_ns() - received_ns) * 1e-9
+        if waited > self.max_queue_wait:
+            self.publish_no_fix(msg.header.stamp, f"skipped: waited {waited:.1f} s in the "
+                                "queue (the matcher catches up after a slow answer)")
             return
         try:
             self._answer(msg)

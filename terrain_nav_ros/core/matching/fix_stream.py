@@ -9,8 +9,6 @@ landmark set (:mod:`.matcher`, dissertation chapter 4) and turns the match into 
 * what a ground-match fix adds for the prior's tilt (:func:`add_prior_tilt`) and, with the
   heading measured, its body attitude and attitude covariance (:func:`fix_attitude`);
 * the velocity of two fixes close enough in time (:class:`FixVelocity`);
-* which camera sets arrive too late to be worth matching, so that it catches up after a slow
-  search instead of answering every later frame late (:class:`FrameLag`);
 * the tallies and timings its diagnostics report (:class:`AnswerTally`).
 """
 
@@ -129,52 +127,6 @@ class FixVelocity:
                                       covariance, stamp)
         self.last = (stamp, np.array(position, copy=True), np.array(covariance, copy=True))
         return out
-
-
-class FrameLag:
-    """How late camera sets reach the matcher, against the quickest transit seen lately.
-
-    A set's transit is the node's clock minus its stamp when its turn comes. Its smallest
-    value over the last ``window`` s of stamps is what the pipeline upstream costs, plus any
-    offset between the camera's clock and the node's, so the excess over it is the queue the
-    matcher has built up (a slow search, a busy CPU). A set late by more than ``max_lag`` is
-    skipped: its fix would reach the filter after its history (the ekf's
-    ``history_length``) and be refused, and matching it would make every later set later
-    still. Only clock differences count, so a camera clock offset from the node's does not
-    skip anything, and a clock jump is forgotten after ``window`` s.
-
-    Parameters
-    ----------
-    max_lag : float
-        Largest excess transit of a set that is matched (s); infinite: none skipped.
-    window : float
-        Span of stamps over which the quickest transit is taken (s).
-    """
-
-    def __init__(self, max_lag: float, window: float = 30.0):
-        self.max_lag = max_lag
-        self.window = window
-        self._transits: deque[tuple[float, float]] = deque()   # (stamp, transit), by stamp
-        self.skipped = 0
-
-    def late_by(self, stamp: float, now: float) -> float:
-        """Note a set stamped ``stamp`` whose turn came at ``now`` (both s, the node's
-        clock); return how much later than the quickest recent set it is (s, >= 0)."""
-        transit = now - stamp
-        if self._transits and self._transits[-1][0] >= stamp:
-            self._transits.clear()    # out of order, or a clock that went back: afresh
-        while self._transits and self._transits[0][0] < stamp - self.window:
-            self._transits.popleft()
-        self._transits.append((stamp, transit))
-        return transit - min(t for _, t in self._transits)
-
-    def skip(self, stamp: float, now: float) -> float | None:
-        """The lateness (s) of a set to skip, or None to match it."""
-        late = self.late_by(stamp, now)
-        if late <= self.max_lag:
-            return None
-        self.skipped += 1
-        return late
 
 
 class AnswerTally:
