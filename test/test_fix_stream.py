@@ -118,4 +118,3 @@ def test_the_tally_reports_counts_times_and_problems():
                        "for 9 s; no landmark set with minutiae")
     assert math.isnan(values["answer_ms_median"]) and values["failures"] == 3
     assert tally.report(110.0, 9.0, 5.0, True, 3, 0, 1)[0] == WARN
-
