@@ -58,6 +58,11 @@ def test_recorded_bag_is_readable_by_rosbags(recorded_bag):
     assert "Messages:   40" in bags.info(recorded_bag)
 
 
+def test_reading_a_topic_the_bag_lacks_yields_nothing(recorded_bag):
+    assert list(bags.read(recorded_bag, ["/nav/ekf/diagnostics"])) == []
+    assert len(list(bags.read(recorded_bag, ["/chatter", "/absent"]))) == N
+
+
 def test_recorded_bag_is_readable_by_the_mcap_package(recorded_bag):
     from mcap.reader import make_reader
 

@@ -397,6 +397,8 @@ def read(path: str | Path, topic_names: Iterable[str] | None = None, *,
         return
     try:
         conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
+        if not conns:   # rosbags reads an empty list of connections as all of them
+            return
         try:
             for conn, timestamp, raw in reader.messages(connections=conns):
                 yield BagMessage(conn.topic, conn.msgtype, timestamp, bytes(raw))
