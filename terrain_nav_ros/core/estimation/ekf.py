@@ -519,6 +519,7 @@ class TerrainEkf:
         self._diag.baro_step = 0.0
         self._level_sum = [0.0, 0.0, 0.0]   # since _level_start: of C (f - b_a) - turn
         self._level_rates = [0.0, 0.0, 0.0]   # ... of the ENU body rate
+        self._level_squares = [0.0, 0.0]      # ... of the east and north force squared
         self._level_count = 0
         self._level_start = None
         # per source of _DRIFT_TESTS: (stamp, innovation, S) of its latest measurements
@@ -943,10 +944,12 @@ class TerrainEkf:
         ``"level"``), with the sideslip (:meth:`_submit_sideslip`)."""
         fx, fy, fz = self._step.force_less_turn
         rx, ry, rz = self._step.rate_enu
-        total, rates = self._level_sum, self._level_rates
+        total, rates, squares = self._level_sum, self._level_rates, self._level_squares
         total[0] += fx
         total[1] += fy
         total[2] += fz
+        squares[0] += fx * fx
+        squares[1] += fy * fy
         rates[0] += rx
         rates[1] += ry
         rates[2] += rz
@@ -959,7 +962,9 @@ class TerrainEkf:
         # The step took the turn off with the ground velocity; the wind's part is the air's.
         up = np.array(total) + np.cross(rates, np.r_[x[IDX_W], 0.0])
         rate = np.array(rates) / self._level_count
+        noise = self._level_noise(total, squares)
         total[:] = rates[:] = (0.0, 0.0, 0.0)
+        squares[:] = (0.0, 0.0)
         self._level_count = 0
         self._level_start = self.t
         self._submit_sideslip()
@@ -983,9 +988,22 @@ class TerrainEkf:
         lean[:, IDX_BG] = skew(air) @ C
         lean[:, IDX_BA] = C
         lean = _LEAN_ROWS @ lean / self.params.gravity
-        R = np.eye(2) * self.params.level_sigma**2
+        R = np.eye(2) * (self.params.level_sigma**2 + noise)
         self._submit(self.t, "level", lean @ x, R, np.array([6, 7]), None,
                      body_up=C.T @ up, state_lever=lean)
+
+    def _level_noise(self, total, squares) -> float:
+        """Variance (rad^2) the samples' own scatter puts on a levelling's tilt: that of
+        the mean horizontal specific force over the period (the samples' variance over
+        their count, taken as independent), over g^2. Nil for a clean IMU, it is the
+        levelling's whole error under vibration, which level_sigma (the model's) does not
+        hold."""
+        n = self._level_count
+        if n < 2:
+            return 0.0
+        spread = sum(max(sq / n - (t / n) ** 2, 0.0)
+                     for sq, t in zip(squares, total[:2], strict=True))
+        return 0.5 * spread / (n - 1) / self.params.gravity**2
 
     def _submit_sideslip(self):
         """The sideslip, zero in coordinated flight of a fixed wing: the air velocity's
