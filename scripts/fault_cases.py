@@ -228,6 +228,25 @@ def accelerometer_bias_step(topic, at, decode):
     return msg
 
 
+def vibrating_accelerometer(sigma: float):
+    """White noise of ``sigma`` m/s^2 on each accelerometer axis of every IMU sample from
+    15 s on (the GNSS denial): an engine shaking a soft mount, which each levelling's 1 s
+    mean of the specific force does not average away."""
+    import numpy as np
+
+    rng = np.random.default_rng(7)
+
+    def change(topic, at, decode):
+        if topic != "/imu/data" or at < 15.0:
+            return None
+        msg = decode()
+        a = msg.linear_acceleration
+        a.x, a.y, a.z = np.r_[a.x, a.y, a.z] + rng.normal(0.0, sigma, 3)
+        return msg
+
+    return change
+
+
 def gyro_bias_step(axis: str, deg_per_s: float):
     """Gyro ``axis`` (x roll, y pitch, z yaw) reading ``deg_per_s`` high from 30 s on: the
     attitude drifts by up to 15 deg by the end unless something other than the ground
@@ -842,6 +861,10 @@ def cases() -> list[Case]:
              _flight(gyro_bias_step("x", 0.5))),
         Case("pitch gyro bias step of 0.2 deg/s from 30 s", "flight",
              _flight(gyro_bias_step("y", 0.2))),
+        Case("pitch gyro bias step of 0.1 deg/s from 30 s", "flight",
+             _flight(gyro_bias_step("y", 0.1))),
+        Case("accelerometer vibrating at 2 m/s^2 from 15 s", "flight",
+             _flight(vibrating_accelerometer(2.0))),
         Case("yaw gyro bias step of 0.5 deg/s from 30 s", "flight",
              _flight(gyro_bias_step("z", 0.5))),
         Case("GNSS spoofed 200 m north for 4 s before the denial", "flight",
