@@ -218,14 +218,19 @@ def frozen_baro_reading(start: float) -> Callable:
     return change
 
 
-def accelerometer_bias_step(topic, at, decode):
-    """Accelerometer z reading 0.5 m/s^2 (50 mg) high from 30 s on: a bias step far beyond
-    the IMU's random walk, which carries the inertial height away unless the baro holds it."""
-    if topic != "/imu/data" or at < 30.0:
-        return None
-    msg = decode()
-    msg.linear_acceleration.z += 0.5
-    return msg
+def accelerometer_bias_step(axis: str) -> Callable:
+    """Accelerometer ``axis`` reading 0.5 m/s^2 (50 mg) high from 30 s on: a bias step far
+    beyond the IMU's random walk. Along z it carries the inertial height away unless the
+    baro holds it; along x or y it leans every levelling by 2.9 deg, as a tilt would."""
+    def change(topic, at, decode):
+        if topic != "/imu/data" or at < 30.0:
+            return None
+        msg = decode()
+        a = msg.linear_acceleration
+        setattr(a, axis, getattr(a, axis) + 0.5)
+        return msg
+
+    return change
 
 
 def vibrating_accelerometer(sigma: float):
@@ -856,7 +861,9 @@ def cases() -> list[Case]:
         Case("barometer frozen at its 25 s reading in a climb", "flight",
              _flight(frozen_baro_reading(25.0))),
         Case("accelerometer bias step of 0.5 m/s^2 up from 30 s", "flight",
-             _flight(accelerometer_bias_step)),
+             _flight(accelerometer_bias_step("z"))),
+        Case("accelerometer bias step of 0.5 m/s^2 forward from 30 s", "flight",
+             _flight(accelerometer_bias_step("x"))),
         Case("roll gyro bias step of 0.5 deg/s from 30 s", "flight",
              _flight(gyro_bias_step("x", 0.5))),
         Case("pitch gyro bias step of 0.2 deg/s from 30 s", "flight",

@@ -1299,7 +1299,8 @@ class TerrainEkf:
                 if len(window) < n:
                     continue
                 recent = list(window)[-n:]
-                if self._drifted(recent, gate, meas, test):
+                if self._drifted(recent, gate, meas, test, self._position_aided_since(
+                        recent[0][0])):
                     window.clear()
                     if self._disputed(meas, recent):
                         meas.reopen = None
@@ -1323,12 +1324,19 @@ class TerrainEkf:
         innovations = np.array([w[1] for w in window])
         return math.sqrt(float(np.mean(innovations ** 2))) > _HEADING_DISPUTE
 
+    def _position_aided_since(self, stamp: float) -> bool:
+        """Whether a position (fix or GNSS) was accepted at or after ``stamp``."""
+        last = self._diag.last_accepted
+        return any(last.get(source, -math.inf) >= stamp for source in _POSITION_SOURCES)
+
     @staticmethod
-    def _drifted(window: list, gate: float, meas: _Measurement, test: _DriftTest) -> bool:
+    def _drifted(window: list, gate: float, meas: _Measurement, test: _DriftTest,
+                 position_aided: bool) -> bool:
         """Whether the mean of a window of ``(stamp, innovation, S)`` is outside the gate;
         if so, set ``meas.reopen`` to the angle's floor (the mean's square), the rate
         biases' (the innovations' slope squared) and, for a tilt, the horizontal velocity's
-        (g times the mean times the window's span)."""
+        (g times the mean times the window's span) and, while positions were fused over
+        the window, the horizontal accelerometer biases' (g times the mean, squared)."""
         t = np.array([w[0] for w in window])
         innovations = np.array([w[1] for w in window])
         mean = innovations.mean(axis=0)
@@ -1342,8 +1350,13 @@ class TerrainEkf:
         if test.acceleration_per_angle:
             # The drift the filter missed over the window had the dead reckoning integrate
             # the specific force with it: the horizontal velocity is off by about as much.
-            speed = test.acceleration_per_angle * float(np.linalg.norm(mean)) * span
-            meas.reopen.append((_HORIZONTAL_VELOCITY, speed**2))
+            lean = test.acceleration_per_angle * float(np.linalg.norm(mean))
+            meas.reopen.append((_HORIZONTAL_VELOCITY, (lean * span)**2))
+            if position_aided:
+                # Or the lean is no tilt but an accelerometer bias that stepped (it leans
+                # the measured up by bias / g), which the positions' dynamics tell apart;
+                # without them the prior, a stable accelerometer, stands.
+                meas.reopen.append((_HORIZONTAL_ACCEL_BIASES, lean**2))
         return True
 
     def _widen(self, states: np.ndarray, variance):
@@ -1673,10 +1686,12 @@ _DEAD_RECKONING = np.arange(IDX_V.start, DIM_STATE)
 _VERTICAL_CHANNEL = np.r_[IDX_V.stop - 1, np.arange(IDX_BA.start, IDX_BA.stop)]
 # ... after levellings: the velocity (integrated with the drifted tilt), the gyro biases and
 # the wind (through which the turns lean the levelling).
-_LEVELLED = np.r_[IDX_V.start:IDX_V.stop, IDX_BG.start:IDX_BG.stop, IDX_W.start:IDX_W.stop]
+_LEVELLED = np.r_[IDX_V.start:IDX_V.stop, IDX_BG.start:IDX_BG.stop, IDX_W.start:IDX_W.stop,
+                  IDX_BA.start:IDX_BA.start + 2]
 _TILT = np.arange(IDX_TH.start, IDX_TH.start + 2)
 _HORIZONTAL_VELOCITY = np.arange(IDX_V.start, IDX_V.start + 2)
 _TILT_RATE_BIASES = np.arange(IDX_BG.start, IDX_BG.start + 2)   # roll and pitch axes
+_HORIZONTAL_ACCEL_BIASES = np.arange(IDX_BA.start, IDX_BA.start + 2)   # body x and y
 
 
 @dataclass(frozen=True)
