@@ -1684,8 +1684,9 @@ _HEIGHT_HELD_FOR = 2.0
 # the vertical velocity and the accelerometer biases.
 _DEAD_RECKONING = np.arange(IDX_V.start, DIM_STATE)
 _VERTICAL_CHANNEL = np.r_[IDX_V.stop - 1, np.arange(IDX_BA.start, IDX_BA.stop)]
-# ... after levellings: the velocity (integrated with the drifted tilt), the gyro biases and
-# the wind (through which the turns lean the levelling).
+# ... after levellings: the velocity (integrated with the drifted tilt), the gyro biases, the
+# wind (through which the turns lean the levelling) and the horizontal accelerometer biases
+# (which lean it as a tilt does).
 _LEVELLED = np.r_[IDX_V.start:IDX_V.stop, IDX_BG.start:IDX_BG.stop, IDX_W.start:IDX_W.stop,
                   IDX_BA.start:IDX_BA.start + 2]
 _TILT = np.arange(IDX_TH.start, IDX_TH.start + 2)
