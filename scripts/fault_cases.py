@@ -222,12 +222,18 @@ def accelerometer_bias_step(axis: str) -> Callable:
     """Accelerometer ``axis`` reading 0.5 m/s^2 (50 mg) high from 30 s on: a bias step far
     beyond the IMU's random walk. Along z it carries the inertial height away unless the
     baro holds it; along x or y it leans every levelling by 2.9 deg, as a tilt would."""
+    return _imu_step("linear_acceleration", axis, 0.5)
+
+
+def _imu_step(vector: str, axis: str, offset: float) -> Callable:
+    """The IMU's ``vector`` (``angular_velocity`` or ``linear_acceleration``) reading
+    ``offset`` high along ``axis`` from 30 s on."""
     def change(topic, at, decode):
         if topic != "/imu/data" or at < 30.0:
             return None
         msg = decode()
-        a = msg.linear_acceleration
-        setattr(a, axis, getattr(a, axis) + 0.5)
+        reading = getattr(msg, vector)
+        setattr(reading, axis, getattr(reading, axis) + offset)
         return msg
 
     return change
@@ -257,16 +263,7 @@ def gyro_bias_step(axis: str, deg_per_s: float):
     attitude drifts by up to 15 deg by the end unless something other than the ground
     matches (which carry the filter's own tilt) levels it, or, for the yaw, the fixes'
     headings are let move the bias the filter is sure of."""
-
-    def change(topic, at, decode):
-        if topic != "/imu/data" or at < 30.0:
-            return None
-        msg = decode()
-        setattr(msg.angular_velocity, axis,
-                getattr(msg.angular_velocity, axis) + math.radians(deg_per_s))
-        return msg
-
-    return change
+    return _imu_step("angular_velocity", axis, math.radians(deg_per_s))
 
 
 def spoofed_gnss(topic, at, decode):
