@@ -155,3 +155,22 @@ def test_an_overcast_frame_with_sensor_noise_is_mostly_cloud():
     rng = np.random.default_rng(3)
     overcast = np.clip(rng.normal(230.0, 2.0, (200, 200)), 0, 255).astype(np.uint8)
     assert cloud_cover(overcast).reason.startswith("mostly cloud")
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("fraction", [0.85, 0.9, 0.95])
+def test_auto_exposed_overcast_with_soft_gaps_is_found_as_it_is(fraction, seed):
+    """Under auto-exposed overcast the cloud is mid-grey, about twice the ground's level,
+    and the soft edges of its gaps are most of the frame's textured pixels: the ground is
+    what lies beyond them, not their mean. (Before: 5 of these 18 frames, 90-95 % cloud,
+    were found 0 % cloud, their ground taken from the edges at over half the cloud's
+    level.)"""
+    rng = np.random.default_rng(seed)
+    ground = 30.0 + 0.4 * cv2.GaussianBlur(TERRAIN.astype(np.float32), (0, 0), 3.0)
+    opacity = cv2.GaussianBlur(_cloud_cover_of(fraction, rng=seed).astype(np.float32),
+                               (0, 0), 2.0)
+    frame = ground * (1.0 - opacity) + 150.0 * opacity + rng.normal(0.0, 1.5, opacity.shape)
+    cover = cloud_cover(np.clip(np.rint(frame), 0, 255).astype(np.uint8))
+    truth = float(np.mean(opacity > 0.5))
+    assert cover.reason.startswith("mostly cloud") and abs(cover.fraction - truth) < 0.05, \
+        (cover.fraction, truth)

@@ -212,12 +212,16 @@ def test_flight_over_flat_terrain_says_why_there_is_no_fix(tmp_path):
     assert "no drainage" in _no_fix_reasons(result) or "minutiae" in _no_fix_reasons(result)
 
 
-def test_a_flight_under_overcast_says_so_and_coasts(tmp_path):
-    """90 % cloud cover between the camera and the ground (simulate --cloud-cover): every
-    projected frame is answered with a "mostly cloud" no-fix, none with a fix, and the
-    filter coasts on the IMU as it would with the camera off."""
+@pytest.mark.parametrize("cover", [0.9, 0.95])
+def test_a_flight_under_overcast_says_so_and_coasts(tmp_path, cover):
+    """90 and 95 % cloud cover between the camera and the ground (simulate --cloud-cover;
+    83-89 and 93-96 % of each frame): every projected frame is answered with a "mostly
+    cloud" no-fix (82-90 and 92-97 % found cloud), none with a fix, and the filter coasts
+    on the IMU as it would with the camera off. (Before the ground was taken beyond the
+    gaps' edges: 16-17 of 21 and 1 of 21.)"""
     bag = tmp_path / "overcast"
-    simulate(SimConfig(duration=32.0, gnss_denied_after=16.0, cloud_cover=0.9, seed=3), bag)
+    simulate(SimConfig(duration=32.0, gnss_denied_after=16.0, cloud_cover=cover, seed=3),
+             bag)
     result = run_replay(bag, tmp_path / "out", GRAPH)
     _nodes_survived(result)
     fixes = result["fixes"]
@@ -225,7 +229,7 @@ def test_a_flight_under_overcast_says_so_and_coasts(tmp_path):
     clouded = sum(n for reason, n in fixes["reasons"] if "mostly cloud" in reason)
     projected = fixes["frames"] - sum(n for reason, n in fixes["reasons"]
                                       if "not projected" in reason)
-    assert clouded >= 0.8 * projected > 0, fixes
+    assert clouded >= projected - 1 > 0, fixes   # one frame's slack for its attitude
     assert result["fused_error"]["final"] <= result["dr_error"]["final"] + GSD
 
 

@@ -41,6 +41,10 @@ _CLOUD_PERCENTILE = 90.0
 # The ground's level: this percentile of the textured pixels (the darker quarter: under
 # overcast, most textured pixels are the cloud's own edges).
 _GROUND_PERCENTILE = 25.0
+# A mostly featureless frame's ground beyond its cloud-like regions' edges: found again at
+# most this many times, from at least this share of the frame (a gap in overcast).
+_GROUND_ITERATIONS = 4
+_MIN_AWAY_SHARE = 0.002
 
 
 @dataclass(frozen=True)
@@ -163,10 +167,9 @@ def cloud_mask(image: np.ndarray, valid: np.ndarray | None = None,
     variance = _local_variance(level, ok, p.texture_sigma)
     quantum = 1.0 / full_scale(img) if np.issubdtype(img.dtype, np.integer) else 0.0
     featureless = ok & (variance <= _featureless_variance(level, variance, ok, quantum, p))
-    textured = ok & ~featureless
-    ground = _terrain_level(level, textured, _GROUND_PERCENTILE)
+    reach = int(math.ceil(4.0 * p.texture_sigma))   # cv2's window for float
+    ground, outshone = _terrain_levels(level, ok, featureless, reach, p)
     high = min(p.bright_level, p.min_ratio * ground)
-    outshone = _terrain_level(level, textured, _CLOUD_PERCENTILE)
     if math.isfinite(outshone):   # a hazy or over-exposed frame's terrain is bright too
         high = max(high, outshone)
     low = min(p.bright_level, math.sqrt(p.min_ratio) * ground)
@@ -180,7 +183,6 @@ def cloud_mask(image: np.ndarray, valid: np.ndarray | None = None,
     # within the window's reach join it, and only those (a bright frame, hazy or
     # over-exposed, is not one cloud for its clipped patches).
     body = core | (featureless & (level >= low))
-    reach = int(math.ceil(4.0 * p.texture_sigma))   # cv2's window for float
     cloudy = body | (_dilated(body, reach) & bright)
     n, labels = cv2.connectedComponents(cloudy.astype(np.uint8), connectivity=8)
     area = np.bincount(labels.ravel(), minlength=n)
@@ -228,11 +230,42 @@ def _local_variance(level: np.ndarray, ok: np.ndarray, sigma: float) -> np.ndarr
     return cv2.GaussianBlur(level * level, (0, 0), sigma) / w - mean * mean
 
 
-def _terrain_level(level: np.ndarray, textured: np.ndarray, percentile: float) -> float:
+def _terrain_levels(level, ok, featureless, reach, p) -> tuple[float, float]:
+    """The frame's ground (the darker quarter of its terrain's textured pixels) and the
+    level its clouds outshine (their 90th percentile); infinite when too few are textured
+    to say.
+
+    In a frame mostly featureless (fewer than ``1 - max_fraction`` of its valid pixels
+    textured: the frames a "mostly cloud" decision is about), most textured pixels are the
+    edges of its featureless regions, whose levels span the ground's to the cloud's and
+    would raise the ground toward the cloud (under 95 % auto-exposed overcast, above half
+    the cloud's level: none of it was found). Its terrain is then the textured pixels
+    beyond the texture window's reach of the featureless regions brighter than that ground,
+    found in turn while that lowers it; a gap in the overcast is enough. Frames with more
+    texture keep all of it: over real views, where fields and snow are featureless too,
+    their edges are terrain."""
+    textured = ok & ~featureless
+    terrain, min_share = textured, 0.02
+    ground = _terrain_level(level, terrain, _GROUND_PERCENTILE, min_share)
+    if np.count_nonzero(textured) < (1.0 - p.max_fraction) * np.count_nonzero(ok):
+        for _ in range(_GROUND_ITERATIONS):
+            if not math.isfinite(ground):
+                break
+            cloud_like = featureless & (level > ground)
+            away = textured & ~_dilated(cloud_like, reach)
+            lower = _terrain_level(level, away, _GROUND_PERCENTILE, _MIN_AWAY_SHARE)
+            if not lower < ground:
+                break
+            terrain, min_share, ground = away, _MIN_AWAY_SHARE, lower
+    return ground, _terrain_level(level, terrain, _CLOUD_PERCENTILE, min_share)
+
+
+def _terrain_level(level: np.ndarray, textured: np.ndarray, percentile: float,
+                   min_share: float = 0.02) -> float:
     """The ``percentile`` of the frame's textured pixels (its ground, and a cloud's edges);
-    infinite when too few are textured to say."""
+    infinite when fewer than ``min_share`` of the frame are textured, too few to say."""
     n = int(np.count_nonzero(textured))
-    if n < 0.02 * level.size:
+    if n < min_share * level.size:
         return math.inf
     return float(np.percentile(level[textured][:: max(1, n // 20000)], percentile))
 
