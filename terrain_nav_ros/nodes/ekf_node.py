@@ -245,7 +245,8 @@ EKF_PARAMETERS = {
                                       "only while the horizontal sigma is at most this [m]",
                                       1e-3, 1e7),
     "level_sigma": ("1-sigma of the tilt the accelerometer levelling measures (the specific "
-                    "force less the turn, over level_period); 0 = no levelling [rad]",
+                    "force less the turn, over level_period) beyond the samples' own noise, "
+                    "which is measured and added; 0 = no levelling [rad]",
                     0.0, 1.0),
     "level_period": ("the levelling sums the specific force over this long [s]", 0.01, 60.0),
     "level_gate_probability": ("chi-square gate probability for the levelling", 1e-6, 1.0),

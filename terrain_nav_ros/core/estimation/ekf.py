@@ -519,6 +519,7 @@ class TerrainEkf:
         self._diag.baro_step = 0.0
         self._level_sum = [0.0, 0.0, 0.0]   # since _level_start: of C (f - b_a) - turn
         self._level_rates = [0.0, 0.0, 0.0]   # ... of the ENU body rate
+        self._level_squares = [0.0, 0.0]      # ... of the east and north force squared
         self._level_count = 0
         self._level_start = None
         # per source of _DRIFT_TESTS: (stamp, innovation, S) of its latest measurements
@@ -943,10 +944,12 @@ class TerrainEkf:
         ``"level"``), with the sideslip (:meth:`_submit_sideslip`)."""
         fx, fy, fz = self._step.force_less_turn
         rx, ry, rz = self._step.rate_enu
-        total, rates = self._level_sum, self._level_rates
+        total, rates, squares = self._level_sum, self._level_rates, self._level_squares
         total[0] += fx
         total[1] += fy
         total[2] += fz
+        squares[0] += fx * fx
+        squares[1] += fy * fy
         rates[0] += rx
         rates[1] += ry
         rates[2] += rz
@@ -959,7 +962,9 @@ class TerrainEkf:
         # The step took the turn off with the ground velocity; the wind's part is the air's.
         up = np.array(total) + np.cross(rates, np.r_[x[IDX_W], 0.0])
         rate = np.array(rates) / self._level_count
+        noise = self._level_noise(total, squares)
         total[:] = rates[:] = (0.0, 0.0, 0.0)
+        squares[:] = (0.0, 0.0)
         self._level_count = 0
         self._level_start = self.t
         self._submit_sideslip()
@@ -983,9 +988,22 @@ class TerrainEkf:
         lean[:, IDX_BG] = skew(air) @ C
         lean[:, IDX_BA] = C
         lean = _LEAN_ROWS @ lean / self.params.gravity
-        R = np.eye(2) * self.params.level_sigma**2
+        R = np.eye(2) * (self.params.level_sigma**2 + noise)
         self._submit(self.t, "level", lean @ x, R, np.array([6, 7]), None,
                      body_up=C.T @ up, state_lever=lean)
+
+    def _level_noise(self, total, squares) -> float:
+        """Variance (rad^2) the samples' own scatter puts on a levelling's tilt: that of
+        the mean horizontal specific force over the period (the samples' variance over
+        their count, taken as independent), over g^2. Nil for a clean IMU, it is the
+        levelling's whole error under vibration, which level_sigma (the model's) does not
+        hold."""
+        n = self._level_count
+        if n < 2:
+            return 0.0
+        spread = sum(max(sq / n - (t / n) ** 2, 0.0)
+                     for sq, t in zip(squares, total[:2], strict=True))
+        return 0.5 * spread / (n - 1) / self.params.gravity**2
 
     def _submit_sideslip(self):
         """The sideslip, zero in coordinated flight of a fixed wing: the air velocity's
@@ -1281,7 +1299,8 @@ class TerrainEkf:
                 if len(window) < n:
                     continue
                 recent = list(window)[-n:]
-                if self._drifted(recent, gate, meas, test):
+                if self._drifted(recent, gate, meas, test, self._position_aided_since(
+                        recent[0][0])):
                     window.clear()
                     if self._disputed(meas, recent):
                         meas.reopen = None
@@ -1305,12 +1324,19 @@ class TerrainEkf:
         innovations = np.array([w[1] for w in window])
         return math.sqrt(float(np.mean(innovations ** 2))) > _HEADING_DISPUTE
 
+    def _position_aided_since(self, stamp: float) -> bool:
+        """Whether a position (fix or GNSS) was accepted at or after ``stamp``."""
+        last = self._diag.last_accepted
+        return any(last.get(source, -math.inf) >= stamp for source in _POSITION_SOURCES)
+
     @staticmethod
-    def _drifted(window: list, gate: float, meas: _Measurement, test: _DriftTest) -> bool:
+    def _drifted(window: list, gate: float, meas: _Measurement, test: _DriftTest,
+                 position_aided: bool) -> bool:
         """Whether the mean of a window of ``(stamp, innovation, S)`` is outside the gate;
         if so, set ``meas.reopen`` to the angle's floor (the mean's square), the rate
         biases' (the innovations' slope squared) and, for a tilt, the horizontal velocity's
-        (g times the mean times the window's span)."""
+        (g times the mean times the window's span) and, while positions were fused over
+        the window, the horizontal accelerometer biases' (g times the mean, squared)."""
         t = np.array([w[0] for w in window])
         innovations = np.array([w[1] for w in window])
         mean = innovations.mean(axis=0)
@@ -1324,8 +1350,13 @@ class TerrainEkf:
         if test.acceleration_per_angle:
             # The drift the filter missed over the window had the dead reckoning integrate
             # the specific force with it: the horizontal velocity is off by about as much.
-            speed = test.acceleration_per_angle * float(np.linalg.norm(mean)) * span
-            meas.reopen.append((_HORIZONTAL_VELOCITY, speed**2))
+            lean = test.acceleration_per_angle * float(np.linalg.norm(mean))
+            meas.reopen.append((_HORIZONTAL_VELOCITY, (lean * span)**2))
+            if position_aided:
+                # Or the lean is no tilt but an accelerometer bias that stepped (it leans
+                # the measured up by bias / g), which the positions' dynamics tell apart;
+                # without them the prior, a stable accelerometer, stands.
+                meas.reopen.append((_HORIZONTAL_ACCEL_BIASES, lean**2))
         return True
 
     def _widen(self, states: np.ndarray, variance):
@@ -1653,12 +1684,15 @@ _HEIGHT_HELD_FOR = 2.0
 # the vertical velocity and the accelerometer biases.
 _DEAD_RECKONING = np.arange(IDX_V.start, DIM_STATE)
 _VERTICAL_CHANNEL = np.r_[IDX_V.stop - 1, np.arange(IDX_BA.start, IDX_BA.stop)]
-# ... after levellings: the velocity (integrated with the drifted tilt), the gyro biases and
-# the wind (through which the turns lean the levelling).
-_LEVELLED = np.r_[IDX_V.start:IDX_V.stop, IDX_BG.start:IDX_BG.stop, IDX_W.start:IDX_W.stop]
+# ... after levellings: the velocity (integrated with the drifted tilt), the gyro biases, the
+# wind (through which the turns lean the levelling) and the horizontal accelerometer biases
+# (which lean it as a tilt does).
+_LEVELLED = np.r_[IDX_V.start:IDX_V.stop, IDX_BG.start:IDX_BG.stop, IDX_W.start:IDX_W.stop,
+                  IDX_BA.start:IDX_BA.start + 2]
 _TILT = np.arange(IDX_TH.start, IDX_TH.start + 2)
 _HORIZONTAL_VELOCITY = np.arange(IDX_V.start, IDX_V.start + 2)
 _TILT_RATE_BIASES = np.arange(IDX_BG.start, IDX_BG.start + 2)   # roll and pitch axes
+_HORIZONTAL_ACCEL_BIASES = np.arange(IDX_BA.start, IDX_BA.start + 2)   # body x and y
 
 
 @dataclass(frozen=True)
