@@ -41,8 +41,12 @@ _CLOUD_PERCENTILE = 90.0
 # The ground's level: this percentile of the textured pixels (the darker quarter: under
 # overcast, most textured pixels are the cloud's own edges).
 _GROUND_PERCENTILE = 25.0
-# A mostly featureless frame's ground beyond its cloud-like regions' edges: found again at
-# most this many times, from at least this share of the frame (a gap in overcast).
+# A frame with fewer than this share of its valid pixels textured is mostly featureless:
+# overcast frames are 8-25 % textured (simulated, raw and ground-projected), real views of
+# 128 px and more at least 48 %, the demo's frames under bright haze at least 69 %.
+_FEATURELESS_FRAME = 1.0 / 3.0
+# Its ground beyond its cloud-like regions' edges: found again at most this many times,
+# from at least this share of the frame (a gap in overcast).
 _GROUND_ITERATIONS = 4
 _MIN_AWAY_SHARE = 0.002
 
@@ -235,19 +239,19 @@ def _terrain_levels(level, ok, featureless, reach, p) -> tuple[float, float]:
     level its clouds outshine (their 90th percentile); infinite when too few are textured
     to say.
 
-    In a frame mostly featureless (fewer than ``1 - max_fraction`` of its valid pixels
-    textured: the frames a "mostly cloud" decision is about), most textured pixels are the
-    edges of its featureless regions, whose levels span the ground's to the cloud's and
-    would raise the ground toward the cloud (under 95 % auto-exposed overcast, above half
-    the cloud's level: none of it was found). Its terrain is then the textured pixels
-    beyond the texture window's reach of the featureless regions brighter than that ground,
-    found in turn while that lowers it; a gap in the overcast is enough. Frames with more
-    texture keep all of it: over real views, where fields and snow are featureless too,
-    their edges are terrain."""
+    In a frame mostly featureless (:data:`_FEATURELESS_FRAME`: the frames a "mostly
+    cloud" decision is about), most textured pixels are the edges of its featureless
+    regions, whose levels span the ground's to the cloud's and would raise the ground
+    toward the cloud (under 95 % auto-exposed overcast, above half the cloud's level: none
+    of it was found). Its terrain is then the textured pixels beyond the texture window's
+    reach of the featureless regions brighter than that ground, found in turn while that
+    lowers it; a gap in the overcast is enough. Frames with more texture keep all of it:
+    in real views fields and snow are featureless too, and their edges are terrain (taken
+    beyond them, PA July's NIR-bright fields beside cloud shadows became cloud)."""
     textured = ok & ~featureless
     terrain, min_share = textured, 0.02
     ground = _terrain_level(level, terrain, _GROUND_PERCENTILE, min_share)
-    if np.count_nonzero(textured) < (1.0 - p.max_fraction) * np.count_nonzero(ok):
+    if np.count_nonzero(textured) < _FEATURELESS_FRAME * np.count_nonzero(ok):
         for _ in range(_GROUND_ITERATIONS):
             if not math.isfinite(ground):
                 break
