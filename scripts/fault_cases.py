@@ -341,6 +341,31 @@ def underexposed_frames(topic, at, decode):
     return _frames_changed(topic, at, decode, 25.0, 45.0, lambda image: np.floor(0.15 * image))
 
 
+def cloud_bank(topic, at, decode):
+    """Camera frames of 25-40 s under a bank of cloud (90 % of the sky, ~600 m clouds whose
+    gaps drift across at 15 m/s), composited in linear radiance (a display gamma of 2.2):
+    a cloud top six times the frame's mean radiance (~0.9 against a hazy ground's ~0.15),
+    the frame auto-exposed to its mean level again, so the cloud is mid-grey. Each frame
+    says "mostly cloud", the filter coasts and the fixes resume after it. (Simulated
+    overcast so exposed at 95 % was found 0 % cloud before session 36.)"""
+    import numpy as np
+
+    from terrain_nav_ros.core.render.cloud_layer import CloudLayer
+
+    sheet = CloudLayer(cover=0.9, size=600.0, wind=(15.0, 0.0), seed=5)
+
+    def clouded(image):
+        rows, cols = np.mgrid[0:image.shape[0], 0:image.shape[1]].astype(np.float32)
+        opacity = sheet.opacity(5.0 * cols, -5.0 * rows, at)   # the bag's ~5 m pixels
+        if image.ndim == 3:
+            opacity = opacity[..., None]
+        ground = (image / 255.0) ** 2.2
+        out = ground * (1.0 - opacity) + 6.0 * float(ground.mean()) * opacity
+        out *= float(ground.mean()) / max(float(out.mean()), 1e-6)   # the auto-exposure
+        return 255.0 * np.clip(out, 0.0, 1.0) ** (1.0 / 2.2)
+    return _frames_changed(topic, at, decode, 25.0, 40.0, clouded)
+
+
 def camera_turned_180(topic, at, decode):
     """Every camera frame turned 180 deg (a camera mounted the other way round, its mount
     not declared): its fixes' heading is 180 deg off from the first and must never be
@@ -853,6 +878,8 @@ def cases() -> list[Case]:
              _fixes_near_truth(hazy_frames, 25.0, 45.0)),
         Case("camera frames under-exposed (x0.15) for 20 s", "flight",
              _fixes_near_truth(underexposed_frames, 25.0, 45.0)),
+        Case("camera frames under a cloud bank for 15 s (auto-exposed)", "flight",
+             _flight(cloud_bank, "mostly cloud", 12)),
         Case("barometer stuck at 90 kPa from 25 s", "flight", _flight(frozen_baro)),
         Case("barometer in hPa", "flight", _flight(baro_in_hpa)),
         Case("barometer frozen at its 25 s reading in a climb", "flight",
