@@ -213,6 +213,37 @@ def test_graph_and_params_file_mistakes_are_named_not_guessed(tmp_path, text, wo
         load_graph(graph)
 
 
+def test_parameters_nodes_must_share_are_refused_when_they_differ(tmp_path):
+    """The geoid height set for the metamap (its DEM heights made ellipsoidal) and not for
+    the autopilot bridge would have PX4 get altitude_msl_m N metres off; an ekf origin other
+    than the metamap's would put its GNSS and /nav/fix in another frame than the fixes. No
+    node can see either, so the graph is refused when loaded, naming the values."""
+    params = tmp_path / "p.yaml"
+    graph = tmp_path / "g.yaml"
+    graph.write_text("params_files: [p.yaml]\nnodes:\n  - {name: metamap}\n  - {name: ekf}\n"
+                     "  - {name: bridge, executable: autopilot_bridge, enabled: false}\n")
+    params.write_text("metamap:\n  ros__parameters: {geoid_undulation: -31.0}\n")
+    assert len(load_graph(graph).nodes) == 2   # no bridge: nothing converts back
+    with pytest.raises(GraphError, match=r"geoid_undulation .* metamap -31; bridge 0"):
+        load_graph(graph, ["bridge"])
+    params.write_text("/**:\n  ros__parameters: {geoid_undulation: -31.0}\n"
+                      "ekf:\n  ros__parameters: {origin_latitude: 36.5}\n")
+    assert len(load_graph(graph, ["bridge"]).nodes) == 3   # one value; the ekf's origin
+    # is half given (a NaN longitude: the metamap's)
+    params.write_text("metamap:\n  ros__parameters: {origin_latitude: 36.5, "
+                      "origin_longitude: -84.2, origin_altitude: 500.0}\n"
+                      "ekf:\n  ros__parameters: {origin_latitude: 36.5, "
+                      "origin_longitude: -84.2}\n")
+    with pytest.raises(GraphError, match=r"origin_latitude.* metamap 36.5, -84.2, 500; "
+                                         r"ekf 36.5, -84.2, 0"):
+        load_graph(graph)
+    graph.write_text(graph.read_text().replace(
+        "{name: ekf}", "{name: ekf, parameters: {origin_altitude: 500.0}}"))
+    assert len(load_graph(graph).nodes) == 2
+    # the shipped files agree
+    assert load_graph(REPO / "config" / "graph.yaml", ["autopilot_bridge"])
+
+
 def _stub_launch_modules(monkeypatch):
     """launch/launch_ros are not installable from PyPI: record what the launch file builds."""
 

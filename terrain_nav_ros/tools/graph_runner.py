@@ -43,6 +43,7 @@ ekf resumes from.
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import shutil
@@ -158,6 +159,7 @@ def load_graph(path: str | Path, enable=()) -> GraphSpec:
     nodes = [n for n in nodes if n.enabled or n.name in enable]
     if not nodes:
         raise GraphError(f"{path}: no nodes")
+    _check_agreement(path, nodes, params_paths)
     profile = None
     if doc.get("dds_profile"):
         _expect(doc["dds_profile"], str, f"{path}: dds_profile", "a file name")
@@ -251,6 +253,48 @@ def _check_params_file(path: Path, node_names: set):
         if block != "/**" and name not in node_names:
             raise GraphError(f"{path}: parameters for {block!r}, which names no node "
                              f"(nodes: {', '.join(sorted(node_names))}); a misspelling?")
+
+
+# Parameters that several nodes take and that must be one value: (executable, its default)
+# per node. Each node converts with its own copy, and a mismatch is no error any node could
+# see: the ENU origin (the ekf's GNSS and /nav/fix against the metamap's tiles, which every
+# fix is in; NaN = the ekf takes the metamap's) and the geoid height (the metamap's DEM
+# heights made ellipsoidal, the bridge's altitude_msl_m made from them again).
+_AGREEING = {
+    ("origin_latitude", "origin_longitude", "origin_altitude"):
+        {"metamap": (math.nan, math.nan, 0.0), "ekf": (math.nan, math.nan, 0.0)},
+    ("geoid_undulation",): {"metamap": (0.0,), "autopilot_bridge": (0.0,)},
+}
+
+
+def _check_agreement(path: Path, nodes: list[NodeSpec], params_files: list[Path]):
+    """Refuse a graph whose nodes would run with different values of a parameter they must
+    share (:data:`_AGREEING`): as given in the params files (a node's block, ``/**``), then
+    its ``parameters`` in the graph file, else its default. Values with a NaN are not
+    compared: the ekf's origin is then the metamap's, the metamap's its DEM's centre."""
+    docs = [yaml.safe_load(p.read_text()) or {} for p in params_files]
+    for keys, defaults in _AGREEING.items():
+        seen = {}
+        for node in nodes:
+            if node.executable not in defaults:
+                continue
+            given = {}
+            for doc in docs:
+                for block in ("/**", node.name, f"/{node.name}"):
+                    entries = doc.get(block)
+                    entries = entries.get("ros__parameters") if isinstance(entries, dict) \
+                        else None
+                    given.update(entries if isinstance(entries, dict) else {})
+            given.update(node.parameters)
+            values = tuple(given.get(k, d) for k, d in zip(keys, defaults[node.executable],
+                                                                strict=True))
+            if all(isinstance(v, int | float) and math.isfinite(v) for v in values):
+                seen[node.name] = values
+        if len({tuple(round(float(v), 9) for v in vals) for vals in seen.values()}) > 1:
+            found = "; ".join(f"{name} {', '.join(f'{v:g}' for v in vals)}"
+                              for name, vals in seen.items())
+            raise GraphError(f"{path}: {', '.join(keys)} must be the same for every node "
+                             f"that takes them, but {found}: set them once, alike")
 
 
 def _expect(value, kind: type, what: str, expected: str):
