@@ -341,6 +341,38 @@ def underexposed_frames(topic, at, decode):
     return _frames_changed(topic, at, decode, 25.0, 45.0, lambda image: np.floor(0.15 * image))
 
 
+def defocused_frames(topic, at, decode):
+    """Camera frames of 25-45 s out of focus (a Gaussian blur of 3 px sigma: a lens
+    fogged or shaken loose): the valleys the matcher uses are tens of pixels wide, so the
+    fixes go on."""
+    import cv2
+
+    return _frames_changed(topic, at, decode, 25.0, 45.0,
+                           lambda image: cv2.GaussianBlur(image, (0, 0), 3.0))
+
+
+def noisy_frames(topic, at, decode):
+    """Camera frames of 25-45 s with a sensor's noise at high gain (Gaussian, 25 grey levels
+    per pixel, new in each frame): no crease of the noise may become a fix elsewhere."""
+    import numpy as np
+
+    noise = np.random.default_rng(int(at * 1000))
+    return _frames_changed(topic, at, decode, 25.0, 45.0,
+                           lambda image: image + noise.normal(0.0, 25.0, image.shape))
+
+
+def overexposed_frames(topic, at, decode):
+    """Camera frames of 25-45 s exposed 1.5 x too long: the brightest 13-22 % of each
+    clipped at full scale, the rest of the terrain as it was."""
+    return _frames_changed(topic, at, decode, 25.0, 45.0, lambda image: 1.5 * image)
+
+
+def saturated_frames(topic, at, decode):
+    """Camera frames of 25-45 s exposed 3 x too long: every pixel clipped white (glare, an
+    exposure control that failed). Each says it is bright and featureless, none is a fix."""
+    return _frames_changed(topic, at, decode, 25.0, 45.0, lambda image: 3.0 * image)
+
+
 def cloud_bank(topic, at, decode):
     """Camera frames of 25-40 s under a bank of cloud (90 % of the sky, ~600 m clouds whose
     gaps drift across at 15 m/s), composited in linear radiance (a display gamma of 2.2):
@@ -382,10 +414,11 @@ def camera_turned_180(topic, at, decode):
     return msg
 
 
-def camera_tilted(pitch_deg: float, roll_deg: float = 0.0,
+def camera_tilted(pitch_deg: float, roll_deg: float = 0.0, yaw_deg: float = 0.0,
                   bag: str = "jacksboro_short") -> Callable:
     """Every camera frame of ``bag`` as a camera mounted ``pitch_deg`` forward and
-    ``roll_deg`` to the right of its declared mount would see it (not declared): the
+    ``roll_deg`` to the right of its declared mount, turned ``yaw_deg`` about its optical
+    axis, would see it (not declared): the
     frames' ground points move by the height above ground times the tilt (2 deg: 116 m at
     the short bag's 3300 m), turning with the heading. The filter, taking that for its own
     tilt error, once ended 110 m off; it estimates the mount's tilt now."""
@@ -400,19 +433,20 @@ def camera_tilted(pitch_deg: float, roll_deg: float = 0.0,
         if "xy" not in maps:
             info = bags.decode(next(iter(bags.read(REPO / "bags" / bag,
                                                    ["/camera/camera_info"]))))
-            maps["xy"] = _tilted_camera_maps(info, pitch_deg, roll_deg)
+            maps["xy"] = _tilted_camera_maps(info, pitch_deg, roll_deg, yaw_deg)
         return cv2.remap(image, *maps["xy"], cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_REFLECT_101)
 
     return lambda topic, at, decode: _frames_changed(topic, at, decode, 0.0, math.inf, tilted)
 
 
-def _tilted_camera_maps(info, pitch_deg: float, roll_deg: float):
+def _tilted_camera_maps(info, pitch_deg: float, roll_deg: float, yaw_deg: float = 0.0):
     """cv2.remap maps that turn a frame of the camera of ``info`` (sensor_msgs/CameraInfo,
     plumb_bob) into the frame of that camera turned about its x axis (image right: the
     aircraft's right for a nadir camera whose image up is forward) by ``pitch_deg`` and its
-    y axis by ``roll_deg``: each pixel's ray, undistorted, turned back into the declared
-    camera and projected with its distortion."""
+    y axis by ``roll_deg`` (and its z axis, the optical one, by ``yaw_deg``): each pixel's
+    ray, undistorted, turned back into the declared camera and projected with its
+    distortion."""
     import cv2
     import numpy as np
     from scipy.spatial.transform import Rotation
@@ -423,7 +457,8 @@ def _tilted_camera_maps(info, pitch_deg: float, roll_deg: float):
     pixels = np.stack([cols.ravel(), rows.ravel()], -1).reshape(-1, 1, 2)
     rays = cv2.undistortPoints(pixels, K, D, criteria=(
         cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)).reshape(-1, 2)
-    turn = Rotation.from_euler("xy", [pitch_deg, roll_deg], degrees=True).as_matrix()
+    turn = Rotation.from_euler("xyz", [pitch_deg, roll_deg, yaw_deg],
+                               degrees=True).as_matrix()
     declared = np.c_[rays, np.ones(len(rays))] @ turn.T
     seen, _ = cv2.projectPoints(declared.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, D)
     seen = seen.reshape(info.height, info.width, 2).astype(np.float32)
@@ -865,6 +900,8 @@ def cases() -> list[Case]:
              _flight(camera_tilted(2.0))),
         Case("camera mounted 2 deg off in roll (not declared)", "flight",
              _flight(camera_tilted(0.0, 2.0))),
+        Case("camera mounted 3 deg off in yaw (not declared)", "flight",
+             _flight(camera_tilted(0.0, 0.0, 3.0))),
         Case("GNSS at (0, 0) for its first second", "flight", _flight(gnss_at_zero_first)),
         Case("GNSS stamped 18 s ahead (GPS time, IMU in UTC)", "flight",
              _refused_imu(gnss_on_gps_time, "another clock, GPS time against UTC?")),
@@ -880,6 +917,14 @@ def cases() -> list[Case]:
              _fixes_near_truth(underexposed_frames, 25.0, 45.0)),
         Case("camera frames under a cloud bank for 15 s (auto-exposed)", "flight",
              _flight(cloud_bank, "mostly cloud", 12)),
+        Case("camera frames out of focus (3 px blur) for 20 s", "flight",
+             _fixes_near_truth(defocused_frames, 25.0, 45.0)),
+        Case("camera frames with sensor noise (25 grey levels) for 20 s", "flight",
+             _fixes_near_truth(noisy_frames, 25.0, 45.0)),
+        Case("camera frames over-exposed (x1.5, highlights clipped) for 20 s", "flight",
+             _fixes_near_truth(overexposed_frames, 25.0, 45.0)),
+        Case("camera frames saturated white (x3) for 20 s", "flight",
+             _flight(saturated_frames, "bright and featureless", 18)),
         Case("barometer stuck at 90 kPa from 25 s", "flight", _flight(frozen_baro)),
         Case("barometer in hPa", "flight", _flight(baro_in_hpa)),
         Case("barometer frozen at its 25 s reading in a climb", "flight",
