@@ -385,16 +385,17 @@ def cloud_bank(topic, at, decode):
     from terrain_nav_ros.core.render.cloud_layer import CloudLayer
 
     sheet = CloudLayer(cover=0.9, size=600.0, wind=(15.0, 0.0), seed=5)
+    gamma = 2.2
 
     def clouded(image):
         rows, cols = np.mgrid[0:image.shape[0], 0:image.shape[1]].astype(np.float32)
         opacity = sheet.opacity(5.0 * cols, -5.0 * rows, at)   # the bag's ~5 m pixels
         if image.ndim == 3:
             opacity = opacity[..., None]
-        ground = (image / 255.0) ** 2.2
+        ground = (image / 255.0) ** gamma
         out = ground * (1.0 - opacity) + 6.0 * float(ground.mean()) * opacity
         out *= float(ground.mean()) / max(float(out.mean()), 1e-6)   # the auto-exposure
-        return 255.0 * np.clip(out, 0.0, 1.0) ** (1.0 / 2.2)
+        return 255.0 * np.clip(out, 0.0, 1.0) ** (1.0 / gamma)
     return _frames_changed(topic, at, decode, 25.0, 40.0, clouded)
 
 
