@@ -150,8 +150,8 @@ def load_graph(path: str | Path, enable=()) -> GraphSpec:
     names = [n.name for n in nodes]
     if len(set(names)) != len(names):
         raise GraphError(f"{path}: duplicate node names in {names}")
-    for params_path in params_paths:
-        _check_params_file(params_path, set(names) | set(NODES))
+    params_docs = [_check_params_file(params_path, set(names) | set(NODES))
+                   for params_path in params_paths]
     unknown = set(enable) - set(names)
     if unknown:
         raise GraphError(f"{path}: cannot enable {', '.join(sorted(unknown))}: not in the "
@@ -159,7 +159,7 @@ def load_graph(path: str | Path, enable=()) -> GraphSpec:
     nodes = [n for n in nodes if n.enabled or n.name in enable]
     if not nodes:
         raise GraphError(f"{path}: no nodes")
-    _check_agreement(path, nodes, params_paths)
+    _check_agreement(path, nodes, params_docs)
     profile = None
     if doc.get("dds_profile"):
         _expect(doc["dds_profile"], str, f"{path}: dds_profile", "a file name")
@@ -239,10 +239,11 @@ def _node_spec(path: Path, entry) -> NodeSpec:
     return spec
 
 
-def _check_params_file(path: Path, node_names: set):
+def _check_params_file(path: Path, node_names: set) -> dict:
     """A ROS 2 parameters file whose blocks are all for a node (of the graph, or one this
     package has), with no key given twice: a misspelt block would leave its node on the
-    defaults, a repeated key would silently replace the first, and the node would start."""
+    defaults, a repeated key would silently replace the first, and the node would start.
+    Returns the file's blocks."""
     try:
         doc = yaml.load(path.read_text(), Loader=_UniqueKeyLoader) or {}
     except (OSError, yaml.YAMLError) as err:
@@ -253,6 +254,7 @@ def _check_params_file(path: Path, node_names: set):
         if block != "/**" and name not in node_names:
             raise GraphError(f"{path}: parameters for {block!r}, which names no node "
                              f"(nodes: {', '.join(sorted(node_names))}); a misspelling?")
+    return doc
 
 
 # Parameters that several nodes take and that must be one value: (executable, its default)
@@ -267,27 +269,20 @@ _AGREEING = {
 }
 
 
-def _check_agreement(path: Path, nodes: list[NodeSpec], params_files: list[Path]):
+def _check_agreement(path: Path, nodes: list[NodeSpec], params_docs: list[dict]):
     """Refuse a graph whose nodes would run with different values of a parameter they must
-    share (:data:`_AGREEING`): as given in the params files (a node's block, ``/**``), then
-    its ``parameters`` in the graph file, else its default. Values with a NaN are not
-    compared: the ekf's origin is then the metamap's, the metamap's its DEM's centre."""
-    docs = [yaml.safe_load(p.read_text()) or {} for p in params_files]
+    share (:data:`_AGREEING`): as given in the params files' blocks ``params_docs`` (a
+    node's block, ``/**``), then its ``parameters`` in the graph file, else its default.
+    Values with a NaN are not compared: the ekf's origin is then the metamap's, the
+    metamap's its DEM's centre."""
+    given = {node.name: _given_parameters(node, params_docs) for node in nodes}
     for keys, defaults in _AGREEING.items():
         seen = {}
         for node in nodes:
             if node.executable not in defaults:
                 continue
-            given = {}
-            for doc in docs:
-                for block in ("/**", node.name, f"/{node.name}"):
-                    entries = doc.get(block)
-                    entries = entries.get("ros__parameters") if isinstance(entries, dict) \
-                        else None
-                    given.update(entries if isinstance(entries, dict) else {})
-            given.update(node.parameters)
-            values = tuple(given.get(k, d) for k, d in zip(keys, defaults[node.executable],
-                                                                strict=True))
+            values = tuple(given[node.name].get(k, d) for k, d in
+                           zip(keys, defaults[node.executable], strict=True))
             if all(isinstance(v, int | float) and math.isfinite(v) for v in values):
                 seen[node.name] = values
         if len({tuple(round(float(v), 9) for v in vals) for vals in seen.values()}) > 1:
@@ -295,6 +290,19 @@ def _check_agreement(path: Path, nodes: list[NodeSpec], params_files: list[Path]
                               for name, vals in seen.items())
             raise GraphError(f"{path}: {', '.join(keys)} must be the same for every node "
                              f"that takes them, but {found}: set them once, alike")
+
+
+def _given_parameters(node: NodeSpec, params_docs: list[dict]) -> dict:
+    """The parameters ``node`` is given: its blocks of the params files (``/**``, then its
+    own), then its ``parameters`` in the graph file."""
+    given = {}
+    for doc in params_docs:
+        for block in ("/**", node.name, f"/{node.name}"):
+            entries = doc.get(block)
+            entries = entries.get("ros__parameters") if isinstance(entries, dict) else None
+            given.update(entries if isinstance(entries, dict) else {})
+    given.update(node.parameters)
+    return given
 
 
 def _expect(value, kind: type, what: str, expected: str):
