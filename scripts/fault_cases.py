@@ -539,6 +539,27 @@ def nodata_geotiff(path: Path) -> Path:
     return path
 
 
+def jacksboro_cut_east_of(path: Path, bag: Path, east: float) -> Path:
+    """The embedded Jacksboro DEM as a GeoTIFF ending ``east`` m east of ``bag``'s mission
+    origin (the columns beyond cut off): a mission DEM the flight leaves."""
+    import math
+
+    import rasterio
+    import yaml
+
+    from terrain_nav_ros.core.terrain.dem_io import sample_dem
+
+    lat, lon, _ = yaml.safe_load((bag / "mission.yaml").read_text())["origin"]
+    dem = sample_dem()
+    z, t = dem.read(), dem.transform
+    edge = lon + east / (111_320.0 * math.cos(math.radians(lat)))
+    cols = int((edge - t.c) / t.a)
+    with rasterio.open(path, "w", driver="GTiff", width=cols, height=z.shape[0], count=1,
+                       dtype=str(z.dtype), crs="EPSG:4326", transform=t) as ds:
+        ds.write(z[:, :cols], 1)
+    return path
+
+
 def scene_image(path: Path, dem: Path, *, crs: str | None = "EPSG:32611",
                 east: float = 0.0) -> Path:
     """A uint8 image of ``dem`` (a :func:`relief_geotiff`): its hillshade, in ``crs`` (None:
@@ -954,6 +975,8 @@ def cases() -> list[Case]:
              _flight(focal_length_off(1.1))),
         Case("CameraInfo focal length 10 % short (not declared)", "flight",
              _flight(focal_length_off(0.9))),
+        Case("mission DEM ending 1 km east of the start (the flight leaves it)", "flight",
+             _past_the_dem_s_edge(1000.0, 40.0)),
         Case("GNSS jammed from the start (replay --lost 0 0)", "flight",
              _flight(None, options=("--lost", "0", "0"))),
         Case("IMU stamp 5 s in the past, GNSS gone", "ekf", _ekf_stamp(-5.0)),
@@ -970,15 +993,17 @@ def _prepare(options: tuple, words: str):
 
 
 def _flight(change: Callable | None, reason: str = "", at_least: int = 0,
-            kill: str = "", options: tuple = ()) -> Callable:
+            kill: str = "", options: tuple = (), bag: str | Path = "jacksboro_short"
+            ) -> Callable:
     """The short bag changed by ``change`` (:func:`~terrain_nav_ros.tools.bags.changed_copy`)
     and replayed: GOOD when the fused error, horizontal and height, stays bounded (3 x 20
     m), every frame is answered and, with ``reason``, at least ``at_least`` frames get a
     no-fix saying it. With ``kill``, that node is killed (SIGKILL) 20 s into the flight: GOOD
     also needs it respawned, and the frames of its restart (up to 8: the respawn delay and
-    the node's start-up, 2-5 s) may go unanswered. ``options`` go to ``replay``."""
+    the node's start-up, 2-5 s) may go unanswered. ``options`` go to ``replay``; ``bag``
+    names one of bags/ or is a bag's folder."""
     def run(tmp: Path):
-        report, failed = _replayed(tmp, change, kill, options=options)
+        report, failed = _replayed(tmp, change, kill, bag=bag, options=options)
         if report is None:
             return BAD, failed
         fixes, fused = report["fixes"], report["fused_error"]
@@ -1018,6 +1043,34 @@ def _fixes_near_truth(change: Callable, start: float, end: float) -> Callable:
         if worst > 3 * 20.0:
             return BAD, detail
         return (verdict if made >= 0.5 * (end - start) else POOR), detail
+    return run
+
+
+def _past_the_dem_s_edge(east: float, after: float) -> Callable:
+    """The short bag replayed over its DEM cut off ``east`` m east of the start: the flight
+    (heading east) leaves it ``after`` s in. GOOD as :func:`_flight`, with no fix off the
+    truth by more than 3 landmark pixels (60 m) and the frames past the edge still fixed on
+    the ground the DEM holds, for at least half of them; POOR when they are not."""
+    def run(tmp: Path):
+        import shutil
+
+        import yaml
+
+        from terrain_nav_ros.tools.cli import REPO
+
+        bag = Path(shutil.copytree(REPO / "bags" / "jacksboro_short", tmp / "bag"))
+        mission = yaml.safe_load((bag / "mission.yaml").read_text())
+        mission["dem"] = str(jacksboro_cut_east_of(tmp / "cut.tif", bag, east))
+        (bag / "mission.yaml").write_text(yaml.safe_dump(mission))
+        verdict, detail = _flight(None, bag=bag)(tmp)
+        report = _last_report(tmp)
+        if report is None:
+            return verdict, detail
+        worst, made = report["fix_error"]["max"], _fixes_between(tmp, after, 60.0)
+        detail += f", fix error max {worst:.1f} m, {made} fixes past the edge"
+        if worst > 3 * 20.0:
+            return BAD, detail
+        return (verdict if made >= 0.5 * (60.0 - after) else POOR), detail
     return run
 
 
@@ -1091,10 +1144,11 @@ def gyro_in_deg_until_80_s(topic, at, decode):
 
 
 def _replayed(tmp: Path, change: Callable | None, kill: str = "",
-              bag: str = "jacksboro_short", options: tuple = ()) -> tuple[dict | None, str]:
-    """``bag`` (of bags/) changed by ``change`` (None: as it is) replayed with ``options``,
-    ``kill`` killed in it (:func:`_replay_killing`): its report.yaml, or None and why there
-    is none."""
+              bag: str | Path = "jacksboro_short",
+              options: tuple = ()) -> tuple[dict | None, str]:
+    """``bag`` (of bags/, or a bag's folder) changed by ``change`` (None: as it is) replayed
+    with ``options``, ``kill`` killed in it (:func:`_replay_killing`): its report.yaml, or
+    None and why there is none."""
     import yaml
 
     from terrain_nav_ros.tools import bags

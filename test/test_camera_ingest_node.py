@@ -33,17 +33,17 @@ def _frame(stamp_ns):
 ORIGIN = (46.5, 7.5, 0.0)
 
 
-def _inputs(node):
+def _inputs(node, heights=None):
     """Publishers of camera_ingest's inputs, once it listens, with the flat terrain's tile
-    published (latched); and the camera's CameraInfo."""
+    (or ``heights`` on its grid) published (latched); and the camera's CameraInfo."""
     pubs = {t: node.create_publisher(m, t, q) for t, m, q in (
         ("/camera/image_raw", Image, 10), ("/camera/camera_info", CameraInfo, 10),
         ("/nav/odometry", Odometry, 10), ("/metamap/tile", DemTile, LATCHED_QOS))}
     assert wait_until(lambda: all(p.get_subscription_count() for p in pubs.values()), 20)
     tile = GeoReference.centred(1000.0, 2000.0, 20.0, 200, 200)
     pubs["/metamap/tile"].publish(cv.dem_tile_to_msg(
-        np.full(tile.shape, 100.0, np.float32), tile, Header(frame_id="map"),
-        enu_origin=ORIGIN))
+        np.full(tile.shape, 100.0, np.float32) if heights is None else heights, tile,
+        Header(frame_id="map"), enu_origin=ORIGIN))
     info = cv.intrinsics_to_camera_info(np.array([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2],
                                                   [0, 0, 1]]), [0] * 5, W, H)
     return pubs, info
@@ -412,3 +412,36 @@ def test_a_frame_ahead_of_the_estimate_waits_for_it():
         stop(node)
     assert cv.stamp_to_ns(waited.header.stamp) == stamp and not waited.reason
     assert "older than the frame (after waiting 3 s for it)" in abandoned.reason
+
+
+def test_a_frame_taken_past_the_dem_s_edge_shows_the_ground_the_dem_holds():
+    """The aircraft 100 m past the DEM's eastern edge (its tile nodata there): the frame is
+    projected on the ground west of the edge that the DEM holds, observed there only, not
+    refused for want of heights under the aircraft."""
+    heights = np.full((200, 200), 100.0, np.float32)    # the tile of _inputs: E -1000..3000
+    heights[:, 95:] = np.nan                            # nodata east of E = 900
+    node = start_node("camera_ingest", {"gsd": 5.0})
+    client = SpinningNode("ingest_edge_client")
+    got = []
+    try:
+        n = client.node
+        n.create_subscription(GeoImage, "/camera/image_ground", got.append, 10)
+        pubs, info = _inputs(n, heights)
+        sent = [1_750_000_000 * 10**9]
+
+        def publish_and_check():
+            sent.append(sent[-1] + 10**6)
+            pubs["/camera/camera_info"].publish(info)
+            pubs["/nav/odometry"].publish(_odometry(sent[-1]))
+            pubs["/camera/image_raw"].publish(_frame(sent[-1]))
+            return any(m.image.width for m in got)
+
+        assert wait_until(publish_and_check, 20, period=0.3), stop(node)
+    finally:
+        client.close()
+        stop(node)
+    image, georef, valid = cv.msg_to_geo_image(next(m for m in got if m.image.width))
+    east = georef.pixel_to_enu(np.arange(georef.width, dtype=float), 0.0)[0]
+    # heading east, the view spans E 700..1300 (150 px x 1000 m / 500 px each side of nadir)
+    assert east.min() < 710.0 and east.max() > 1290.0
+    assert valid[:, east < 890.0].mean() > 0.9 and not valid[:, east > 910.0].any()

@@ -16,6 +16,7 @@ from terrain_nav_ros.core.camera.ground_projection import (
     mean_height_near,
     nadir_rotation,
     project_to_ground,
+    projection_plane,
 )
 from terrain_nav_ros.core.terrain.georef import GeoReference
 
@@ -236,6 +237,38 @@ def test_mean_height_near_says_why_there_is_none():
         None, "the DEM has no heights under the aircraft (nodata or voids)")
     assert mean_height_near(heights, georef, 5000.0, 500.0, 100.0) == (
         None, "the DEM tile does not reach the aircraft yet")
+
+
+def test_a_view_from_beyond_the_dem_s_edge_is_projected_on_the_ground_the_dem_holds():
+    """An aircraft past the DEM's edge (a coast, a mission DEM's border) still sees the
+    ground the DEM holds: the frame is projected there, on that ground's height, and the
+    pixels beyond the edge are not observed. Farther out, where its view holds no DEM
+    either, it is a no-fix saying why."""
+    from terrain_nav_ros.core.camera.orthorectify import heights_on, orthorectify
+
+    tile = GeoReference.centred(0.0, 0.0, 20.0, 500, 500)     # 10 km square
+    heights = np.full(tile.shape, 300.0, np.float32)
+    heights[:, 250:] = np.nan                                   # nodata east of E = 0
+    intr = CameraIntrinsics(500.0, 500.0, 319.5, 239.5, 640, 480)   # 3.8 x 2.9 km at 3 km
+    past = CameraPose([1000.0, 0.0, 3300.0], nadir_rotation())       # 1 km past the edge
+    plane, footprint, max_range, why = projection_plane(heights, tile, intr, past, 20.0, 3.0)
+    assert why == "" and plane == pytest.approx(300.0)
+    assert max_range == pytest.approx(9000.0)
+    west, _ = footprint.pixel_to_enu(0.0, 0.0)
+    east, _ = footprint.pixel_to_enu(footprint.width - 1.0, 0.0)
+    assert west == pytest.approx(1000.0 - 1920.0, abs=25.0) and east > 2800.0
+    ground = orthorectify(np.full((480, 640), 90, np.uint8), intr, past,
+                          heights_on(footprint, heights, tile), footprint)
+    cols = footprint.pixel_to_enu(np.arange(footprint.width, dtype=float), 0.0)[0]
+    assert ground.valid[:, cols < -20.0].all() and not ground.valid[:, cols > 20.0].any()
+    far = CameraPose([3000.0, 0.0, 3300.0], nadir_rotation())        # the view ends 1 km east
+    assert projection_plane(heights, tile, intr, far, 20.0, 3.0)[1:] == (
+        None, pytest.approx(np.nan, nan_ok=True), "the DEM has no heights under the aircraft "
+        "(nodata or voids)")
+    over = CameraPose([-3000.0, 0.0, 3300.0], nadir_rotation())      # over the DEM: as before
+    plane, footprint, _, _ = projection_plane(heights, tile, intr, over, 20.0, 3.0)
+    assert plane == pytest.approx(300.0) and footprint.centre == pytest.approx((-3000.0, 0.0),
+                                                                               abs=20.0)
 
 
 def test_a_mount_is_chained_through_static_frames_and_read_back_as_angles():

@@ -55,8 +55,8 @@ from ..core.camera.ground_projection import (
     CameraPose,
     check_view,
     footprint_georef,
-    mean_height_near,
     project_to_ground,
+    projection_plane,
 )
 from ..core.camera.orthorectify import heights_on, orthorectify
 from ..core.camera.pose_buffer import PoseBuffer, StampedPose
@@ -82,6 +82,9 @@ from .ros_common import (
 # cold start: frames this long after the last odometry are projected pose-free again (the
 # filter was reset); within it, a frame without a pose is a no-fix as without cold start (s)
 COLD_START_GAP = 2.0
+# a frame is projected where the DEM covers at least this share of its footprint raster (its
+# other pixels are not observed: beyond the DEM there is no landmark to match them against)
+MIN_DEM_COVER = 0.1
 # Frames waiting for the estimate at most (raw frames are megabytes; at 1-10 Hz a second's)
 _MAX_WAITING = 10
 
@@ -296,14 +299,6 @@ class CameraIngestNode(Node):
                                                   f"frame not projected: {reason}"))
         self.get_logger().warning(f"frame not projected: {reason}", throttle_duration_sec=2.0)
 
-    def terrain_height(self, east: float, north: float,
-                       radius: float) -> tuple[float | None, str]:
-        """Mean DEM height within ``radius`` of (east, north) from the latest tile, or None
-        and why not."""
-        if self.tile is None:
-            return None, "no DEM tile under the aircraft yet"
-        return mean_height_near(*self.tile, east, north, radius)
-
     def ingest(self, image: np.ndarray, encoding: str, header) -> None:
         """Project one frame; every frame comes out, projected or with the reason why not."""
         restarts = self.frames.restarts
@@ -360,28 +355,24 @@ class CameraIngestNode(Node):
             return
         camera = CameraPose(pose.position, camera_rotation(
             pose.quaternion, self.mount.rotation(header.frame_id)))
-        # Terrain plane: mean height near nadir, then over the footprint it implies.
-        plane, why = self.terrain_height(pose.position[0], pose.position[1], 200.0)
-        if plane is None:
-            self.drop(why, header)
+        if self.tile is None:
+            self.drop("no DEM tile under the aircraft yet", header)
             return
-        agl = pose.position[2] - plane
-        max_range = self.max_range_factor * max(agl, 1.0)
-        georef = footprint_georef(self.intrinsics, camera, plane, self.gsd, max_range)
-        if georef is not None:
-            centre = georef.centre
-            better, _ = self.terrain_height(centre[0], centre[1],
-                                            0.5 * max(georef.width, georef.height) * self.gsd)
-            if better is not None and better < pose.position[2]:
-                plane = better
-                georef = footprint_georef(self.intrinsics, camera, plane, self.gsd, max_range)
+        plane, georef, max_range, why = projection_plane(
+            *self.tile, self.intrinsics, camera, self.gsd, self.max_range_factor)
         if georef is None:
-            self.drop(check_view(self.intrinsics, camera, plane), header)
+            self.drop(why, header)
             return
         georef = self._capped(georef)
         bgr = encoding.startswith("bgr")
-        heights = heights_on(georef, *self.tile) if self.orthorectify else None
-        if heights is not None and np.isfinite(heights).mean() > 0.5:
+        if self.orthorectify:
+            # each pixel at its own DEM height; beyond the DEM (its edge, a void) not observed
+            heights = heights_on(georef, *self.tile)
+            cover = float(np.isfinite(heights).mean())
+            if cover < MIN_DEM_COVER:
+                self.drop(f"the DEM covers {cover:.0%} of the view (at least "
+                          f"{MIN_DEM_COVER:.0%} needed)", header)
+                return
             ground = orthorectify(image, self.intrinsics, camera, heights, georef, bgr,
                                   max_range)
         else:

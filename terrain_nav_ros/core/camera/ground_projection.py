@@ -23,6 +23,7 @@ Views that cannot be projected at all come back with a ``reason``.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -337,8 +338,59 @@ def mean_height_near(heights: np.ndarray, georef: GeoReference, east: float, nor
         return None, "the DEM tile does not reach the aircraft yet"
     window = heights[r0:r1, c0:c1]
     if not np.isfinite(window).any():
-        return None, "the DEM has no heights under the aircraft (nodata or voids)"
+        return None, NO_HEIGHTS_BELOW
     return float(np.nanmean(window)), ""
+
+
+NO_HEIGHTS_BELOW = "the DEM has no heights under the aircraft (nodata or voids)"
+# radius (m) around the nadir whose mean DEM height is the first guess of the ground plane
+NADIR_RADIUS = 200.0
+
+
+def projection_plane(heights: np.ndarray, georef: GeoReference, intr: CameraIntrinsics,
+                     pose: CameraPose, gsd: float, max_range_factor: float
+                     ) -> tuple[float | None, GeoReference | None, float, str]:
+    """The terrain plane a frame is projected on, the raster of its footprint and the
+    horizontal range cut, or ``(None, None, nan, why)``.
+
+    The plane is the mean DEM height near the nadir, then over the footprint that plane
+    implies (a view's ground lies above or below its nadir's). An aircraft past the DEM's
+    edge, or above a void, may still see ground the DEM holds (on a coast, or flying along a
+    mission DEM's edge): the footprint of a plane at the tile's median height is measured
+    instead, and the frame is a no-fix only when that footprint holds no heights either.
+    Ground is cut at ``max_range_factor`` times the height above the first plane.
+
+    Parameters
+    ----------
+    heights : ndarray
+        DEM tile heights (NaN = nodata) on ``georef``.
+    intr, pose : CameraIntrinsics, CameraPose
+    gsd : float
+        Ground raster's GSD (m/px).
+    max_range_factor : float
+        Farthest ground projected, in heights above ground.
+    """
+    plane, why = mean_height_near(heights, georef, pose.position[0], pose.position[1],
+                                  NADIR_RADIUS)
+    below = plane is not None
+    if not below:
+        finite = heights[np.isfinite(heights)]
+        if why != NO_HEIGHTS_BELOW or not finite.size or np.median(finite) >= pose.position[2]:
+            return None, None, math.nan, why
+        plane = float(np.median(finite))
+    max_range = max_range_factor * max(pose.position[2] - plane, 1.0)
+    footprint = footprint_georef(intr, pose, plane, gsd, max_range)
+    if footprint is not None:
+        half = 0.5 * max(footprint.width, footprint.height) * gsd
+        seen, _ = mean_height_near(heights, georef, *footprint.centre, half)
+        if seen is not None and seen < pose.position[2]:
+            plane = seen
+            footprint = footprint_georef(intr, pose, plane, gsd, max_range)
+        elif not below:
+            return None, None, math.nan, why   # nor anywhere in view
+    if footprint is None:
+        return None, None, math.nan, check_view(intr, pose, plane)
+    return plane, footprint, max_range, ""
 
 
 def footprint_georef(intr: CameraIntrinsics, pose: CameraPose, plane_height: float,
