@@ -211,6 +211,9 @@ def test_a_study_gsd_resamples_both(tmp_path):
     (("coastal", "OLI B5"), 2),
     (("MSI B4", "MSI B8A"), 2),
     (("red", "Near-Infrared"), 2),
+    (("blue", "green", "red", "nir08", "swir16"), 4),     # STAC's asset keys (Landsat C2)
+    (("B02", "B03", "B04", "B8A", "B11"), 4),             # Sentinel-2's narrow NIR band
+    (("B1", "B2", "B3", "B8"), None),                     # Landsat's B8 is panchromatic
     ((None, None, None), None),
     (("B1", "B2", "B4"), None),       # no sensor named: B4 may be anything
     (("red", "green", "blue"), None),

@@ -37,9 +37,11 @@ __all__ = ["ImageError", "OrthoImage", "nir_band", "utm_crs", "lonlat", "centre_
 
 # Band descriptions that name the near infrared: by name, or the NIR band of Landsat TM /
 # ETM+ (B4), OLI (B5) and Sentinel-2 MSI (B8, B8A) when the sensor is named with it.
-_NIR_NAMES = re.compile(r"\bnir\b|near[- ]?infra[- ]?red", re.IGNORECASE)
-_NIR_BANDS = re.compile(r"\b(?:TM|ETM\+?)\s*B0?4\b|\bOLI\s*B0?5\b|\bMSI\s*B0?8A?\b",
-                        re.IGNORECASE)
+# "nir", "NIR_1", STAC's asset keys "nir08" / "nir09", "near-infrared"
+_NIR_NAMES = re.compile(r"\bnir(?:\d*|_\w*)\b|near[- ]?infra[- ]?red", re.IGNORECASE)
+# named by sensor and band; Sentinel-2's B8A (narrow NIR) is no other sensor's band
+_NIR_BANDS = re.compile(r"\b(?:TM|ETM\+?)\s*B0?4\b|\bOLI\s*B0?5\b|\bMSI\s*B0?8A?\b"
+                        r"|\bB8A\b", re.IGNORECASE)
 # An undeclared fill covers at least this share of a band's pixels (a plateau, not a tail).
 _FILL_SHARE = 0.005
 # Pixels whose value statistics judge a fill (every k-th of a larger band).
