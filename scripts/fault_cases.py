@@ -415,6 +415,20 @@ def camera_turned_180(topic, at, decode):
     return msg
 
 
+def camera_mirrored(topic, at, decode):
+    """Every camera frame mirrored left to right (a driver's flip option, a camera mounted
+    through a mirror): no turn of the frame lies on the terrain, so none may become a fix."""
+    if topic not in CAMERA_TOPICS:
+        return None
+    import cv2
+    import numpy as np
+
+    msg = decode()
+    image = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_UNCHANGED)
+    msg.data = np.frombuffer(cv2.imencode(".jpg", cv2.flip(image, 1))[1].tobytes(), np.uint8)
+    return msg
+
+
 def camera_tilted(pitch_deg: float, roll_deg: float = 0.0, yaw_deg: float = 0.0,
                   bag: str = "jacksboro_short") -> Callable:
     """Every camera frame of ``bag`` as a camera mounted ``pitch_deg`` forward and
@@ -929,6 +943,8 @@ def cases() -> list[Case]:
              _refused_imu(gnss_on_gps_time, "another clock, GPS time against UTC?")),
         Case("camera frames turned 180 deg (mount not declared)", "flight",
              _flight(camera_turned_180)),
+        Case("camera frames mirrored left to right (a driver's flip)", "flight",
+             _flight(camera_mirrored, "below threshold", 40)),
         Case("camera lens covered for 10 s (black frames)", "flight", _flight(
             covered_lens, "image is constant", 10)),
         Case("camera frames banded for 20 s (a sensor's row banding)", "flight",
@@ -1037,7 +1053,7 @@ def _fixes_near_truth(change: Callable, start: float, end: float) -> Callable:
         report = _last_report(tmp)
         if report is None:
             return verdict, detail
-        worst = report["fix_error"]["max"]
+        worst = (report.get("fix_error") or {}).get("max", 0.0)   # none without fixes
         made = _fixes_between(tmp, start, end)
         detail += f", fix error max {worst:.1f} m, {made} fixes in {start:g}-{end:g} s"
         if worst > 3 * 20.0:
@@ -1066,7 +1082,8 @@ def _past_the_dem_s_edge(east: float, after: float) -> Callable:
         report = _last_report(tmp)
         if report is None:
             return verdict, detail
-        worst, made = report["fix_error"]["max"], _fixes_between(tmp, after, 60.0)
+        worst = (report.get("fix_error") or {}).get("max", 0.0)
+        made = _fixes_between(tmp, after, 60.0)
         detail += f", fix error max {worst:.1f} m, {made} fixes past the edge"
         if worst > 3 * 20.0:
             return BAD, detail
