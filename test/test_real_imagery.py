@@ -305,6 +305,23 @@ def test_cli_answers_bad_input_with_one_line(tmp_path, capsys):
     image, dem = _write_pair(tmp_path, geographic=False)
     code = main(["evaluate", "--image", str(image), "--dem", str(dem), "--sun", "150"])
     assert code == 2 and "--sun takes two numbers" in capsys.readouterr().err
+    code = main(["evaluate", "--image", str(image), "--dem", str(dem), "--sun", "150,40",
+                 "--region-factor", "0.5"])
+    assert code == 2 and "--region-factor 0.5: the region's side must be 1-10 times" in \
+        capsys.readouterr().err
+
+
+def test_the_region_s_size_is_the_study_s_to_choose(tmp_path, capsys):
+    """``--region-factor 1.5``: each view is localised in a region 1.5 times its side (a
+    tracking filter's prior), and the outputs say so."""
+    image, dem = _write_pair(tmp_path, geographic=False)
+    out = tmp_path / "study"
+    assert main(["evaluate", "--image", str(image), "--dem", str(dem), "--sun", "150,40",
+                 "--sizes", "64", "--cases", "2", "--controls", "0", "--no-baselines",
+                 "--heading", "known", "--region-factor", "1.5", "--out", str(out)]) == 0
+    saved = json.loads((out / "results.json").read_text())
+    assert saved["setup"]["region_factor"] == 1.5
+    assert "localised in a region 1.5x their side" in capsys.readouterr().out
 
 
 def test_study_on_real_scenes(tmp_path, shared_data):

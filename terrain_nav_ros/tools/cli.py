@@ -278,6 +278,9 @@ def _cmd_evaluate_imagery(args) -> int:
         if min(sizes) < 16 or not 1 <= args.cases <= MAX_CASES or args.controls < 0:
             raise ValueError(f"--sizes must be >= 16 px, --cases 1-{MAX_CASES} and "
                              "--controls >= 0")
+        if not 1.0 <= args.region_factor <= 10.0:
+            raise ValueError(f"--region-factor {args.region_factor:g}: the region's side "
+                             "must be 1-10 times the view's")
         headings = ("unknown", "known") if args.heading == "both" else (args.heading,)
         baselines = () if args.no_baselines else tuple(args.baselines.split(","))
         params = MatchParams(view_search=not args.no_view_search)
@@ -287,6 +290,7 @@ def _cmd_evaluate_imagery(args) -> int:
                                          out_dir=out, seed=args.seed, headings=headings,
                                          baselines=baselines,
                                          controls_per_case=args.controls,
+                                         region_factor=args.region_factor,
                                          false_match_rate=args.false_match_rate,
                                          threshold=_graph_threshold() if args.threshold
                                          is None else args.threshold,
@@ -611,6 +615,10 @@ def build_parser() -> argparse.ArgumentParser:
     im.add_argument("--controls", type=int, default=2,
                     help="non-PVA regions of other places per view (and one far part of its "
                          "own scene where the scene holds one)")
+    im.add_argument("--region-factor", dest="region_factor", type=float, default=3.0,
+                    help="side of the landmark region each view is localised in, in view "
+                         "sides (default 3: the prior's error as large as the view; a "
+                         "tracking filter's is a fraction of it: 1.5)")
     im.add_argument("--baselines", default="ncc,orb", help="of ncc, orb, sift")
     im.add_argument("--match-gsd", dest="match_gsd", default="dem",
                     help="GSD [m] at which scenes finer than it are matched (views and "
