@@ -418,15 +418,7 @@ def camera_turned_180(topic, at, decode):
 def camera_mirrored(topic, at, decode):
     """Every camera frame mirrored left to right (a driver's flip option, a camera mounted
     through a mirror): no turn of the frame lies on the terrain, so none may become a fix."""
-    if topic not in CAMERA_TOPICS:
-        return None
-    import cv2
-    import numpy as np
-
-    msg = decode()
-    image = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_UNCHANGED)
-    msg.data = np.frombuffer(cv2.imencode(".jpg", cv2.flip(image, 1))[1].tobytes(), np.uint8)
-    return msg
+    return _frames_changed(topic, at, decode, 0.0, math.inf, lambda image: image[:, ::-1])
 
 
 def camera_tilted(pitch_deg: float, roll_deg: float = 0.0, yaw_deg: float = 0.0,
@@ -1042,11 +1034,12 @@ def _flight(change: Callable | None, reason: str = "", at_least: int = 0,
     return run
 
 
-def _fixes_near_truth(change: Callable, start: float, end: float) -> Callable:
+def _fixes_near_truth(change: Callable | None, start: float, end: float,
+                      bag: str | Path = "jacksboro_short") -> Callable:
     """As :func:`_flight`, and BAD when any fix is off the truth by more than 3 landmark
     pixels (60 m), POOR when the frames of ``start``-``end`` s made fewer than half the
     fixes they would: what the change does to a frame must not become a wrong fix."""
-    flight = _flight(change)
+    flight = _flight(change, bag=bag)
 
     def run(tmp: Path):
         verdict, detail = flight(tmp)
@@ -1064,9 +1057,8 @@ def _fixes_near_truth(change: Callable, start: float, end: float) -> Callable:
 
 def _past_the_dem_s_edge(east: float, after: float) -> Callable:
     """The short bag replayed over its DEM cut off ``east`` m east of the start: the flight
-    (heading east) leaves it ``after`` s in. GOOD as :func:`_flight`, with no fix off the
-    truth by more than 3 landmark pixels (60 m) and the frames past the edge still fixed on
-    the ground the DEM holds, for at least half of them; POOR when they are not."""
+    (heading east) leaves it ``after`` s in. As :func:`_fixes_near_truth` over the frames
+    past the edge: they must still be fixed on the ground the DEM holds, and rightly."""
     def run(tmp: Path):
         import shutil
 
@@ -1078,16 +1070,7 @@ def _past_the_dem_s_edge(east: float, after: float) -> Callable:
         mission = yaml.safe_load((bag / "mission.yaml").read_text())
         mission["dem"] = str(jacksboro_cut_east_of(tmp / "cut.tif", bag, east))
         (bag / "mission.yaml").write_text(yaml.safe_dump(mission))
-        verdict, detail = _flight(None, bag=bag)(tmp)
-        report = _last_report(tmp)
-        if report is None:
-            return verdict, detail
-        worst = (report.get("fix_error") or {}).get("max", 0.0)
-        made = _fixes_between(tmp, after, 60.0)
-        detail += f", fix error max {worst:.1f} m, {made} fixes past the edge"
-        if worst > 3 * 20.0:
-            return BAD, detail
-        return (verdict if made >= 0.5 * (60.0 - after) else POOR), detail
+        return _fixes_near_truth(None, after, 60.0, bag=bag)(tmp)
     return run
 
 

@@ -375,9 +375,9 @@ def projection_plane(heights: np.ndarray, georef: GeoReference, intr: CameraIntr
     below = plane is not None
     if not below:
         finite = heights[np.isfinite(heights)]
-        if why != NO_HEIGHTS_BELOW or not finite.size or np.median(finite) >= pose.position[2]:
+        plane = float(np.median(finite)) if finite.size else math.nan
+        if why != NO_HEIGHTS_BELOW or not plane < pose.position[2]:
             return None, None, math.nan, why
-        plane = float(np.median(finite))
     max_range = max_range_factor * max(pose.position[2] - plane, 1.0)
     footprint = footprint_georef(intr, pose, plane, gsd, max_range)
     if footprint is not None:
