@@ -22,11 +22,13 @@ F, W, H = 500.0, 400, 300
 CAMERA = np.array([1000.0, 2000.0, 1100.0])  # 1000 m above a flat terrain at 100 m
 
 
-def _frame(stamp_ns):
+def _frame(stamp_ns, tail_mark=False):
     image = np.full((H, W), 40, np.uint8)
     image[0, :8] = np.frombuffer(int(stamp_ns).to_bytes(8, "little"), np.uint8)  # frames differ
     image[148:153, 198:203] = 250          # principal point (199.5, 149.5): straight down
     image[148:153, 298:303] = 250          # 100 px right of it: right wing = south (heading E)
+    if tail_mark:                          # 145.5 px below it: 291 m behind from 1000 m up
+        image[293:298, 198:203] = 250
     return cv.array_to_image(image, "mono8", cv.make_header(stamp_ns, "camera_optical"))
 
 
@@ -445,3 +447,50 @@ def test_a_frame_taken_past_the_dem_s_edge_shows_the_ground_the_dem_holds():
     # heading east, the view spans E 700..1300 (150 px x 1000 m / 500 px each side of nadir)
     assert east.min() < 710.0 and east.max() > 1290.0
     assert valid[:, east < 890.0].mean() > 0.9 and not valid[:, east > 910.0].any()
+
+
+def test_frames_from_low_up_are_published_as_a_mosaic_of_the_track():
+    """From 1000 m at 20 m a frame observes 30 x 40 px, fewer than mosaic_pixels: each is
+    published composed with the frames before it, placed where the estimate put them, so the
+    marks 291 m behind each frame's nadir (heading east at 60 m/s) lie in one ground image,
+    60 m apart: behind the newest frame, which lies on top."""
+    node = start_node("camera_ingest", {"gsd": 20.0, "mosaic_pixels": 3000,
+                                        "mosaic_max_age": 30.0})
+    client = SpinningNode("ingest_mosaic_client")
+    got = []
+    speed = 60.0
+    try:
+        n = client.node
+        n.create_subscription(GeoImage, "/camera/image_ground", got.append, 10)
+        pubs, info = _inputs(n)
+        t0 = 1_750_000_000 * 10**9
+
+        def odometry(at_ns):
+            odom = _odometry(at_ns)
+            odom.pose.pose.position.x = CAMERA[0] + speed * (at_ns - t0) * 1e-9
+            odom.twist.twist.linear.x = speed     # body x = east (heading east)
+            return odom
+
+        for k in range(12):
+            stamp = t0 + k * 10**9
+            pubs["/camera/camera_info"].publish(info)
+            for at in (stamp - 5 * 10**8, stamp):
+                pubs["/nav/odometry"].publish(odometry(at))
+            time.sleep(0.05)
+            pubs["/camera/image_raw"].publish(_frame(stamp, tail_mark=True))
+            time.sleep(0.1)
+        assert wait_until(lambda: sum(bool(m.image.width) for m in got) >= 10, 20), stop(node)
+    finally:
+        client.close()
+        stop(node)
+    last = [m for m in got if m.image.width][-1]
+    image, georef, valid = cv.msg_to_geo_image(last)
+    assert georef.width > 30 + 3 * 5, georef          # a frame is 30 px along the track
+    row = int(round(float(georef.enu_to_pixel(0.0, CAMERA[1])[1])))   # the nadir's track
+    track = image[row - 1:row + 2].max(axis=0)
+    cols = np.nonzero(track > 40)[0]     # the marks, blurred to 41-43 over the 40
+    east = georef.pixel_to_enu(cols, 0.0)[0]
+    newest = CAMERA[0] + speed * (last.header.stamp.sec - t0 * 1e-9)
+    assert abs(east.max() - newest) < 30.0            # the newest frame's nadir
+    tails = east[east < newest - 250.0]               # the frames' tail marks, 60 m apart
+    assert tails.max() - tails.min() > 5 * speed, east

@@ -260,29 +260,50 @@ def test_raw_camera_images_are_answered_like_jpeg(tmp_path):
     assert fixes["fixes"] >= 10, fixes
 
 
+def _replayed_real_image_flight(tmp_path, shared_data, agl: float) -> dict:
+    """150 s of survey over PA November's real image draped on its DEM (simulate --albedo),
+    ``agl`` m above its highest terrain, replayed through the graph; every frame answered."""
+    imagery = shared_data / "imagery"
+    bag = tmp_path / "pa_real"
+    simulate(SimConfig(dem=str(imagery / "pa_ridgevalley_dem30m_utm18.tif"),
+                       albedo=str(imagery / "pa_ridgevalley_l7_20021125.tif"),
+                       albedo_band="4", start_time="2002-11-25T15:35:00Z", duration=150.0,
+                       pattern="survey", start_east=-900.0, start_north=-300.0, agl=agl,
+                       camera_hfov=70.0, landmark_gsd=30.0, gnss_denied_after=15.0, seed=3),
+             bag)
+    result = run_replay(bag, tmp_path / "out", GRAPH)
+    _nodes_survived(result)
+    assert result["fixes"]["frames"] >= result["fixes"]["in_bag"] - 1, result["fixes"]
+    return result
+
+
 def test_flight_over_a_real_image_bounds_the_error(tmp_path, shared_data):
     """150 s over the real Landsat 7 November image of Pennsylvania's ridges, draped on its
     DEM (simulate --albedo: fields, forest and roads the landmark renders do not have; the
     landmarks stay DEM renders lit by the image's sun): every frame is answered, most get a
     fix, the fixes are consistent with their covariances, and the fused error stays well
     below dead reckoning. The bag is made here from ../shared, never committed."""
-    imagery = shared_data / "imagery"
-    bag = tmp_path / "pa_real"
-    simulate(SimConfig(dem=str(imagery / "pa_ridgevalley_dem30m_utm18.tif"),
-                       albedo=str(imagery / "pa_ridgevalley_l7_20021125.tif"),
-                       albedo_band="4", start_time="2002-11-25T15:35:00Z", duration=150.0,
-                       pattern="survey", start_east=-900.0, start_north=-300.0, agl=3000.0,
-                       camera_hfov=70.0, landmark_gsd=30.0, gnss_denied_after=15.0, seed=3),
-             bag)
-    result = run_replay(bag, tmp_path / "out", GRAPH)
-    _nodes_survived(result)
+    result = _replayed_real_image_flight(tmp_path, shared_data, agl=3000.0)
     fixes = result["fixes"]
-    assert fixes["frames"] >= fixes["in_bag"] - 1, fixes
     assert fixes["fixes"] >= 0.7 * fixes["frames"], fixes
     assert result["fix_error"]["within_3_sigma"] >= 0.9, result["fix_error"]
     fused, dr = result["fused_error"], result["dr_error"]
     assert fused["rms"] <= 3 * 30.0, fused   # 56-57 m with the ridge skeletons
     assert fused["rms"] < 0.6 * dr["rms"] and fused["final"] < 0.5 * dr["final"], (fused, dr)
+
+
+def test_a_low_flight_over_a_real_image_fixes_on_mosaics_of_its_track(tmp_path, shared_data):
+    """The same real image flown 900 m above its highest terrain: a frame sees ~42 x 31 DEM
+    cells, too few for its drainage to be told from chance (13 of 149 fixed alone, one 4.3 km
+    off; fused RMS 50 m against dead reckoning's 95 m), so camera_ingest publishes mosaics of
+    up to the last 60 s of the track (87 fixed, the worst 58 m off, fused 27 m). The bag is
+    made here from ../shared, never committed."""
+    result = _replayed_real_image_flight(tmp_path, shared_data, agl=900.0)
+    fixes = result["fixes"]
+    assert fixes["fixes"] >= 0.3 * fixes["frames"], fixes
+    assert result["fix_error"]["max"] <= 150.0, result["fix_error"]
+    fused, dr = result["fused_error"], result["dr_error"]
+    assert fused["rms"] < 0.4 * dr["rms"] and fused["final"] < 0.4 * dr["final"], (fused, dr)
 
 
 @pytest.fixture(scope="module")

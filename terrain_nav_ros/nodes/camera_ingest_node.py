@@ -8,7 +8,11 @@ frame_id, else the ``mount_rpy`` parameter; the diagnostics' ``mount`` says whic
 frame is undistorted with the CameraInfo lens model and projected onto the mean terrain
 plane under the view (homography from the pose interpolated at the frame's stamp), then
 published as a ``terrain_nav_msgs/GeoImage`` on ``/camera/image_ground``
-with a validity mask. A frame that cannot be projected (no estimate or tile yet, no
+with a validity mask. A frame that observes fewer ground pixels than ``mosaic_pixels`` (a
+low camera: too few DEM cells for its drainage to be told from chance) is published as a
+track mosaic (:mod:`..core.camera.track_mosaic`): composed with the frames of the last
+``mosaic_max_age`` s, each moved by the steps the estimate took since it, under the newest
+frame's projection pose. A frame that cannot be projected (no estimate or tile yet, no
 calibration, camera above the horizon, undecodable image, a frozen camera repeating its
 last image or a stamp that does not move forward; three frames in a row that go forward
 behind the last one are a new clock, taken with a warning) is still published, as a GeoImage
@@ -61,6 +65,7 @@ from ..core.camera.ground_projection import (
 from ..core.camera.orthorectify import heights_on, orthorectify
 from ..core.camera.pose_buffer import PoseBuffer, StampedPose
 from ..core.camera.pose_free import CruiseAttitude, pose_free_view
+from ..core.camera.track_mosaic import FilterSteps, TrackMosaic
 from ..core.estimation.baro import SEA_LEVEL_PRESSURE, pressure_to_altitude
 from ..core.matching.pva_fix import reason_kind
 from ..core.render.sun import sun_at
@@ -150,6 +155,19 @@ class CameraIngestNode(Node):
         self.max_baro_age = declare(self, "max_baro_age", 2.0,
                                     "cold start: largest time between a frame and the "
                                     "barometer sample used [s]", min_value=0.0)
+        mosaic_pixels = declare(
+            self, "mosaic_pixels", 9216,
+            "a projected frame that observes fewer ground pixels than this (a low camera: "
+            "few DEM cells, too little drainage alone) is published as a mosaic with the "
+            "frames before it, placed in its estimate, until they observe this many; 0 = "
+            "every frame alone [px]", min_value=0)
+        mosaic_max_age = declare(self, "mosaic_max_age", 60.0,
+                                 "oldest frame in a mosaic, behind the newest: the "
+                                 "estimate's drift over it distorts the mosaic [s]",
+                                 min_value=0.0)
+        self.mosaic = TrackMosaic(mosaic_pixels, mosaic_max_age, self.max_size)
+        self.steps = FilterSteps(horizon=mosaic_max_age + 5.0)
+        self.mosaics = Counter()   # mosaics published, frames in them
         self.mount = CameraMount(self, base_frame, mount_rpy)
         self.attitude = CruiseAttitude(math.radians(tilt_sigma), math.radians(turn_rate),
                                        levelled_sigma=math.radians(levelled_sigma))
@@ -251,6 +269,7 @@ class CameraIngestNode(Node):
         stamp, p, q, cov = cv.odometry_to_arrays(msg)
         reason = self.poses.add(StampedPose(stamp * 1e-9, p, q, cov))
         if not reason:
+            self.steps.add(stamp * 1e-9, p, cv.odometry_velocity(msg))
             t = stamp * 1e-9
             first, last = self._odometry_span or (t, t)
             if t < last - self.poses.horizon:      # time went backwards: start again
@@ -378,7 +397,12 @@ class CameraIngestNode(Node):
         else:
             ground = project_to_ground(image, self.intrinsics, camera, plane, georef, bgr=bgr,
                                        max_range=max_range)
-        self._publish_ground(ground, georef, camera, plane, header)
+        if ground.image is not None:
+            ground, n = self.mosaic.compose(ground, stamp, self.steps.at(stamp))
+            if n > 1:
+                self.mosaics["published"] += 1
+                self.mosaics["frames"] += n
+        self._publish_ground(ground, ground.georef, camera, plane, header)
 
     def _publish_ground(self, ground, georef: GeoReference, camera: CameraPose, plane: float,
                         header, pose_free: tuple[float, float, float] | None = None) -> bool:
@@ -493,6 +517,8 @@ class CameraIngestNode(Node):
                   "waited_for_estimate": sum(self.waited.values()),
                   "waited_in_vain": self.waited["in vain"],
                   "not_projected": not_projected,
+                  "mosaics": self.mosaics["published"],
+                  "frames_per_mosaic": self.mosaics["frames"] / max(self.mosaics["published"], 1),
                   "frames_since_last_report": new_projected + new_dropped,
                   "time_since_last_frame": since, "mount": self.mount.describe()}
         values.update({f"not projected: {k}": n for k, n in self.drops.most_common()})

@@ -271,6 +271,17 @@ def odometry_to_arrays(msg: Odometry) -> tuple[int, np.ndarray, np.ndarray, np.n
             np.array([q.x, q.y, q.z, q.w]), covariance_to_array(msg.pose.covariance, 6))
 
 
+def odometry_velocity(msg: Odometry) -> np.ndarray:
+    """Odometry -> its velocity (3,) in the pose's frame (ENU): the twist is in
+    ``child_frame_id`` (REP 105), turned by the pose's orientation."""
+    o, v = msg.pose.pose.orientation, msg.twist.twist.linear
+    q = np.array([o.x, o.y, o.z, o.w])
+    norm = np.linalg.norm(q)
+    if not norm > 0:
+        return np.full(3, np.nan)
+    return quat_to_matrix(q / norm) @ np.array([v.x, v.y, v.z])
+
+
 def set_pose_to_arrays(msg: PoseWithCovarianceStamped) -> tuple[float, str, np.ndarray,
                                                                  np.ndarray]:
     """PoseWithCovarianceStamped (an operator's re-seed) -> (stamp s, frame_id, position
