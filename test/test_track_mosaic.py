@@ -119,3 +119,16 @@ def test_large_frames_old_frames_and_unknown_steps_are_published_alone(terrain):
     # off
     out, n = TrackMosaic(0).compose(frame, 31.0, np.zeros(2))
     assert out is frame and n == 1
+
+
+def test_a_fast_camera_s_mosaic_holds_the_frames_it_needs(terrain):
+    """At 10 frames a second a frame moves a third of a pixel (here, a pixel every third
+    frame): the frames that add under 2 % of their pixels are left out, so the mosaic of
+    the 180 frames of 18 s holds 61, and it is the same strip of the photo."""
+    fast = TrackMosaic(min_pixels=3000, max_age=30.0)
+    for k in range(200):
+        out, n = fast.compose(_frame(terrain, 10 + k // 3, 40), 10.0 + 0.1 * k, np.zeros(2))
+    # 1200 px a frame, 30 more per pixel moved: 60 pixels of track, one frame each
+    assert n == 61 and out.georef.width == 40 + 60, (n, out.georef)
+    photo = _photo_under(out, terrain)
+    assert np.abs(out.image[out.valid].astype(int) - photo[out.valid]).max() <= 1
