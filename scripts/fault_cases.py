@@ -417,8 +417,15 @@ def camera_turned_180(topic, at, decode):
 
 def camera_mirrored(topic, at, decode):
     """Every camera frame mirrored left to right (a driver's flip option, a camera mounted
-    through a mirror): no turn of the frame lies on the terrain, so none may become a fix."""
+    through a mirror): no turn of the frame lies on the terrain, so none may become a fix;
+    the matcher, trying the frames mirrored back, names the flip."""
     return _frames_changed(topic, at, decode, 0.0, math.inf, lambda image: image[:, ::-1])
+
+
+def camera_flipped_vertically(topic, at, decode):
+    """Every camera frame flipped top to bottom: as :func:`camera_mirrored`, a mirror image
+    (this one across the image's rows), named as such."""
+    return _frames_changed(topic, at, decode, 0.0, math.inf, lambda image: image[::-1])
 
 
 def camera_tilted(pitch_deg: float, roll_deg: float = 0.0, yaw_deg: float = 0.0,
@@ -936,7 +943,10 @@ def cases() -> list[Case]:
         Case("camera frames turned 180 deg (mount not declared)", "flight",
              _flight(camera_turned_180)),
         Case("camera frames mirrored left to right (a driver's flip)", "flight",
-             _flight(camera_mirrored, "below threshold", 40)),
+             _flight(camera_mirrored, "flipped back left to right it matches", 2)),
+        Case("camera frames flipped top to bottom (a driver's flip)", "flight",
+             _flight(camera_flipped_vertically, "flipped back top to bottom it matches", 2),
+             ci=True),
         Case("camera lens covered for 10 s (black frames)", "flight", _flight(
             covered_lens, "image is constant", 10)),
         Case("camera frames banded for 20 s (a sensor's row banding)", "flight",

@@ -14,6 +14,7 @@ from terrain_nav_ros.core.matching.fix_stream import (
     WARN,
     AnswerTally,
     FixVelocity,
+    FlipCheck,
     LandmarkSets,
     add_prior_tilt,
     fix_attitude,
@@ -118,3 +119,31 @@ def test_the_tally_reports_counts_times_and_problems():
                        "for 9 s; no landmark set with minutiae")
     assert math.isnan(values["answer_ms_median"]) and values["failures"] == 3
     assert tally.report(110.0, 9.0, 5.0, True, 3, 0, 1)[0] == WARN
+
+
+def test_a_run_below_the_threshold_tries_the_flips_every_so_many_frames():
+    check = FlipCheck(every=3)
+    tries = [check.note(False, True) for _ in range(7)]
+    assert tries == [False, False, True, False, False, True, False]
+    # a frame with too little drainage says nothing of a flip and ends the run
+    assert not check.note(False, False) and check.run == 0
+    check.found = "left to right"
+    assert not check.note(True, False) and check.found == "" and check.run == 0
+    assert not any(FlipCheck(0).note(False, True) for _ in range(30))
+
+
+def test_the_flips_mirror_across_the_image_s_middle_column_and_row_on_the_ground():
+    """A camera heading east (image top = nose = east, right = south), 1000 m above the
+    plane, the aircraft 3 deg nose down: the image's columns run east-west on the ground,
+    its rows north-south, both through the centre's ground point, 52 m behind the nadir
+    (the belly faces back)."""
+    # optical x (right) -> south, y (down the image, to the tail) -> west, z -> down
+    level = np.column_stack([(0, -1, 0), (-1, 0, 0), (0, 0, -1)]).astype(float)
+    nose_down = Rotation.from_euler("y", 3.0, degrees=True).as_matrix()   # about north
+    lines = FlipCheck.mirrors((500.0, 200.0, 1100.0), nose_down @ level, 100.0)
+    for flip, east_west in (("left to right", True), ("top to bottom", False)):
+        centre, axis = lines[flip]
+        np.testing.assert_allclose(centre, (500.0 - 1000.0 * math.tan(math.radians(3.0)),
+                                            200.0), atol=1e-6)
+        trig = abs(math.cos(axis)) if east_west else abs(math.sin(axis))
+        assert math.isclose(trig, 1.0, abs_tol=2e-3), (flip, axis)

@@ -372,6 +372,24 @@ def test_a_scene_finer_than_its_dem_is_matched_at_the_dem_cell(tmp_path, shared_
     (row,) = summary["rows"]
     assert row["minutiae"]["success"] >= 2 and row["minutiae"]["wrong"] == 0
     assert "| 15 | 30 | 30 |" in summary["report"]
+    # 256 px of 15 m are 128 cells of the 30 m it is matched at
+    (group,) = summary["by_cells"]
+    assert group["cells"] == 128 and group["cases"] == 3 and not group["faint_shading"]
+    assert group["success"] == row["minutiae"]["success"]
+    assert "| known | seen | 128 | 3 |" in summary["report"]
+
+
+def test_a_scene_that_shows_no_terrain_is_counted_apart(tmp_path, shared_data):
+    """PA July's canopy and clouds follow its DEM's shading at no sun azimuth: its views are
+    counted apart from those of scenes that show their terrain."""
+    (july,) = [s for s in load_scenes(SCENES_YAML, shared_data / "imagery")
+               if s.name == "pa_july_clouds"]
+    summary = run_real_imagery_study([july], sizes=(128,), cases=2, out_dir=tmp_path,
+                                     headings=("known",), baselines=(), controls_per_case=0,
+                                     log=lambda *_: None)
+    (group,) = summary["by_cells"]
+    assert group["faint_shading"] and group["cells"] == 128 and group["cases"] == 2
+    assert "| known | faint | 128 | 2 |" in summary["report"]
 
 
 def test_scenes_file_lists_every_dev_pair(shared_data):
@@ -745,3 +763,40 @@ def test_a_sensor_s_banding_is_no_fix_kilometres_off(shared_data):
             assert terrain and result["err"] <= 3.0, (terrain, result["score"], result["err"])
             found += 1
     assert found >= 4, found
+
+
+def test_a_mirrored_view_is_found_once_mirrored_back(shared_data):
+    """A 256 px view of PA November as a camera flipped left to right sees it: no turn of
+    it lies on the terrain, so it is not localised; mirrored back across its columns
+    (:func:`mirrored_view`, the matcher's diagnosis of a flipped camera) it is, where the
+    view itself is."""
+    from terrain_nav_ros.core.features.minutia_set import MinutiaSet
+    from terrain_nav_ros.core.matching.global_search import mirrored_view
+    from terrain_nav_ros.core.matching.matcher import Matcher
+    from terrain_nav_ros.core.matching.params import MatchParams
+    from terrain_nav_ros.core.terrain.georef import GeoReference
+    from terrain_nav_ros.tools.cli import _graph_threshold
+
+    scene = load_scene(shared_data / "imagery" / "pa_ridgevalley_l7_20021125.tif",
+                       shared_data / "imagery" / "pa_ridgevalley_dem30m_utm18.tif",
+                       band=4, sun=(159.5, 26.2))
+    m = np.array([[0.98, -0.17, 20.0], [0.17, 0.98, 10.0]])   # turned 10 deg, at its NW
+    seen = _localise_view(scene, m, 256)
+    assert seen["score"] >= _graph_threshold() and seen["err"] <= 3.0
+    flipped = _localise_view(scene, m, 256, seen=lambda view: view[:, ::-1].copy())
+    assert flipped["score"] < _graph_threshold()
+    ix = flipped["view_index"]
+    h, w = ix.crease_image.shape
+    g = GeoReference(0.0, 0.0, 30.0, w, h)
+    s = ix.set
+    back = mirrored_view(MinutiaSet(s.col, s.row, s.angle, s.kind, s.quality, georef=g),
+                         ix.crease_image, ix.ridge_image, g.centre, math.pi / 2)
+    # across the raster's middle column: the same raster
+    assert back[0].georef.shape == g.shape
+    assert np.allclose((back[0].georef.origin_east, back[0].georef.origin_north), 0.0, atol=1e-6)
+    matcher = Matcher(MatchParams(), threshold=-1e9)
+    found = matcher.localise(matcher.index(*back), flipped["region_index"])
+    unflipped = matcher.localise(seen["view_index"], flipped["region_index"])
+    assert found.score >= _graph_threshold()
+    centre = (0.5 * (w - 1), 0.5 * (h - 1))
+    assert np.hypot(*(np.subtract(found.apply(*centre), unflipped.apply(*centre)))) <= 2.0

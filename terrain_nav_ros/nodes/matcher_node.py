@@ -12,7 +12,10 @@ waited more than ``max_queue_wait`` s in the node's queue (behind a slow search 
 index; the middleware's receive time) is answered "skipped" at once, so that the matcher
 catches up rather than answering every later frame after the ekf's history.
 ``/matcher/diagnostics`` (diagnostic_msgs/DiagnosticArray, every ``diagnostics_period`` s)
-counts fixes and no-fixes (by reason) and times the answers.
+counts fixes and no-fixes (by reason) and times the answers. Every ``flip_check_every``
+frames of a run scoring below the threshold, the frame is tried mirrored back across each
+line a flipped camera image mirrors it across (:class:`.core.matching.fix_stream.FlipCheck`):
+a match is named in the no-fix, the log and the diagnostics, never made a fix.
 
 The fix is the aircraft (``base_link``) pose: the camera's lever arm (centimetres) is
 neglected and its attitude is the prior's turned back through the camera mount (from
@@ -57,12 +60,13 @@ from ..core.matching.fix_stream import (
     UNOBSERVED_TILT_VAR,
     AnswerTally,
     FixVelocity,
+    FlipCheck,
     LandmarkSets,
     add_prior_tilt,
     fix_attitude,
 )
-from ..core.matching.global_search import rescaled_view, scale_ladder
-from ..core.matching.matcher import Matcher, warm_up
+from ..core.matching.global_search import mirrored_view, rescaled_view, scale_ladder
+from ..core.matching.matcher import Decision, Matcher, warm_up
 from ..core.matching.params import MatchParams
 from ..core.matching.pva_fix import (
     PvaFixEstimate,
@@ -76,6 +80,7 @@ from ..core.matching.relocaliser import MissionSearch, SearchPolicy
 from ..core.terrain.geodesy import EnuOrigin
 from . import conversions as cv
 from .ros_common import (
+    DIAG_WARN,
     LATCHED_QOS,
     RELIABLE_QOS,
     SENSOR_QOS,
@@ -165,6 +170,11 @@ class MatcherNode(Node):
             "a camera set that waited longer than this in the node's queue (behind a slow "
             "search) is answered 'skipped' at once, so that the matcher catches up; its fix "
             "would reach the ekf late, after history_length [s]", min_value=0.0)
+        flip_check_every = declare(
+            self, "flip_check_every", 10,
+            "every this many frames in a row scoring below the threshold, the frame mirrored "
+            "back is tried too: a match says the camera image is flipped (0 = never)",
+            min_value=0)
         check_parameters_known(self)  # before the matcher is built and its kernels loaded
         self.add_on_set_parameters_callback(reject_all_changes)
         self.mount = CameraMount(self, base_frame, mount_rpy)
@@ -175,6 +185,7 @@ class MatcherNode(Node):
         self.landmarks = LandmarkSets(max_landmarks)
         self.velocity = FixVelocity(velocity_gap)
         self.tally = AnswerTally()
+        self.flips = FlipCheck(flip_check_every)
         self.last_camera_wall: float | None = None
         self.pub = self.create_publisher(PvaFix, "nav/pva_fix", RELIABLE_QOS)
         self.dem = None          # (heights, georef) of the latest DEM tile
@@ -330,11 +341,40 @@ class MatcherNode(Node):
             position, rotation, _ = projection
             fix = checked_pnp(self.pnp_fix(result, camera, land_minutiae, position, rotation),
                               fix, self.pnp_gate, self.tilt_sigma)
+        if self.flips.note(fix.valid, result.decision == Decision.NO_MATCH):
+            fix.reason += self._flipped(camera, camera_creases, camera_ridges, projection,
+                                        land_index)
         if not fix.valid:
             self.publish_no_fix(msg.header.stamp, fix.reason, fix)
             return False
         self.publish_fix(msg.header.stamp, cv.stamp_to_sec(msg.header.stamp), fix, origin)
         return True
+
+    def _flipped(self, camera, camera_creases, camera_ridges, projection, land_index) -> str:
+        """What the camera set mirrored back across each flip's line says: "" when neither
+        matches, else the flip named (and kept for the diagnostics). The two flips differ by
+        a half turn, which a search of every rotation finds: the registration's turn names
+        the flip."""
+        position, rotation, plane = projection
+        intr = self.camera_model    # the image centre's ray (the principal point's without)
+        ray = (0.0, 0.0, 1.0) if intr is None else (
+            (0.5 * (intr.width - 1) - intr.cx) / intr.fx,
+            (0.5 * (intr.height - 1) - intr.cy) / intr.fy, 1.0)
+        lines = FlipCheck.mirrors(position, rotation, plane, ray)
+        for line, (anchor, axis) in lines.items():
+            mirrored = mirrored_view(camera, camera_creases, camera_ridges, anchor, axis)
+            result = self.matcher.localise(self.matcher.index(*mirrored), land_index)
+            if result.matched:
+                turned = result.transform[0, 0] < 0.0    # by more than a quarter turn
+                flip = next(f for f in lines if (f != line) == turned)
+                self.flips.found = flip
+                self.get_logger().warning(
+                    f"the camera image looks flipped {flip}: the frame flipped back matches "
+                    f"the terrain (score {result.score:.1f}); check the camera driver's flip "
+                    "options or the optics", throttle_duration_sec=10.0)
+                return (f"; flipped back {flip} it matches (score {result.score:.1f}): is "
+                        "the camera image flipped?")
+        return ""
 
     def _relocalise(self, msg: MinutiaArray, camera, camera_creases, camera_ridges,
                     projection, why: str) -> None:
@@ -497,6 +537,11 @@ class MatcherNode(Node):
         level, message, values = self.tally.report(
             now, now - (self.last_camera_wall or self._started_wall), self.camera_timeout,
             self.landmarks.any_with_minutiae, failures, new, len(self.landmarks))
+        values["camera_flipped"] = self.flips.found
+        if self.flips.found:
+            level = max(level, DIAG_WARN)
+            message = (f"the camera image looks flipped {self.flips.found} (frames mirrored "
+                       f"back match the terrain); {message}")
         return [cv.diagnostic_status("matcher", level, message, values, "terrain_nav")]
 
 

@@ -752,6 +752,7 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
         "seconds": time.perf_counter() - t_all,
     }
     summary["totals"] = _totals(rows, [128, 256, 512])
+    summary["by_cells"] = _totals_by_cells(rows, summary["setup"])
     pngs = _scene_pngs(out, scenes) + [_score_histogram(out, rows, non, thr, success_px)]
     report = _report(summary, pngs)
     (out / "report.md").write_text(report)
@@ -886,6 +887,28 @@ def _totals(rows, sizes) -> dict:
     return out
 
 
+def _totals_by_cells(rows, setup: dict) -> list[dict]:
+    """The project's views over all scenes by their side in the cells they are matched at
+    (view px x GSD / matched-at m: the drainage a view can hold) and by whether the scene's
+    shading is faint (its image follows the DEM's shading at no sun azimuth, ``r`` below
+    :data:`FAINT_SHADING_R`: canopy, cloud), per heading condition."""
+    scenes = {s["name"]: s for s in setup["scenes"]}
+    groups: dict = {}
+    for r in rows:
+        scene = scenes[r["scene"]]
+        cells = round(r["size"] * scene["gsd_m"] / setup["match_gsd_m"][r["scene"]])
+        shading = scene.get("shading")
+        faint = bool(shading and math.isfinite(shading["r_best"])
+                     and shading["r_best"] < FAINT_SHADING_R)
+        g = groups.setdefault((r["heading"], faint, cells), {
+            "heading": r["heading"], "faint_shading": faint, "cells": cells, "cases": 0,
+            "success": 0, "wrong": 0, "no_fix_too_little_drainage": 0})
+        m = r["minutiae"]
+        for key in ("cases", "success", "wrong", "no_fix_too_little_drainage"):
+            g[key] += m.get(key, 0)
+    return [groups[k] for k in sorted(groups)]
+
+
 def _scene_pngs(out: Path, scenes: list[Scene]) -> list[str]:
     names = []
     for s in scenes:
@@ -996,6 +1019,18 @@ def _report(summary: dict, pngs: list[str]) -> str:
         lines.append(f"| {key} | {t['cases']} | {t['success']} ({rate:.0f} %) | "
                      f"{t['wrong']} | {t['no_fix_too_little_drainage']} | "
                      f"{t['vetoed'] if key.endswith('minutiae') else '-'} |")
+    lines += ["", "The project's views by their side in the cells they are matched at (view px "
+              "x GSD / matched-at m: the drainage a view can hold), the scenes whose image "
+              f"follows its DEM's shading at no sun azimuth (r < {FAINT_SHADING_R:g}: canopy, "
+              "cloud) apart; localised of those with drainage enough:", "",
+              "| heading | shading | view side, cells | cases | too little drainage | "
+              "localised | wrong |", "|---|---|---|---|---|---|---|"]
+    for g in summary["by_cells"]:
+        judged = g["cases"] - g["no_fix_too_little_drainage"]
+        rate = f" ({100.0 * g['success'] / judged:.0f} %)" if judged else ""
+        lines.append(f"| {g['heading']} | {'faint' if g['faint_shading'] else 'seen'} | "
+                     f"{g['cells']} | {g['cases']} | {g['no_fix_too_little_drainage']} | "
+                     f"{g['success']}{rate} | {g['wrong']} |")
     nv = summary["non_pva"]
     at = nv["pva_success_at_calibrated"]
     lines += ["", "## Controls (non-PVA)", "",

@@ -9,7 +9,9 @@ landmark set (:mod:`.matcher`, dissertation chapter 4) and turns the match into 
 * what a ground-match fix adds for the prior's tilt (:func:`add_prior_tilt`) and, with the
   heading measured, its body attitude and attitude covariance (:func:`fix_attitude`);
 * the velocity of two fixes close enough in time (:class:`FixVelocity`);
-* the tallies and timings its diagnostics report (:class:`AnswerTally`).
+* the tallies and timings its diagnostics report (:class:`AnswerTally`);
+* when a run of no-fixes is worth asking whether the camera image is flipped, and how
+  such a frame's ground set is mirrored back (:class:`FlipCheck`).
 """
 
 from __future__ import annotations
@@ -127,6 +129,56 @@ class FixVelocity:
                                       covariance, stamp)
         self.last = (stamp, np.array(position, copy=True), np.array(covariance, copy=True))
         return out
+
+
+class FlipCheck:
+    """Whether the camera image may be flipped (a driver's flip option, a mirror in the
+    optics): a flipped frame projects to its ground mirrored, which no turn lies on the
+    terrain, so every frame scores below the threshold and nothing else says why.
+
+    Every ``every`` frames of a run scoring below the threshold in the tile, the node tries
+    the frame's ground set mirrored back (:meth:`mirrors`); a match names the flip
+    (:attr:`found`) until a frame is fixed as it is.
+
+    Parameters
+    ----------
+    every : int
+        Frames below the threshold in a row between two tries; 0 never tries.
+    """
+
+    FLIPS = ("left to right", "top to bottom")
+
+    def __init__(self, every: int):
+        self.every = int(every)
+        self.run = 0
+        self.found = ""
+
+    def note(self, fixed: bool, below_threshold: bool) -> bool:
+        """Count a frame answered in the tile; whether to try its mirrors now."""
+        if fixed:
+            self.run, self.found = 0, ""
+            return False
+        self.run = self.run + 1 if below_threshold else 0
+        return self.every > 0 and self.run > 0 and self.run % self.every == 0
+
+    @staticmethod
+    def mirrors(position, r_enu_optical, plane: float,
+                centre_ray=(0.0, 0.0, 1.0)) -> dict[str, tuple[np.ndarray, float]]:
+        """The ground line across which each flip mirrors a frame's ground image, as (its
+        point under the image's centre, ENU east and north; its angle, rad from East,
+        counter-clockwise): a flip left to right across the image's middle column, top to
+        bottom across its middle row. ``centre_ray`` is the image centre's ray in the
+        optical frame (the principal point's by default); the frame's ground lies on the
+        projection ``plane`` (m)."""
+        r = np.asarray(r_enu_optical, float)
+        p = np.asarray(position, float)
+        ray = r @ np.asarray(centre_ray, float)
+        # a frame that can be projected looks down: its centre's ray meets the plane
+        t = (plane - p[2]) / ray[2] if ray[2] < 0 else 0.0
+        centre = p[:2] + t * ray[:2]
+        cols, rows = r @ (0.0, 1.0, 0.0), r @ (1.0, 0.0, 0.0)
+        return {"left to right": (centre, math.atan2(cols[1], cols[0])),
+                "top to bottom": (centre, math.atan2(rows[1], rows[0]))}
 
 
 class AnswerTally:

@@ -284,6 +284,51 @@ def rescaled_view(minutiae: MinutiaSet, creases, ridges, factor: float,
             _rescaled_skeleton(ridges, new.shape))
 
 
+def mirrored_view(minutiae: MinutiaSet, creases, ridges, anchor, axis: float
+                  ) -> tuple[MinutiaSet, np.ndarray | None, np.ndarray | None]:
+    """A ground-projected camera set mirrored across the ground line through the ENU point
+    ``anchor`` at ``axis`` (rad from East, counter-clockwise): the minutiae moved and turned
+    exactly, the crease and ridge skeletons resampled and thinned again, on the raster (same
+    GSD) that holds the mirrored footprint.
+
+    A camera image flipped left to right (a driver's flip option, a mirror in the optics)
+    projects, from a nadir camera, to its ground mirrored across the line along the image's
+    columns through the nadir; mirrored back across it, it lies on the terrain again."""
+    g = minutiae.georef
+    if g is None:
+        raise ValueError("mirrored_view: the camera set has no georeference")
+    ax, ay = float(anchor[0]), float(anchor[1])
+    c2, s2 = math.cos(2.0 * axis), math.sin(2.0 * axis)
+
+    def mirrored(east, north):
+        de, dn = np.asarray(east, float) - ax, np.asarray(north, float) - ay
+        return ax + c2 * de + s2 * dn, ay + s2 * de - c2 * dn
+
+    west, east_edge, south, north_edge = g.extent
+    ce, cn = mirrored([west, east_edge, east_edge, west], [north_edge, north_edge, south, south])
+    new = GeoReference(float(ce.min()), float(cn.max()), g.gsd,
+                       max(1, int(math.ceil((ce.max() - ce.min()) / g.gsd - 1e-9))),
+                       max(1, int(math.ceil((cn.max() - cn.min()) / g.gsd - 1e-9))))
+    east, north = g.pixel_to_enu(minutiae.col, minutiae.row)
+    col, row = new.enu_to_pixel(*mirrored(east, north))
+    moved = MinutiaSet(col, row, 2.0 * axis - minutiae.angle, minutiae.kind,
+                       minutiae.quality, georef=new, reason=minutiae.reason)
+    # the pixel map of the mirror, from three raster points (its own inverse)
+    src = np.float32([[0, 0], [g.width - 1, 0], [0, g.height - 1]])
+    dst = np.float32(np.stack(new.enu_to_pixel(*mirrored(*g.pixel_to_enu(src[:, 0],
+                                                                         src[:, 1]))), 1))
+    warp = cv2.getAffineTransform(src, dst)
+
+    def skeleton(s):
+        if s is None:
+            return None
+        moved_s = cv2.warpAffine(np.asarray(s, np.float32), warp, (new.width, new.height),
+                                 flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        return skeletonize_creases(moved_s > 0.0)
+
+    return moved, skeleton(creases), skeleton(ridges)
+
+
 def relocalise_ladder(matcher: Matcher, cameras: Sequence[MinutiaIndex],
                       tiles: Sequence[SearchTile], *, ambiguity_margin: float = 2.0,
                       same_place_px: float = 10.0) -> tuple[Relocalisation, int]:
