@@ -52,9 +52,11 @@ def test_filter_steps_keep_what_the_velocity_does_not_explain():
     np.testing.assert_allclose(steps.at(104.0) - steps.at(101.0), 0.0, atol=1e-9)
     np.testing.assert_allclose(steps.at(109.0) - steps.at(104.0), jump[:2], atol=1e-9)
     # a gap the velocity cannot be integrated across breaks the history
+    epoch = steps.epoch
     steps.add(112.0, velocity * 12.0 + jump, velocity)
     assert steps.at(109.0) is None
     np.testing.assert_allclose(steps.at(112.0), 0.0)
+    assert steps.epoch == epoch + 1      # the sums before and after do not compare
     assert steps.at(150.0) is None
 
 
@@ -112,12 +114,15 @@ def test_large_frames_old_frames_and_unknown_steps_are_published_alone(terrain):
     for k in range(10):
         out, n = mosaic.compose(_frame(terrain, 10 + 3 * k, 40), 20.0 + k, np.zeros(2))
     assert n == 6
+    # frames of the odometry's history before a break are forgotten
+    out, n = mosaic.compose(_frame(terrain, 40, 40), 30.0, np.zeros(2), epoch=1)
+    assert n == 1 and len(mosaic) == 1
     # with the estimate's steps unknown (a gap in the odometry) the frame goes alone
     frame = _frame(terrain, 50, 40)
-    out, n = mosaic.compose(frame, 30.0, None)
+    out, n = mosaic.compose(frame, 31.0, None)
     assert out is frame and n == 1 and len(mosaic) == 0
     # off
-    out, n = TrackMosaic(0).compose(frame, 31.0, np.zeros(2))
+    out, n = TrackMosaic(0).compose(frame, 32.0, np.zeros(2))
     assert out is frame and n == 1
 
 

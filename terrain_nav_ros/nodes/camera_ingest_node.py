@@ -398,7 +398,8 @@ class CameraIngestNode(Node):
             ground = project_to_ground(image, self.intrinsics, camera, plane, georef, bgr=bgr,
                                        max_range=max_range)
         if ground.image is not None:
-            ground, n = self.mosaic.compose(ground, stamp, self.steps.at(stamp))
+            ground, n = self.mosaic.compose(ground, stamp, self.steps.at(stamp),
+                                            self.steps.epoch)
             if n > 1:
                 self.mosaics["published"] += 1
                 self.mosaics["frames"] += n

@@ -57,6 +57,11 @@ class FilterSteps:
     max_gap : float
         A longer gap between samples (s) breaks the history: the velocity cannot be
         integrated across it, and stamps before it have no answer.
+
+    Attributes
+    ----------
+    epoch : int
+        Counts the breaks: sums of two epochs are not comparable (each starts at zero).
     """
 
     def __init__(self, horizon: float = 120.0, max_gap: float = 1.0):
@@ -65,6 +70,7 @@ class FilterSteps:
         self._stamps: deque[float] = deque()
         self._sums: deque[np.ndarray] = deque()
         self._last: tuple[float, np.ndarray, np.ndarray] | None = None
+        self.epoch = 0
 
     def add(self, stamp: float, position, velocity) -> None:
         """One estimate: ``stamp`` (s), ENU ``position`` and ``velocity`` (m, m/s)."""
@@ -104,6 +110,8 @@ class FilterSteps:
         return (1.0 - w) * self._sums[i - 1] + w * self._sums[i]
 
     def _clear(self) -> None:
+        if self._stamps:
+            self.epoch += 1
         self._stamps.clear()
         self._sums.clear()
         self._last = None
@@ -114,6 +122,7 @@ class _Frame:
     ground: GroundImage
     stamp: float
     steps: np.ndarray        # FilterSteps.at(stamp) when it was projected
+    epoch: int               # and FilterSteps.epoch
     observed: int            # its valid pixels
 
 
@@ -143,24 +152,26 @@ class TrackMosaic:
     def __len__(self) -> int:
         return len(self._frames)
 
-    def compose(self, ground: GroundImage, stamp: float,
-                steps: np.ndarray | None) -> tuple[GroundImage, int]:
+    def compose(self, ground: GroundImage, stamp: float, steps: np.ndarray | None,
+                epoch: int = 0) -> tuple[GroundImage, int]:
         """Add a projected frame and return what to match: the frame itself, or the mosaic
         of it and the frames before it, placed in its estimate; and how many frames that is.
 
         ``steps`` is :meth:`FilterSteps.at` the frame's stamp (None: unknown, the frame is
-        matched alone and starts a new mosaic)."""
+        matched alone and starts a new mosaic), ``epoch`` :attr:`FilterSteps.epoch` (frames
+        of another epoch are forgotten: their steps do not compare)."""
         observed = int(np.count_nonzero(ground.valid))
         if self.min_pixels <= 0 or observed >= self.min_pixels or steps is None:
             self._frames.clear()
             return ground, 1
         gsd = ground.georef.gsd
         if self._frames and (self._frames[-1].stamp >= stamp or
+                             self._frames[-1].epoch != epoch or
                              not math.isclose(self._frames[-1].ground.georef.gsd, gsd)):
-            self._frames.clear()     # a replay started again, or another GSD
+            self._frames.clear()     # a replay started again, the odometry broke, a new GSD
         while self._frames and self._frames[0].stamp < stamp - self.max_age:
             self._frames.popleft()
-        self._frames.append(_Frame(ground, stamp, np.asarray(steps, float), observed))
+        self._frames.append(_Frame(ground, stamp, np.asarray(steps, float), epoch, observed))
         chosen = self._chosen()
         if len(chosen) == 1:
             return ground, 1
