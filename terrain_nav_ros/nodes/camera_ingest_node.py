@@ -269,8 +269,8 @@ class CameraIngestNode(Node):
         stamp, p, q, cov = cv.odometry_to_arrays(msg)
         reason = self.poses.add(StampedPose(stamp * 1e-9, p, q, cov))
         if not reason:
-            self.steps.add(stamp * 1e-9, p, cv.odometry_velocity(msg))
             t = stamp * 1e-9
+            self.steps.add(t, p, cv.odometry_velocity(msg))
             first, last = self._odometry_span or (t, t)
             if t < last - self.poses.horizon:      # time went backwards: start again
                 first, last = t, t
@@ -403,18 +403,18 @@ class CameraIngestNode(Node):
             if n > 1:
                 self.mosaics["published"] += 1
                 self.mosaics["frames"] += n
-        self._publish_ground(ground, ground.georef, camera, plane, header)
+        self._publish_ground(ground, camera, plane, header)
 
-    def _publish_ground(self, ground, georef: GeoReference, camera: CameraPose, plane: float,
-                        header, pose_free: tuple[float, float, float] | None = None) -> bool:
+    def _publish_ground(self, ground, camera: CameraPose, plane: float, header,
+                        pose_free: tuple[float, float, float] | None = None) -> bool:
         """Publish a projected frame as a GeoImage with its projection (and, for a cold
         start, ``pose_free``: the range of planes and the tilt sigma it leaves open), or
         drop it with the projection's reason; whether it was published."""
         if ground.image is None:
             self.drop(ground.reason, header)
             return False
-        out = cv.geo_image_to_msg(ground.image, georef, cv.make_header(header.stamp,
-                                                                       self.frame_id),
+        out = cv.geo_image_to_msg(ground.image, ground.georef,
+                                  cv.make_header(header.stamp, self.frame_id),
                                   ground.valid, self.tile_origin,
                                   sun=self.sun_at_frame(header.stamp))
         cv.set_projection(out, camera.position, camera.rotation, plane)
@@ -472,7 +472,7 @@ class CameraIngestNode(Node):
         georef = self._capped(georef)
         ground = project_to_ground(image, self.intrinsics, camera, plane, georef,
                                    bgr=encoding.startswith("bgr"), max_range=max_range)
-        if not self._publish_ground(ground, georef, camera, plane, header,
+        if not self._publish_ground(ground, camera, plane, header,
                                     (view.plane_min, view.plane_max, view.tilt_sigma)):
             return
         self.pose_free_published += 1

@@ -146,8 +146,6 @@ class FlipCheck:
         Frames below the threshold in a row between two tries; 0 never tries.
     """
 
-    FLIPS = ("left to right", "top to bottom")
-
     def __init__(self, every: int):
         self.every = int(every)
         self.run = 0
