@@ -494,3 +494,6 @@ def test_frames_from_low_up_are_published_as_a_mosaic_of_the_track():
     assert abs(east.max() - newest) < 30.0            # the newest frame's nadir
     tails = east[east < newest - 250.0]               # the frames' tail marks, 60 m apart
     assert tails.max() - tails.min() > 5 * speed, east
+    # its pixels' mean age goes with it, for the ekf (frames 1 s apart: a few seconds)
+    assert 1.0 < last.mosaic_lag < 6.0, last.mosaic_lag
+    assert got[0].mosaic_lag == 0.0                   # the first frame went alone

@@ -211,10 +211,11 @@ def test_pva_fix_round_trip(with_velocity):
     vel, vcov = ([30.0, -1.0, 0.5], np.eye(3) * 0.25) if with_velocity else (None, None)
     msg = cv.arrays_to_pva_fix(cv.make_header(5_000_000_000, "map"), PvaFix.STATUS_POSITION,
                                [1.0, 2.0, 3.0], [0.0, 0.0, 0.0, 1.0], cov, vel, vcov,
-                               relocalisation=with_velocity, projection_height=2500.0)
+                               relocalisation=with_velocity, projection_height=2500.0,
+                               mosaic_lag=12.5)
     fix = cv.pva_fix_to_arrays(msg)
     assert fix.stamp == 5.0 and fix.status == PvaFix.STATUS_POSITION
-    assert fix.projection_height == 2500.0
+    assert fix.projection_height == 2500.0 and fix.mosaic_lag == 12.5
     assert msg.relocalisation is with_velocity and fix.relocalisation is with_velocity
     np.testing.assert_array_equal(fix.position, [1.0, 2.0, 3.0])
     np.testing.assert_array_equal(fix.quaternion, [0.0, 0.0, 0.0, 1.0])
@@ -271,13 +272,13 @@ def test_projection_fields_round_trip():
     r = Rotation.from_euler("xyz", [170, 5, 30], degrees=True).as_matrix()
     msg = GeoImage()
     assert cv.get_projection(msg) is None
-    cv.set_projection(msg, [1.0, 2.0, 3000.0], r, 450.0)
+    cv.set_projection(msg, [1.0, 2.0, 3000.0], r, 450.0, mosaic_lag=7.25)
     out = MinutiaArray()
     cv.copy_projection(msg, out)
     position, rotation, plane = cv.get_projection(out)
     np.testing.assert_allclose(position, [1, 2, 3000])
     np.testing.assert_allclose(rotation, r, atol=1e-12)
-    assert plane == 450.0
+    assert plane == 450.0 and out.mosaic_lag == 7.25
 
 
 def test_geo_image_sun_round_trip_and_unknown():

@@ -111,6 +111,7 @@ def test_matcher_publishes_the_true_position_and_explains_no_fix():
         s.land_pub.publish(cv.minutiae_to_msg(landmark, header, MinutiaArray.SOURCE_LANDMARK,
                                               ORIGIN))
         cam_msg = _camera_msg(camera, prior, header)
+        cam_msg.mosaic_lag = 8.5           # a track mosaic's: its fix says so to the ekf
         sparse = _camera_msg(camera.subset(np.arange(3)), prior, header)
         assert wait_until(lambda: (s.cam_pub.publish(cam_msg),
                                    any(f.status for f in fixes))[1], 30, 0.5)
@@ -134,6 +135,7 @@ def test_matcher_publishes_the_true_position_and_explains_no_fix():
         assert s.node.poll() is None
     fix = next(f for f in fixes if f.status)
     assert fix.status == PvaFix.STATUS_POSITION_ATTITUDE, f"{fix.reason}\n{s.log}"
+    assert fix.mosaic_lag == 8.5
     position = np.array([fix.pose.pose.position.x, fix.pose.pose.position.y])
     np.testing.assert_allclose(position, TRUE_XY, atol=GSD / 2)
     cov = cv.covariance_to_array(fix.pose.covariance, 6)

@@ -63,7 +63,7 @@ def test_filter_steps_keep_what_the_velocity_does_not_explain():
 def test_a_small_frame_is_published_with_the_frames_before_it(terrain):
     mosaic = TrackMosaic(min_pixels=3000, max_age=30.0)
     for k in range(40):                        # 3 px east per frame: a low camera's track
-        out, n = mosaic.compose(_frame(terrain, 10 + 3 * k, 40), 10.0 + k, np.zeros(2))
+        out, n, _ = mosaic.compose(_frame(terrain, 10 + 3 * k, 40), 10.0 + k, np.zeros(2))
     # frames of 1200 px, each adding 90: 21 of them, not the 31 of the last 30 s
     assert n == 21 and out.georef.width == 40 + 3 * 20
     # the newest frame's raster is in it, and its pixels are the photo's
@@ -87,7 +87,7 @@ def test_past_frames_are_moved_by_the_steps_the_estimate_took_since(terrain):
         for s in np.arange(0.0, 1.0, 0.05):   # the estimate at 20 Hz
             steps.add(t + s, np.r_[velocity[:2] * (t + s) + (new if t + s >= 29.5 else old), 0],
                       velocity)
-        out, n = mosaic.compose(_frame(terrain, 10 + 3 * k, 40, placed_off=error), t,
+        out, n, _ = mosaic.compose(_frame(terrain, 10 + 3 * k, 40, placed_off=error), t,
                                 steps.at(t))
     assert n > 12   # frames from before and after the step
     photo = _photo_under(out, terrain, placed_off=new)
@@ -95,7 +95,7 @@ def test_past_frames_are_moved_by_the_steps_the_estimate_took_since(terrain):
     # without the steps, the frames before it would be 3 px and 2 px off
     unmoved = TrackMosaic(min_pixels=6000, max_age=30.0)
     for k in range(30):
-        out, n = unmoved.compose(_frame(terrain, 10 + 3 * k, 40,
+        out, n, _ = unmoved.compose(_frame(terrain, 10 + 3 * k, 40,
                                         placed_off=new if k >= 20 else old), 10.0 + k,
                                  np.zeros(2))
     photo = _photo_under(out, terrain, placed_off=new)
@@ -108,21 +108,21 @@ def test_large_frames_old_frames_and_unknown_steps_are_published_alone(terrain):
         mosaic.compose(_frame(terrain, 10 + 3 * k, 40), 10.0 + k, np.zeros(2))
     # a frame seeing enough alone is published alone and forgets the track
     big = _frame(terrain, 100, 10, size=(100, 80))
-    out, n = mosaic.compose(big, 14.0, np.zeros(2))
+    out, n, _ = mosaic.compose(big, 14.0, np.zeros(2))
     assert n == 1 and out is big and len(mosaic) == 0
     # frames older than max_age are left out
     for k in range(10):
-        out, n = mosaic.compose(_frame(terrain, 10 + 3 * k, 40), 20.0 + k, np.zeros(2))
+        out, n, _ = mosaic.compose(_frame(terrain, 10 + 3 * k, 40), 20.0 + k, np.zeros(2))
     assert n == 6
     # frames of the odometry's history before a break are forgotten
-    out, n = mosaic.compose(_frame(terrain, 40, 40), 30.0, np.zeros(2), epoch=1)
+    out, n, _ = mosaic.compose(_frame(terrain, 40, 40), 30.0, np.zeros(2), epoch=1)
     assert n == 1 and len(mosaic) == 1
     # with the estimate's steps unknown (a gap in the odometry) the frame goes alone
     frame = _frame(terrain, 50, 40)
-    out, n = mosaic.compose(frame, 31.0, None)
+    out, n, _ = mosaic.compose(frame, 31.0, None)
     assert out is frame and n == 1 and len(mosaic) == 0
     # off
-    out, n = TrackMosaic(0).compose(frame, 32.0, np.zeros(2))
+    out, n, _ = TrackMosaic(0).compose(frame, 32.0, np.zeros(2))
     assert out is frame and n == 1
 
 
@@ -132,8 +132,28 @@ def test_a_fast_camera_s_mosaic_holds_the_frames_it_needs(terrain):
     the 180 frames of 18 s holds 61, and it is the same strip of the photo."""
     fast = TrackMosaic(min_pixels=3000, max_age=30.0)
     for k in range(200):
-        out, n = fast.compose(_frame(terrain, 10 + k // 3, 40), 10.0 + 0.1 * k, np.zeros(2))
+        out, n, _ = fast.compose(_frame(terrain, 10 + k // 3, 40), 10.0 + 0.1 * k, np.zeros(2))
     # 1200 px a frame, 30 more per pixel moved: 60 pixels of track, one frame each
     assert n == 61 and out.georef.width == 40 + 60, (n, out.georef)
     photo = _photo_under(out, terrain)
     assert np.abs(out.image[out.valid].astype(int) - photo[out.valid]).max() <= 1
+
+
+def test_a_mosaic_says_how_old_its_pixels_are(terrain):
+    """A fix from a mosaic carries the estimate's velocity error over its frames' ages:
+    the mosaic's lag is their mean age over its pixels, each pixel the newest frame's."""
+    mosaic = TrackMosaic(min_pixels=3000, max_age=30.0)
+    for k in range(40):
+        out, n, lag = mosaic.compose(_frame(terrain, 10 + 3 * k, 40), 10.0 + k, np.zeros(2))
+    first = 40 - n
+    # each column of the mosaic as the newest of the n frames over it sees it
+    cols = np.arange(10 + 3 * first, 50 + 3 * 39)
+    newest_over = np.minimum((cols - 10) // 3, 39)
+    expected = np.mean(39 - newest_over)
+    # (a little older: each frame's feathered edge lets the older ones through)
+    assert expected <= lag <= expected + 1.0
+    # not the frames' mean age: most of the mosaic is its newest frames'
+    assert lag < 0.75 * np.mean(np.arange(n))
+    # a frame matched alone has none
+    _, one, alone = mosaic.compose(_frame(terrain, 10, 10, size=(60, 60)), 60.0, np.zeros(2))
+    assert one == 1 and alone == 0.0

@@ -397,19 +397,22 @@ class CameraIngestNode(Node):
         else:
             ground = project_to_ground(image, self.intrinsics, camera, plane, georef, bgr=bgr,
                                        max_range=max_range)
+        lag = 0.0
         if ground.image is not None:
-            ground, n = self.mosaic.compose(ground, stamp, self.steps.at(stamp),
-                                            self.steps.epoch)
+            ground, n, lag = self.mosaic.compose(ground, stamp, self.steps.at(stamp),
+                                                 self.steps.epoch)
             if n > 1:
                 self.mosaics["published"] += 1
                 self.mosaics["frames"] += n
-        self._publish_ground(ground, camera, plane, header)
+        self._publish_ground(ground, camera, plane, header, mosaic_lag=lag)
 
     def _publish_ground(self, ground, camera: CameraPose, plane: float, header,
-                        pose_free: tuple[float, float, float] | None = None) -> bool:
+                        pose_free: tuple[float, float, float] | None = None,
+                        mosaic_lag: float = 0.0) -> bool:
         """Publish a projected frame as a GeoImage with its projection (and, for a cold
-        start, ``pose_free``: the range of planes and the tilt sigma it leaves open), or
-        drop it with the projection's reason; whether it was published."""
+        start, ``pose_free``: the range of planes and the tilt sigma it leaves open; for a
+        track mosaic, the mean age of its pixels), or drop it with the projection's reason;
+        whether it was published."""
         if ground.image is None:
             self.drop(ground.reason, header)
             return False
@@ -417,7 +420,7 @@ class CameraIngestNode(Node):
                                   cv.make_header(header.stamp, self.frame_id),
                                   ground.valid, self.tile_origin,
                                   sun=self.sun_at_frame(header.stamp))
-        cv.set_projection(out, camera.position, camera.rotation, plane)
+        cv.set_projection(out, camera.position, camera.rotation, plane, mosaic_lag)
         if pose_free is not None:
             cv.set_pose_free(out, *pose_free)
         self.pub.publish(out)

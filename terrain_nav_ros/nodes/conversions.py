@@ -405,8 +405,10 @@ def geo_image_sun(msg: GeoImage) -> tuple[float, float] | None:
     return float(az), float(el)
 
 
-def set_projection(msg, position, r_enu_optical, plane_height: float) -> None:
-    """Record on a GeoImage/MinutiaArray the camera pose and plane a ground image came from."""
+def set_projection(msg, position, r_enu_optical, plane_height: float,
+                   mosaic_lag: float = 0.0) -> None:
+    """Record on a GeoImage/MinutiaArray the camera pose and plane a ground image came from
+    (and, for a track mosaic, the mean age of its pixels [s])."""
     from scipy.spatial.transform import Rotation
 
     q = Rotation.from_matrix(np.asarray(r_enu_optical, float)).as_quat()
@@ -416,6 +418,7 @@ def set_projection(msg, position, r_enu_optical, plane_height: float) -> None:
     pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = map(
         float, q)
     msg.projection_plane_height = float(plane_height)
+    msg.mosaic_lag = float(mosaic_lag)
 
 
 def get_projection(msg) -> tuple[np.ndarray, np.ndarray, float] | None:
@@ -456,6 +459,7 @@ def copy_projection(source, target) -> None:
     target.projection_plane_min = source.projection_plane_min
     target.projection_plane_max = source.projection_plane_max
     target.projection_tilt_sigma = source.projection_tilt_sigma
+    target.mosaic_lag = source.mosaic_lag
 
 
 # ---------------------------------------------------------------------------------------------
@@ -622,6 +626,7 @@ class PvaFixArrays(NamedTuple):
     velocity_covariance: np.ndarray | None
     relocalisation: bool = False       # found by a mission-wide search, independent of the prior
     projection_height: float = 0.0     # m over which the estimate's tilt error moves the fix
+    mosaic_lag: float = 0.0            # s over which the estimate's velocity error moves it
 
 
 def pva_fix_to_arrays(msg: PvaFix) -> PvaFixArrays:
@@ -634,16 +639,18 @@ def pva_fix_to_arrays(msg: PvaFix) -> PvaFixArrays:
     return PvaFixArrays(stamp_to_sec(msg.header.stamp), int(msg.status),
                         np.array([p.x, p.y, p.z]), np.array([o.x, o.y, o.z, o.w]),
                         covariance_to_array(msg.pose.covariance, 6), vel, vcov,
-                        bool(msg.relocalisation), float(msg.projection_height))
+                        bool(msg.relocalisation), float(msg.projection_height),
+                        float(msg.mosaic_lag))
 
 
 def arrays_to_pva_fix(header: Header, status: int, position, quaternion, covariance,
                       velocity=None, velocity_covariance=None, reason: str = "",
-                      relocalisation: bool = False, projection_height: float = 0.0) -> PvaFix:
+                      relocalisation: bool = False, projection_height: float = 0.0,
+                      mosaic_lag: float = 0.0) -> PvaFix:
     """Arrays -> terrain_nav_msgs/PvaFix (position-only fixes: -1 on the rotation diagonal)."""
     msg = PvaFix(header=header, status=int(status), reason=reason,
                  relocalisation=bool(relocalisation),
-                 projection_height=float(projection_height),
+                 projection_height=float(projection_height), mosaic_lag=float(mosaic_lag),
                  pose=pose_with_covariance(position, quaternion, covariance))
     if velocity is not None:
         msg.velocity_valid = True

@@ -729,7 +729,8 @@ class EkfNode(Node):
         out = self.ekf.process_fix(fix.stamp, position, cov, velocity=velocity,
                                    quaternion=q_body, source="fix",
                                    relocalisation=fix.relocalisation,
-                                   projection_height=fix.projection_height)
+                                   projection_height=fix.projection_height,
+                                   mosaic_lag=fix.mosaic_lag)
         self._report("fix", out, fix.stamp)
         self._navigation_state(self.ekf.diagnostics)
 

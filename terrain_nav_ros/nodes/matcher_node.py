@@ -347,6 +347,7 @@ class MatcherNode(Node):
         if not fix.valid:
             self.publish_no_fix(msg.header.stamp, fix.reason, fix)
             return False
+        fix.mosaic_lag = float(msg.mosaic_lag)   # a track mosaic's: the ekf models it
         self.publish_fix(msg.header.stamp, cv.stamp_to_sec(msg.header.stamp), fix, origin)
         return True
 
@@ -509,6 +510,7 @@ class MatcherNode(Node):
                      num_landmark_minutiae=fix.num_landmark_minutiae,
                      relocalisation=bool(fix.relocalisation),
                      projection_height=float(fix.projection_height),
+                     mosaic_lag=float(fix.mosaic_lag),
                      pose=cv.pose_with_covariance(fix.position, quaternion, fix.covariance))
         lat, lon, alt = EnuOrigin(*origin).enu_to_geodetic(*fix.position)
         out.latitude, out.longitude, out.altitude = float(lat), float(lon), float(alt)

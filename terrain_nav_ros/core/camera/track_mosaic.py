@@ -13,7 +13,9 @@ What moves a past frame against the newest is the filter's own correction betwee
 a fix steps the estimate by metres while its velocity stays smooth. :class:`FilterSteps`
 integrates the estimate's velocity and keeps what its position did beyond that; each past
 frame is moved by the steps taken since it was projected, into the estimate the newest
-frame was projected with. What is left is the velocity's error times the mosaic's span.
+frame was projected with. What is left is the velocity's error times each frame's age: a fix
+from the mosaic measures the position less the estimate's velocity error times the mosaic's
+mean age (its ``lag``, which the ekf models).
 
 Frames are laid newest on top, each faded out over its last pixels to its border, so that
 the mosaic is as recent as its pixels allow (under the newest frame, the newest frame alone:
@@ -28,6 +30,7 @@ import bisect
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -117,6 +120,14 @@ class FilterSteps:
         self._last = None
 
 
+class Composed(NamedTuple):
+    """What :meth:`TrackMosaic.compose` gives to match."""
+
+    ground: GroundImage   # the frame itself, or the mosaic placed in its estimate
+    frames: int           # frames in it
+    lag: float            # mean age of its pixels behind the newest frame (s); 0 for one
+
+
 @dataclass
 class _Frame:
     ground: GroundImage
@@ -153,9 +164,9 @@ class TrackMosaic:
         return len(self._frames)
 
     def compose(self, ground: GroundImage, stamp: float, steps: np.ndarray | None,
-                epoch: int = 0) -> tuple[GroundImage, int]:
+                epoch: int = 0) -> Composed:
         """Add a projected frame and return what to match: the frame itself, or the mosaic
-        of it and the frames before it, placed in its estimate; and how many frames that is.
+        of it and the frames before it, placed in its estimate (:class:`Composed`).
 
         ``steps`` is :meth:`FilterSteps.at` the frame's stamp (None: unknown, the frame is
         matched alone and starts a new mosaic), ``epoch`` :attr:`FilterSteps.epoch` (frames
@@ -163,7 +174,7 @@ class TrackMosaic:
         observed = int(np.count_nonzero(ground.valid))
         if self.min_pixels <= 0 or observed >= self.min_pixels or steps is None:
             self._frames.clear()
-            return ground, 1
+            return Composed(ground, 1, 0.0)
         gsd = ground.georef.gsd
         if self._frames and (self._frames[-1].stamp >= stamp or
                              self._frames[-1].epoch != epoch or
@@ -174,8 +185,9 @@ class TrackMosaic:
         self._frames.append(_Frame(ground, stamp, np.asarray(steps, float), epoch, observed))
         chosen = self._chosen()
         if len(chosen) == 1:
-            return ground, 1
-        return self._blend(chosen), len(chosen)
+            return Composed(ground, 1, 0.0)
+        mosaic, lag = self._blend(chosen)
+        return Composed(mosaic, len(chosen), lag)
 
     def _chosen(self) -> list[tuple[_Frame, GeoReference]]:
         """Newest first, each with its georef moved into the newest frame's estimate, until
@@ -208,10 +220,12 @@ class TrackMosaic:
                 break
         return chosen
 
-    def _blend(self, chosen) -> GroundImage:
+    def _blend(self, chosen) -> tuple[GroundImage, float]:
         """The chosen frames resampled onto one grid (the newest frame's pixel lattice), laid
-        newest on top, each faded out towards its border (front-to-back compositing)."""
+        newest on top, each faded out towards its border (front-to-back compositing); and
+        the mean age of its pixels (each frame's age weighted by its share of the blend)."""
         newest = chosen[0][1]
+        newest_stamp = chosen[0][0].stamp
         gsd = newest.gsd
         west = min(m.extent[0] for _, m in chosen)
         north = max(m.extent[3] for _, m in chosen)
@@ -227,6 +241,7 @@ class TrackMosaic:
         acc = np.zeros(grid.shape, np.float32)
         wsum = np.zeros(grid.shape, np.float32)
         free = np.ones(grid.shape, np.float32)   # what the newer frames left of each pixel
+        share_age = 0.0
         for frame, moved in chosen:              # newest first: it lies on top
             weight = _feather(frame.ground.valid)
             # ground -> grid: a translation by the moved origin's offset in grid pixels
@@ -239,7 +254,9 @@ class TrackMosaic:
                                 for a in (frame.ground.image.astype(np.float32) * weight,
                                           weight))
             acc += free * weighted
-            wsum += free * weight
+            share = free * weight
+            wsum += share
+            share_age += float(share.sum()) * (newest_stamp - frame.stamp)
             free *= 1.0 - weight
         valid = wsum > 1e-3
         out = np.zeros(grid.shape, np.float32)
@@ -248,7 +265,8 @@ class TrackMosaic:
         if dtype.kind in "ui":
             info = np.iinfo(dtype)
             out = np.clip(np.rint(out), info.min, info.max)
-        return GroundImage(out.astype(dtype), valid, grid)
+        lag = share_age / max(float(wsum.sum()), 1e-9)
+        return GroundImage(out.astype(dtype), valid, grid), lag
 
 
 def _feather(valid: np.ndarray) -> np.ndarray:

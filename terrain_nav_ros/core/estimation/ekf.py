@@ -58,6 +58,12 @@ terrain part ``k`` from the baro bias. It starts at ``init_camera_scale_sigma`` 
 off by more than the prior allows) is left out and the rest of the fix fused
 (``FUSED_WITHOUT_HEIGHT``): the horizontal position does not depend on the scale.
 
+A fix from a track mosaic (a low camera's frames composed along its track, each moved into the
+newest frame's estimate by the filter's own dead reckoning) carries the velocity's error over
+the frames' ages: its horizontal position measures ``p - lag x (v - v_hat)``, ``lag`` the
+mosaic's mean age (``mosaic_lag``). The update models it, so such a fix also corrects the
+velocity, and weighs less while the velocity is in doubt.
+
 The nominal attitude is the unit quaternion ``q`` (``[x, y, z, w]``, body -> ENU) kept beside
 ``kf.x``; the true attitude is ``Exp(dtheta) * q``. Position, velocity and biases are additive,
 so for them ``kf.x`` is the estimate itself; only the attitude needs the error-state
@@ -177,6 +183,7 @@ class Reason(StrEnum):
     BAD_COVARIANCE = "covariance_not_positive_definite"
     BAD_QUATERNION = "quaternion_not_unit"
     BAD_PROJECTION_HEIGHT = "projection_height_negative_or_not_finite"
+    BAD_MOSAIC_LAG = "mosaic_lag_negative_or_not_finite"
     DUPLICATE = "duplicate_stamp"
     OUT_OF_ORDER = "out_of_order"
     STALE = "older_than_history"
@@ -401,6 +408,13 @@ class EkfDiagnostics:
 
 
 @lru_cache(maxsize=64)
+def _lagged_rows(meas: _Measurement) -> tuple[np.ndarray, np.ndarray]:
+    """The horizontal position rows of a mosaic's fix and the velocity state each moves
+    with (the mosaic's frames were moved horizontally)."""
+    k = np.flatnonzero(meas.rows < 2)
+    return k, meas.rows[k] + 3
+
+
 def _gate(probability: float, dof: int) -> float:
     """Chi-square threshold (inf when gating is disabled)."""
     return float("inf") if probability >= 1.0 else float(chi2.ppf(probability, dof))
@@ -424,6 +438,7 @@ class _Measurement:
     attitude_lever: np.ndarray | None = None   # (m, 3): how dtheta moves the measured rows
     body_up: np.ndarray | None = None   # a levelling's measured up direction, body frame
     state_lever: np.ndarray | None = None   # (m, DIM_STATE): how the state moves them too
+    velocity_lag: float = 0.0   # s: horizontal rows measure p - lag (v - v_hat) (a mosaic's)
     reopen: list | None = None   # found a drift (_test_drift): (states, variance floor)
 
     @property
@@ -1052,7 +1067,7 @@ class TerrainEkf:
     # ------------------------------------------------------------------ measurements
     def process_fix(self, stamp: float, position, covariance, velocity=None, quaternion=None,
                     source: str = "fix", relocalisation: bool = False,
-                    projection_height: float = 0.0) -> Outcome:
+                    projection_height: float = 0.0, mosaic_lag: float = 0.0) -> Outcome:
         """Position fix (optionally with velocity and/or attitude), e.g. a terrain PvaFix.
 
         Parameters
@@ -1090,6 +1105,11 @@ class TerrainEkf:
             height, measured by the registration's scale, carries the camera's scale error
             times this height. 0: the fix does not depend on the filter's attitude (PnP, GNSS,
             pose-free frames).
+        mosaic_lag : float
+            For a fix from a track mosaic: the mean age (s) of its pixels. Its frames were
+            moved into the newest one's estimate by the filter's dead reckoning, so its
+            horizontal position measures ``p - mosaic_lag x (v - v_hat)``; the update models
+            that. 0: a single frame (or any other fix).
 
         Returns
         -------
@@ -1097,6 +1117,8 @@ class TerrainEkf:
         """
         if not (math.isfinite(projection_height) and projection_height >= 0.0):
             return self._refuse(source, Reason.BAD_PROJECTION_HEIGHT)
+        if not (math.isfinite(mosaic_lag) and mosaic_lag >= 0.0):
+            return self._refuse(source, Reason.BAD_MOSAIC_LAG)
         parts = [np.asarray(position, dtype=float)]
         rows = [np.arange(0, 3)]
         if velocity is not None and not relocalisation:
@@ -1124,7 +1146,7 @@ class TerrainEkf:
             state_lever[2, IDX_SCALE] = projection_height
         return self._submit(stamp, source, np.concatenate(parts), covariance,
                             np.concatenate(rows), att, relocalisation, lever=lever,
-                            state_lever=state_lever)
+                            state_lever=state_lever, velocity_lag=mosaic_lag)
 
     def set_position(self, stamp: float, position, covariance) -> Outcome:
         """Put the position at ``position`` (ENU, m; 3x3 covariance) at ``stamp``, whatever
@@ -1173,7 +1195,7 @@ class TerrainEkf:
 
     def _submit(self, stamp, source, z, covariance, rows, attitude,
                 relocalisation: bool = False, reset: bool = False, lever=None,
-                body_up=None, state_lever=None) -> Outcome:
+                body_up=None, state_lever=None, velocity_lag: float = 0.0) -> Outcome:
         """Validate, log and apply (now, queued or in the past) one measurement; with
         ``reset``, as a position reset (not gated)."""
         m = len(z)
@@ -1187,7 +1209,7 @@ class TerrainEkf:
         meas = _Measurement(float(stamp), next(self._seq), source, z.copy(), 0.5 * (R + R.T),
                             rows, attitude, relocalisation=relocalisation, reset=reset,
                             attitude_lever=lever, body_up=body_up,
-                            state_lever=state_lever)
+                            state_lever=state_lever, velocity_lag=float(velocity_lag))
         if not self.initialized:
             if source != self.params.init_mode:
                 return self._refuse(source, Reason.NOT_INITIALIZED)
@@ -1421,6 +1443,11 @@ class TerrainEkf:
             H[:, IDX_MOUNT] += meas.attitude_lever @ quat_to_matrix(self.q)[:, :2]
         if meas.state_lever is not None:
             H += meas.state_lever
+        if meas.velocity_lag:
+            # h = p - lag (v - v_hat): the innovation stays z - p_hat, the gain learns v too
+            k, velocity = _lagged_rows(meas)
+            H[k, velocity] -= meas.velocity_lag
+            z[k] -= meas.velocity_lag * self._x[velocity]
         return z, H
 
     def _gate_test(self, meas: _Measurement, keep: np.ndarray | None = None):
@@ -1500,6 +1527,9 @@ class TerrainEkf:
             z = z - meas.state_lever @ self._x
         if meas.attitude_lever is not None:   # (the attitude's error is 0 between updates)
             z = z - H[:, IDX_MOUNT] @ self._x[IDX_MOUNT]
+        if meas.velocity_lag:   # onto the position measured, as the innovation takes it
+            k, velocity = _lagged_rows(meas)
+            z[k] += meas.velocity_lag * self._x[velocity]
         keep = meas.rows < 3 if meas.source != "level" else np.ones(len(meas.rows), bool)
         r = meas.rows[keep]
         P = self.kf.P

@@ -74,6 +74,11 @@ class PvaFixEstimate:
         covariance leaves that out for the filter, which knows its own attitude error, to
         model (``TerrainEkf.process_fix``). 0 when the tilt error is in the covariance
         (:func:`~.fix_stream.add_prior_tilt`) or does not apply (PnP).
+    mosaic_lag : float
+        For a fix from a track mosaic (:mod:`~..camera.track_mosaic`): the mean age (s) of
+        its pixels. Its frames were moved into the newest frame's estimate by the filter's
+        dead reckoning, so the fix measures the position less this times the estimate's
+        velocity error, which the filter models (``TerrainEkf.process_fix``). 0 for a frame.
     """
 
     status: int
@@ -89,6 +94,7 @@ class PvaFixEstimate:
     num_landmark_minutiae: int = 0
     relocalisation: bool = False
     projection_height: float = 0.0
+    mosaic_lag: float = 0.0
 
     @property
     def valid(self) -> bool:
