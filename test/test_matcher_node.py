@@ -111,10 +111,14 @@ def test_matcher_publishes_the_true_position_and_explains_no_fix():
         s.land_pub.publish(cv.minutiae_to_msg(landmark, header, MinutiaArray.SOURCE_LANDMARK,
                                               ORIGIN))
         cam_msg = _camera_msg(camera, prior, header)
-        cam_msg.mosaic_lag = 8.5           # a track mosaic's: its fix says so to the ekf
         sparse = _camera_msg(camera.subset(np.arange(3)), prior, header)
         assert wait_until(lambda: (s.cam_pub.publish(cam_msg),
                                    any(f.status for f in fixes))[1], 30, 0.5)
+        # the same set as a track mosaic's (another stamp): its fix says so to the ekf
+        mosaic_msg = _camera_msg(camera, prior, cv.make_header(6_000_000_000, "map"))
+        mosaic_msg.mosaic_lag = 8.5
+        s.cam_pub.publish(mosaic_msg)
+        assert wait_until(lambda: any(f.mosaic_lag for f in fixes), 20)
         before = len(fixes)
         s.cam_pub.publish(sparse)
         # a camera set of another ENU origin: another map (camera_ingest before its tile)
@@ -135,7 +139,14 @@ def test_matcher_publishes_the_true_position_and_explains_no_fix():
         assert s.node.poll() is None
     fix = next(f for f in fixes if f.status)
     assert fix.status == PvaFix.STATUS_POSITION_ATTITUDE, f"{fix.reason}\n{s.log}"
-    assert fix.mosaic_lag == 8.5
+    assert fix.mosaic_lag == 0.0
+    # a mosaic's scale is not its height's (its frames' layout is the dead reckoning's):
+    # the height is the prior's, barely measured (10 % of the 2500 m above the plane, and
+    # the matcher's covariance_scale)
+    mosaic = next(f for f in fixes if f.mosaic_lag)
+    assert mosaic.mosaic_lag == 8.5 and mosaic.status
+    np.testing.assert_allclose(mosaic.pose.pose.position.z, 3000.0)
+    assert cv.covariance_to_array(mosaic.pose.covariance, 6)[2, 2] >= 250.0 ** 2
     position = np.array([fix.pose.pose.position.x, fix.pose.pose.position.y])
     np.testing.assert_allclose(position, TRUE_XY, atol=GSD / 2)
     cov = cv.covariance_to_array(fix.pose.covariance, 6)

@@ -36,7 +36,9 @@ Subscribed:
   attitude's error and with the camera mount's, which the filter estimates
   (``init_camera_mount_sigma``; ``camera_mount_*_deg`` in the diagnostics). Its height,
   measured by the registration's scale, carries the camera's scale error, estimated too
-  (``init_camera_scale_sigma``; ``camera_scale_*percent``).
+  (``init_camera_scale_sigma``; ``camera_scale_*percent``). A fix from a track mosaic
+  (``mosaic_lag`` > 0: its frames' mean age) carries the velocity's error over that time,
+  which the update models.
   Late and out-of-order fixes are applied at their own stamp by the core (state history of
   ``history_length`` s). A fix marked ``relocalisation`` (found by a search of the whole
   mission area) is fused when the gate accepts it; otherwise it is held, and the position

@@ -336,8 +336,13 @@ class MatcherNode(Node):
             return False
         result = self.matcher.localise(
             self.matcher.index(camera, camera_creases, camera_ridges), land_index)
-        fix = self._ground_fix(result, camera.georef, land_minutiae.georef, projection)
-        if result.matched and self.method == "pnp":
+        # a track mosaic's frames lie where the dead reckoning put them: its scale mixes
+        # theirs (the height) with their layout's (the velocity's error), and its minutiae
+        # are not all the newest frame's pixels, which PnP would take them for
+        mosaic = msg.mosaic_lag > 0.0
+        fix = self._ground_fix(result, camera.georef, land_minutiae.georef, projection,
+                               height_from_scale=not mosaic)
+        if result.matched and self.method == "pnp" and not mosaic:
             position, rotation, _ = projection
             fix = checked_pnp(self.pnp_fix(result, camera, land_minutiae, position, rotation),
                               fix, self.pnp_gate, self.tilt_sigma)
@@ -452,7 +457,8 @@ class MatcherNode(Node):
         """The fix of a registration of the ground-projected camera set in a landmark
         raster. Its shift by the projection attitude's tilt error is left to the ekf, whose
         attitude that is (``projection_height``). Its height is measured by the
-        registration's scale unless ``height_from_scale`` is False (a relocalisation)."""
+        registration's scale unless ``height_from_scale`` is False (a relocalisation, a
+        track mosaic)."""
         position, rotation, plane = projection
         return fix_from_ground_match(result, camera_georef, landmark_georef, position,
                                      rotation, plane, landmark_sigma=self.landmark_sigma,
