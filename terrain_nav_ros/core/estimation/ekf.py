@@ -407,7 +407,6 @@ class EkfDiagnostics:
         return None
 
 
-@lru_cache(maxsize=64)
 def _lagged_rows(meas: _Measurement) -> tuple[np.ndarray, np.ndarray]:
     """The horizontal position rows of a mosaic's fix and the velocity state each moves
     with (the mosaic's frames were moved horizontally)."""
@@ -415,6 +414,7 @@ def _lagged_rows(meas: _Measurement) -> tuple[np.ndarray, np.ndarray]:
     return k, meas.rows[k] + 3
 
 
+@lru_cache(maxsize=64)
 def _gate(probability: float, dof: int) -> float:
     """Chi-square threshold (inf when gating is disabled)."""
     return float("inf") if probability >= 1.0 else float(chi2.ppf(probability, dof))
