@@ -265,3 +265,49 @@ def test_a_flushed_recording_survives_its_writer_being_killed(tmp_path, compress
     got = [bags.decode(m).data for m in bags.read(tmp_path / "killed", ["/chatter"])]
     assert got == [f"hello {i}" for i in range(5)]
     writer.close()
+
+
+def _zero_message(store, msgtype):
+    """A message of ``msgtype`` with every field zero or empty, by ``store``'s definitions."""
+    from rosbags.typesys.base import Nodetype
+
+    def value(desc):
+        kind, detail = desc
+        if kind == Nodetype.NAME:
+            return _zero_message(store, detail)
+        if kind == Nodetype.BASE:
+            return {"string": "", "bool": False}.get(detail[0], 0.0 if "float" in detail[0]
+                                                      else 0)
+        sub, length = detail   # an array or a sequence: of base types here
+        dtype = np.dtype(sub[1][0]) if sub[0] == Nodetype.BASE else object
+        return np.zeros(length if kind == Nodetype.ARRAY else 0, dtype)
+
+    _, fields = store.fielddefs[msgtype]
+    return store.types[msgtype](**{name: value(desc) for name, desc in fields})
+
+
+def test_a_bag_recorded_before_a_message_gained_a_field_is_read_as_it_was_written(tmp_path):
+    """PvaFix gained mosaic_lag after bags were recorded with it. Such a bag stores its own
+    definition: read by that, its fixes keep their values, not a size mismatch or fields
+    shifted into the next ones."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    pva = "terrain_nav_msgs/msg/PvaFix"
+    current, _ = bags.typestore().generate_msgdef(pva, ros_version=2)
+    before = "\n".join(line for line in current.splitlines() if line != "float64 mosaic_lag")
+    old = get_typestore(Stores.EMPTY)
+    old.register(get_types_from_msg(before, pva))
+    fix = _zero_message(old, pva)
+    fix.status, fix.projection_height, fix.latitude, fix.reason = 1, 2500.0, 44.5, "old"
+    bag = tmp_path / "old"
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conn = writer.add_connection("/nav/pva_fix", pva, typestore=old)
+        writer.write(conn, 1_000, old.serialize_cdr(fix, pva))
+    (message,) = bags.read(bag, ["/nav/pva_fix"])
+    got = bags.decode(message)
+    assert (got.status, got.projection_height, got.latitude, got.reason) == \
+        (1, 2500.0, 44.5, "old")
+    assert not hasattr(got, "mosaic_lag")
+    # a message of the project's own definition is decoded by the project's store
+    assert bags.store_for(pva, current) is bags.typestore()

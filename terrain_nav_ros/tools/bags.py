@@ -3,7 +3,9 @@
 The bags this module writes are ordinary rosbag2 (metadata version 9, MCAP storage) bags:
 ``ros2 bag``, Foxglove and the ``mcap`` package read them. The type store knows every ROS 2
 Jazzy standard message plus this project's ``terrain_nav_msgs`` and the vendored PX4
-messages (``vendor/px4_msgs``), so the autopilot bridge's output can be recorded.
+messages (``vendor/px4_msgs``), so the autopilot bridge's output can be recorded. A message is
+decoded with the definition its bag stores where that differs from the project's (a bag
+recorded before a message gained a field): read as it was written, never misread.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rosbags.interfaces import (
+    MessageDefinitionFormat,
     Qos,
     QosDurability,
     QosHistory,
@@ -81,6 +84,7 @@ class BagMessage:
     msgtype: str
     timestamp_ns: int
     rawdata: bytes
+    msgdef: str = ""    # the bag's own definition of msgtype (ros2msg text); "" unknown
 
 
 @dataclass(frozen=True)
@@ -211,12 +215,16 @@ def _salvage(path: Path) -> Iterator[BagMessage]:
         try:
             for record in StreamReader(stream, emit_chunks=False).records:
                 if isinstance(record, Schema):
-                    schemas[record.id] = record.name
+                    msgdef = record.data.decode(errors="replace") \
+                        if record.encoding == "ros2msg" else ""
+                    schemas[record.id] = (record.name, msgdef)
                 elif isinstance(record, Channel):
-                    channels[record.id] = (record.topic, schemas.get(record.schema_id, ""))
+                    channels[record.id] = (record.topic,
+                                           *schemas.get(record.schema_id, ("", "")))
                 elif isinstance(record, Message) and record.channel_id in channels:
-                    topic, msgtype = channels[record.channel_id]
-                    yield BagMessage(topic, msgtype, record.log_time, bytes(record.data))
+                    topic, msgtype, msgdef = channels[record.channel_id]
+                    yield BagMessage(topic, msgtype, record.log_time, bytes(record.data),
+                                     msgdef)
         except (McapError, EOFError, ValueError, OSError, struct.error):
             return  # the damaged tail (a record cut inside its length fields: struct.error)
 
@@ -401,16 +409,46 @@ def read(path: str | Path, topic_names: Iterable[str] | None = None, *,
             return
         try:
             for conn, timestamp, raw in reader.messages(connections=conns):
-                yield BagMessage(conn.topic, conn.msgtype, timestamp, bytes(raw))
+                yield BagMessage(conn.topic, conn.msgtype, timestamp, bytes(raw),
+                                 _definition(conn))
         except Exception as err:
             raise BagError(f"bag {path} is damaged: {err}") from err
     finally:
         reader.close()
 
 
+def _definition(conn) -> str:
+    """A reader connection's own message definition (ros2msg text), or ""."""
+    msgdef = getattr(conn, "msgdef", None)
+    return msgdef.data if msgdef is not None and \
+        msgdef.format == MessageDefinitionFormat.MSG else ""
+
+
 def decode(message: BagMessage):
-    """Deserialize a bag message into a rosbags message object."""
-    return typestore().deserialize_cdr(message.rawdata, message.msgtype)
+    """Deserialize a bag message into a rosbags message object, by the definition its bag
+    stores where that differs from the project's (:func:`store_for`)."""
+    return store_for(message.msgtype, message.msgdef).deserialize_cdr(message.rawdata,
+                                                                      message.msgtype)
+
+
+@functools.lru_cache(maxsize=256)
+def store_for(msgtype: str, msgdef: str = ""):
+    """The type store to decode ``msgtype`` with: the project's (:func:`typestore`), or one
+    of the bag's own definition ``msgdef`` where it defines the type, or a type the type
+    holds, otherwise (a bag recorded by another version of terrain_nav_msgs: its bytes are
+    laid out by its definition, and the project's would misread them or fail on them)."""
+    store = typestore()
+    if not msgdef:
+        return store
+    try:
+        types = get_types_from_msg(msgdef, msgtype)
+    except Exception:  # noqa: BLE001 - a definition rosbags cannot parse: the project's
+        return store
+    if all(store.fielddefs.get(name) == fields for name, fields in types.items()):
+        return store
+    own = get_typestore(Stores.EMPTY)
+    own.register(types)
+    return own
 
 
 def info(path: str | Path, health: BagHealth | None = None) -> str:
