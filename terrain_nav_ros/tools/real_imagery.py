@@ -890,16 +890,14 @@ def _totals(rows, sizes) -> dict:
 def _totals_by_cells(rows, setup: dict) -> list[dict]:
     """The project's views over all scenes by their side in the cells they are matched at
     (view px x GSD / matched-at m: the drainage a view can hold) and by whether the scene's
-    shading is faint (its image follows the DEM's shading at no sun azimuth, ``r`` below
-    :data:`FAINT_SHADING_R`: canopy, cloud), per heading condition."""
+    shading is faint (:attr:`ShadingAgreement.faint`: canopy, cloud), per heading
+    condition."""
     scenes = {s["name"]: s for s in setup["scenes"]}
     groups: dict = {}
     for r in rows:
         scene = scenes[r["scene"]]
         cells = round(r["size"] * scene["gsd_m"] / setup["match_gsd_m"][r["scene"]])
-        shading = scene.get("shading")
-        faint = bool(shading and math.isfinite(shading["r_best"])
-                     and shading["r_best"] < FAINT_SHADING_R)
+        faint = bool((scene.get("shading") or {}).get("faint"))
         g = groups.setdefault((r["heading"], faint, cells), {
             "heading": r["heading"], "faint_shading": faint, "cells": cells, "cases": 0,
             "success": 0, "wrong": 0, "no_fix_too_little_drainage": 0})
@@ -951,7 +949,7 @@ def _score_histogram(out: Path, rows, non: np.ndarray, thr: float, success_px: f
 def _shading_json(shading: ShadingAgreement | None) -> dict | None:
     return None if shading is None else {
         "r_at_sun": shading.r_at_sun, "best_azimuth_deg": shading.best_azimuth,
-        "r_best": shading.r_best, "pixels": shading.pixels}
+        "r_best": shading.r_best, "pixels": shading.pixels, "faint": shading.faint}
 
 
 def _shading_cell(shading: dict | None) -> str:

@@ -225,12 +225,23 @@ class ShadingAgreement:
     r_best: float
     pixels: int
 
+    @property
+    def judged(self) -> bool:
+        """Whether there is enough to judge the image by: 100 pixels and a correlation."""
+        return self.pixels >= 100 and math.isfinite(self.r_best)
+
+    @property
+    def faint(self) -> bool:
+        """Whether the image follows its DEM's shading at no sun azimuth (canopy, cloud,
+        haze, or not the DEM's place)."""
+        return self.judged and self.r_best < FAINT_SHADING_R
+
     def warning(self, sun=None) -> str | None:
         """What looks wrong with the image or its stated ``sun`` (azimuth, elevation), or
         None. The image is not judged on fewer than 100 pixels."""
-        if self.pixels < 100 or not math.isfinite(self.r_best):
+        if not self.judged:
             return None
-        if self.r_best < FAINT_SHADING_R:
+        if self.faint:
             return (f"the image shows little of its terrain's shading at any sun azimuth "
                     f"(correlation {self.r_best:.2f} at best): expect few fixes (canopy, "
                     f"cloud, haze, another band, or an image and DEM of different places)")
