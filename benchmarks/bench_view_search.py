@@ -19,6 +19,10 @@ view's side around its true place. Prints per scene and size (no assertions):
 * the landmark region's preparation (``prepare_as_reference(search=True)``: once per region,
   it serves many frames), reported apart;
 * non-PVA controls: the same views against regions of other places;
+* with ``--dem DEM`` (repeatable), scenes whose "image" is the project's camera render of
+  that DEM under another albedo (the DEM-only study's camera): the real pairs hold no region
+  of 768 px for a 256 px view, which the issue's speed target names, and a DEM of 1000+
+  cells does (e.g. ``../shared/data/dem/N44E005.hgt``, 1201 cells of ~70-90 m);
 * with ``--truth``, the views lost at 8.6 split by what lost them: the search (the view
   scores at least 8.6 at its true transform, :meth:`~.core.matching.matcher.Matcher.score_at`)
   or its evidence (it does not), apart from those with no creases to score (too little
@@ -61,6 +65,7 @@ from terrain_nav_ros.core.matching import (  # noqa: E402
 )
 from terrain_nav_ros.core.matching.matcher import Matcher, warm_up  # noqa: E402
 from terrain_nav_ros.core.matching.params import MatchParams  # noqa: E402
+from terrain_nav_ros.tools import evaluation  # noqa: E402
 from terrain_nav_ros.tools import real_imagery as ri  # noqa: E402
 
 cv2.setNumThreads(1)
@@ -97,6 +102,33 @@ def _instrument():
             setattr(crease_search, name, _timed("search", getattr(crease_search, name)))
 
 
+def dem_camera_scene(path: str, sun=(315.0, 45.0)) -> ri.Scene:
+    """A scene of the DEM at ``path``: its largest void-free square at the native cell,
+    the "image" its nadir render under the DEM-only study's camera albedo at ``sun``."""
+    from terrain_nav_ros.core.render.renderer import LandmarkRenderer, create_headless_context
+    from terrain_nav_ros.core.terrain.dem_io import open_dem
+    from terrain_nav_ros.core.terrain.georef import GeoReference
+    from terrain_nav_ros.core.terrain.metamap import MetaMap
+
+    mm = MetaMap(open_dem(path), interpolation="spline", fill_voids=True)
+    gsd = mm.native_gsd
+    ce, cn, side = evaluation._valid_area(mm, gsd)
+    tile = mm.tile(GeoReference.centred(ce, cn, gsd, side, side))
+    elevation = np.where(tile.nodata, np.nanmedian(tile.elevation), tile.elevation)
+    renderer = LandmarkRenderer(create_headless_context())
+    try:
+        renderer.set_terrain(elevation, tile.georef)
+        renderer.set_albedo(evaluation._camera_albedo(elevation))
+        grey = cv2.cvtColor(renderer.render_nadir(tile.georef, sun=tuple(sun)).rgb,
+                            cv2.COLOR_RGB2GRAY)
+    finally:
+        renderer.release()
+    return ri.Scene(Path(path).stem + "(render)", grey, np.ones(grey.shape, bool),
+                    elevation.astype(np.float32), gsd, tuple(sun),
+                    (mm.origin.lat, mm.origin.lon), place=str(Path(path).resolve()),
+                    dem_cell=gsd)
+
+
 def _localise(matcher, extractor, scene, case, region_index):
     """One localisation: (error in matching px, as the study counts it; score; times by
     part; the view's index and its pixel size in scene px)."""
@@ -126,6 +158,8 @@ def main():
     ap.add_argument("--cases", type=int, default=8)
     ap.add_argument("--controls", type=int, default=1, help="other-place regions per view")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--dem", action="append", default=[],
+                    help="a DEM whose camera render is a scene too (repeatable)")
     ap.add_argument("--truth", action="store_true",
                     help="score each lost view at its true transform too")
     ap.add_argument("--profile", default="")
@@ -142,6 +176,7 @@ def main():
     if args.scenes:
         keep = set(args.scenes.split(","))
         scenes = [s for s in scenes if s.name in keep]
+    scenes += [dem_camera_scene(path) for path in args.dem]
     ri.render_landmark(scenes)
     params = MatchParams()
     warm_up(params)
