@@ -132,6 +132,17 @@ def test_a_run_below_the_threshold_tries_the_flips_every_so_many_frames():
     assert not any(FlipCheck(0).note(False, True) for _ in range(30))
 
 
+def test_a_track_mosaic_is_never_tried_mirrored_and_leaves_the_run_as_it_was():
+    check = FlipCheck(every=2)
+    assert not check.note(False, True)
+    # mosaics below the threshold: no line mirrors their frames back, so neither a try nor
+    # a count (nor the end of the run: they say nothing of a flip)
+    assert not any(check.note(False, True, mosaic=True) for _ in range(5))
+    assert check.run == 1 and check.note(False, True)
+    check.found = "top to bottom"
+    assert not check.note(True, False, mosaic=True) and check.run == 0 and check.found == ""
+
+
 def test_the_flips_mirror_across_the_image_s_middle_column_and_row_on_the_ground():
     """A camera heading east (image top = nose = east, right = south), 1000 m above the
     plane, the aircraft 3 deg nose down: the image's columns run east-west on the ground,

@@ -15,7 +15,8 @@ catches up rather than answering every later frame after the ekf's history.
 counts fixes and no-fixes (by reason) and times the answers. Every ``flip_check_every``
 frames of a run scoring below the threshold, the frame is tried mirrored back across each
 line a flipped camera image mirrors it across (:class:`.core.matching.fix_stream.FlipCheck`):
-a match is named in the no-fix, the log and the diagnostics, never made a fix.
+a match is named in the no-fix, the log and the diagnostics, never made a fix (a track
+mosaic is not tried: no line mirrors its frames back).
 
 The fix is the aircraft (``base_link``) pose: the camera's lever arm (centimetres) is
 neglected and its attitude is the prior's turned back through the camera mount (from
@@ -346,7 +347,7 @@ class MatcherNode(Node):
             position, rotation, _ = projection
             fix = checked_pnp(self.pnp_fix(result, camera, land_minutiae, position, rotation),
                               fix, self.pnp_gate, self.tilt_sigma)
-        if self.flips.note(fix.valid, result.decision == Decision.NO_MATCH):
+        if self.flips.note(fix.valid, result.decision == Decision.NO_MATCH, mosaic):
             fix.reason += self._flipped(camera, camera_creases, camera_ridges, projection,
                                         land_index)
         if not fix.valid:

@@ -151,10 +151,16 @@ class FlipCheck:
         self.run = 0
         self.found = ""
 
-    def note(self, fixed: bool, below_threshold: bool) -> bool:
-        """Count a frame answered in the tile; whether to try its mirrors now."""
+    def note(self, fixed: bool, below_threshold: bool, mosaic: bool = False) -> bool:
+        """Count a frame answered in the tile; whether to try its mirrors now.
+
+        A track mosaic (``mosaic``) below the threshold is not counted and never tried: its
+        frames, each flipped, lie side by side along the track, so no line mirrors it back
+        onto the terrain. Its fix still ends a run (the camera is not flipped)."""
         if fixed:
             self.run, self.found = 0, ""
+            return False
+        if mosaic:
             return False
         self.run = self.run + 1 if below_threshold else 0
         return self.every > 0 and self.run > 0 and self.run % self.every == 0
