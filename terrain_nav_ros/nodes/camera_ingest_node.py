@@ -5,7 +5,9 @@ or ``/camera/image_raw/compressed`` with ``image_transport: compressed``), its
 ``/camera/camera_info``, the navigation estimate ``/nav/odometry``, the DEM tile
 ``/metamap/tile`` and ``/tf_static`` (the camera's mount: ``base_frame`` -> the images'
 frame_id, else the ``mount_rpy`` parameter; the diagnostics' ``mount`` says which). Each
-frame is undistorted with the CameraInfo lens model and projected onto the mean terrain
+frame has its lens's vignetting divided out (learnt from the frames,
+:mod:`..core.camera.vignetting`; ``vignetting_correction``), is undistorted with the CameraInfo
+lens model and projected onto the mean terrain
 plane under the view (homography from the pose interpolated at the frame's stamp), then
 published as a ``terrain_nav_msgs/GeoImage`` on ``/camera/image_ground``
 with a validity mask. A frame that observes fewer ground pixels than ``mosaic_pixels`` (a
@@ -66,6 +68,7 @@ from ..core.camera.orthorectify import heights_on, orthorectify
 from ..core.camera.pose_buffer import PoseBuffer, StampedPose
 from ..core.camera.pose_free import CruiseAttitude, pose_free_view
 from ..core.camera.track_mosaic import FilterSteps, TrackMosaic
+from ..core.camera.vignetting import Vignetting
 from ..core.estimation.baro import SEA_LEVEL_PRESSURE, pressure_to_altitude
 from ..core.matching.pva_fix import reason_kind
 from ..core.render.sun import sun_at
@@ -128,6 +131,11 @@ class CameraIngestNode(Node):
         self.orthorectify = declare(self, "orthorectify", True,
                                     "use the DEM tile's height for every ground pixel (true "
                                     "ortho) instead of one mean terrain plane")
+        self.vignetting = Vignetting(declare(
+            self, "vignetting_correction", True,
+            "learn the lens's radial falloff from the frames and divide it out (a frame "
+            "darker towards its edge shifts its creases outwards: a small scale, a low "
+            "height); a flat-fielded camera's frames stay as they are"))
         self.cold_start = declare(
             self, "cold_start", False,
             "project frames without a navigation pose while there is none (a live graph "
@@ -330,6 +338,9 @@ class CameraIngestNode(Node):
         if refused:
             self.drop(refused, header)
             return
+        # about the principal point (the image's centre until a CameraInfo says where)
+        centre = (self.intrinsics.cx, self.intrinsics.cy) if self.intrinsics else None
+        image = self.vignetting.correct(image, centre)
         self._project_or_drop(image, encoding, header, may_wait=True)
 
     def _project_or_drop(self, image: np.ndarray, encoding: str, header, may_wait: bool):
@@ -524,7 +535,8 @@ class CameraIngestNode(Node):
                   "mosaics": self.mosaics["published"],
                   "frames_per_mosaic": self.mosaics["frames"] / max(self.mosaics["published"], 1),
                   "frames_since_last_report": new_projected + new_dropped,
-                  "time_since_last_frame": since, "mount": self.mount.describe()}
+                  "time_since_last_frame": since, "mount": self.mount.describe(),
+                  "vignetting_corner": self.vignetting.corner()}
         values.update({f"not projected: {k}": n for k, n in self.drops.most_common()})
         message = "; ".join(problems) or f"{new_projected} frame(s) projected since the last report"
         return [cv.diagnostic_status("camera_ingest", level, message, values, "terrain_nav")]
