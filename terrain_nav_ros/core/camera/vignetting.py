@@ -30,6 +30,7 @@ MIN_FRAMES = 5
 MEMORY_FRAMES = 200
 # Radial bins of r^2 over the half diagonal squared (0 at the principal point, ~1 in a corner)
 _BINS = 32
+_BIN_CENTRES = (np.arange(_BINS) + 0.5) / _BINS
 # Pixels near the ends of the sensor's range say nothing of the falloff (saturated cloud,
 # snow; black shadow)
 _LEVELS = (0.02, 0.98)
@@ -89,9 +90,9 @@ class Vignetting:
         seen = self._weight > 0
         if seen.sum() < 3:
             return None
-        rho = (np.arange(_BINS) + 0.5) / _BINS
+        rho = _BIN_CENTRES[seen]
         profile = self._sum[seen] / self._weight[seen]
-        design = np.column_stack([np.ones(seen.sum()), rho[seen], rho[seen] ** 2])
+        design = np.column_stack([np.ones(seen.sum()), rho, rho ** 2])
         w = np.sqrt(self._weight[seen])
         coef, *_ = np.linalg.lstsq(design * w[:, None], profile * w, rcond=None)
         return float(coef[1]), float(coef[2])
@@ -108,10 +109,9 @@ class Vignetting:
         if fit is None:
             return None
         a1, a2 = fit
-        if np.exp(a1 + a2) < _MAX_CORNER_FALLOFF or np.exp(a1 + a2) > 1.0 / _MAX_CORNER_FALLOFF:
+        if not _MAX_CORNER_FALLOFF <= np.exp(a1 + a2) <= 1.0 / _MAX_CORNER_FALLOFF:
             return None
-        rho = (np.arange(_BINS) + 0.5) / _BINS
-        per_bin = np.exp(-(a1 * rho + a2 * rho ** 2)).astype(np.float32)
+        per_bin = np.exp(-(a1 * _BIN_CENTRES + a2 * _BIN_CENTRES ** 2)).astype(np.float32)
         return per_bin[bins]
 
     def _bins(self, shape, centre) -> np.ndarray:
