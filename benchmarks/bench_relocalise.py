@@ -50,10 +50,6 @@ from terrain_nav_ros.core.matching.mission_index import MissionIndex  # noqa: E4
 from terrain_nav_ros.core.matching.params import MatchParams  # noqa: E402
 from terrain_nav_ros.core.matching.relocaliser import MissionSearch  # noqa: E402
 from terrain_nav_ros.core.render.camera_effects import apply_camera_effects  # noqa: E402
-from terrain_nav_ros.core.render.renderer import (  # noqa: E402
-    LandmarkRenderer,
-    create_headless_context,
-)
 from terrain_nav_ros.core.terrain.dem_io import open_dem  # noqa: E402
 from terrain_nav_ros.core.terrain.georef import GeoReference  # noqa: E402
 from terrain_nav_ros.core.terrain.metamap import MetaMap  # noqa: E402
@@ -61,7 +57,7 @@ from terrain_nav_ros.tools import cli  # noqa: E402
 from terrain_nav_ros.tools.evaluation import (  # noqa: E402
     GROSS_PX,
     CameraModel,
-    _camera_albedo,
+    camera_renders,
 )
 
 cv2.setNumThreads(1)
@@ -75,12 +71,7 @@ def _camera(dem_path: str, georef: GeoReference, sun, origin=None):
     tile = MetaMap(open_dem(dem_path), origin, interpolation="spline",
                    fill_voids=True).tile(georef)
     elev = np.where(tile.nodata, np.nanmedian(tile.elevation), tile.elevation)
-    renderer = LandmarkRenderer(create_headless_context())
-    renderer.set_terrain(elev, georef)
-    renderer.set_albedo(_camera_albedo(elev))
-    camera = renderer.render_nadir(georef, sun=sun).rgb
-    renderer.release()
-    return camera
+    return camera_renders(elev, georef, [sun])[0]
 
 
 def _dem_extent(dem_path: str, gsd: float) -> GeoReference:

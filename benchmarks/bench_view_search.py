@@ -104,25 +104,18 @@ def _instrument():
 
 def dem_camera_scene(path: str, sun=(315.0, 45.0)) -> ri.Scene:
     """A scene of the DEM at ``path``: its largest void-free square at the native cell,
-    the "image" its nadir render under the DEM-only study's camera albedo at ``sun``."""
-    from terrain_nav_ros.core.render.renderer import LandmarkRenderer, create_headless_context
+    the "image" its nadir render by the DEM-only study's camera at ``sun``."""
     from terrain_nav_ros.core.terrain.dem_io import open_dem
     from terrain_nav_ros.core.terrain.georef import GeoReference
     from terrain_nav_ros.core.terrain.metamap import MetaMap
 
     mm = MetaMap(open_dem(path), interpolation="spline", fill_voids=True)
     gsd = mm.native_gsd
-    ce, cn, side = evaluation._valid_area(mm, gsd)
+    ce, cn, side = evaluation.valid_area(mm, gsd)
     tile = mm.tile(GeoReference.centred(ce, cn, gsd, side, side))
     elevation = np.where(tile.nodata, np.nanmedian(tile.elevation), tile.elevation)
-    renderer = LandmarkRenderer(create_headless_context())
-    try:
-        renderer.set_terrain(elevation, tile.georef)
-        renderer.set_albedo(evaluation._camera_albedo(elevation))
-        grey = cv2.cvtColor(renderer.render_nadir(tile.georef, sun=tuple(sun)).rgb,
-                            cv2.COLOR_RGB2GRAY)
-    finally:
-        renderer.release()
+    rgb, = evaluation.camera_renders(elevation, tile.georef, [sun])
+    grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
     return ri.Scene(Path(path).stem + "(render)", grey, np.ones(grey.shape, bool),
                     elevation.astype(np.float32), gsd, tuple(sun),
                     (mm.origin.lat, mm.origin.lon), place=str(Path(path).resolve()),

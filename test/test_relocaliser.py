@@ -11,13 +11,12 @@ from terrain_nav_ros.core.matching.global_search import rescaled_view, scale_lad
 from terrain_nav_ros.core.matching.mission_index import MissionIndex
 from terrain_nav_ros.core.matching.params import MatchParams
 from terrain_nav_ros.core.matching.relocaliser import MissionSearch, SearchPolicy, tile_in_frame
-from terrain_nav_ros.core.render.renderer import LandmarkRenderer, create_headless_context
 from terrain_nav_ros.core.terrain.dem_io import open_dem
 from terrain_nav_ros.core.terrain.geodesy import EnuOrigin
 from terrain_nav_ros.core.terrain.georef import GeoReference
 from terrain_nav_ros.core.terrain.metamap import MetaMap
 from terrain_nav_ros.tools import cli
-from terrain_nav_ros.tools.evaluation import _camera_albedo
+from terrain_nav_ros.tools.evaluation import camera_renders
 
 
 def test_frames_are_searched_off_the_tiles_and_after_a_run_of_no_fixes():
@@ -83,11 +82,7 @@ def _camera_view(dem, east, north, degrees, sun, gsd=90.0, side=128, origin=GRAP
     mm = MetaMap(open_dem(dem), origin, interpolation="spline", fill_voids=True)
     big = GeoReference.centred(east, north, gsd, 2 * side, 2 * side)
     elevation = mm.tile(big).elevation
-    renderer = LandmarkRenderer(create_headless_context())
-    renderer.set_terrain(elevation, big)
-    renderer.set_albedo(_camera_albedo(elevation))
-    rgb = renderer.render_nadir(big, sun=sun).rgb
-    renderer.release()
+    rgb, = camera_renders(elevation, big, [sun])
     turn = cv2.getRotationMatrix2D((side - 0.5, side - 0.5), degrees, 1.0)
     grey = cv2.cvtColor(cv2.warpAffine(rgb, turn, (2 * side, 2 * side)), cv2.COLOR_RGB2GRAY)
     crop = np.ascontiguousarray(grey[side // 2:side // 2 + side, side // 2:side // 2 + side])

@@ -70,7 +70,8 @@ from ..core.terrain.dem_io import Dem, open_dem, sample_dem
 from ..core.terrain.georef import GeoReference
 from ..core.terrain.metamap import MetaMap
 
-__all__ = ["CameraModel", "run_evaluation", "parse_gsd", "score_bins_table"]
+__all__ = ["CameraModel", "run_evaluation", "parse_gsd", "score_bins_table", "camera_albedo",
+           "camera_renders", "valid_area"]
 
 # score bins of the distribution tables (Tables 4.2/4.3, 5.3/5.4 of the dissertation)
 SCORE_BINS = (-np.inf, 0.0, 2.0, 3.0, 4.0, 6.0, 10.0, 20.0, 50.0, np.inf)
@@ -124,7 +125,7 @@ def parse_gsd(gsd, native: float) -> float:
     return gsd
 
 
-def _camera_albedo(elevation: np.ndarray):
+def camera_albedo(elevation: np.ndarray):
     """Another albedo ramp, its transitions inside this terrain's height range.
 
     The colours differ by at most ~30 % in brightness and blend over a wide band: a season
@@ -138,7 +139,37 @@ def _camera_albedo(elevation: np.ndarray):
                       rock=(0.30, 0.29, 0.26), snow=(0.34, 0.35, 0.36))
 
 
-def _valid_area(mm: MetaMap, gsd: float) -> tuple[float, float, int]:
+def camera_renders(elevation: np.ndarray, georef: GeoReference, suns,
+                   renderer=None) -> list[np.ndarray]:
+    """The DEM-only studies' camera: RGB nadir renders of a DEM tile by the graph's renderer
+    under :func:`camera_albedo` (not the landmarks'), one per (azimuth, elevation) in
+    ``suns``.
+
+    Parameters
+    ----------
+    elevation : (H, W) array
+        Heights without voids (fill them first).
+    georef : GeoReference
+    suns : sequence of (azimuth, elevation)
+    renderer : LandmarkRenderer, optional
+        One already holding this terrain (its albedo is replaced); default a new headless
+        one, released after.
+    """
+    from ..core.render.renderer import LandmarkRenderer, create_headless_context
+
+    own = renderer is None
+    if own:
+        renderer = LandmarkRenderer(create_headless_context())
+        renderer.set_terrain(elevation, georef)
+    try:
+        renderer.set_albedo(camera_albedo(elevation))
+        return [renderer.render_nadir(georef, sun=tuple(sun)).rgb for sun in suns]
+    finally:
+        if own:
+            renderer.release()
+
+
+def valid_area(mm: MetaMap, gsd: float) -> tuple[float, float, int]:
     """Centre (east, north) and side (px at ``gsd``) of the largest void-free centred square.
 
     Checked on a 4x coarser grid (cheap), then shrunk by a safety cell."""
@@ -543,7 +574,7 @@ def run_evaluation(dem=None, gsd=None, blocks: int = 9, out_dir="out/evaluation"
     mm = MetaMap(dem_obj, interpolation="spline", fill_voids=True)
     native = mm.native_gsd
     gsd_m = parse_gsd(gsd, native)
-    ce, cn, side_avail = _valid_area(mm, gsd_m)
+    ce, cn, side_avail = valid_area(mm, gsd_m)
     pad = cm.max_offset_px + 2
     # margin: room for the rotated, scaled, offset view of the edge blocks
     rot = math.radians(cm.max_rotation_deg)
@@ -567,12 +598,11 @@ def run_evaluation(dem=None, gsd=None, blocks: int = 9, out_dir="out/evaluation"
     renderer.set_terrain(elev, tile.georef)
     land = renderer.render_nadir(tile.georef, sun=tuple(sun))
     area_grey = land.grey_u8
-    renderer.set_albedo(_camera_albedo(elev))
     conditions = [("same sun", tuple(sun))]
     if sun_change and not quick:
         conditions.append(("changed sun", ((sun[0] + sun_change) % 360.0,
                                             changed_sun_elevation)))
-    cam_rgbs = [renderer.render_nadir(tile.georef, sun=s).rgb for _, s in conditions]
+    cam_rgbs = camera_renders(elev, tile.georef, [s for _, s in conditions], renderer)
     renderer.release()
 
     params = replace(match_params or MatchParams(), threshold=-1e9)   # collect every score
