@@ -5,8 +5,9 @@ or ``/camera/image_raw/compressed`` with ``image_transport: compressed``), its
 ``/camera/camera_info``, the navigation estimate ``/nav/odometry``, the DEM tile
 ``/metamap/tile`` and ``/tf_static`` (the camera's mount: ``base_frame`` -> the images'
 frame_id, else the ``mount_rpy`` parameter; the diagnostics' ``mount`` says which). Each
-frame has its lens's vignetting divided out (learnt from the frames,
-:mod:`..core.camera.vignetting`; ``vignetting_correction``), is undistorted with the CameraInfo
+frame has its lens's vignetting divided out (learnt from the same ground seen at other
+places in the lens by consecutive frames, :mod:`..core.camera.vignetting`;
+``vignetting_correction``), is undistorted with the CameraInfo
 lens model and projected onto the mean terrain
 plane under the view (homography from the pose interpolated at the frame's stamp), then
 published as a ``terrain_nav_msgs/GeoImage`` on ``/camera/image_ground``
@@ -132,10 +133,10 @@ class CameraIngestNode(Node):
                                     "use the DEM tile's height for every ground pixel (true "
                                     "ortho) instead of one mean terrain plane")
         self.vignetting = Vignetting(declare(
-            self, "vignetting_correction", False,
-            "learn the lens's radial falloff from the frames and divide it out (a frame "
-            "darker towards its edge shifts its creases outwards: a small scale, a low "
-            "height); a flat-fielded camera's frames stay as they are"))
+            self, "vignetting_correction", True,
+            "learn the lens's radial falloff from overlapping frames and divide it out (a "
+            "frame darker towards its edge shifts its creases outwards: a small scale, a "
+            "low height); a flat-fielded camera's frames stay as they are"))
         self.cold_start = declare(
             self, "cold_start", False,
             "project frames without a navigation pose while there is none (a live graph "
@@ -338,9 +339,6 @@ class CameraIngestNode(Node):
         if refused:
             self.drop(refused, header)
             return
-        # about the principal point (the image's centre until a CameraInfo says where)
-        centre = (self.intrinsics.cx, self.intrinsics.cy) if self.intrinsics else None
-        image = self.vignetting.correct(image, centre)
         self._project_or_drop(image, encoding, header, may_wait=True)
 
     def _project_or_drop(self, image: np.ndarray, encoding: str, header, may_wait: bool):
@@ -365,6 +363,11 @@ class CameraIngestNode(Node):
             self.waited["in vain" if ahead else "reached"] += 1
             self._project_or_drop(image, encoding, header, may_wait=False)
 
+    def _flat_fielded(self, image: np.ndarray) -> np.ndarray:
+        """The raw frame with the lens's falloff learnt so far divided out, about the
+        principal point (:class:`Vignetting`; learnt from its ground image after)."""
+        return self.vignetting.correct(image, (self.intrinsics.cx, self.intrinsics.cy))
+
     def _project(self, image: np.ndarray, encoding: str, header, may_wait: bool) -> None:
         if self.intrinsics is None or self.calibration_problem:
             self.drop(self.calibration_problem or "no CameraInfo", header)
@@ -372,6 +375,8 @@ class CameraIngestNode(Node):
         stamp = cv.stamp_to_sec(header.stamp)
         pose, reason = self.poses.at(stamp)
         if pose is None and self.cold_start and self._without_odometry(stamp):
+            image = self._flat_fielded(image)
+            self.vignetting.learn(None)   # (the heading unknown: no pair to learn from)
             self._project_pose_free(image, encoding, header)
             return
         if may_wait and self.max_estimate_wait > 0 and (self.waiting or (
@@ -395,6 +400,7 @@ class CameraIngestNode(Node):
             return
         georef = self._capped(georef)
         bgr = encoding.startswith("bgr")
+        image = self._flat_fielded(image)
         if self.orthorectify:
             # each pixel at its own DEM height; beyond the DEM (its edge, a void) not observed
             heights = heights_on(georef, *self.tile)
@@ -408,6 +414,7 @@ class CameraIngestNode(Node):
         else:
             ground = project_to_ground(image, self.intrinsics, camera, plane, georef, bgr=bgr,
                                        max_range=max_range)
+        self.vignetting.learn(ground)
         lag = 0.0
         if ground.image is not None:
             ground, n, lag = self.mosaic.compose(ground, stamp, self.steps.at(stamp),
