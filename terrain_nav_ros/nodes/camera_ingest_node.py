@@ -133,7 +133,7 @@ class CameraIngestNode(Node):
                                     "use the DEM tile's height for every ground pixel (true "
                                     "ortho) instead of one mean terrain plane")
         self.vignetting = Vignetting(declare(
-            self, "vignetting_correction", True,
+            self, "vignetting_correction", False,
             "learn the lens's radial falloff from overlapping frames and divide it out (a "
             "frame darker towards its edge shifts its creases outwards: a small scale, a "
             "low height); a flat-fielded camera's frames stay as they are"))
