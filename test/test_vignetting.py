@@ -36,8 +36,6 @@ def _fly(vignetting, scene, lens, frames=30, step=(9, 1), centre=None, jump=None
     does. ``jump`` = (frame, px): from that frame on the estimate is off by px columns.
     Returns the raw and corrected frames."""
     u, v = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
-    cx, cy = centre or (0.5 * (W - 1), 0.5 * (H - 1))
-    rho = frame_radius2(u, v, cx, cy, W, H)
     raws, outs = [], []
     top = scene.shape[0] // 2 - H // 2
     full = 255.0 if dtype == np.uint8 else 1.0
@@ -52,7 +50,7 @@ def _fly(vignetting, scene, lens, frames=30, step=(9, 1), centre=None, jump=None
         georef = GeoReference((col + off) * GSD, -row * GSD, GSD, W, H)
         grey_out = out.mean(axis=2) if colour else out
         vignetting.learn(GroundImage(grey_out.astype(np.float32), np.ones((H, W), bool),
-                                     georef, radius2=rho))
+                                     georef, frame_pixels=(u, v)))
         raws.append(raw)
         outs.append(out)
     return raws, outs

@@ -31,7 +31,6 @@ import numpy as np
 
 from ..terrain.georef import GeoReference
 from .destripe import destripe
-from .vignetting import frame_radius2
 
 __all__ = [
     "CameraIntrinsics",
@@ -427,16 +426,16 @@ class GroundImage:
     """A frame resampled onto a north-up ground raster.
 
     ``image`` is None and ``reason`` says why when the view could not be projected;
-    ``valid`` is False where the output pixel is not seen by the camera. ``radius2``, where
-    known, says where in the lens each pixel was seen
-    (:func:`~.vignetting.frame_radius2`: 0 at the principal point, ~1 in a corner).
+    ``valid`` is False where the output pixel is not seen by the camera. ``frame_pixels``,
+    where known, is the raw frame pixel ``(u, v)`` each output pixel was sampled at (the
+    projection's own maps: where in the lens it was seen).
     """
 
     image: np.ndarray | None
     valid: np.ndarray | None
     georef: GeoReference
     reason: str = ""
-    radius2: np.ndarray | None = None
+    frame_pixels: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def grey_frame(image, intr: CameraIntrinsics, bgr: bool) -> tuple[np.ndarray, str]:
@@ -547,5 +546,4 @@ def project_to_ground(image, intr: CameraIntrinsics, pose: CameraPose, plane_hei
     if not valid.any():
         return GroundImage(None, None, georef, "camera view does not reach the output raster")
     out[~valid] = 0
-    return GroundImage(out, valid, georef,
-                       radius2=frame_radius2(u, v, intr.cx, intr.cy, intr.width, intr.height))
+    return GroundImage(out, valid, georef, frame_pixels=(u, v))

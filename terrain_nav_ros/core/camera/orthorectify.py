@@ -22,7 +22,6 @@ from .ground_projection import (
     grey_frame,
     ground_to_image,
 )
-from .vignetting import frame_radius2
 
 
 def heights_on(georef: GeoReference, dem: np.ndarray, dem_georef: GeoReference) -> np.ndarray:
@@ -122,5 +121,4 @@ def orthorectify(image, intr: CameraIntrinsics, pose: CameraPose, heights: np.nd
     out[~inside] = 0
     if not inside.any():
         return GroundImage(None, None, georef, "no part of the frame falls on the DEM tile")
-    return GroundImage(out, inside, georef, radius2=frame_radius2(
-        map_x, map_y, intr.cx, intr.cy, intr.width, intr.height))
+    return GroundImage(out, inside, georef, frame_pixels=(map_x, map_y))

@@ -70,6 +70,7 @@ class Vignetting:
         self._rhs = np.zeros(2)
         self._applied = (0.0, 0.0)         # the fit divided out of the last frame corrected
         self._full = 255.0                 # and its dtype's full scale
+        self._lens = None                  # and its (cx, cy, width, height)
         self._last = None                  # (log raw level, usable, radius^2, georef)
         self._grid = None                  # (key, radius^2 per raw pixel)
         self._gain_cache = None            # (radius^2 grid, shape, fit, gain)
@@ -96,6 +97,9 @@ class Vignetting:
             return image
         self._full = float(np.iinfo(image.dtype).max) \
             if np.issubdtype(image.dtype, np.integer) else 1.0
+        h, w = image.shape[:2]
+        self._lens = (*(centre if centre is not None else (0.5 * (w - 1), 0.5 * (h - 1))),
+                      w, h)
         fit = self.applicable()
         if fit is None:
             return image
@@ -124,18 +128,18 @@ class Vignetting:
         Parameters
         ----------
         ground : GroundImage or None
-            Its ``radius2`` says where in the lens each ground pixel was seen (None, or no
-            ``radius2``: nothing is learnt, and the next frame has no pair).
+            Its ``frame_pixels`` say where in the lens each ground pixel was seen (None, or
+            none: nothing is learnt, and the next frame has no pair).
         """
         if not self.enabled or ground is None or ground.image is None or \
-                ground.radius2 is None:
+                ground.frame_pixels is None or self._lens is None:
             self._last = None
             return
         level = np.asarray(ground.image, np.float32)
         usable = ground.valid & (level > _LEVELS[0] * self._full) & \
             (level < _LEVELS[1] * self._full)
         a1, a2 = self._applied
-        rho = np.asarray(ground.radius2, np.float32)
+        rho = frame_radius2(*ground.frame_pixels, *self._lens)
         # the raw frame's log level: what was divided out is put back
         log_raw = np.log(np.maximum(level, 1e-6)) + a1 * rho + a2 * rho * rho
         current = (log_raw.astype(np.float32), usable, rho, ground.georef)
