@@ -188,6 +188,33 @@ def test_the_report_lists_what_the_ekf_found_once_each(tmp_path):
     assert report.navigation_events(tmp_path / "out") == found[1::2]
 
 
+def test_the_report_counts_the_frames_camera_ingest_received_over_its_restarts(tmp_path):
+    """A frame the bag holds but camera_ingest never received was lost on the way (a
+    best-effort camera link): the report tells it from one the graph left unanswered."""
+    from terrain_nav_ros.tools import report
+
+    store = bags.typestore()
+    types = {name: store.types[f"diagnostic_msgs/msg/{name}"]
+             for name in ("DiagnosticArray", "DiagnosticStatus", "KeyValue")}
+    header = store.types["std_msgs/msg/Header"](
+        stamp=store.types["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="")
+    counts = [0, 4, 9, 9, 2, 6]    # a restart after 9 frames, 6 more in its second life
+    with bags.BagWriter(tmp_path / "out") as writer:
+        for i, count in enumerate(counts):
+            status = types["DiagnosticStatus"](
+                level=0, name="camera_ingest", message="ok", hardware_id="terrain_nav",
+                values=[types["KeyValue"](key="frames_received", value=str(count))])
+            writer.write_message("/camera_ingest/diagnostics", i * 10**9,
+                                 types["DiagnosticArray"](header=header, status=[status]),
+                                 "diagnostic_msgs/msg/DiagnosticArray")
+    assert report.frames_received(tmp_path / "out") == 15
+    text = report.format_report({"input_bag": "in", "output_bag": "out", "fixes": {
+        "frames": 14, "in_bag": 17, "received": 15, "fixes": 10, "no_fix": 4,
+        "reasons": []}, "latency": {}, "usage": {}})
+    assert "3 camera frames of the bag got no answer (2 never reached camera_ingest (lost " \
+        "on the way), 1 reached it and fell behind)" in text
+
+
 def test_odometry_that_stops_before_the_imu_does_is_reported(tmp_path):
     """An IMU refused mid-flight leaves odometry up to that stamp only: the report says
     where it stopped, against the bag's IMU (a gap under 5 s is the tail of the replay)."""

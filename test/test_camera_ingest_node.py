@@ -145,6 +145,8 @@ def test_frames_are_projected_to_the_right_place_and_bad_frames_explained():
     # ... and the diagnostics count them by reason
     _, values = cv.diagnostic_values(diagnostics[-1].status[0])
     assert 1 <= int(values["projected"]) <= sum(not m.reason for m in got)
+    assert int(values["frames_received"]) == int(values["projected"]) + \
+        int(values["not_projected"])   # every frame received is projected or says why not
     assert 2 <= int(values["not_projected"]) <= sum(bool(m.reason) for m in got)
     assert int(values["not projected: no CameraInfo received yet"]) >= 1
     assert int(values["not projected: unsupported image encoding 'yuv#'"]) == 1

@@ -20,7 +20,8 @@ calibration, camera above the horizon, undecodable image, a frozen camera repeat
 last image or a stamp that does not move forward; three frames in a row that go forward
 behind the last one are a new clock, taken with a warning) is still published, as a GeoImage
 without an image whose ``reason`` says why, so that the matcher answers it with a no-fix; a
-throttled log line says so too, and ``/camera_ingest/diagnostics`` counts each reason.
+throttled log line says so too, and ``/camera_ingest/diagnostics`` counts each reason
+(and the frames received: a bag's others were lost on the way, e.g. by a best-effort link).
 A frame newer than the newest estimate (a filter short of CPU lags behind the camera) waits
 for it, up to ``max_estimate_wait`` s of wall time, and is projected as it arrives; frames
 behind it wait in order.
@@ -202,6 +203,7 @@ class CameraIngestNode(Node):
                                       "no camera frame for this long is a warning [s]",
                                       min_value=0.0)
         self.drops: Counter = Counter()
+        self.received = 0   # frames that reached the node (the rest were lost on the way)
         self.published = 0
         self._reported = (0, 0)   # projected and not projected at the last report
         self._started_wall = time.monotonic()
@@ -299,6 +301,7 @@ class CameraIngestNode(Node):
     @contained
     def on_image(self, msg: Image) -> None:
         self.last_frame_wall = time.monotonic()
+        self.received += 1
         try:
             arr = cv.image_to_array(msg)
         except cv.ConversionError as err:
@@ -309,6 +312,7 @@ class CameraIngestNode(Node):
     @contained
     def on_compressed(self, msg: CompressedImage) -> None:
         self.last_frame_wall = time.monotonic()
+        self.received += 1
         try:
             arr, encoding = cv.compressed_image_to_array(msg)
         except cv.ConversionError as err:
@@ -535,7 +539,8 @@ class CameraIngestNode(Node):
             level = DIAG_WARN
             problems.append(f"{new_dropped} frame(s) not projected, none projected: "
                             f"{self.drops.most_common(1)[0][0]}")
-        values = {"projected": self.published, "projected_pose_free": self.pose_free_published,
+        values = {"frames_received": self.received,
+                  "projected": self.published, "projected_pose_free": self.pose_free_published,
                   "waited_for_estimate": sum(self.waited.values()),
                   "waited_in_vain": self.waited["in vain"],
                   "not_projected": not_projected,

@@ -146,6 +146,24 @@ def navigation_events(bag) -> list[str]:
     return events
 
 
+def frames_received(bag) -> int | None:
+    """Camera frames that reached camera_ingest, from its diagnostics' ``frames_received``
+    (summed over its lives when it restarted); None without those diagnostics."""
+    total = last = None
+    for m in bags.read(bag, ["/camera_ingest/diagnostics"]):
+        for status in bags.decode(m).status:
+            value = {kv.key: kv.value for kv in status.values}.get("frames_received")
+            if value is None or not value.isdigit():
+                continue
+            n = int(value)
+            if total is None:
+                total = 0
+            elif n < last:   # a new life of the node: its count started again
+                total += last
+            last = n
+    return None if total is None else total + last
+
+
 def _latencies(bag) -> dict:
     """Receive time minus the camera frame's stamp for each pipeline stage (s)."""
     out = {}
@@ -221,6 +239,7 @@ def analyse(input_bag, output_bag, usage: dict | None = None,
                        "no_fix": len(fixes) - len(good),
                        "relocalisations": sum(f["relocalisation"] for f in good),
                        "in_bag": sum(info[t].count for t in CAMERA_TOPICS if t in info),
+                       "received": frames_received(output_bag),
                        "reasons": Counter(reason_kind(f["reason"]) for f in fixes
                                           if f["status"] == 0).most_common(6)}
     result["navigation_events"] = navigation_events(output_bag)
@@ -314,8 +333,14 @@ def format_report(r: dict, gsd: float | None = None) -> str:
                      "the whole mission area)")
     if f["in_bag"] and f["frames"] < f["in_bag"]:
         respawned = sorted(n for n, u in (r.get("usage") or {}).items() if u.get("respawns"))
-        why = (f"died with {', '.join(respawned)} or came while it restarted" if respawned
-               else "lost on the way to camera_ingest, or the graph fell behind")
+        received = f.get("received")
+        if respawned:
+            why = f"died with {', '.join(respawned)} or came while it restarted"
+        elif received is None:
+            why = "lost on the way to camera_ingest, or the graph fell behind"
+        else:
+            why = (f"{max(f['in_bag'] - received, 0)} never reached camera_ingest (lost on "
+                   f"the way), {max(received - f['frames'], 0)} reached it and fell behind")
         lines.append(f"WARNING: {f['in_bag'] - f['frames']} camera frames of the bag got no "
                      f"answer ({why})")
     for reason, count in f["reasons"]:
