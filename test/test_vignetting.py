@@ -120,3 +120,21 @@ def test_saturated_frames_and_a_disabled_correction_teach_nothing():
     off = Vignetting(enabled=False)
     raws, outs = _fly(off, _scene(rng), _lens(0.25), frames=10)
     assert all(o is r for o, r in zip(outs, raws, strict=True)) and off.pairs == 0
+
+
+def test_integer_frames_of_every_type_are_rounded_and_saturated():
+    rng = np.random.default_rng(5)
+    vignetting = Vignetting()
+    raws, _ = _fly(vignetting, _scene(rng), _lens(0.25), frames=20)
+    frame = raws[-1].astype(np.int64)
+    frame[:4, :4] = 255                       # the gain at the corner pushes these past 255
+    gain = vignetting.correct(np.ones((H, W), np.float64))
+    assert gain[:4, :4].min() > 1.2
+    for dtype in (np.uint8, np.int8, np.int16, np.int32, np.uint32):
+        info = np.iinfo(dtype)
+        expected = np.clip(np.rint(frame * gain), info.min, info.max)
+        out = vignetting.correct(np.clip(frame, info.min, info.max).astype(dtype))
+        assert out.dtype == dtype
+        # (OpenCV's float32 gain may round a half the other way)
+        assert np.abs(out.astype(np.int64) - expected).max() <= 1, dtype
+        assert (out[:4, :4] == info.max).any() == (info.max < 255 * gain[:4, :4].max()), dtype

@@ -48,7 +48,7 @@ _MAX_SAMPLES = 20000
 # trusted to be registered (a jump of the estimate, a frame of another place)
 _MAX_SHIFT_PX = 3.0
 # OpenCV's depth for the integer frame types (float frames are multiplied in numpy)
-_CV_DEPTH = {"u1": cv2.CV_8U, "u2": cv2.CV_16U}
+_CV_DEPTH = {"u1": cv2.CV_8U, "u2": cv2.CV_16U, "i1": cv2.CV_8S, "i2": cv2.CV_16S}
 # A fitted falloff darker than this at the frame's corner is not applied (no survey lens
 # is; a wrong fit would wreck every frame)
 _MAX_CORNER_FALLOFF = 0.5
@@ -106,7 +106,11 @@ class Vignetting:
         self._applied, gain = self._gain(image.shape, centre, fit)
         depth = _CV_DEPTH.get(image.dtype.str[1:])
         if depth is None:
-            return (image.astype(np.float32) * gain).astype(image.dtype, copy=False)
+            out = image.astype(np.float64) * gain
+            if np.issubdtype(image.dtype, np.integer):   # rounded and saturated, as OpenCV's
+                info = np.iinfo(image.dtype)
+                out = np.clip(np.rint(out), info.min, info.max)
+            return out.astype(image.dtype, copy=False)
         return cv2.multiply(image, gain, dtype=depth)   # one pass, rounded and saturated
 
     def _gain(self, shape, centre, fit):
