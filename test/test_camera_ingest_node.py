@@ -480,7 +480,9 @@ def test_frames_from_low_up_are_published_as_a_mosaic_of_the_track():
                 pubs["/nav/odometry"].publish(odometry(at))
             time.sleep(0.05)
             pubs["/camera/image_raw"].publish(_frame(stamp, tail_mark=True))
-            time.sleep(0.1)
+            # each frame's answer before the next: a first projection compiling its kernels
+            # (a fresh set-up) once overflowed the camera's queue with the frames behind it
+            wait_until(lambda k=k: len(got) > k, 20)
         assert wait_until(lambda: sum(bool(m.image.width) for m in got) >= 10, 20), stop(node)
     finally:
         client.close()
