@@ -106,7 +106,7 @@ class Vignetting:
         self._applied, gain = self._gain(image.shape, centre, fit)
         depth = _CV_DEPTH.get(image.dtype.str[1:])
         if depth is None:
-            out = image.astype(np.float64) * gain
+            out = image * gain   # float32 frames stay float32; wider integers go to float64
             if np.issubdtype(image.dtype, np.integer):   # rounded and saturated, as OpenCV's
                 info = np.iinfo(image.dtype)
                 out = np.clip(np.rint(out), info.min, info.max)
