@@ -1044,11 +1044,10 @@ def _flight(change: Callable | None, reason: str = "", at_least: int = 0,
         if kill:
             answered = unanswered <= 8
         else:   # every frame that reached the graph; the camera's best-effort link may drop one
-            received = fixes.get("received")
-            received = fixes["in_bag"] if received is None else received
-            answered = fixes["frames"] >= received and fixes["in_bag"] - received <= 1
-            if received < fixes["in_bag"]:
-                detail += f", {fixes['in_bag'] - received} frame(s) lost before camera_ingest"
+            lost = fixes.get("lost_on_the_way") or 0
+            answered = fixes["frames"] >= fixes["in_bag"] - lost and lost <= 1
+            if lost:
+                detail += f", {lost} frame(s) lost before camera_ingest"
         return (GOOD if said >= at_least and answered else POOR), detail
     return run
 

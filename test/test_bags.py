@@ -209,7 +209,8 @@ def test_the_report_counts_the_frames_camera_ingest_received_over_its_restarts(t
                                  "diagnostic_msgs/msg/DiagnosticArray")
     assert report.frames_received(tmp_path / "out") == 15
     text = report.format_report({"input_bag": "in", "output_bag": "out", "fixes": {
-        "frames": 14, "in_bag": 17, "received": 15, "fixes": 10, "no_fix": 4,
+        "frames": 14, "in_bag": 17, "received": 15, "lost_on_the_way": 2, "fixes": 10,
+        "no_fix": 4,
         "reasons": []}, "latency": {}, "usage": {}})
     assert "3 camera frames of the bag got no answer (2 never reached camera_ingest (lost " \
         "on the way), 1 reached it and fell behind)" in text
@@ -239,6 +240,26 @@ def test_settled_after_is_when_the_error_stays_below_the_bound():
     assert report.settled_after(t, [10] * 6, 60.0) == 0.0
     assert np.isnan(report.settled_after(t, [10, 10, 10, 10, 10, 70], 60.0))
     assert np.isnan(report.settled_after(np.array([]), [], 60.0))
+
+
+def test_fix_nees_is_chi_square_for_true_covariances_and_skips_unusable_ones():
+    """Errors drawn from their own covariances give NEES with mean ~2 (chi-square, 2 degrees
+    of freedom); covariances ten times too wide give a hundredth; a covariance that is NaN or
+    singular (a fix without one) is left out, not counted as zero."""
+    from terrain_nav_ros.tools import report
+
+    rng = np.random.default_rng(0)
+    cov = np.array([[400.0, 150.0], [150.0, 100.0]])
+    offsets = rng.multivariate_normal([0.0, 0.0], cov, 4000)
+    nees = report.normalised_errors(offsets, np.repeat(cov[None], len(offsets), axis=0))
+    assert np.mean(nees) == pytest.approx(2.0, rel=0.08)
+    assert np.median(nees) == pytest.approx(2 * np.log(2), rel=0.08)
+    wide = report.normalised_errors(offsets, np.repeat(100 * cov[None], len(offsets), axis=0))
+    assert np.mean(wide) == pytest.approx(0.02, rel=0.08)
+    unusable = np.array([np.full((2, 2), np.nan), np.zeros((2, 2)), -np.eye(2), cov])
+    assert report.normalised_errors(offsets[:4], unusable) == pytest.approx(
+        [offsets[3] @ np.linalg.solve(cov, offsets[3])])
+    assert len(report.normalised_errors(np.empty((0, 2)), np.empty((0, 2, 2)))) == 0
 
 
 def test_a_changed_copy_keeps_drops_and_replaces_messages(tmp_path):

@@ -240,8 +240,12 @@ def analyse(input_bag, output_bag, usage: dict | None = None,
                        "relocalisations": sum(f["relocalisation"] for f in good),
                        "in_bag": sum(info[t].count for t in CAMERA_TOPICS if t in info),
                        "received": frames_received(output_bag),
+                       "lost_on_the_way": None,
                        "reasons": Counter(reason_kind(f["reason"]) for f in fixes
                                           if f["status"] == 0).most_common(6)}
+    received = result["fixes"]["received"]
+    if received is not None:   # frames of the bag that never reached camera_ingest
+        result["fixes"]["lost_on_the_way"] = max(result["fixes"]["in_bag"] - received, 0)
     result["navigation_events"] = navigation_events(output_bag)
     result["ekf_fix_use"] = ekf_fix_use(output_bag)
     result["latency"] = {k: v for k, v in _latencies(output_bag).items()}
@@ -264,13 +268,17 @@ def analyse(input_bag, output_bag, usage: dict | None = None,
         t_fix = np.array([f["stamp"] for f in good])
         p_fix = np.array([f["position"] for f in good])
         idx = np.clip(np.searchsorted(t_truth, t_fix), 0, len(t_truth) - 1)
-        err = np.hypot(*(p_fix[:, :2] - p_truth[idx, :2]).T)
+        offset = p_fix[:, :2] - p_truth[idx, :2]
+        err = np.hypot(*offset.T)
         sigma = np.sqrt([max(np.trace(f["cov_xy"]), 0.0) for f in good])
+        nees = normalised_errors(offset, np.array([f["cov_xy"] for f in good]))
         result["fixes"]["first_after"] = float(t_fix.min() - t0)
         result["fix_error"] = {"median": float(np.median(err)),
                                "p95": float(np.percentile(err, 95)),
                                "max": float(err.max()),
-                               "within_3_sigma": float(np.mean(err <= 3 * sigma))}
+                               "within_3_sigma": float(np.mean(err <= 3 * sigma)),
+                               "nees_mean": _mean_or_nan(nees),
+                               "nees_median": float(np.median(nees)) if len(nees) else math.nan}
     window = t_truth - t0 >= denied
     if len(t_fused):
         te, err, up = _position_errors(t_fused, p_fused, t_truth[window], p_truth[window])
@@ -296,6 +304,24 @@ def analyse(input_bag, output_bag, usage: dict | None = None,
             result["series"]["dr"] = (t_dr, p_dr)
             result["series"]["dr_error"] = (te - t0, err)
     return result
+
+
+def normalised_errors(offset: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    """NEES ``e^T P^-1 e`` of 2-D errors ``offset`` (n, 2) under their covariances (n, 2, 2),
+    for those whose covariance is finite and positive definite. Consistent covariances give
+    a chi-square with 2 degrees of freedom: mean 2, median 1.39; far below, the covariances
+    are too wide (the filter under-weighs the fixes), far above, too narrow."""
+    offset, covariance = np.asarray(offset, float), np.asarray(covariance, float)
+    if not len(offset):
+        return np.empty(0)
+    usable = np.isfinite(covariance).all(axis=(1, 2)) & (covariance[:, 0, 0] > 0) & \
+        (np.linalg.det(np.nan_to_num(covariance)) > 0)
+    e, p = offset[usable], covariance[usable]
+    return np.einsum("ni,ni->n", e, np.linalg.solve(p, e[..., None])[..., 0])
+
+
+def _mean_or_nan(values: np.ndarray) -> float:
+    return float(np.mean(values)) if len(values) else math.nan
 
 
 def _within(err: np.ndarray, sigma: np.ndarray) -> float:
@@ -333,14 +359,14 @@ def format_report(r: dict, gsd: float | None = None) -> str:
                      "the whole mission area)")
     if f["in_bag"] and f["frames"] < f["in_bag"]:
         respawned = sorted(n for n, u in (r.get("usage") or {}).items() if u.get("respawns"))
-        received = f.get("received")
+        lost = f.get("lost_on_the_way")
         if respawned:
             why = f"died with {', '.join(respawned)} or came while it restarted"
-        elif received is None:
+        elif lost is None:
             why = "lost on the way to camera_ingest, or the graph fell behind"
         else:
-            why = (f"{max(f['in_bag'] - received, 0)} never reached camera_ingest (lost on "
-                   f"the way), {max(received - f['frames'], 0)} reached it and fell behind")
+            why = (f"{lost} never reached camera_ingest (lost on the way), "
+                   f"{max(f['received'] - f['frames'], 0)} reached it and fell behind")
         lines.append(f"WARNING: {f['in_bag'] - f['frames']} camera frames of the bag got no "
                      f"answer ({why})")
     for reason, count in f["reasons"]:
@@ -365,6 +391,9 @@ def format_report(r: dict, gsd: float | None = None) -> str:
         lines.append(f"fix error vs truth (horizontal): median {e['median']:.1f} m, p95 "
                      f"{e['p95']:.1f} m, max {e['max']:.1f} m; within 3 sigma "
                      f"{100 * e['within_3_sigma']:.0f}%")
+        if math.isfinite(e.get("nees_mean", math.nan)):
+            lines.append(f"  fix NEES mean {e['nees_mean']:.2f}, median {e['nees_median']:.2f} "
+                         "(covariances true to the errors: 2 and 1.39; below, too wide)")
     if r.get("truth") is not None:
         lines.append(f"GPS denied after {r['denied_after']:.0f} s; over the denied part:")
         for key, label in (("fused_error", "fused (terrain + IMU)"),
