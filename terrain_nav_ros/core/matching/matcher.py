@@ -15,7 +15,8 @@ Pipeline (same for block-vs-block :func:`compare` and camera-in-region :func:`lo
    supporting correspondences.
 3. **Registration.** Vectorised 2-point RANSAC over each hypothesis' correspondences, least
    squares (complex Procrustes) on the inliers, then guided pairing over all minutiae and a
-   final least-squares fit on the pairings, with a covariance from the residuals.
+   final least-squares fit on the pairings, with a covariance from the residuals (from the
+   creases' fit instead where the crease check placed the transform, step 6).
 4. **Pairings** are one-to-one minutiae that agree within ``pos_tol`` px and ``angle_tol`` after
    the transform.
 5. **Score** (see :func:`~.significance.significance`): ``-log10`` of the chance of pairings this
@@ -559,10 +560,8 @@ class Matcher:
         n_ao, n_bo = best.n_overlap
         cov, rms = _covariance(a.z[pairs[:, 0]], b.z[pairs[:, 1]], c, t, p.estimate_scale,
                                p.pos_tol)
-        if use_creases and (len(pairs) < 3 or not np.isfinite(cov).all()):
-            # too few pairings for a covariance (a registration found by the crease search)
-            cov = crease_covariance(a.crease_samples, b.crease_field, c, t,
-                                    **p.crease_tolerances)
+        if use_creases:
+            cov = _doubt_on_creases(a, b, c, t, cov, len(pairs), p)
         ok = score >= p.threshold
         reason = "" if ok else f"score {score:.2f} below threshold {p.threshold:.2f}"
         fitted_scale = abs(c)
@@ -592,6 +591,26 @@ class Matcher:
             n_a=a.n, n_b=b.n, n_overlap=(n_ao, n_bo), expected_chance=best.lam,
             pairing_ratio=len(pairs) ** 2 / max(n_ao * n_bo, 1), creases=best.creases,
             ridges=best.ridges, reason=reason)
+
+
+def _doubt_on_creases(a: MinutiaIndex, b: MinutiaIndex, c: complex, t: complex,
+                      pairing_cov: np.ndarray, n_pairings: int, p: MatchParams) -> np.ndarray:
+    """Covariance of a registration that the creases placed: their point-to-line fit's.
+
+    With the crease check, the transform is the one B's creases agree with (moved onto them
+    by their ICP, chosen by their agreement), so its doubt is theirs: hundreds of skeleton
+    pixels that hold rotation and scale along the whole overlap. The few minutiae pairings'
+    residuals against it (up to the pairing radius, on real imagery where albedo shifts the
+    minutiae) made a covariance 5-10 x the fixes' errors on a long track mosaic, its rotation
+    doubt times the lever to the newest nadir at the mosaic's end. The pairings' covariance
+    stays where the creases do not fix the transform (too few agree, or all along one line)
+    and there are pairings enough for one.
+    """
+    on_creases = crease_covariance(a.crease_samples, b.crease_field, c, t,
+                                   **p.crease_tolerances)
+    if np.isfinite(on_creases).all() or n_pairings < 3:
+        return on_creases
+    return pairing_cov
 
 
 def compare(a, b, params: MatchParams | None = None, **overrides) -> MatchResult:
