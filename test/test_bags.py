@@ -58,6 +58,24 @@ def test_recorded_bag_is_readable_by_rosbags(recorded_bag):
     assert "Messages:   40" in bags.info(recorded_bag)
 
 
+def test_a_recorder_on_sim_time_subscribes_before_the_clock_starts(tmp_path):
+    """A replay's recorder runs on the bag's clock, which starts with the bag's first
+    message: it must have subscribed to the graph's outputs by then, or the answers to
+    the first frames are lost (a replay's frames counted unanswered)."""
+    from std_msgs.msg import String
+
+    talker = SpinningNode("early_talker")
+    try:
+        pub = talker.node.create_publisher(String, "/chatter", 10)
+        recorder = start_node("bag_recorder", {"output": str(tmp_path / "bag"),
+                                               "topics": ["/chatter"], "use_sim_time": True})
+        subscribed = wait_until(lambda: pub.get_subscription_count() > 0, 20)
+        log = stop(recorder)
+        assert subscribed, "recorder waited for /clock to subscribe:\n" + log
+    finally:
+        talker.close()
+
+
 def test_reading_a_topic_the_bag_lacks_yields_nothing(recorded_bag):
     assert list(bags.read(recorded_bag, ["/nav/ekf/diagnostics"])) == []
     assert len(list(bags.read(recorded_bag, ["/chatter", "/absent"]))) == N

@@ -40,9 +40,12 @@ class BagRecorder(Node):
         self.writer.open()
         self.count = 0
         self.subs = {}
-        self.create_timer(period, self._discover)
-        self.create_timer(flush, self.writer.flush,
-                          clock=Clock(clock_type=ClockType.STEADY_TIME))
+        # on the steady clock, as the flush: under use_sim_time a ROS timer waits for the
+        # first /clock, which the player sends with the bag's first message, so the first
+        # answers came before the recorder had subscribed to them and were lost
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(period, self._discover, clock=steady)
+        self.create_timer(flush, self.writer.flush, clock=steady)
         self.get_logger().info(f"recording to {self.output}")
 
     def _wanted(self, topic: str) -> bool:

@@ -311,7 +311,9 @@ def run_replay(bag: str | Path, out_dir: str | Path, graph_config: str | Path,
                 if t in input_topics]
     # and for the nodes downstream, which subscribe once their kernels are loaded (compiled
     # on a first run: tens of seconds in which the first frames would find no one)
+    # and for the recorder, whose bag the report reads: the answers to the first frames too
     ready = [n.name for n in spec.nodes if n.name in ("feature_extractor", "matcher")]
+    ready.append("bag_recorder")
     spec.nodes.append(NodeSpec("bag_recorder", "bag_recorder", required=True, parameters={
         "output": str(output_bag), "topics": RECORDED_TOPICS}))
     spec.nodes.append(NodeSpec("bag_player", "bag_player", required=False, parameters={
