@@ -1048,6 +1048,8 @@ def _flight(change: Callable | None, reason: str = "", at_least: int = 0,
             answered = fixes["frames"] >= fixes["in_bag"] - lost and lost <= 1
             if lost:
                 detail += f", {lost} frame(s) lost before camera_ingest"
+        if not answered and fixes.get("unanswered_at"):
+            detail += f", unanswered at {fixes['unanswered_at']} s"
         return (GOOD if said >= at_least and answered else POOR), detail
     return run
 

@@ -234,6 +234,31 @@ def test_the_report_counts_the_frames_camera_ingest_received_over_its_restarts(t
         "on the way), 1 reached it and fell behind)" in text
 
 
+def test_the_report_says_when_the_unanswered_frames_came(tmp_path):
+    """Frames no fix answered, in seconds after the first: the first frames (a graph or
+    a recorder not yet listening) read apart from a stall or the tail."""
+    from terrain_nav_ros.tools import report
+
+    store = bags.typestore()
+    image, header = (store.types[f"{t}"] for t in ("sensor_msgs/msg/CompressedImage",
+                                                    "std_msgs/msg/Header"))
+    time_ = store.types["builtin_interfaces/msg/Time"]
+    with bags.BagWriter(tmp_path / "in") as writer:
+        for k in range(6):   # frames at 100.0, 100.5, ... 102.5 s
+            stamp = time_(sec=100 + k // 2, nanosec=500_000_000 * (k % 2))
+            writer.write_message("/camera/image_raw/compressed", 10**9 + k * 10**8,
+                                 image(header=header(stamp=stamp, frame_id="camera"),
+                                       format="jpeg", data=np.zeros(4, np.uint8)),
+                                 "sensor_msgs/msg/CompressedImage")
+    assert report.unanswered_at(tmp_path / "in", [100.5, 101.5, 102.0]) == [0.0, 1.0, 2.5]
+    assert report.unanswered_at(tmp_path / "in", [], limit=2) == [0.0, 0.5]
+    text = report.format_report({"input_bag": "in", "output_bag": "out", "fixes": {
+        "frames": 3, "in_bag": 6, "received": 6, "lost_on_the_way": 0, "fixes": 0,
+        "no_fix": 3, "unanswered_at": [0.0, 1.0, 2.5], "reasons": []},
+        "latency": {}, "usage": {}})
+    assert "3 reached it and fell behind; at 0, 1, 2.5 s after the first)" in text
+
+
 def test_odometry_that_stops_before_the_imu_does_is_reported(tmp_path):
     """An IMU refused mid-flight leaves odometry up to that stamp only: the report says
     where it stopped, against the bag's IMU (a gap under 5 s is the tail of the replay)."""

@@ -246,6 +246,8 @@ def analyse(input_bag, output_bag, usage: dict | None = None,
     received = result["fixes"]["received"]
     if received is not None:   # frames of the bag that never reached camera_ingest
         result["fixes"]["lost_on_the_way"] = max(result["fixes"]["in_bag"] - received, 0)
+    if len(fixes) < result["fixes"]["in_bag"]:   # where, to tell a start from a stall
+        result["fixes"]["unanswered_at"] = unanswered_at(input_bag, [f["stamp"] for f in fixes])
     result["navigation_events"] = navigation_events(output_bag)
     result["ekf_fix_use"] = ekf_fix_use(output_bag)
     result["latency"] = {k: v for k, v in _latencies(output_bag).items()}
@@ -304,6 +306,18 @@ def analyse(input_bag, output_bag, usage: dict | None = None,
             result["series"]["dr"] = (t_dr, p_dr)
             result["series"]["dr_error"] = (te - t0, err)
     return result
+
+
+def unanswered_at(input_bag, answered_stamps, limit: int = 10) -> list[float]:
+    """Seconds after the bag's first camera frame of its frames (the first ``limit``) that
+    no /nav/pva_fix answered: the first frames (a recorder or a graph not yet listening),
+    a stretch (a stall) or the last (a graph stopped before it caught up)."""
+    answered = {round(t, 3) for t in answered_stamps}
+    stamps = [_stamp(bags.decode(m)) for m in bags.read(input_bag, list(CAMERA_TOPICS))]
+    if not stamps:
+        return []
+    t0 = min(stamps)
+    return [round(t - t0, 2) for t in sorted(stamps) if round(t, 3) not in answered][:limit]
 
 
 def normalised_errors(offset: np.ndarray, covariance: np.ndarray) -> np.ndarray:
@@ -367,8 +381,10 @@ def format_report(r: dict, gsd: float | None = None) -> str:
         else:
             why = (f"{lost} never reached camera_ingest (lost on the way), "
                    f"{max(f['received'] - f['frames'], 0)} reached it and fell behind")
+        at = f.get("unanswered_at")
+        where = f"; at {', '.join(f'{t:g}' for t in at)} s after the first" if at else ""
         lines.append(f"WARNING: {f['in_bag'] - f['frames']} camera frames of the bag got no "
-                     f"answer ({why})")
+                     f"answer ({why}{where})")
     for reason, count in f["reasons"]:
         lines.append(f"  no fix x{count}: {reason}")
     if "first_after" in f:
