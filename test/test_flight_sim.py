@@ -5,6 +5,7 @@ import pytest
 import rasterio
 from affine import Affine
 
+from terrain_nav_ros.core.features.hillshade import hillshade
 from terrain_nav_ros.core.terrain.georef import GeoReference
 from terrain_nav_ros.core.terrain.synthetic_terrain import synthetic_dem
 from terrain_nav_ros.tools import bags
@@ -13,6 +14,8 @@ from terrain_nav_ros.tools.flight_sim import (
     _epoch_ns,
     _open_metamap,
     drape_photo,
+    draped_photo,
+    misregistration,
     simulate,
 )
 
@@ -141,3 +144,28 @@ def test_a_flight_that_fails_part_way_leaves_no_bag(tmp_path):
     with pytest.raises(ValueError, match="unknown image_format"):
         simulate(SimConfig(duration=4.0, image_format="png"), tmp_path / "bag")
     assert not (tmp_path / "bag").exists()
+
+
+def test_a_photo_off_its_dem_is_named_misregistered(scene, tmp_path, capsys):
+    """A photo whose ground lies 75 m east of the DEM's: the camera would see it there and
+    every fix would be off by as much, so simulate says so; one in register is not named."""
+    dem, _ = scene
+    with rasterio.open(dem) as src:
+        heights = src.read(1)
+    shade = hillshade(heights, 150.0, 40.0, gsd=30.0, ambient=0.2) * 200.0
+    aligned = _write(tmp_path / "aligned.tif", shade)
+    shifted = _write(tmp_path / "shifted.tif", shade,
+                     transform=TRANSFORM @ Affine.translation(2.5, 0.0))   # 2.5 cells east
+    metamap, _ = _open_metamap(SimConfig(dem=dem))
+    box = GeoReference.centred(0.0, 0.0, 15.0, 360, 360)
+    terrain = metamap.tile(box).elevation
+    said = {}
+    for name, photo in (("aligned", aligned), ("shifted", shifted)):
+        rgb, covered = draped_photo(photo, "", metamap, box)
+        said[name] = misregistration(rgb, covered, terrain, box, (150.0, 40.0), 30.0)
+    assert said["aligned"] is None
+    assert "misregistered" in said["shifted"] and "+7" in said["shifted"]   # +75 m east
+    cfg = SimConfig(dem=dem, albedo=shifted, duration=2.0, camera_rate=1.0, agl=1500.0,
+                    pattern="straight", image_format="mono8", sun=(150.0, 40.0))
+    simulate(cfg, tmp_path / "bag")
+    assert "misregistered" in capsys.readouterr().err

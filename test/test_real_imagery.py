@@ -800,3 +800,20 @@ def test_a_mirrored_view_is_found_once_mirrored_back(shared_data):
     assert found.score >= _graph_threshold()
     centre = (0.5 * (w - 1), 0.5 * (h - 1))
     assert np.hypot(*(np.subtract(found.apply(*centre), unflipped.apply(*centre)))) <= 2.0
+
+
+def test_costa_rica_s_dem_is_found_two_cells_off_its_images_and_athabasca_s_is_not(shared_data):
+    """The data's README: Costa Rica's ASTER DEM is ~2 px (60 m S, 30 m E) off the images.
+    The image's shading places it there, and the warning says so; Athabasca's pair, in
+    register, gets none."""
+    imagery = shared_data / "imagery"
+    costa = load_scene(imagery / "costarica_barva_l5_19860206.tif",
+                       imagery / "costarica_barva_astergdem_4326.tif", band=4,
+                       when="1986-02-06T15:30:00Z")
+    s = costa.shading
+    assert 20.0 < s.offset_east < 45.0 and -70.0 < s.offset_north < -35.0, s
+    assert "misregistered" in costa.registration_warning
+    athabasca = load_scene(imagery / "athabasca_hls_s30_20200909.tif",
+                           imagery / "athabasca_dem30m_utm11.tif", band=4, sun=(164.8, 41.1))
+    assert math.hypot(athabasca.shading.offset_east, athabasca.shading.offset_north) < 20.0
+    assert athabasca.registration_warning is None

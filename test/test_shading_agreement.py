@@ -4,7 +4,11 @@ import cv2
 import numpy as np
 import pytest
 
-from terrain_nav_ros.core.features.hillshade import hillshade, shading_agreement
+from terrain_nav_ros.core.features.hillshade import (
+    hillshade,
+    registration_offset,
+    shading_agreement,
+)
 from terrain_nav_ros.core.terrain.synthetic_terrain import synthetic_dem
 
 GSD = 30.0
@@ -34,6 +38,8 @@ def test_the_azimuth_the_shading_follows_is_found(terrain, azimuth):
     assert _off(found.best_azimuth, azimuth) <= 5.0
     assert found.r_best > 0.3 and found.r_at_sun > 0.95 * found.r_best
     assert found.warning((azimuth, 40.0)) is None
+    assert np.hypot(found.offset_east, found.offset_north) < 0.6 * GSD
+    assert found.registration_warning() is None
 
 
 def test_a_stated_sun_far_from_the_image_s_is_doubtful(terrain):
@@ -74,3 +80,37 @@ def test_no_data_is_not_compared_and_too_little_is_not_judged(terrain):
     assert np.isnan(tiny.r_best) and tiny.warning((160.0, 40.0)) is None
     with pytest.raises(ValueError, match="one shape"):
         shading_agreement(photo, terrain[:10], GSD)
+
+
+def _shifted(image, east, north):
+    """``image`` with its content moved ``east`` and ``north`` cells (north-up rows)."""
+    m = np.float32([[1, 0, east], [0, 1, -north]])
+    return cv2.warpAffine(image, m, image.shape[::-1], flags=cv2.INTER_CUBIC,
+                          borderMode=cv2.BORDER_REFLECT)
+
+
+@pytest.mark.parametrize("east, north", [(2.5, -1.0), (-1.0, 2.2), (0.4, 0.3)])
+def test_an_image_off_its_dem_is_placed_and_named_misregistered(terrain, east, north):
+    """A pair misregistered (the image's terrain ``east`` and ``north`` cells from the
+    DEM's, as Costa Rica's ASTER DEM is by ~2) is placed to ~half a cell under the fields'
+    edges, and named misregistered from 1.5 cells on: a fix in the DEM's frame carries the
+    offset."""
+    photo = _shifted(_photo(terrain, 160.0), east, north)
+    found = shading_agreement(photo, terrain, GSD, (160.0, 40.0))
+    assert found.offset_east == pytest.approx(east * GSD, abs=0.7 * GSD)
+    assert found.offset_north == pytest.approx(north * GSD, abs=0.7 * GSD)
+    warning = found.registration_warning()
+    if np.hypot(east, north) > 2:
+        assert "misregistered" in warning and f"{found.offset_east:+.0f} m east" in warning
+    else:
+        assert warning is None
+
+
+def test_an_offset_beyond_the_search_or_on_another_place_s_dem_is_not_named(terrain):
+    photo = _photo(terrain, 160.0)
+    east, north, _ = registration_offset(_shifted(photo, 9.0, 0.0) - photo.mean(),
+                                         hillshade(terrain, 160.0, 40.0, gsd=GSD) - 0.5)
+    assert np.isnan(east) and np.isnan(north)
+    other = synthetic_dem(200, gsd=GSD, seed=6).astype(np.float32)
+    assert shading_agreement(_photo(other, 160.0), terrain, GSD,
+                             (160.0, 40.0)).registration_warning() is None

@@ -266,7 +266,8 @@ def _cmd_evaluate_imagery(args) -> int:
             scenes = [load_scene(args.image, args.dem, band=args.band, gsd=gsd, sun=sun,
                                  when=args.time)]
         for scene in scenes:
-            for warning in (scene.image_warning, scene.dem_warning, scene.sun_warning):
+            for warning in (scene.image_warning, scene.dem_warning, scene.sun_warning,
+                            scene.registration_warning):
                 if warning:
                     print(f"terrain-nav evaluate: warning: {scene.name}: {warning}",
                           file=sys.stderr)

@@ -409,7 +409,14 @@ def _epoch_ns(start_time: str) -> int:
 def drape_photo(path: str, band: str, metamap: MetaMap, box: GeoReference) -> np.ndarray:
     """A real orthoimage sampled on the render grid ``box``: (rows, cols, 3) in [0, 1],
     stretched between its 1st and 99th percentiles (raw DN or reflectance alike); cells
-    it does not cover are its median grey.
+    it does not cover are its median grey (:func:`draped_photo` also says which).
+    """
+    return draped_photo(path, band, metamap, box)[0]
+
+
+def draped_photo(path: str, band: str, metamap: MetaMap, box: GeoReference
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`drape_photo`'s image, and the (rows, cols) cells the image covers.
 
     The image is read as the real-imagery study reads it
     (:class:`~.core.terrain.ortho_io.OrthoImage`: nodata, undeclared fill, palettes, control
@@ -453,7 +460,21 @@ def drape_photo(path: str, band: str, metamap: MetaMap, box: GeoReference) -> np
     lo, hi = np.percentile(rgb[covered], [1.0, 99.0])
     rgb = np.clip((rgb - lo) / max(hi - lo, 1e-6), 0.0, 1.0)
     rgb[~covered] = np.median(rgb[covered], axis=0)
-    return rgb
+    return rgb, covered
+
+
+def misregistration(photo: np.ndarray, covered: np.ndarray, heights: np.ndarray,
+                    box: GeoReference, sun, dem_cell: float) -> str | None:
+    """What the draped ``photo``'s shading says of its registration to the terrain
+    ``heights`` (both on ``box``; :meth:`~.core.features.hillshade.ShadingAgreement.
+    registration_warning`), or None: the camera sees the photo's ground, the truth is the
+    DEM's, so every fix is off by the offset. ``heights`` are NaN beyond the DEM; ``sun``
+    is the photo's (its acquisition's)."""
+    from ..core.features.hillshade import shading_agreement
+
+    found = shading_agreement(photo.mean(axis=-1), heights, box.gsd, sun, covered,
+                              cell=dem_cell / box.gsd)
+    return found.registration_warning()
 
 
 def _solar(origin: EnuOrigin, t_ns: int) -> tuple[float, float]:
@@ -502,7 +523,14 @@ class _CameraFrames:
         try:
             self.renderer.set_terrain(heights, box)
             if cfg.albedo:
-                self.renderer.set_photo(drape_photo(cfg.albedo, cfg.albedo_band, metamap, box))
+                photo, covered = draped_photo(cfg.albedo, cfg.albedo_band, metamap, box)
+                self.renderer.set_photo(photo)
+                warning = misregistration(photo, covered,
+                                          np.where(tile.nodata, np.nan, tile.elevation),
+                                          box, sun, metamap.native_gsd)
+                if warning:
+                    print(f"[simulate] warning: the albedo image: {warning}",
+                          file=sys.stderr, flush=True)
         except BaseException:
             self.release()
             raise

@@ -20,7 +20,10 @@ landmark render of a co-registered DEM, lit by the image's sun, the way the grap
    correlation with the DEM's shading (:func:`~.core.features.hillshade.shading_agreement`)
    checks that sun: a stated sun far from the azimuth the image's shading follows, or an
    image that follows its terrain's shading at no sun, is warned of and reported; without a
-   sun the error suggests the azimuth the shading follows.
+   sun the error suggests the azimuth the shading follows. The same shading, shifted up to
+   5 DEM cells, places the image's terrain against its DEM's: a pair a cell or more apart
+   is warned of as misregistered (its views' errors carry that offset; Costa Rica's DEM,
+   ~2 cells).
 3. **Cases.** For each view size, views are cut from the image at random places, with a
    random rotation (within +-180 degrees with the heading unknown; within +-2 degrees, and
    the matcher told so, with it known) and scale (+-10 %); a view must lie on >= 95 % valid
@@ -127,6 +130,12 @@ class Scene:
     def sun_warning(self) -> str | None:
         """What the image's shading says against its sun (see :class:`ShadingAgreement`)."""
         return self.shading.warning(self.sun) if self.shading else None
+
+    @property
+    def registration_warning(self) -> str | None:
+        """That the image's terrain lies a DEM cell or more off its DEM's (see
+        :meth:`ShadingAgreement.registration_warning`): its views' errors carry the offset."""
+        return self.shading.registration_warning() if self.shading else None
 
 
 def _dem_window(d, dem_crs, crs, transform, shape, margin: int = 4) -> tuple[slice, slice]:
@@ -728,7 +737,9 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
                               "dem_warning": s.dem_warning,
                               "image_warning": s.image_warning,
                               "shading": _shading_json(s.shading),
-                              "sun_warning": s.sun_warning} for s in scenes],
+                              "sun_warning": s.sun_warning,
+                              "registration_warning": s.registration_warning}
+                             for s in scenes],
                   "sizes": list(sizes), "cases": cases, "seed": seed,
                   "region_factor": region_factor, "success_px": success_px,
                   "threshold": thr, "false_match_rate": false_match_rate,
@@ -949,7 +960,9 @@ def _score_histogram(out: Path, rows, non: np.ndarray, thr: float, success_px: f
 def _shading_json(shading: ShadingAgreement | None) -> dict | None:
     return None if shading is None else {
         "r_at_sun": shading.r_at_sun, "best_azimuth_deg": shading.best_azimuth,
-        "r_best": shading.r_best, "pixels": shading.pixels, "faint": shading.faint}
+        "r_best": shading.r_best, "pixels": shading.pixels, "faint": shading.faint,
+        "offset_east_m": shading.offset_east, "offset_north_m": shading.offset_north,
+        "r_offset": shading.r_offset}
 
 
 def _shading_cell(shading: dict | None) -> str:
@@ -986,7 +999,8 @@ def _report(summary: dict, pngs: list[str]) -> str:
                      f"{s['sun'][0]:.1f} / {s['sun'][1]:.1f} | {100 * s['valid']:.0f} % | "
                      f"{_shading_cell(s.get('shading'))} |")
     notes = [f"- {s['name']}: {s[key]}" for s in st["scenes"]
-             for key in ("image_warning", "dem_warning", "sun_warning") if s.get(key)]
+             for key in ("image_warning", "dem_warning", "sun_warning",
+                         "registration_warning") if s.get(key)]
     if notes:
         lines += ["", "Input warnings (what was read as no data, and why; a doubtful sun):",
                   ""] + notes

@@ -202,6 +202,18 @@ FAINT_SHADING_R = 0.1
 # cosine, about 37 deg of error.
 DOUBTFUL_SUN_RATIO = 0.8
 DOUBTFUL_SUN_DEG = 30.0
+# The image and its DEM are told misregistered from this shift of the shading on (DEM
+# cells): a fix in the DEM's frame is off the image's ground by as much. The shift is found
+# to ~0.5 cell under a patchwork of fields (0.2 on bare slopes), so less is not named. Shifts
+# are searched up to REGISTRATION_SEARCH_CELLS.
+MISREGISTERED_CELLS = 1.5
+REGISTRATION_SEARCH_CELLS = 5
+# ... when the shifted shading correlates with the image at least this well (below, its
+# peak is as much the land cover's as the terrain's)
+REGISTRATION_MIN_R = 0.2
+# ... in this band of scales (DEM cells): the slopes' own, where the land cover's edges (a
+# field's, a forest's) weigh least against the shading's
+REGISTRATION_BAND_CELLS = (0.7, 3.0)
 
 
 @dataclass(frozen=True)
@@ -218,12 +230,25 @@ class ShadingAgreement:
         The correlation at ``best_azimuth``.
     pixels : int
         Pixels compared, at the DEM's cell.
+    offset_east, offset_north : float
+        Where the image's terrain lies from its DEM's (m; the shift of the DEM's shading,
+        at the stated sun or else the best azimuth's, that the image correlates with best,
+        to ~0.5 cell). NaN when not measured, or when it is
+        :data:`REGISTRATION_SEARCH_CELLS` cells or more.
+    r_offset : float
+        The correlation at that shift.
+    cell : float
+        The DEM's cell the offset was measured at (m).
     """
 
     r_at_sun: float
     best_azimuth: float
     r_best: float
     pixels: int
+    offset_east: float = math.nan
+    offset_north: float = math.nan
+    r_offset: float = math.nan
+    cell: float = math.nan
 
     @property
     def judged(self) -> bool:
@@ -253,6 +278,20 @@ class ShadingAgreement:
                     f"the stated {sun[0]:.1f} deg ({self.r_at_sun:.2f}): check the sun (the "
                     f"acquisition time) and the band")
         return None
+
+    def registration_warning(self) -> str | None:
+        """That the image's terrain lies 1.5 DEM cells or more from its DEM's, or None (not
+        judged on a faint image, whose shading shows no terrain to place)."""
+        if not self.judged or self.faint or not self.r_offset >= REGISTRATION_MIN_R:
+            return None
+        off = math.hypot(self.offset_east, self.offset_north)
+        if not off >= MISREGISTERED_CELLS * self.cell:   # (NaN: not within the search)
+            return None
+        return (f"the image's terrain lies {self.offset_east:+.0f} m east and "
+                f"{self.offset_north:+.0f} m north of its DEM's (the shift at which its "
+                f"shading agrees best, {off / self.cell:.1f} DEM cells): the image and DEM "
+                "are misregistered, and a fix in the DEM's frame is off the image's ground "
+                "by as much")
 
 
 def shading_agreement(image, elevation, gsd: float, sun=None, valid_mask=None,
@@ -311,10 +350,8 @@ def shading_agreement(image, elevation, gsd: float, sun=None, valid_mask=None,
     azimuths = np.arange(0.0, 360.0, 1.0)
     if compared.sum() < 100 or min(img.shape) < 3:
         return ShadingAgreement(math.nan, math.nan, math.nan, int(compared.sum()))
-    low, high = SHADING_BAND_CELLS
-
-    def band(x):
-        return cv2.GaussianBlur(x, (0, 0), low) - cv2.GaussianBlur(x, (0, 0), high)
+    def band(x, cells=SHADING_BAND_CELLS):
+        return cv2.GaussianBlur(x, (0, 0), cells[0]) - cv2.GaussianBlur(x, (0, 0), cells[1])
 
     a = band(_fill_nodata(img, valid) if not valid.all() else img)[compared]
     a -= a.mean()
@@ -332,4 +369,72 @@ def shading_agreement(image, elevation, gsd: float, sun=None, valid_mask=None,
     scan = [correlation(sun_vector(az, sun_elevation)) for az in azimuths]
     k = int(np.nanargmax(scan)) if np.isfinite(scan).any() else 0
     r_at = correlation(sun_vector(*sun)) if sun is not None else math.nan
-    return ShadingAgreement(r_at, float(azimuths[k]), float(scan[k]), int(compared.sum()))
+    lit = sun_vector(*sun) if sun is not None else sun_vector(azimuths[k], sun_elevation)
+    fine = REGISTRATION_BAND_CELLS
+    shading = np.tensordot(lit, np.stack([band(n.astype(np.float32), fine) for n in normals]),
+                           1)
+    image_band = band(_fill_nodata(img, valid) if not valid.all() else img, fine)
+    # (away from the edges of no data by the band's reach: the fill's slopes are no terrain)
+    reach = 2 * int(math.ceil(2.0 * fine[1])) + 1
+    inner = cv2.erode(compared.astype(np.uint8), np.ones((reach, reach), np.uint8)) > 0
+    east, north, r_offset = registration_offset(image_band, shading,
+                                                inner if inner.sum() >= 100 else compared)
+    cell_m = gsd * cell
+    return ShadingAgreement(r_at, float(azimuths[k]), float(scan[k]), int(compared.sum()),
+                            east * cell_m, north * cell_m, r_offset, cell_m)
+
+
+def registration_offset(image, shading, valid=None,
+                        search: int = REGISTRATION_SEARCH_CELLS
+                        ) -> tuple[float, float, float]:
+    """Where an image's pattern lies from a reference's on the same north-up grid, east and
+    north in cells: the shift of ``shading`` whose normalised correlation with ``image``
+    peaks (a parabola through the peak's neighbours gives the fraction of a cell).
+
+    Parameters
+    ----------
+    image, shading : (M, N) arrays
+        Band-passed, zero-mean fields (the image's brightness, its DEM's shading).
+    valid : (M, N) bool array, optional
+        The image's pixels compared (others weigh nothing).
+    search : int
+        Largest shift tried, cells; a peak at it means the offset is not within it.
+
+    Returns
+    -------
+    (east, north, r) : floats
+        The offset (NaN when the peak lies at the searched edge or the fields are too
+        small) and the correlation at it.
+    """
+    img = np.asarray(image, np.float32)
+    ref = np.asarray(shading, np.float32)
+    m = int(search)
+    if valid is not None:   # both only where the image is (a DEM's edge is a cliff there)
+        valid = np.asarray(valid, bool)
+        rows, cols = np.flatnonzero(valid.any(axis=1)), np.flatnonzero(valid.any(axis=0))
+        if not len(rows):
+            return math.nan, math.nan, math.nan
+        box = (slice(max(rows[0] - m, 0), rows[-1] + m + 1),
+               slice(max(cols[0] - m, 0), cols[-1] + m + 1))
+        img, ref, valid = img[box], ref[box], valid[box]
+        img = np.where(valid, img, 0.0).astype(np.float32)
+        ref = np.where(valid, ref, 0.0).astype(np.float32)
+    if min(img.shape) <= 4 * m:
+        return math.nan, math.nan, math.nan
+    # the image's inner part slid over the whole reference: result[m + dy, m + dx] pairs
+    # image pixel p with reference pixel p + (dy, dx)
+    score = cv2.matchTemplate(ref, img[m:-m, m:-m], cv2.TM_CCORR_NORMED)
+    dy, dx = np.unravel_index(int(np.argmax(score)), score.shape)
+    peak = float(score[dy, dx])
+    if not (0 < dy < 2 * m and 0 < dx < 2 * m):
+        return math.nan, math.nan, peak
+
+    def vertex(lo, mid, hi):
+        curve = lo - 2.0 * mid + hi
+        return 0.5 * (lo - hi) / curve if curve < 0 else 0.0
+
+    fx = vertex(*score[dy, dx - 1:dx + 2])
+    fy = vertex(*score[dy - 1:dy + 2, dx])
+    # the image at p shows the reference's p + d: its pattern lies -d from the reference's
+    # (columns east, rows south)
+    return float(-(dx + fx - m)), float(dy + fy - m), peak
