@@ -353,6 +353,13 @@ def test_study_on_real_scenes(tmp_path, shared_data):
         if case["err_px"] <= 3.0:
             assert case["valleys_score"] > 0 and case["ridges_score"] >= 0
             assert 0 <= case["ridges_dependence"] < 1
+            # the offset east and north of which the error is the length
+            assert math.hypot(*case["offset_m"]) == pytest.approx(case["err_m"])
+    for r in saved["rows"]:   # their mean, the pair's registration as the matcher sees it
+        mean = r["minutiae"]["mean_offset_m"]
+        assert (mean is None) == (r["minutiae"]["success"] == 0)
+        assert mean is None or math.hypot(*mean) <= 3.0 * 30.0
+    assert "minus the localised views' mean offset" in (out / "report.md").read_text()
     assert "Controls (non-PVA)" in (out / "report.md").read_text()
     # the landmarks are rendered as the graph's landmark_renderer does: with cast shadows
     assert saved["setup"]["shadows"] is True

@@ -64,6 +64,7 @@ from ..core.camera.destripe import destripe
 from ..core.features.clouds import CloudParams, cloud_cover
 from ..core.features.hillshade import (
     FAINT_SHADING_R,
+    REGISTRATION_MIN_R,
     ShadingAgreement,
     extractor_input,
     shading_agreement,
@@ -564,7 +565,10 @@ def _localise(matcher: Matcher, extractor: _Extractor, scene: Scene, case: _Case
     ref, f_region = region_index
     r = matcher.localise(view, ref)
     dt = time.perf_counter() - t0
-    return {"score": float(r.score), "err": view_error(r, case, f_view, f_region),
+    offset = view_offset(r, case, f_view, f_region)
+    err = float(np.hypot(*offset))
+    return {"score": float(r.score), "err": err if math.isfinite(err) else math.inf,
+            "offset": offset,
             "time": dt, "reason": r.reason, "vetoed": _vetoed(r),
             "too_little": any(k in r.reason for k in _TOO_LITTLE), "view_index": view,
             "creases": r.creases, "ridges": r.ridges}
@@ -600,12 +604,21 @@ def view_error(result, case: _Case, f_view: float, f_region: float) -> float:
     """Distance (scene pixels; inf without a transform) from the case's true place of the
     view's centre where ``result`` (a localisation in the region's matching pixels) puts
     it. ``f_view`` and ``f_region`` are the matching pixels' sizes in scene pixels."""
+    e = float(np.hypot(*view_offset(result, case, f_view, f_region)))
+    return e if math.isfinite(e) else math.inf
+
+
+def view_offset(result, case: _Case, f_view: float, f_region: float) -> np.ndarray:
+    """As :func:`view_error`, the offset itself: (east, north) scene pixels from the true
+    place to the found one (NaN without a transform). Its mean over a scene's localised
+    views is the pair's misregistration as the matcher sees it (about minus
+    :attr:`ShadingAgreement.offset_east`, ``offset_north``)."""
     centre = 0.5 * (np.array(case.view.shape[::-1]) / f_view - 1.0)   # in matching pixels
     est = np.array(result.apply(*centre), float) if np.isfinite(result.transform).all() \
         else np.full(2, np.nan)
     est = (est + 0.5) * f_region - 0.5           # matching pixels -> scene pixels
-    e = float(np.hypot(*(est - case.truth)))
-    return e if math.isfinite(e) else math.inf
+    col, row = est - case.truth
+    return np.array([col, -row])                 # the scene is north-up
 
 
 def _baseline(method: str, case: _Case, region: np.ndarray, heading_known: bool,
@@ -794,7 +807,8 @@ def _study_cases(study: _StudyRun, scene: Scene, per_scene: dict, size: int, hea
     (appended to ``study.non_pva``): the scene's row of the report."""
     cs, known, thr = per_scene[scene.name], heading == "known", study.threshold
     extractor, success_px = study.extractor, study.success_px
-    rec = {"err": [], "acc": [], "time": [], "few": [], "vetoed": [], "cases": []}
+    rec = {"err": [], "acc": [], "time": [], "few": [], "vetoed": [], "cases": [],
+           "offset_m": []}
     base = {m: {"err": [], "time": []} for m in study.baselines}
     pva_scores = []
     # errors in matching pixels: a view finer than its DEM is localised to the DEM's cell
@@ -811,7 +825,9 @@ def _study_cases(study: _StudyRun, scene: Scene, per_scene: dict, size: int, hea
         rec["time"].append(r["time"])
         rec["few"].append(r["too_little"] and not accepted)
         rec["vetoed"].append(_refused(r["score"], r["vetoed"], thr))
+        rec["offset_m"].append(r["offset"] * scene.gsd)
         rec["cases"].append({"err_px": r["err"], "err_m": r["err"] * per_px * scene.gsd,
+                             "offset_m": [float(v) for v in r["offset"] * scene.gsd],
                              "score": r["score"], "reason": r["reason"],
                              "vetoed": r["vetoed"],
                              **_evidence_parts(r["creases"], r["ridges"])})
@@ -827,11 +843,19 @@ def _study_cases(study: _StudyRun, scene: Scene, per_scene: dict, size: int, hea
                         "vetoed": int(np.sum(rec["vetoed"])),
                         "vetoed_at_truth": int(np.sum(np.asarray(rec["vetoed"], bool)
                                                       & (np.asarray(rec["err"])
-                                                         <= success_px)))},
+                                                         <= success_px))),
+                        "mean_offset_m": _mean_offset(rec["offset_m"], rec["acc"],
+                                                      rec["err"], success_px)},
            "pva_scores": pva_scores, "cases": rec["cases"]}
     for method, b in base.items():
         row[method] = _summary(b["err"], np.isfinite(b["err"]), b["time"], success_px)
     return row
+
+
+def _mean_offset(offsets, accepted, err, success_px) -> list[float] | None:
+    """(east, north) m: the mean offset of the views localised (None without any)."""
+    ok = np.asarray(accepted, bool) & (np.asarray(err, float) <= success_px)
+    return [float(v) for v in np.mean(np.asarray(offsets)[ok], axis=0)] if ok.any() else None
 
 
 def _controls(study: _StudyRun, scene: Scene, per_scene: dict, case: _Case, k: int,
@@ -972,6 +996,22 @@ def _shading_cell(shading: dict | None) -> str:
             f"{shading['r_best']:.2f})")
 
 
+def _registration_cell(shading: dict | None, scene: str, rows) -> str:
+    """The pair's misregistration two ways: the shading's shift, and minus the mean offset
+    of the views the matcher localised (weighted by their number over sizes and headings)."""
+    east, north = (shading or {}).get("offset_east_m"), (shading or {}).get("offset_north_m")
+    judged = east is not None and math.isfinite(east) and not shading["faint"] \
+        and shading.get("r_offset", 0.0) >= REGISTRATION_MIN_R
+    by_shading = f"{east:+.0f}, {north:+.0f}" if judged else "-"
+    found = [(r["minutiae"]["mean_offset_m"], r["minutiae"]["success"]) for r in rows
+             if r["scene"] == scene and r["minutiae"].get("mean_offset_m")]
+    n = sum(k for _, k in found)
+    if not n:
+        return f"{by_shading} / -"
+    mean = np.sum([np.asarray(m) * k for m, k in found], axis=0) / n
+    return f"{by_shading} / {-mean[0]:+.0f}, {-mean[1]:+.0f} ({n} views)"
+
+
 def _fmt(x, spec=".0f") -> str:
     return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else \
         format(x, spec)
@@ -991,13 +1031,15 @@ def _report(summary: dict, pngs: list[str]) -> str:
              f"(matcher told +-{KNOWN_HEADING_PRIOR_DEG:g}, NCC without rotations). "
              "Baselines always answer: every answer off the truth is wrong.", "",
              "| scene | GSD m | DEM cell m | matched at m | size px | sun az/el | valid "
-             "| shading r at the sun (best azimuth, its r) |",
-             "|---|---|---|---|---|---|---|---|"]
+             "| shading r at the sun (best azimuth, its r) | image's terrain from the DEM's, "
+             "by the shading / minus the localised views' mean offset (m east, north) |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for s in st["scenes"]:
         lines.append(f"| {s['name']} | {s['gsd_m']:g} | {s['dem_cell_m']:.0f} | "
                      f"{st['match_gsd_m'][s['name']]:.0f} | {s['shape'][1]}x{s['shape'][0]} | "
                      f"{s['sun'][0]:.1f} / {s['sun'][1]:.1f} | {100 * s['valid']:.0f} % | "
-                     f"{_shading_cell(s.get('shading'))} |")
+                     f"{_shading_cell(s.get('shading'))} | "
+                     f"{_registration_cell(s.get('shading'), s['name'], summary['rows'])} |")
     notes = [f"- {s['name']}: {s[key]}" for s in st["scenes"]
              for key in ("image_warning", "dem_warning", "sun_warning",
                          "registration_warning") if s.get(key)]
