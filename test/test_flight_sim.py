@@ -14,7 +14,6 @@ from terrain_nav_ros.tools.flight_sim import (
     _epoch_ns,
     _open_metamap,
     drape_photo,
-    draped_photo,
     misregistration,
     simulate,
 )
@@ -56,15 +55,15 @@ def test_a_photo_is_draped_on_the_render_grid(scene):
     metamap, _ = _open_metamap(SimConfig(dem=dem))
     # the DEM's centre is the ENU origin: west of it dark, east bright
     box = GeoReference.centred(0.0, 0.0, 15.0, 400, 300)
-    rgb = drape_photo(photo, "", metamap, box)
+    rgb, _ = drape_photo(photo, "", metamap, box)
     assert rgb.shape == (300, 400, 3) and rgb.min() >= 0.0 and rgb.max() <= 1.0
     assert rgb[150, 100, 0] < 0.1 and rgb[150, 300, 0] > 0.9
     assert rgb[150, 100, 1] > 0.9                            # band 2 is the other way round
-    one_band = drape_photo(photo, "2", metamap, box)
+    one_band, _ = drape_photo(photo, "2", metamap, box)
     np.testing.assert_allclose(one_band[..., 0], one_band[..., 2])
     assert one_band[150, 100, 0] > 0.9
     # beyond the photo: its median grey, not black or NaN
-    wide = drape_photo(photo, "", metamap, GeoReference.centred(0.0, 0.0, 60.0, 400, 400))
+    wide, _ = drape_photo(photo, "", metamap, GeoReference.centred(0.0, 0.0, 60.0, 400, 400))
     assert np.isfinite(wide).all() and 0.2 < wide[5, 5, 0] < 0.8
     with pytest.raises(ValueError, match="band 4 does not exist"):
         drape_photo(photo, "4", metamap, box)
@@ -161,7 +160,7 @@ def test_a_photo_off_its_dem_is_named_misregistered(scene, tmp_path, capsys):
     terrain = metamap.tile(box).elevation
     said = {}
     for name, photo in (("aligned", aligned), ("shifted", shifted)):
-        rgb, covered = draped_photo(photo, "", metamap, box)
+        rgb, covered = drape_photo(photo, "", metamap, box)
         said[name] = misregistration(rgb, covered, terrain, box, (150.0, 40.0), 30.0)
     assert said["aligned"] is None
     assert "misregistered" in said["shifted"] and "+7" in said["shifted"]   # +75 m east

@@ -406,17 +406,11 @@ def _epoch_ns(start_time: str) -> int:
         raise SimInputError(f"start {err}") from None
 
 
-def drape_photo(path: str, band: str, metamap: MetaMap, box: GeoReference) -> np.ndarray:
+def drape_photo(path: str, band: str, metamap: MetaMap, box: GeoReference
+                ) -> tuple[np.ndarray, np.ndarray]:
     """A real orthoimage sampled on the render grid ``box``: (rows, cols, 3) in [0, 1],
-    stretched between its 1st and 99th percentiles (raw DN or reflectance alike); cells
-    it does not cover are its median grey (:func:`draped_photo` also says which).
-    """
-    return draped_photo(path, band, metamap, box)[0]
-
-
-def draped_photo(path: str, band: str, metamap: MetaMap, box: GeoReference
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`drape_photo`'s image, and the (rows, cols) cells the image covers.
+    stretched between its 1st and 99th percentiles (raw DN or reflectance alike), and the
+    (rows, cols) cells it covers; cells it does not cover are its median grey.
 
     The image is read as the real-imagery study reads it
     (:class:`~.core.terrain.ortho_io.OrthoImage`: nodata, undeclared fill, palettes, control
@@ -523,7 +517,7 @@ class _CameraFrames:
         try:
             self.renderer.set_terrain(heights, box)
             if cfg.albedo:
-                photo, covered = draped_photo(cfg.albedo, cfg.albedo_band, metamap, box)
+                photo, covered = drape_photo(cfg.albedo, cfg.albedo_band, metamap, box)
                 self.renderer.set_photo(photo)
                 warning = misregistration(photo, covered,
                                           np.where(tile.nodata, np.nan, tile.elevation),

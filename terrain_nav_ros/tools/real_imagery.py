@@ -21,8 +21,8 @@ landmark render of a co-registered DEM, lit by the image's sun, the way the grap
    checks that sun: a stated sun far from the azimuth the image's shading follows, or an
    image that follows its terrain's shading at no sun, is warned of and reported; without a
    sun the error suggests the azimuth the shading follows. The same shading, shifted up to
-   5 DEM cells, places the image's terrain against its DEM's: a pair a cell or more apart
-   is warned of as misregistered (its views' errors carry that offset; Costa Rica's DEM,
+   5 DEM cells, places the image's terrain against its DEM's: a pair 1.5 cells or more
+   apart is warned of as misregistered (its views' errors carry that offset; Costa Rica's DEM,
    ~2 cells).
 3. **Cases.** For each view size, views are cut from the image at random places, with a
    random rotation (within +-180 degrees with the heading unknown; within +-2 degrees, and
@@ -64,7 +64,6 @@ from ..core.camera.destripe import destripe
 from ..core.features.clouds import CloudParams, cloud_cover
 from ..core.features.hillshade import (
     FAINT_SHADING_R,
-    REGISTRATION_MIN_R,
     ShadingAgreement,
     extractor_input,
     shading_agreement,
@@ -134,7 +133,7 @@ class Scene:
 
     @property
     def registration_warning(self) -> str | None:
-        """That the image's terrain lies a DEM cell or more off its DEM's (see
+        """That the image's terrain lies 1.5 DEM cells or more off its DEM's (see
         :meth:`ShadingAgreement.registration_warning`): its views' errors carry the offset."""
         return self.shading.registration_warning() if self.shading else None
 
@@ -566,9 +565,7 @@ def _localise(matcher: Matcher, extractor: _Extractor, scene: Scene, case: _Case
     r = matcher.localise(view, ref)
     dt = time.perf_counter() - t0
     offset = view_offset(r, case, f_view, f_region)
-    err = float(np.hypot(*offset))
-    return {"score": float(r.score), "err": err if math.isfinite(err) else math.inf,
-            "offset": offset,
+    return {"score": float(r.score), "err": _length(offset), "offset": offset,
             "time": dt, "reason": r.reason, "vetoed": _vetoed(r),
             "too_little": any(k in r.reason for k in _TOO_LITTLE), "view_index": view,
             "creases": r.creases, "ridges": r.ridges}
@@ -604,7 +601,11 @@ def view_error(result, case: _Case, f_view: float, f_region: float) -> float:
     """Distance (scene pixels; inf without a transform) from the case's true place of the
     view's centre where ``result`` (a localisation in the region's matching pixels) puts
     it. ``f_view`` and ``f_region`` are the matching pixels' sizes in scene pixels."""
-    e = float(np.hypot(*view_offset(result, case, f_view, f_region)))
+    return _length(view_offset(result, case, f_view, f_region))
+
+
+def _length(offset) -> float:
+    e = float(np.hypot(*offset))
     return e if math.isfinite(e) else math.inf
 
 
@@ -986,7 +987,7 @@ def _shading_json(shading: ShadingAgreement | None) -> dict | None:
         "r_at_sun": shading.r_at_sun, "best_azimuth_deg": shading.best_azimuth,
         "r_best": shading.r_best, "pixels": shading.pixels, "faint": shading.faint,
         "offset_east_m": shading.offset_east, "offset_north_m": shading.offset_north,
-        "r_offset": shading.r_offset}
+        "r_offset": shading.r_offset, "offset_judged": shading.offset_judged}
 
 
 def _shading_cell(shading: dict | None) -> str:
@@ -999,10 +1000,9 @@ def _shading_cell(shading: dict | None) -> str:
 def _registration_cell(shading: dict | None, scene: str, rows) -> str:
     """The pair's misregistration two ways: the shading's shift, and minus the mean offset
     of the views the matcher localised (weighted by their number over sizes and headings)."""
-    east, north = (shading or {}).get("offset_east_m"), (shading or {}).get("offset_north_m")
-    judged = east is not None and math.isfinite(east) and not shading["faint"] \
-        and shading.get("r_offset", 0.0) >= REGISTRATION_MIN_R
-    by_shading = f"{east:+.0f}, {north:+.0f}" if judged else "-"
+    shading = shading or {}
+    by_shading = f"{shading['offset_east_m']:+.0f}, {shading['offset_north_m']:+.0f}" \
+        if shading.get("offset_judged") and math.isfinite(shading["offset_east_m"]) else "-"
     found = [(r["minutiae"]["mean_offset_m"], r["minutiae"]["success"]) for r in rows
              if r["scene"] == scene and r["minutiae"].get("mean_offset_m")]
     n = sum(k for _, k in found)

@@ -279,10 +279,16 @@ class ShadingAgreement:
                     f"acquisition time) and the band")
         return None
 
+    @property
+    def offset_judged(self) -> bool:
+        """Whether the offset places the terrain: not on a faint image, whose shading shows
+        no terrain to place, nor at a correlation below :data:`REGISTRATION_MIN_R`."""
+        return self.judged and not self.faint and self.r_offset >= REGISTRATION_MIN_R
+
     def registration_warning(self) -> str | None:
-        """That the image's terrain lies 1.5 DEM cells or more from its DEM's, or None (not
-        judged on a faint image, whose shading shows no terrain to place)."""
-        if not self.judged or self.faint or not self.r_offset >= REGISTRATION_MIN_R:
+        """That the image's terrain lies 1.5 DEM cells or more from its DEM's, or None
+        (nor when the offset is not :attr:`offset_judged`)."""
+        if not self.offset_judged:
             return None
         off = math.hypot(self.offset_east, self.offset_north)
         if not off >= MISREGISTERED_CELLS * self.cell:   # (NaN: not within the search)
@@ -353,7 +359,8 @@ def shading_agreement(image, elevation, gsd: float, sun=None, valid_mask=None,
     def band(x, cells=SHADING_BAND_CELLS):
         return cv2.GaussianBlur(x, (0, 0), cells[0]) - cv2.GaussianBlur(x, (0, 0), cells[1])
 
-    a = band(_fill_nodata(img, valid) if not valid.all() else img)[compared]
+    filled = _fill_nodata(img, valid) if not valid.all() else img
+    a = band(filled)[compared]
     a -= a.mean()
     normals = surface_normals(z, gsd * cell)
     b = np.stack([band(n.astype(np.float32))[compared] for n in normals]).astype(np.float64)
@@ -373,7 +380,7 @@ def shading_agreement(image, elevation, gsd: float, sun=None, valid_mask=None,
     fine = REGISTRATION_BAND_CELLS
     shading = np.tensordot(lit, np.stack([band(n.astype(np.float32), fine) for n in normals]),
                            1)
-    image_band = band(_fill_nodata(img, valid) if not valid.all() else img, fine)
+    image_band = band(filled, fine)
     # (away from the edges of no data by the band's reach: the fill's slopes are no terrain)
     reach = 2 * int(math.ceil(2.0 * fine[1])) + 1
     inner = cv2.erode(compared.astype(np.uint8), np.ones((reach, reach), np.uint8)) > 0
