@@ -76,6 +76,37 @@ def test_a_recorder_on_sim_time_subscribes_before_the_clock_starts(tmp_path):
         talker.close()
 
 
+def test_a_topic_seen_before_its_publisher_is_recorded_with_the_publisher_s_qos(tmp_path):
+    """A replay's recorder finds /nav/pva_fix by the ekf's subscription before the matcher
+    publishes: subscribing then (no publisher to match) made it best effort, and a loaded
+    machine lost answers from the bag. It must wait for the publisher and match it."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import String
+
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    early, late = SpinningNode("early_listener"), SpinningNode("late_talker")
+    try:
+        early.node.create_subscription(String, "/late", lambda m: None, 10)
+        recorder = start_node("bag_recorder", {"output": str(tmp_path / "bag"),
+                                               "topics": ["/late"]})
+        seen = wait_until(lambda: "bag_recorder" in late.node.get_node_names(), 20)
+        time.sleep(1.0)   # several discovery periods with only the subscriber known
+        pub = late.node.create_publisher(String, "/late", latched)
+        pub.publish(String(data="latched before the recorder matched"))
+        recorded = wait_until(lambda: pub.get_subscription_count() > 1, 20)
+        time.sleep(0.5)
+        log = stop(recorder)
+        assert seen and recorded, "recorder never subscribed:\n" + log
+    finally:
+        early.close()
+        late.close()
+    (topic,) = [t for t in bags.topics(tmp_path / "bag") if t.topic == "/late"]
+    assert topic.reliable and topic.transient_local
+    assert [bags.decode(m).data for m in bags.read(tmp_path / "bag", ["/late"])] == [
+        "latched before the recorder matched"]
+
+
 def test_reading_a_topic_the_bag_lacks_yields_nothing(recorded_bag):
     assert list(bags.read(recorded_bag, ["/nav/ekf/diagnostics"])) == []
     assert len(list(bags.read(recorded_bag, ["/chatter", "/absent"]))) == N

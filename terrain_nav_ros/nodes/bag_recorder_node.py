@@ -1,7 +1,9 @@
 """bag_recorder: subscribe to topics and write them to a rosbag2 MCAP bag.
 
 Topics are discovered continuously (a topic that appears later is recorded from then on);
-each subscription matches the QoS of the topic's publishers, as ``ros2 bag record`` does.
+each subscription matches the QoS of the topic's publishers, as ``ros2 bag record`` does, so a
+topic is only subscribed to once it has a publisher (one that only a subscriber has made known
+would be recorded best effort and volatile, and lose messages and latched ones).
 The bag is closed cleanly on Ctrl-C, SIGTERM or shutdown, so it is always readable.
 """
 
@@ -53,11 +55,15 @@ class BagRecorder(Node):
             return False
         return topic in self.topics if self.topics else topic not in HIDDEN_TOPICS
 
-    def _qos_for(self, topic: str) -> tuple[QoSProfile, bool, bool]:
+    def _qos_for(self, topic: str) -> tuple[QoSProfile, bool, bool] | None:
+        """The subscription's QoS and whether it is reliable and latched; None while the
+        topic has no publisher to match."""
         infos = self.get_publishers_info_by_topic(topic)
-        reliable = bool(infos) and all(
+        if not infos:
+            return None
+        reliable = all(
             i.qos_profile.reliability == ReliabilityPolicy.RELIABLE for i in infos)
-        latched = bool(infos) and all(
+        latched = all(
             i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in infos)
         qos = QoSProfile(
             depth=1000,
@@ -70,10 +76,13 @@ class BagRecorder(Node):
         for topic, types in self.get_topic_names_and_types():
             if not self._wanted(topic) or not types:
                 continue
+            matched = self._qos_for(topic)
+            if matched is None:   # known from a subscriber only: wait for its publisher
+                continue
+            qos, reliable, latched = matched
             msgtype = types[0]
             try:
                 cls = message_class(msgtype)
-                qos, reliable, latched = self._qos_for(topic)
                 self.writer.add_topic(topic, msgtype, bags.qos_profile(reliable, latched))
             except (LookupError, bags.BagError) as err:
                 self.get_logger().warning(f"not recording {topic}: {err}")
