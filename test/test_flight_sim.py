@@ -11,10 +11,12 @@ from terrain_nav_ros.core.terrain.synthetic_terrain import synthetic_dem
 from terrain_nav_ros.tools import bags
 from terrain_nav_ros.tools.flight_sim import (
     SimConfig,
+    SimInputError,
     _epoch_ns,
     _open_metamap,
+    albedo_registration,
     drape_photo,
-    misregistration,
+    drape_registered,
     simulate,
 )
 
@@ -145,26 +147,63 @@ def test_a_flight_that_fails_part_way_leaves_no_bag(tmp_path):
     assert not (tmp_path / "bag").exists()
 
 
-def test_a_photo_off_its_dem_is_named_misregistered(scene, tmp_path, capsys):
-    """A photo whose ground lies 75 m east of the DEM's: the camera would see it there and
-    every fix would be off by as much, so simulate says so; one in register is not named."""
+def _shaded_photos(scene, tmp_path):
+    """The scene's DEM, and its shading as a photo in register and one 2.5 cells (75 m)
+    east of it."""
     dem, _ = scene
     with rasterio.open(dem) as src:
         heights = src.read(1)
     shade = hillshade(heights, 150.0, 40.0, gsd=30.0, ambient=0.2) * 200.0
     aligned = _write(tmp_path / "aligned.tif", shade)
     shifted = _write(tmp_path / "shifted.tif", shade,
-                     transform=TRANSFORM @ Affine.translation(2.5, 0.0))   # 2.5 cells east
+                     transform=TRANSFORM @ Affine.translation(2.5, 0.0))
+    return dem, aligned, shifted
+
+
+def test_a_photo_off_its_dem_is_named_misregistered(scene, tmp_path, capsys):
+    """A photo whose ground lies 75 m east of the DEM's, draped as it is (--albedo-shift
+    none): the camera would see it there and every fix would be off by as much, so simulate
+    says so; one in register is not named."""
+    dem, aligned, shifted = _shaded_photos(scene, tmp_path)
     metamap, _ = _open_metamap(SimConfig(dem=dem))
     box = GeoReference.centred(0.0, 0.0, 15.0, 360, 360)
     terrain = metamap.tile(box).elevation
     said = {}
     for name, photo in (("aligned", aligned), ("shifted", shifted)):
         rgb, covered = drape_photo(photo, "", metamap, box)
-        said[name] = misregistration(rgb, covered, terrain, box, (150.0, 40.0), 30.0)
+        said[name] = albedo_registration(rgb, covered, terrain, box, (150.0, 40.0),
+                                         30.0).registration_warning()
     assert said["aligned"] is None
     assert "misregistered" in said["shifted"] and "+7" in said["shifted"]   # +75 m east
-    cfg = SimConfig(dem=dem, albedo=shifted, duration=2.0, camera_rate=1.0, agl=1500.0,
-                    pattern="straight", image_format="mono8", sun=(150.0, 40.0))
-    simulate(cfg, tmp_path / "bag")
+    cfg = SimConfig(dem=dem, albedo=shifted, albedo_shift="none", duration=2.0,
+                    camera_rate=1.0, agl=1500.0, pattern="straight", image_format="mono8",
+                    sun=(150.0, 40.0))
+    summary = simulate(cfg, tmp_path / "bag")
     assert "misregistered" in capsys.readouterr().err
+    assert summary["albedo_shift_m"] == [0.0, 0.0]
+
+
+def test_a_photo_off_its_dem_is_draped_back_in_register(scene, tmp_path, capsys):
+    """By default the photo 75 m east is draped shifted back by the offset its shading
+    shows, so the camera sees the DEM's ground (its shading then agrees at no shift); the
+    shift is said and recorded in mission.yaml. A given shift is applied as it is."""
+    dem, _, shifted = _shaded_photos(scene, tmp_path)
+    metamap, _ = _open_metamap(SimConfig(dem=dem))
+    box = GeoReference.centred(0.0, 0.0, 15.0, 360, 360)
+    terrain = metamap.tile(box).elevation
+    cfg = SimConfig(dem=dem, albedo=shifted, sun=(150.0, 40.0))
+    photo, (east, north) = drape_registered(cfg, metamap, box, terrain, cfg.sun)
+    assert east == pytest.approx(75.0, abs=0.7 * 30.0) and abs(north) < 0.7 * 30.0
+    assert "draped shifted back" in capsys.readouterr().err
+    again = albedo_registration(photo, np.isfinite(photo).all(axis=-1), terrain, box,
+                                cfg.sun, 30.0)
+    assert np.hypot(again.offset_east, again.offset_north) < 0.7 * 30.0
+    given = SimConfig(dem=dem, albedo=shifted, albedo_shift="75,0", sun=(150.0, 40.0))
+    _, shift = drape_registered(given, metamap, box, terrain, given.sun)
+    assert shift == (75.0, 0.0)
+    summary = simulate(SimConfig(dem=dem, albedo=shifted, duration=2.0, camera_rate=1.0,
+                                 agl=1500.0, pattern="straight", image_format="mono8",
+                                 sun=(150.0, 40.0)), tmp_path / "bag")
+    assert summary["albedo_shift_m"][0] == pytest.approx(75.0, abs=0.7 * 30.0)
+    with pytest.raises(SimInputError, match="albedo shift"):
+        simulate(SimConfig(dem=dem, albedo=shifted, albedo_shift="east"), tmp_path / "bad")

@@ -111,6 +111,9 @@ class SimConfig:
     #                                  over the terrain for the camera frames, shown as it
     #                                  is (it holds its own sun); "" = the rendered albedo
     albedo_band: str = ""            # its band (1-based) as grey; "" = bands 1-3 as RGB
+    albedo_shift: str = "measured"   # where the image is draped: "measured" = shifted back by
+    #                                  the offset its shading shows from the DEM's (when that
+    #                                  is judged), "none" = at its georeference, "E,N" = m
     start_time: str = ""             # ISO 8601 UTC bag time of t = 0 (with --albedo: the
     #                                  image's acquisition, so landmarks get its sun);
     #                                  "" = 2026-06-21T13:30:00Z
@@ -275,11 +278,15 @@ class _Messages:
         return self.t["tf2_msgs/msg/TFMessage"](transforms=[tf])
 
 
+def _say(text: str) -> None:
+    print(f"[simulate] {text}", file=sys.stderr, flush=True)
+
+
 def _progress(done: int, total: int, started: float, what: str) -> None:
     """One line per tenth of the work, so long runs show progress in logs too."""
     if done == total or done % max(1, total // 10) == 0:
         rate = done / max(time.monotonic() - started, 1e-9)
-        print(f"[simulate] {what}: {done}/{total} ({rate:.1f}/s)", file=sys.stderr, flush=True)
+        _say(f"{what}: {done}/{total} ({rate:.1f}/s)")
 
 
 def simulate(cfg: SimConfig, output: str | Path) -> dict:
@@ -290,6 +297,7 @@ def simulate(cfg: SimConfig, output: str | Path) -> dict:
     """
     output = Path(output)
     _cloud_layer(cfg, 0.0)   # bad cloud settings fail before the flight is flown
+    parse_albedo_shift(cfg.albedo_shift)   # and a bad shift
     rng = np.random.default_rng(cfg.seed)
     metamap, dem_name = _open_metamap(cfg)
     truth, ground_low = fly(cfg, metamap)
@@ -337,6 +345,8 @@ def simulate(cfg: SimConfig, output: str | Path) -> dict:
                                          * math.tan(math.radians(cfg.camera_hfov) / 2) * 1.3),
         "config": plain(asdict(cfg)),
     }
+    if cfg.albedo:   # the offset the image was draped shifted back by (0, 0: as it is)
+        summary["albedo_shift_m"] = list(camera.albedo_shift)
     (output / "mission.yaml").write_text(yaml.safe_dump(summary, sort_keys=False))
     return summary
 
@@ -429,7 +439,7 @@ def drape_photo(path: str, band: str, metamap: MetaMap, box: GeoReference
             data = src.read(bands)
             transform, crs = src.transform, src.crs
             if src.warning:
-                print(f"[simulate] warning: {src.warning}", file=sys.stderr, flush=True)
+                _say(f"warning: {src.warning}")
     except ImageError as err:
         raise SimInputError(f"the albedo image: {err}") from err
     cell_m = ground_cell_metres(crs, transform, data.shape[1:])
@@ -457,18 +467,65 @@ def drape_photo(path: str, band: str, metamap: MetaMap, box: GeoReference
     return rgb, covered
 
 
-def misregistration(photo: np.ndarray, covered: np.ndarray, heights: np.ndarray,
-                    box: GeoReference, sun, dem_cell: float) -> str | None:
-    """What the draped ``photo``'s shading says of its registration to the terrain
-    ``heights`` (both on ``box``; :meth:`~.core.features.hillshade.ShadingAgreement.
-    registration_warning`), or None: the camera sees the photo's ground, the truth is the
-    DEM's, so every fix is off by the offset. ``heights`` are NaN beyond the DEM; ``sun``
-    is the photo's (its acquisition's)."""
+def albedo_registration(photo: np.ndarray, covered: np.ndarray, heights: np.ndarray,
+                        box: GeoReference, sun, dem_cell: float):
+    """Where the draped ``photo``'s terrain lies from the terrain ``heights`` (both on
+    ``box``), by its shading (:class:`~.core.features.hillshade.ShadingAgreement`): the
+    camera sees the photo's ground while the truth is the DEM's, so a fix is off by the
+    offset. ``heights`` are NaN beyond the DEM; ``sun`` is the photo's (its acquisition's)."""
     from ..core.features.hillshade import shading_agreement
 
-    found = shading_agreement(photo.mean(axis=-1), heights, box.gsd, sun, covered,
-                              cell=dem_cell / box.gsd)
-    return found.registration_warning()
+    return shading_agreement(photo.mean(axis=-1), heights, box.gsd, sun, covered,
+                             cell=dem_cell / box.gsd)
+
+
+def parse_albedo_shift(text: str) -> str | tuple[float, float]:
+    """``SimConfig.albedo_shift``: "measured", "none" or (east, north) m."""
+    if text in ("measured", "none"):
+        return text
+    try:
+        east, north = (float(v) for v in text.split(","))
+    except ValueError:
+        raise SimInputError(f"albedo shift {text!r}: 'measured', 'none' or 'E,N' in metres"
+                            ) from None
+    if not (math.isfinite(east) and math.isfinite(north)):
+        raise SimInputError(f"albedo shift {text!r}: not finite")
+    return east, north
+
+
+def drape_registered(cfg: SimConfig, metamap: MetaMap, box: GeoReference,
+                     heights: np.ndarray, sun) -> tuple[np.ndarray, tuple[float, float]]:
+    """``cfg.albedo`` draped on ``box`` (:func:`drape_photo`), shifted by
+    ``cfg.albedo_shift``, and the shift (east, north m; the image's terrain moved by
+    minus it). "measured" takes the offset the image's shading shows from ``heights``
+    (:func:`albedo_registration`), so that a pair out of register (Costa Rica's, ~2 DEM
+    cells) still gives a camera that sees the DEM's ground and fixes true to the truth; an
+    offset not judged (a faint image) is no shift. Each choice is said on stderr."""
+    shift = parse_albedo_shift(cfg.albedo_shift)
+    photo, covered = drape_photo(cfg.albedo, cfg.albedo_band, metamap, box)
+    if shift == "measured":
+        found = albedo_registration(photo, covered, heights, box, sun, metamap.native_gsd)
+        if not (found.offset_judged and np.isfinite([found.offset_east,
+                                                      found.offset_north]).all()):
+            _say("the albedo image's registration to its DEM is not judged by its shading "
+                 f"(correlation {found.r_offset:.2f}): draped at its georeference")
+            return photo, (0.0, 0.0)
+        shift = found.offset_east, found.offset_north
+        _say(f"the albedo image's terrain lies {shift[0]:+.0f} m east and {shift[1]:+.0f} m "
+             f"north of its DEM's ({math.hypot(*shift) / metamap.native_gsd:.1f} DEM cells, "
+             "by its shading): draped shifted back by that (--albedo-shift none keeps its "
+             "georeference)")
+    elif shift == "none":
+        found = albedo_registration(photo, covered, heights, box, sun, metamap.native_gsd)
+        if warning := found.registration_warning():
+            _say(f"warning: the albedo image: {warning}")
+        return photo, (0.0, 0.0)
+    east, north = shift
+    if east or north:   # the grid moved by the offset samples the image's terrain where
+        #                 the DEM has it
+        photo, _ = drape_photo(cfg.albedo, cfg.albedo_band, metamap, replace(
+            box, origin_east=box.origin_east + east, origin_north=box.origin_north + north))
+    return photo, (float(east), float(north))
 
 
 def _solar(origin: EnuOrigin, t_ns: int) -> tuple[float, float]:
@@ -497,6 +554,7 @@ class _CameraFrames:
 
     def __init__(self, cfg: SimConfig, metamap: MetaMap, truth, t_ns, msgs: _Messages, sun):
         self.cfg, self.truth, self.t_ns, self.msgs, self.sun = cfg, truth, t_ns, msgs, sun
+        self.albedo_shift = (0.0, 0.0)
         self.cam = cam = pinhole(cfg)
         self.maps = distortion_maps(
             np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1.0]]),
@@ -517,14 +575,9 @@ class _CameraFrames:
         try:
             self.renderer.set_terrain(heights, box)
             if cfg.albedo:
-                photo, covered = drape_photo(cfg.albedo, cfg.albedo_band, metamap, box)
+                photo, self.albedo_shift = drape_registered(
+                    cfg, metamap, box, np.where(tile.nodata, np.nan, tile.elevation), sun)
                 self.renderer.set_photo(photo)
-                warning = misregistration(photo, covered,
-                                          np.where(tile.nodata, np.nan, tile.elevation),
-                                          box, sun, metamap.native_gsd)
-                if warning:
-                    print(f"[simulate] warning: the albedo image: {warning}",
-                          file=sys.stderr, flush=True)
         except BaseException:
             self.release()
             raise
