@@ -161,9 +161,9 @@ def _shaded_photos(scene, tmp_path):
 
 
 def test_a_photo_off_its_dem_is_named_misregistered(scene, tmp_path, capsys):
-    """A photo whose ground lies 75 m east of the DEM's, draped as it is (--albedo-shift
-    none): the camera would see it there and every fix would be off by as much, so simulate
-    says so; one in register is not named."""
+    """A photo whose ground lies 75 m east of the DEM's, draped as it is (the default,
+    --albedo-shift none): the camera would see it there and every fix would be off by as
+    much, so simulate says so; one in register is not named."""
     dem, aligned, shifted = _shaded_photos(scene, tmp_path)
     metamap, _ = _open_metamap(SimConfig(dem=dem))
     box = GeoReference.centred(0.0, 0.0, 15.0, 360, 360)
@@ -175,23 +175,23 @@ def test_a_photo_off_its_dem_is_named_misregistered(scene, tmp_path, capsys):
                                          30.0).registration_warning()
     assert said["aligned"] is None
     assert "misregistered" in said["shifted"] and "+7" in said["shifted"]   # +75 m east
-    cfg = SimConfig(dem=dem, albedo=shifted, albedo_shift="none", duration=2.0,
-                    camera_rate=1.0, agl=1500.0, pattern="straight", image_format="mono8",
-                    sun=(150.0, 40.0))
+    cfg = SimConfig(dem=dem, albedo=shifted, duration=2.0, camera_rate=1.0, agl=1500.0,
+                    pattern="straight", image_format="mono8", sun=(150.0, 40.0))
     summary = simulate(cfg, tmp_path / "bag")
     assert "misregistered" in capsys.readouterr().err
     assert summary["albedo_shift_m"] == [0.0, 0.0]
 
 
 def test_a_photo_off_its_dem_is_draped_back_in_register(scene, tmp_path, capsys):
-    """By default the photo 75 m east is draped shifted back by the offset its shading
-    shows, so the camera sees the DEM's ground (its shading then agrees at no shift); the
-    shift is said and recorded in mission.yaml. A given shift is applied as it is."""
+    """With --albedo-shift measured the photo 75 m east is draped shifted back by the
+    offset its shading shows, so the camera sees the DEM's ground (its shading then agrees
+    at no shift); the shift is said and recorded in mission.yaml. A given shift is applied
+    as it is."""
     dem, _, shifted = _shaded_photos(scene, tmp_path)
     metamap, _ = _open_metamap(SimConfig(dem=dem))
     box = GeoReference.centred(0.0, 0.0, 15.0, 360, 360)
     terrain = metamap.tile(box).elevation
-    cfg = SimConfig(dem=dem, albedo=shifted, sun=(150.0, 40.0))
+    cfg = SimConfig(dem=dem, albedo=shifted, albedo_shift="measured", sun=(150.0, 40.0))
     photo, (east, north) = drape_registered(cfg, metamap, box, terrain, cfg.sun)
     assert east == pytest.approx(75.0, abs=0.7 * 30.0) and abs(north) < 0.7 * 30.0
     assert "draped shifted back" in capsys.readouterr().err
@@ -201,8 +201,9 @@ def test_a_photo_off_its_dem_is_draped_back_in_register(scene, tmp_path, capsys)
     given = SimConfig(dem=dem, albedo=shifted, albedo_shift="75,0", sun=(150.0, 40.0))
     _, shift = drape_registered(given, metamap, box, terrain, given.sun)
     assert shift == (75.0, 0.0)
-    summary = simulate(SimConfig(dem=dem, albedo=shifted, duration=2.0, camera_rate=1.0,
-                                 agl=1500.0, pattern="straight", image_format="mono8",
+    summary = simulate(SimConfig(dem=dem, albedo=shifted, albedo_shift="measured",
+                                 duration=2.0, camera_rate=1.0, agl=1500.0,
+                                 pattern="straight", image_format="mono8",
                                  sun=(150.0, 40.0)), tmp_path / "bag")
     assert summary["albedo_shift_m"][0] == pytest.approx(75.0, abs=0.7 * 30.0)
     with pytest.raises(SimInputError, match="albedo shift"):

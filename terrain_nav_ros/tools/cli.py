@@ -519,9 +519,9 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--albedo-band", dest="albedo_band",
                      help="its band (1-based) as grey (default: bands 1-3 as RGB)")
     sim.add_argument("--albedo-shift", dest="albedo_shift", metavar="measured|none|E,N",
-                     help="where the image is draped: shifted back by the offset its "
-                          "shading shows from the DEM's (measured, the default), at its "
-                          "georeference (none), or shifted by E,N metres")
+                     help="where the image is draped: at its georeference (none, the "
+                          "default), shifted back by the offset its shading shows from the "
+                          "DEM's (measured), or shifted by E,N metres")
     sim.add_argument("--start-time", dest="start_time", metavar="ISO8601",
                      help="bag time of the start, UTC (with --albedo: the image's "
                           "acquisition, so the landmarks get its sun)")

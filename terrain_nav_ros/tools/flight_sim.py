@@ -111,9 +111,10 @@ class SimConfig:
     #                                  over the terrain for the camera frames, shown as it
     #                                  is (it holds its own sun); "" = the rendered albedo
     albedo_band: str = ""            # its band (1-based) as grey; "" = bands 1-3 as RGB
-    albedo_shift: str = "measured"   # where the image is draped: "measured" = shifted back by
-    #                                  the offset its shading shows from the DEM's (when that
-    #                                  is judged), "none" = at its georeference, "E,N" = m
+    albedo_shift: str = "none"       # where the image is draped: "none" = at its
+    #                                  georeference, "measured" = shifted back by the offset
+    #                                  its shading shows from the DEM's (when that is
+    #                                  judged), "E,N" = by E, N m
     start_time: str = ""             # ISO 8601 UTC bag time of t = 0 (with --albedo: the
     #                                  image's acquisition, so landmarks get its sun);
     #                                  "" = 2026-06-21T13:30:00Z
@@ -513,8 +514,7 @@ def drape_registered(cfg: SimConfig, metamap: MetaMap, box: GeoReference,
         shift = found.offset_east, found.offset_north
         _say(f"the albedo image's terrain lies {shift[0]:+.0f} m east and {shift[1]:+.0f} m "
              f"north of its DEM's ({math.hypot(*shift) / metamap.native_gsd:.1f} DEM cells, "
-             "by its shading): draped shifted back by that (--albedo-shift none keeps its "
-             "georeference)")
+             "by its shading): draped shifted back by that")
     elif shift == "none":
         found = albedo_registration(photo, covered, heights, box, sun, metamap.native_gsd)
         if warning := found.registration_warning():
