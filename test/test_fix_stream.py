@@ -78,8 +78,11 @@ def test_a_measured_heading_turns_the_prior_and_makes_an_attitude_fix():
 
 
 def test_without_a_heading_the_fix_keeps_the_prior_attitude_and_its_status():
+    """No heading asked for, none measured, one already given, or a track mosaic's."""
+    mosaic = _fix(yaw_correction=0.1)
+    mosaic.mosaic_lag = 12.0   # a track mosaic's rotation is the estimate's past headings
     for fix, use_heading in ((_fix(), False), (_fix(yaw_variance=-1.0), True),
-                             (_fix(status=STATUS_POSITION_ATTITUDE), True)):
+                             (_fix(status=STATUS_POSITION_ATTITUDE), True), (mosaic, True)):
         before = fix.covariance.copy()
         status = fix.status
         r = fix_attitude(fix, np.eye(3), use_heading, 0.0)

@@ -24,8 +24,8 @@ neglected and its attitude is the prior's turned back through the camera mount (
 ``mount_rpy``). The
 registration's rotation is the prior's heading error, so with ``publish_heading`` the heading
 is measured too (``STATUS_POSITION_ATTITUDE``, roll and pitch with a 10-degree sigma that
-leaves the filter's own untouched); otherwise only the position (``STATUS_POSITION``, rotation
-covariance -1).
+leaves the filter's own untouched); otherwise, and for a track mosaic (whose rotation is the
+estimate's past headings), only the position (``STATUS_POSITION``, rotation covariance -1).
 
 A pose-free camera set (camera_ingest's cold start: projected without any navigation pose)
 is always searched in the mission index, at the ladder of scales its range of terrain planes

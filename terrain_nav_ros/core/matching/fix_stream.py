@@ -94,9 +94,17 @@ def fix_attitude(fix: PvaFixEstimate, r_body_optical: np.ndarray, use_heading: b
     (:data:`UNOBSERVED_TILT_VAR`), the yaw variance at least ``heading_floor`` (rad) squared.
     A projection whose roll and pitch were measured apart from the filter (a pose-free
     frame's, levelled from the accelerometers) gives their variance as ``tilt_variance``.
+
+    A track mosaic's fix (``mosaic_lag`` > 0) keeps the prior attitude: its frames were
+    projected with the estimate's headings over its span and laid out by the estimate's
+    velocity, so its rotation measures the estimate's own past, not the heading now. Taken
+    for the heading (sigma 0.6 deg), it closed a loop: in a replay of a low flight jammed
+    from take-off the mosaics' headings led the estimate's 30 deg off, and the estimate
+    400 m off the truth with a 40 m sigma.
     """
     r_enu_body = fix.rotation @ r_body_optical.T
-    if fix.status == STATUS_POSITION and use_heading and fix.yaw_variance >= 0:
+    if fix.status == STATUS_POSITION and use_heading and fix.yaw_variance >= 0 \
+            and not fix.mosaic_lag > 0.0:
         r_enu_body = Rotation.from_rotvec([0.0, 0.0, fix.yaw_correction]).as_matrix() \
             @ r_enu_body
         fix.covariance[3:, 3:] = np.diag([tilt_variance, tilt_variance,
