@@ -102,6 +102,18 @@ def test_velocity_comes_from_fixes_close_enough_in_time():
     assert velocity.update(20.0, [0.0, 0.0, 0.0], cov) is None      # same stamp: none
 
 
+def test_a_track_mosaic_s_fix_neither_gives_nor_starts_a_velocity():
+    velocity = FixVelocity(max_gap=5.0)
+    cov = np.eye(6)
+    assert velocity.update(10.0, [0.0, 0.0, 0.0], cov) is None
+    assert velocity.update(11.0, [30.0, 0.0, 0.0], cov, mosaic=True) is None
+    assert velocity.update(12.0, [60.0, 0.0, 0.0], cov, mosaic=True) is None
+    # the frame after mosaics pairs with no mosaic: it waits for the next frame's fix
+    assert velocity.update(13.0, [90.0, 0.0, 0.0], cov) is None
+    v, _ = velocity.update(14.0, [120.0, 0.0, 0.0], cov)
+    np.testing.assert_allclose(v, [30.0, 0.0, 0.0])
+
+
 def test_the_tally_reports_counts_times_and_problems():
     tally = AnswerTally()
     tally.no_fix("no terrain match: score 1.25 below threshold 3.00")

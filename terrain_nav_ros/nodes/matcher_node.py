@@ -521,7 +521,8 @@ class MatcherNode(Node):
                      pose=cv.pose_with_covariance(fix.position, quaternion, fix.covariance))
         lat, lon, alt = EnuOrigin(*origin).enu_to_geodetic(*fix.position)
         out.latitude, out.longitude, out.altitude = float(lat), float(lon), float(alt)
-        velocity = self.velocity.update(stamp_s, fix.position, fix.covariance)
+        velocity = self.velocity.update(stamp_s, fix.position, fix.covariance,
+                                        mosaic=fix.mosaic_lag > 0.0)
         if fix.relocalisation:
             # the previous fix was searched around the estimate a relocalisation contradicts:
             # their difference is no velocity

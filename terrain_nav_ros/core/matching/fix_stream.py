@@ -127,11 +127,19 @@ class FixVelocity:
         self.max_gap = max_gap
         self.last: tuple[float, np.ndarray, np.ndarray] | None = None
 
-    def update(self, stamp: float, position, covariance):
+    def update(self, stamp: float, position, covariance, mosaic: bool = False):
         """Take the fix at ``stamp``; return ``(velocity, covariance)`` from the previous
         one (:func:`~.pva_fix.velocity_from_fixes`), or None when there is none close
-        enough before it."""
+        enough before it.
+
+        A track mosaic's fix (``mosaic``) gives none and is not kept as the previous: its
+        position measures the estimate's velocity error times its frames' age (the ekf
+        models that lag), and consecutive mosaics share most of their frames, so their
+        difference is neither independent fixes' nor the aircraft's velocity."""
         out = None
+        if mosaic:
+            self.last = None
+            return out
         if self.last is not None and 0 < stamp - self.last[0] <= self.max_gap:
             out = velocity_from_fixes(self.last[1], self.last[2], self.last[0], position,
                                       covariance, stamp)
