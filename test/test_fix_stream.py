@@ -114,6 +114,15 @@ def test_a_track_mosaic_s_fix_neither_gives_nor_starts_a_velocity():
     np.testing.assert_allclose(v, [30.0, 0.0, 0.0])
 
 
+def test_a_relocalisation_gives_no_velocity_but_the_next_fix_pairs_with_it():
+    velocity = FixVelocity(max_gap=5.0)
+    cov = np.eye(6)
+    assert velocity.update(10.0, [0.0, 0.0, 0.0], cov) is None
+    assert velocity.update(11.0, [900.0, 0.0, 0.0], cov, relocalisation=True) is None
+    v, _ = velocity.update(12.0, [930.0, 0.0, 0.0], cov)
+    np.testing.assert_allclose(v, [30.0, 0.0, 0.0])
+
+
 def test_the_tally_reports_counts_times_and_problems():
     tally = AnswerTally()
     tally.no_fix("no terrain match: score 1.25 below threshold 3.00")

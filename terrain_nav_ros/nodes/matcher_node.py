@@ -522,11 +522,8 @@ class MatcherNode(Node):
         lat, lon, alt = EnuOrigin(*origin).enu_to_geodetic(*fix.position)
         out.latitude, out.longitude, out.altitude = float(lat), float(lon), float(alt)
         velocity = self.velocity.update(stamp_s, fix.position, fix.covariance,
-                                        mosaic=fix.mosaic_lag > 0.0)
-        if fix.relocalisation:
-            # the previous fix was searched around the estimate a relocalisation contradicts:
-            # their difference is no velocity
-            velocity = None
+                                        mosaic=fix.mosaic_lag > 0.0,
+                                        relocalisation=fix.relocalisation)
         if velocity is not None:
             out.velocity_valid = True
             out.velocity.x, out.velocity.y, out.velocity.z = map(float, velocity[0])

@@ -100,7 +100,7 @@ def fix_attitude(fix: PvaFixEstimate, r_body_optical: np.ndarray, use_heading: b
     velocity, so its rotation measures the estimate's own past, not the heading now. Taken
     for the heading (sigma 0.6 deg), it closed a loop: in a replay of a low flight jammed
     from take-off the mosaics' headings led the estimate's 30 deg off, and the estimate
-    400 m off the truth with a 40 m sigma.
+    410 m off the truth with a 40 m sigma.
     """
     r_enu_body = fix.rotation @ r_body_optical.T
     if fix.status == STATUS_POSITION and use_heading and fix.yaw_variance >= 0 \
@@ -127,7 +127,8 @@ class FixVelocity:
         self.max_gap = max_gap
         self.last: tuple[float, np.ndarray, np.ndarray] | None = None
 
-    def update(self, stamp: float, position, covariance, mosaic: bool = False):
+    def update(self, stamp: float, position, covariance, mosaic: bool = False,
+               relocalisation: bool = False):
         """Take the fix at ``stamp``; return ``(velocity, covariance)`` from the previous
         one (:func:`~.pva_fix.velocity_from_fixes`), or None when there is none close
         enough before it.
@@ -135,12 +136,15 @@ class FixVelocity:
         A track mosaic's fix (``mosaic``) gives none and is not kept as the previous: its
         position measures the estimate's velocity error times its frames' age (the ekf
         models that lag), and consecutive mosaics share most of their frames, so their
-        difference is neither independent fixes' nor the aircraft's velocity."""
-        out = None
+        difference is neither independent fixes' nor the aircraft's velocity. A
+        relocalisation gives none but is kept: the fix before it was searched around the
+        estimate it contradicts."""
         if mosaic:
             self.last = None
-            return out
-        if self.last is not None and 0 < stamp - self.last[0] <= self.max_gap:
+            return None
+        out = None
+        if (self.last is not None and not relocalisation
+                and 0 < stamp - self.last[0] <= self.max_gap):
             out = velocity_from_fixes(self.last[1], self.last[2], self.last[0], position,
                                       covariance, stamp)
         self.last = (stamp, np.array(position, copy=True), np.array(covariance, copy=True))
