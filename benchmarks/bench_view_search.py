@@ -65,7 +65,6 @@ from terrain_nav_ros.core.matching import (  # noqa: E402
 )
 from terrain_nav_ros.core.matching.matcher import Matcher, warm_up  # noqa: E402
 from terrain_nav_ros.core.matching.params import MatchParams  # noqa: E402
-from terrain_nav_ros.tools import evaluation  # noqa: E402
 from terrain_nav_ros.tools import real_imagery as ri  # noqa: E402
 
 cv2.setNumThreads(1)
@@ -100,26 +99,6 @@ def _instrument():
     for name in ("coarse_to_fine", "refine_proposals"):
         if hasattr(crease_search, name):
             setattr(crease_search, name, _timed("search", getattr(crease_search, name)))
-
-
-def dem_camera_scene(path: str, sun=(315.0, 45.0)) -> ri.Scene:
-    """A scene of the DEM at ``path``: its largest void-free square at the native cell,
-    the "image" its nadir render by the DEM-only study's camera at ``sun``."""
-    from terrain_nav_ros.core.terrain.dem_io import open_dem
-    from terrain_nav_ros.core.terrain.georef import GeoReference
-    from terrain_nav_ros.core.terrain.metamap import MetaMap
-
-    mm = MetaMap(open_dem(path), interpolation="spline", fill_voids=True)
-    gsd = mm.native_gsd
-    ce, cn, side = evaluation.valid_area(mm, gsd)
-    tile = mm.tile(GeoReference.centred(ce, cn, gsd, side, side))
-    elevation = np.where(tile.nodata, np.nanmedian(tile.elevation), tile.elevation)
-    rgb, = evaluation.camera_renders(elevation, tile.georef, [sun])
-    grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
-    return ri.Scene(Path(path).stem + "(render)", grey, np.ones(grey.shape, bool),
-                    elevation.astype(np.float32), gsd, tuple(sun),
-                    (mm.origin.lat, mm.origin.lon), place=str(Path(path).resolve()),
-                    dem_cell=gsd)
 
 
 def _localise(matcher, extractor, scene, case, region_index):
@@ -169,7 +148,7 @@ def main():
     if args.scenes:
         keep = set(args.scenes.split(","))
         scenes = [s for s in scenes if s.name in keep]
-    scenes += [dem_camera_scene(path) for path in args.dem]
+    scenes += [ri.dem_camera_scene(path) for path in args.dem]
     ri.render_landmark(scenes)
     params = MatchParams()
     warm_up(params)

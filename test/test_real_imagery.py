@@ -824,3 +824,36 @@ def test_costa_rica_s_dem_is_found_two_cells_off_its_images_and_athabasca_s_is_n
                            imagery / "athabasca_dem30m_utm11.tif", band=4, sun=(164.8, 41.1))
     assert math.hypot(athabasca.shading.offset_east, athabasca.shading.offset_north) < 20.0
     assert athabasca.registration_warning is None
+
+
+@pytest.mark.parametrize("size, level", [(384, "SIXTEENTH"), (768, "THIRTY_SECOND")])
+def test_a_view_too_large_for_the_coarser_level_is_searched_at_a_coarser_one(shared_data, size,
+                                                                            level):
+    """A 384 px view (seed 0: 8 % larger than the prior's scale, turned 113 deg) of a DEM's
+    camera render in its 3x region holds more work than the work bound allows at an eighth
+    of the resolution, a 768 px one more than at a sixteenth. Without a level for them, the
+    minutiae's rigid votes placed the 384 px view 7 px off at 13 (its scale fitted nowhere)
+    and lost 4 of 6 768 px views; searched at the level that fits, then placed at each finer
+    level, they are found where they are, at their true scale."""
+    import math
+
+    from terrain_nav_ros.core.matching import crease_search
+    from terrain_nav_ros.core.matching.crease_proposals import _view_search_level
+    from terrain_nav_ros.core.matching.matcher import Matcher
+    from terrain_nav_ros.core.matching.params import MatchParams
+    from terrain_nav_ros.tools import real_imagery as ri
+
+    scene = ri.dem_camera_scene(shared_data / "dem" / "N44E005.hgt")
+    ri.render_landmark([scene])
+    case = ri._cut_cases(scene, size, 1, False, 3.0, np.random.default_rng(0))[0]
+    params = MatchParams()
+    matcher = Matcher(params, threshold=-1e9, max_rotation=math.pi)
+    extractor = ri._Extractor(params, "dem")
+    view, f_view = extractor.index(matcher, case.view, scene, valid=case.valid)
+    region, f_region = extractor.region_index(matcher, scene, case.region)
+    assert _view_search_level(view, region, params) == getattr(crease_search, level)
+    truth = case.true_transform(f_view, f_region)
+    found = matcher.localise(view, region)
+    assert ri.view_error(found, case, f_view, f_region) < 1.0
+    assert abs(found.scale - math.hypot(*truth[0, :2])) < 0.005
+    assert found.score > 100.0

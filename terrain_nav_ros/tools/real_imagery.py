@@ -316,6 +316,27 @@ def load_scene(image, dem, *, band=None, gsd: float | None = None, sun=None, whe
                  shading=shading_agreement(grey, elevation, gsd, sun, valid, per_cell))
 
 
+def dem_camera_scene(path, sun=(315.0, 45.0)) -> Scene:
+    """A scene of the DEM at ``path`` whose "image" is its nadir render by the DEM-only
+    study's camera at ``sun`` (another albedo, the camera's degradations): its largest
+    void-free square at the native cell. The dev image pairs hold no 3x region of 384 px
+    views and more; a DEM of 1000+ cells does (e.g. ``N44E005.hgt``)."""
+    from ..core.terrain.metamap import MetaMap
+    from . import evaluation
+
+    mm = MetaMap(open_dem(path), interpolation="spline", fill_voids=True)
+    gsd = mm.native_gsd
+    ce, cn, side = evaluation.valid_area(mm, gsd)
+    tile = mm.tile(GeoReference.centred(ce, cn, gsd, side, side))
+    elevation = np.where(tile.nodata, np.nanmedian(tile.elevation), tile.elevation)
+    rgb, = evaluation.camera_renders(elevation, tile.georef, [sun])
+    grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    return Scene(Path(path).stem + "(render)", grey, np.ones(grey.shape, bool),
+                 elevation.astype(np.float32), gsd, tuple(sun),
+                 (mm.origin.lat, mm.origin.lon), place=str(Path(path).resolve()),
+                 dem_cell=gsd)
+
+
 def load_scenes(path, data_dir=None) -> list[Scene]:
     """Scenes listed in a YAML file (``scenes: [{name, image, dem, band, gsd, sun, time}]``),
     file names relative to ``data_dir`` (default: the YAML file's folder). A scene without

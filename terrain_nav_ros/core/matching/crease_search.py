@@ -25,16 +25,18 @@ such transforms by brute force, cheaply, with FFTs:
   pixels over the reference, are the proposals. The matcher then refines each on the creases
   and scores it like any other registration (:mod:`.crease_check`).
 
-The search runs at one of three levels (:class:`SearchLevel`): :data:`FINE` (half the pixel
+The search runs at one of five levels (:class:`SearchLevel`): :data:`FINE` (half the pixel
 resolution, rotations 3 px apart at the query's reach), :data:`COARSE` (a quarter, 6 px: an
-eighth of the work) or :data:`COARSER` (an eighth, 12 px; large views). A coarse level
+eighth of the work), :data:`COARSER` (an eighth, 12 px; large views), :data:`SIXTEENTH`
+(24 px; views of 384 px and more in their 3x regions) or :data:`THIRTY_SECOND` (48 px; 768 px
+and more). A coarse level
 blurs each peak over its cell, too coarsely to rank them: its strongest few dozen are
 searched again near their place at the fine level (:func:`local_peaks`, the next level of
 a pyramid: the rotations, scales and shifts of the fine grid within the coarse cell, by
 direct look-ups of the fine reference, a few milliseconds for all), and the proposals are
-those with the most hits there. The coarser level's proposals (large views) are placed
-at the coarse level likewise, one step of the pyramid, and go on to the coarse-to-fine ICP
-of the matcher.
+those with the most hits there. The coarser levels' proposals (large views) are placed
+at each finer level down to the coarse one likewise, a step of the pyramid each, and go on
+to the coarse-to-fine ICP of the matcher.
 
 Geometry in the math frame ``z = col - 1j*row`` of :mod:`.descriptors`; ``z_b = c z_a + t``.
 """
@@ -69,7 +71,11 @@ COARSE = SearchLevel(resolution=0.25, rotation_tolerance=6.0)
 # large views (a camera footprint, not a block): an eighth, 12 px; their proposals need the
 # coarse-to-fine ICP too
 COARSER = SearchLevel(resolution=0.125, rotation_tolerance=12.0)
-LEVELS = (FINE, COARSE, COARSER)
+# views too large for the work bound at an eighth (384 px and more in their 3x regions): a
+# sixteenth, 24 px; and at that (768 px and more): a thirty-second, 48 px
+SIXTEENTH = SearchLevel(resolution=0.0625, rotation_tolerance=24.0)
+THIRTY_SECOND = SearchLevel(resolution=0.03125, rotation_tolerance=48.0)
+LEVELS = (FINE, COARSE, COARSER, SIXTEENTH, THIRTY_SECOND)
 
 
 def _channel_weights(direction: np.ndarray) -> np.ndarray:

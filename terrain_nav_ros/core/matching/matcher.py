@@ -78,7 +78,7 @@ from .crease_proposals import (
     _view_search_level,
     measured_scale,
 )
-from .crease_search import COARSE, COARSER, FINE, SearchLevel
+from .crease_search import COARSE, FINE, LEVELS, SearchLevel
 from .index import MinutiaIndex, _as_index, _generator
 from .params import MatchParams
 from .proposals import _hash_votes, _root_votes, _Votes
@@ -299,11 +299,12 @@ def _view_try(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, level: SearchLev
     chance peaks, or a few pixels off, out of the ICP's reach."""
     found = _crease_search(a, b, p, level, p.search_scale, p.view_search_background)
     proposals = found.proposals[:_n_proposals(level, p)]
-    if level == COARSER:
-        # placed at the coarse level first (~1 ms): a proposal between two of the coarser
-        # level's scales (8 % apart) can lead the ICP to a scale a few percent off along
-        # parallel creases (a 256 px view: 8.5 there, 77 at its truth)
-        proposals = _placed_finer(a, b, p, proposals, COARSER, COARSE, p.search_scale,
+    # a coarser level's proposals placed at each finer level down to the coarse one first
+    # (~1 ms a step): a proposal between two of the coarser level's scales (8 % apart) can
+    # lead the ICP to a scale a few percent off along parallel creases (a 256 px view: 8.5
+    # there, 77 at its truth)
+    for coarser, finer in _pyramid_steps(level, COARSE):
+        proposals = _placed_finer(a, b, p, proposals, coarser, finer, p.search_scale,
                                   p.view_search_background)
     searched = _registered(a, b, p, proposals, level, p.search_scale)
     view, view_scored = _best_registration(a, b, [], search_area, p, True, searched,
@@ -317,6 +318,13 @@ def _view_try(a: MinutiaIndex, b: MinutiaIndex, p: MatchParams, level: SearchLev
         scored += other_scored
         view = _better(view, other)
     return view
+
+
+def _pyramid_steps(level: SearchLevel, down_to: SearchLevel) -> list:
+    """The (coarser, finer) pairs of :data:`~.crease_search.LEVELS` from ``level`` down to
+    ``down_to``, coarsest first (none when ``level`` is not coarser)."""
+    i, j = LEVELS.index(level), LEVELS.index(down_to)
+    return [(LEVELS[k], LEVELS[k - 1]) for k in range(i, j, -1)]
 
 
 #: log10 of the likelihood ratio within which a registration at another place makes the best
