@@ -330,7 +330,9 @@ def dem_camera_scene(path, sun=(315.0, 45.0)) -> Scene:
     tile = mm.tile(GeoReference.centred(ce, cn, gsd, side, side))
     elevation = np.where(tile.nodata, np.nanmedian(tile.elevation), tile.elevation)
     rgb, = evaluation.camera_renders(elevation, tile.georef, [sun])
-    grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    # 8-bit grey as a scene's image is (the camera render is quantised to 8 bits already)
+    grey = np.clip(np.rint(255.0 * cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)), 0, 255)
+    grey = grey.astype(np.uint8)
     return Scene(Path(path).stem + "(render)", grey, np.ones(grey.shape, bool),
                  elevation.astype(np.float32), gsd, tuple(sun),
                  (mm.origin.lat, mm.origin.lon), place=str(Path(path).resolve()),
