@@ -857,3 +857,25 @@ def test_a_view_too_large_for_the_coarser_level_is_searched_at_a_coarser_one(sha
     assert ri.view_error(found, case, f_view, f_region) < 1.0
     assert abs(found.scale - math.hypot(*truth[0, :2])) < 0.005
     assert found.score > 100.0
+
+
+def test_a_scenes_file_names_its_dem_s_camera_render_as_an_image(tmp_path, shared_data):
+    """``image: render`` studies a DEM through its camera render (the views of 384 px and
+    more that no real pair holds); what does not apply to a render, or a sun it lacks, is
+    refused by name."""
+    from terrain_nav_ros.tools import real_imagery as ri
+
+    dem = shared_data / "dem" / "N44E005.hgt"
+    path = tmp_path / "scenes.yaml"
+    path.write_text(f"scenes:\n  - name: alps\n    image: render\n    dem: {dem}\n"
+                    "    sun: [315, 45]\n")
+    scene, = ri.load_scenes(path)
+    assert scene.name == "alps" and scene.image.dtype == np.uint8
+    assert scene.image.shape == scene.elevation.shape and scene.image.shape[0] > 1000
+    assert scene.sun == (315, 45) and scene.dem_cell == scene.gsd
+    assert scene.image.std() > 5           # a shaded relief, not a flat grey
+    for extra, message in (("", "needs its sun"), ("    sun: [315, 45]\n    gsd: 30\n",
+                                                   "gsd do not apply")):
+        path.write_text(f"scenes:\n  - image: render\n    dem: {dem}\n{extra}")
+        with pytest.raises(ValueError, match=message):
+            ri.load_scenes(path)
