@@ -359,13 +359,17 @@ def load_scenes(path, data_dir=None) -> list[Scene]:
         where = f"{path.name}: scene {k + 1}"
         entry = _scene_entry(entry, where)
         gsds = entry.get("gsd")
-        if entry["image"] == RENDER_IMAGE:
-            scene = dem_camera_scene(base / entry["dem"], tuple(entry["sun"]))
-            scenes.append(replace(scene, name=entry.get("name") or scene.name))
-            continue
-        name = entry.get("name") or Path(entry["image"]).stem
+        render = entry["image"] == RENDER_IMAGE
+        name = entry.get("name") or (Path(entry["dem"]).stem + "(render)" if render
+                                     else Path(entry["image"]).stem)
         for g in gsds if isinstance(gsds, list) else [gsds]:
             try:
+                if render:
+                    # the sun's checks are the image scenes' (its place is not needed)
+                    sun = _parse_sun(entry["sun"], None, math.nan, math.nan)
+                    scenes.append(replace(dem_camera_scene(base / entry["dem"], sun),
+                                          name=name))
+                    continue
                 scenes.append(load_scene(
                     base / entry["image"], base / entry["dem"], band=entry.get("band"), gsd=g,
                     sun=entry.get("sun"), when=entry.get("time"),
@@ -393,11 +397,9 @@ def _scene_entry(entry, where: str) -> dict:
         if not isinstance(entry.get(key), str) or not entry[key]:
             raise ValueError(f"{where}: '{key}' (a file name) is missing")
     if entry["image"] == RENDER_IMAGE:
-        sun = entry.get("sun")
-        if not (isinstance(sun, list) and len(sun) == 2 and all(
-                isinstance(v, int | float) and not isinstance(v, bool) for v in sun)):
+        if entry.get("sun") is None:
             raise ValueError(f"{where}: a render's scene needs its sun as [azimuth, "
-                             f"elevation] in degrees, got {sun!r}")
+                             "elevation] in degrees")
         extra = sorted(k for k in ("band", "gsd", "time") if k in entry)
         if extra:
             raise ValueError(f"{where}: {', '.join(extra)} do not apply to a render's scene "
