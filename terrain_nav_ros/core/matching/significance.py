@@ -91,7 +91,9 @@ def significance(dist, dang, n_a: float, n_b: float, area: float, search_area: f
     Under the null hypothesis (different places) the ``n_b`` minutiae of B in the overlap of
     ``area`` px^2 are unrelated to A's ``n_a``; each of A's minutiae then finds a partner
     within ``pos_tol`` and ``angle_tol`` with probability ``n_b * pi pos_tol^2 / area *
-    angle_tol / pi``, so the number of chance pairings is about Poisson with mean ``lam``,
+    angle_tol / pi`` (directions uniform: the matcher's registrations measure that share
+    instead, :func:`direction_chance`), so the number of chance pairings is about Poisson
+    with mean ``lam``,
     and each lands uniformly in the pairing disc and angle window. The test statistic is the
     summed :func:`pairing_evidence` of the pairings (a likelihood-ratio form: many pairings,
     and pairings much closer than the tolerances, both count; true pairings have residuals
