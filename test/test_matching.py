@@ -13,7 +13,7 @@ from synthetic_minutiae import (
     transform_set,
 )
 
-from terrain_nav_ros.core.features.minutia_set import BIFURCATION, ENDING, MinutiaSet
+from terrain_nav_ros.core.features.minutia_set import MinutiaSet
 from terrain_nav_ros.core.matching.descriptors import (
     EdgeHash,
     crease_descriptor,
@@ -23,7 +23,6 @@ from terrain_nav_ros.core.matching.descriptors import (
     wrap_angle,
 )
 from terrain_nav_ros.core.matching.matcher import Decision, Matcher, compare, localise
-from terrain_nav_ros.core.matching.params import MatchParams
 from terrain_nav_ros.core.matching.significance import calibrate_threshold
 from terrain_nav_ros.core.terrain.georef import GeoReference
 
@@ -539,40 +538,3 @@ def test_prepare_as_reference_builds_what_matching_builds_lazily(region, block):
     assert index._hash is not None and index._crease_field is not None
     big = Matcher(candidates="roots").index(region[0]).prepare_as_reference()
     assert big._hash is None   # the roots generator never asks for the hash
-
-
-def _lined_up(seed: int, n: int, side: float, spread: float = 0.15) -> MinutiaSet:
-    """``n`` minutiae at random places whose directions all run one way (+- ``spread``
-    rad), as in parallel drainage."""
-    rng = np.random.default_rng(seed)
-    kind = np.where(rng.random(n) < 0.5, ENDING, BIFURCATION).astype(np.uint8)
-    return MinutiaSet(rng.uniform(0, side, n), rng.uniform(0, side, n),
-                      rng.normal(0.0, spread, n), kind, np.ones(n, np.float32))
-
-
-def test_direction_chance_is_the_share_of_pairs_agreeing_in_direction():
-    from terrain_nav_ros.core.matching.significance import direction_chance
-
-    p = MatchParams()
-    rng = np.random.default_rng(0)
-    spread = MinutiaSet(rng.uniform(0, 100, 4000), rng.uniform(0, 100, 4000),
-                        rng.uniform(-np.pi, np.pi, 4000), np.full(4000, ENDING, np.uint8),
-                        np.ones(4000, np.float32))
-    a = Matcher(p).index(spread)
-    uniform = direction_chance(a, a, 0.3, p.angle_tol)
-    assert uniform == pytest.approx(p.angle_tol / np.pi, rel=0.1)
-    lined = Matcher(p).index(_lined_up(1, 500, 100.0, spread=0.0))
-    assert direction_chance(lined, lined, 0.0, p.angle_tol) == pytest.approx(1.0)
-    assert direction_chance(lined, lined, np.pi, p.angle_tol) == 0.0
-    assert direction_chance(lined, lined, 2.0 * p.angle_tol, p.angle_tol) == 0.0
-
-
-@pytest.mark.parametrize("seed", range(4))
-def test_unrelated_sets_whose_directions_run_one_way_do_not_match(seed):
-    """Drainage runs in preferred directions, and the registration's rotation lines the
-    two sets' directions up: counted as if directions were uniform, the chance pairings of
-    two unrelated sets of parallel minutiae scored 9-20 (a match)."""
-    block = compare(_lined_up(seed, 300, 400.0), _lined_up(100 + seed, 300, 400.0))
-    assert block.decision != Decision.MATCH and block.score < 3.0
-    view = localise(_lined_up(seed, 80, 150.0), _lined_up(100 + seed, 600, 450.0))
-    assert view.decision != Decision.MATCH and view.score < 3.0

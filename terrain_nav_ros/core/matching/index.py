@@ -42,17 +42,6 @@ from .params import MatchParams, _length_tol
 _FINE_HASH_EDGES = 6000
 
 
-#: Direction bins of :attr:`MinutiaIndex.direction_histogram` (1 deg each).
-DIRECTION_BINS = 360
-
-
-def _direction_bins(angle: np.ndarray) -> np.ndarray:
-    """Counts of ``angle`` (rad, any range) in :data:`DIRECTION_BINS` bins from -pi."""
-    step = 2.0 * np.pi / DIRECTION_BINS
-    k = np.round((np.mod(np.asarray(angle, float) + np.pi, 2.0 * np.pi)) / step).astype(np.intp)
-    return np.bincount(k % DIRECTION_BINS, minlength=DIRECTION_BINS).astype(float)
-
-
 class MinutiaIndex:
     """A minutia set prepared for matching: tree, edges, descriptors, footprint.
 
@@ -109,32 +98,9 @@ class MinutiaIndex:
         self._hash = None
         self._query = None
         self._prepared = None
-        self._direction_histogram = None
-        self._direction_density = {}   # by direction tolerance
 
     def __len__(self) -> int:
         return self.n
-
-    @property
-    def direction_histogram(self) -> np.ndarray:
-        """Fraction of the set's minutiae in each of :data:`DIRECTION_BINS` direction bins
-        (bin ``i`` centred on ``-pi + i * step``)."""
-        if self._direction_histogram is None:
-            self._direction_histogram = _direction_bins(self.angle) / max(self.n, 1)
-        return self._direction_histogram
-
-    def direction_density(self, tolerance: float) -> np.ndarray:
-        """Fraction of the set's minutiae within ``tolerance`` (rad) of each bin's
-        direction: the chance that one of them agrees with a minutia of that direction."""
-        key = float(tolerance)
-        if key not in self._direction_density:
-            step = 2.0 * np.pi / DIRECTION_BINS
-            half = int(round(key / step))
-            window = np.ones(2 * half + 1)
-            counts = _direction_bins(self.angle)
-            wrapped = np.concatenate([counts[-half:], counts, counts[:half]]) if half else counts
-            self._direction_density[key] = np.convolve(wrapped, window, "valid") / max(self.n, 1)
-        return self._direction_density[key]
 
     @property
     def crease(self) -> np.ndarray | None:

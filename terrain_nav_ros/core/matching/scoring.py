@@ -18,7 +18,7 @@ from .crease_check import CreaseEvidence, conditioned_on, crease_evidence, refin
 from .index import MinutiaIndex
 from .params import MatchParams
 from .registration import _pair, _residuals
-from .significance import _significance, direction_chance, pairing_evidence
+from .significance import _significance, pairing_evidence
 
 
 def _overlap(a: MinutiaIndex, b: MinutiaIndex, c: complex, t: complex):
@@ -71,8 +71,7 @@ def _scored(a: MinutiaIndex, b: MinutiaIndex, c, t, pairs, search_area: float,
         n_ao, n_bo, area = _overlap(a, b, c, t)
         evidence = float(np.sum(pairing_evidence(*_residuals(a, b, c, t, pairs), p)))
     n_ao, n_bo = max(n_ao, len(pairs)), max(n_bo, len(pairs))
-    score, lam = _significance(evidence, n_ao, n_bo, area, search_area, radius_a, p,
-                               direction_chance(a, b, float(np.angle(c)), p.angle_tol))
+    score, lam = _significance(evidence, n_ao, n_bo, area, search_area, radius_a, p)
     creases = ridges = None
     if with_creases:
         creases = crease_evidence(a.crease_samples, b.crease_field, c, t,

@@ -91,9 +91,7 @@ def significance(dist, dang, n_a: float, n_b: float, area: float, search_area: f
     Under the null hypothesis (different places) the ``n_b`` minutiae of B in the overlap of
     ``area`` px^2 are unrelated to A's ``n_a``; each of A's minutiae then finds a partner
     within ``pos_tol`` and ``angle_tol`` with probability ``n_b * pi pos_tol^2 / area *
-    angle_tol / pi`` (directions uniform: the matcher's registrations measure that share
-    instead, :func:`direction_chance`), so the number of chance pairings is about Poisson
-    with mean ``lam``,
+    angle_tol / pi``, so the number of chance pairings is about Poisson with mean ``lam``,
     and each lands uniformly in the pairing disc and angle window. The test statistic is the
     summed :func:`pairing_evidence` of the pairings (a likelihood-ratio form: many pairings,
     and pairings much closer than the tolerances, both count; true pairings have residuals
@@ -126,42 +124,16 @@ def significance(dist, dang, n_a: float, n_b: float, area: float, search_area: f
                          search_area, radius_a, p)
 
 
-def _significance(evidence: float, n_a, n_b, area, search_area, radius_a, p: MatchParams,
-                  direction_chance: float = 0.0):
-    """:func:`significance` from the summed pairing evidence; ``direction_chance`` as in
-    :func:`_chance_model`."""
-    lam, log_trials = _chance_model(n_a, n_b, area, search_area, radius_a, p,
-                                    direction_chance)
+def _significance(evidence: float, n_a, n_b, area, search_area, radius_a, p: MatchParams):
+    """:func:`significance` from the summed pairing evidence."""
+    lam, log_trials = _chance_model(n_a, n_b, area, search_area, radius_a, p)
     return -compound_log10_sf(evidence, lam) - log_trials, lam
 
 
-def direction_chance(a, b, rotation: float, tolerance: float) -> float:
-    """The chance that a minutia of A, turned by ``rotation``, and one of B agree in
-    direction within ``tolerance``: A's direction histogram against B's directions
-    (:class:`~.index.MinutiaIndex`).
-
-    Drainage runs in preferred directions, and a registration's rotation is the one that
-    lines the two sets' directions up, so at it far more pairs agree than the uniform
-    ``tolerance / pi``. On DEM-camera views of 384 px against other places, the pairings at
-    transforms shifted 6-10 px from the chosen one (the crease check's local null) were
-    about twice the uniform model's ``lam``, while their positions alone followed it: the
-    directions, not clustering, make the difference, and this chance accounts for it.
-    """
-    if a.n == 0 or b.n == 0:
-        return 0.0
-    shift = int(round(rotation / (2.0 * math.pi / len(a.direction_histogram))))
-    return float(a.direction_histogram @ np.roll(b.direction_density(tolerance), -shift))
-
-
-def _chance_model(n_a, n_b, area, search_area, radius_a, p: MatchParams,
-                  direction_chance: float = 0.0):
-    """Chance pairings expected at one transform, and log10 of the transforms searched.
-
-    ``direction_chance`` is the measured chance of two minutiae agreeing in direction
-    (:func:`direction_chance`); the uniform directions' ``angle_tol / pi`` is its floor."""
+def _chance_model(n_a, n_b, area, search_area, radius_a, p: MatchParams):
+    """Chance pairings expected at one transform, and log10 of the transforms searched."""
     cell = math.pi * p.pos_tol ** 2
-    agree = max(min(1.0, p.angle_tol / math.pi), min(1.0, direction_chance))
-    lam = n_a * n_b * cell / max(area, cell) * agree
+    lam = n_a * n_b * cell / max(area, cell) * min(1.0, p.angle_tol / math.pi)
     lam = min(lam, float(min(n_a, n_b)))
     return lam, _log10_transforms(search_area, radius_a, p)
 
