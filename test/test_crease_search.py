@@ -20,7 +20,9 @@ from terrain_nav_ros.core.matching.crease_search import (
     search_transforms,
 )
 from terrain_nav_ros.core.matching.matcher import Decision, Matcher
+from terrain_nav_ros.core.matching.pva_fix import fix_from_ground_match
 from terrain_nav_ros.core.matching.registration import _covariance
+from terrain_nav_ros.core.terrain.georef import GeoReference
 
 SIZE = 64
 
@@ -770,3 +772,38 @@ def test_a_registration_the_creases_place_takes_their_covariance(region):
         pairing_sigma = math.sqrt(np.trace(lever @ pairing_cov @ lever.T))
         assert error < 1.5 and pairing_sigma > 3 * sigma, (seed, error, sigma, pairing_sigma)
         assert error <= 3.0 * math.sqrt(sigma ** 2 + 2.0 / 12.0), (seed, error, sigma)
+
+
+def test_a_view_s_fix_does_not_lean_on_its_prior(region):
+    """Where a prior puts a view (its ground raster's placement and the camera under it)
+    moves its fix not at all: the view search covers every translation in the region, and
+    the fix is the registration of the prior's nadir pixel. Priors 0, 37 and 95 m apart (a
+    fraction of a cell and a few cells) give one fix, the true one; a search seeded or
+    weighted at the prior would follow it."""
+    ms, skel = region
+    gsd, size = 30.0, 192
+    land_geo = GeoReference(0.0, 512 * gsd, gsd, 512, 512)
+    view, back = _scaled_view(skel, 150, 160, size, 140.0, 1.0)
+    matcher = Matcher()
+    region_index = matcher.index(ms, skel).prepare_as_reference(search=True)
+    centre = 0.5 * (size - 1)
+    truth = np.array(land_geo.pixel_to_enu(*(back @ np.array([centre, centre, 1.0]))))
+    rng = np.random.default_rng(5)
+    n = 40
+    albedo = MinutiaSet(rng.uniform(0, size - 1, n), rng.uniform(0, size - 1, n),
+                        rng.uniform(-np.pi, np.pi, n), rng.choice([1, 3], n).astype(np.uint8),
+                        np.ones(n, np.float32))
+    fixes = []
+    for prior_error in ((0.0, 0.0), (37.0, 0.0), (-60.0, 73.0)):
+        prior = np.array([*(truth + prior_error), 1000.0])
+        cam_geo = GeoReference.centred(prior[0], prior[1], gsd, size, size)
+        placed = MinutiaSet(albedo.col, albedo.row, albedo.angle, albedo.kind,
+                            albedo.quality, georef=cam_geo)
+        r = matcher.localise(matcher.index(placed, view), region_index)
+        assert r.decision == Decision.MATCH, r.reason
+        fix = fix_from_ground_match(r, cam_geo, land_geo, prior, np.eye(3), 0.0,
+                                    height_from_scale=False)
+        fixes.append(fix.position[:2])
+    fixes = np.array(fixes)
+    np.testing.assert_allclose(fixes, fixes[0][None].repeat(3, 0), atol=1e-6)
+    assert np.hypot(*(fixes[0] - truth)) < 1.5 * gsd, (fixes[0], truth)
