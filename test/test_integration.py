@@ -318,9 +318,10 @@ def test_a_low_flight_over_a_real_image_fixes_on_mosaics_of_its_track(tmp_path, 
     # run 21 m). When the mosaics measured the heading too, jammed, their headings led the
     # estimate's 30 deg off and it ran 410 m off (RMS 114 m) in one CI replay; position only,
     # 42-53 m while consecutive mosaics gave a velocity, 31-36 m since (GNSS run 26 m), and
-    # 62 m once (0.66 of dead reckoning's; the next replay of the same code passed): along
-    # the ridges' strike the mosaics' fixes carry little and lean on their prior (RESULTS,
-    # session 50), so where the first few fixes put the estimate there, it stays a while.
+    # 62 m once (0.66 of dead reckoning's; the next replay of the same code passed):
+    # consecutive mosaics share most of their frames, so their fixes' errors persist from
+    # fix to fix (RESULTS, session 51), and where the first few put the estimate, it stays
+    # a while.
     # The final error and the worst fix bound it whatever the early fixes did.
     for r, rms_share in ((result, 0.4), (jammed, 0.75)):
         fixes = r["fixes"]
