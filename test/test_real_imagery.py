@@ -9,6 +9,7 @@ import pytest
 from terrain_nav_ros.core.terrain.ortho_io import nir_band, rasterio_quiet
 from terrain_nav_ros.tools.cli import main
 from terrain_nav_ros.tools.real_imagery import (
+    _control_regions,
     load_scene,
     load_scenes,
     run_real_imagery_study,
@@ -343,8 +344,11 @@ def test_study_on_real_scenes(tmp_path, shared_data):
     wrong = sum(r["minutiae"]["wrong"] for r in rows)
     assert localised >= 4 and wrong == 0
     non = summary["non_pva"]
-    # each view meets the other place's regions (and far parts of its own scene if any)
-    assert non["comparisons"] >= 2 * 8 and non["accepted"] == 0
+    # each view meets up to two of the other place's distinct regions (its cases' regions,
+    # clipped to a scene smaller than a 3x region, repeat): at least one, never one twice
+    # (test_a_view_s_controls_are_distinct_regions_of_other_places); neither scene has room
+    # for a far part of its own
+    assert 8 <= non["comparisons"] <= 2 * 8 and non["accepted"] == 0
     assert {"report.md", "results.json", "scores.png"} <= {p.name for p in out.iterdir()}
     saved = json.loads((out / "results.json").read_text())
     assert saved["non_pva"]["comparisons"] == non["comparisons"]
@@ -879,3 +883,29 @@ def test_a_scenes_file_names_its_dem_s_camera_render_as_an_image(tmp_path, share
         path.write_text(f"scenes:\n  - image: render\n    dem: {dem}\n{extra}")
         with pytest.raises(ValueError, match=message):
             ri.load_scenes(path)
+
+
+def test_a_view_s_controls_are_distinct_regions_of_other_places():
+    """A view asks for controls from the other places' cases, one scene after another:
+    it gets each distinct region once (a scene smaller than a region gives every case the
+    whole scene), never its own place's, and fewer than asked when they run out; views
+    start at different regions."""
+    from types import SimpleNamespace as S
+
+    scenes = [S(name="pa30", place="pa"), S(name="pa15", place="pa"),
+              S(name="small", place="ab"), S(name="big", place="cr")]
+    whole = (0, 0, 200, 200)
+    per_scene = {"pa30": [S(region=(0, 0, 9, 9))], "pa15": [S(region=(1, 1, 9, 9))],
+                 "small": [S(region=whole)] * 4,
+                 "big": [S(region=(x, 0, x + 90, 90)) for x in (0, 30, 60)]}
+    got = _control_regions(scenes, scenes[0], per_scene, 0, 10)
+    pairs = [(sc.name, box) for sc, box in got]
+    assert len(pairs) == len(set(pairs)) == 4          # 1 + 3 distinct, not 10
+    assert {name for name, _ in pairs} == {"small", "big"}
+    assert pairs.count(("small", whole)) == 1
+    assert [sc.name for sc, _ in _control_regions(scenes, scenes[0], per_scene, 0, 2)] == \
+        ["small", "big"]                                # one scene after another
+    assert _control_regions(scenes, scenes[0], per_scene, 1, 1) != \
+        _control_regions(scenes, scenes[0], per_scene, 0, 1)
+    assert _control_regions(scenes, scenes[2], {**per_scene, "pa30": [], "pa15": [],
+                                                "big": []}, 0, 5) == []

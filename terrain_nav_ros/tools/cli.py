@@ -618,8 +618,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="views per scene, size and heading condition")
     im.add_argument("--heading", choices=["unknown", "known", "both"], default="both")
     im.add_argument("--controls", type=int, default=2,
-                    help="non-PVA regions of other places per view (and one far part of its "
-                         "own scene where the scene holds one)")
+                    help="non-PVA regions of other places per view, each once (fewer when "
+                         "they run out), and one far part of its own scene where the scene "
+                         "holds one")
     im.add_argument("--region-factor", dest="region_factor", type=float, default=3.0,
                     help="side of the landmark region each view is localised in, in view "
                          "sides (default 3: the prior's error as large as the view; a "

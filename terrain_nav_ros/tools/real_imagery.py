@@ -724,7 +724,8 @@ def run_real_imagery_study(scenes: list[Scene], *, sizes=(64, 128, 256, 512), ca
     headings : sequence of {"unknown", "known"}
     baselines : sequence of {"ncc", "orb", "sift"}
     controls_per_case : int
-        Non-PVA regions per view: from each other scene (in turn) and the same scene.
+        Non-PVA regions of other places per view, distinct (:func:`_control_regions`: fewer
+        when they run out), and a far part of the view's own scene where it holds one.
     match_gsd : float, "dem" or None
         GSD (m) at which views and regions are matched when a scene is finer (area
         averaged, as camera_ingest resamples a camera to its GSD); "dem" (default): each
@@ -907,14 +908,9 @@ def _mean_offset(offsets, accepted, err, success_px) -> list[float] | None:
 def _controls(study: _StudyRun, scene: Scene, per_scene: dict, case: _Case, k: int,
               size: int, heading: str, matcher: Matcher, view_index) -> None:
     """Score the ``k``-th view of ``scene`` against regions that do not hold it: those of
-    other places' cases (in turn) and a far part of its own scene; into ``study.non_pva``."""
-    others = [s for s in study.scenes if s.place != scene.place]
-    regions = []
-    for j in range(study.controls_per_case if others else 0):
-        other = others[(k + j) % len(others)]
-        if per_scene[other.name]:
-            regions.append((other, per_scene[other.name][(k + j) % len(per_scene[other.name])]
-                            .region))
+    other places' cases (:func:`_control_regions`) and a far part of its own scene; into
+    ``study.non_pva``."""
+    regions = _control_regions(study.scenes, scene, per_scene, k, study.controls_per_case)
     regions += [(scene, box) for box in _far_regions(case, scene, size, study.region_factor,
                                                      study.rng, 1)]
     for other, box in regions:
@@ -923,6 +919,27 @@ def _controls(study: _StudyRun, scene: Scene, per_scene: dict, case: _Case, k: i
         study.non_pva.append({"view_scene": scene.name, "region_scene": other.name,
                               "size": size, "heading": heading, "score": float(r.score),
                               "vetoed": _vetoed(r), "reason": r.reason})
+
+
+def _control_regions(scenes, scene: Scene, per_scene: dict, k: int, n: int) -> list:
+    """Up to ``n`` distinct (scene, region) pairs of other places' cases for the ``k``-th
+    view of ``scene``: one scene after another, each scene's regions in turn from its
+    ``k``-th. A scene smaller than a region has one (the whole scene: all its cases share
+    it), so a view meets each such region once: asked for more, it gets fewer, rather than
+    the same comparison scored again as if it were another."""
+    pools = []
+    for other in scenes:
+        if other.place != scene.place and per_scene[other.name]:
+            boxes = list(dict.fromkeys(tuple(c.region) for c in per_scene[other.name]))
+            start = k % len(boxes)
+            pools.append([(other, box) for box in boxes[start:] + boxes[:start]])
+    if not pools:
+        return []
+    first = k % len(pools)
+    pools = pools[first:] + pools[:first]
+    interleaved = [pool[i] for i in range(max(map(len, pools))) for pool in pools
+                   if i < len(pool)]
+    return interleaved[:n]
 
 
 def _non_pva_by_size(non_pva: list[dict], thr: float) -> dict:
@@ -1134,7 +1151,8 @@ def _report(summary: dict, pngs: list[str]) -> str:
     at = nv["pva_success_at_calibrated"]
     lines += ["", "## Controls (non-PVA)", "",
               f"{nv['comparisons']} comparisons of views with regions that do not hold them "
-              f"(other scenes, and far parts of the same scene): **{nv['accepted']} accepted** "
+              f"(other places' regions, each once a view, and far parts of the same scene): "
+              f"**{nv['accepted']} accepted** "
               f"at threshold {st['threshold']:g} ({nv['vetoed']} more over it, vetoed); "
               f"highest score {_fmt(nv['max_score'], '.2f')}. "
               f"Threshold calibrated on them for a false-match rate of "
