@@ -777,7 +777,7 @@ def test_a_registration_the_creases_place_takes_their_covariance(region):
 def test_a_view_s_fix_does_not_lean_on_its_prior(region):
     """Where a prior puts a view (its ground raster's placement and the camera under it)
     moves its fix not at all: the view search covers every translation in the region, and
-    the fix is the registration of the prior's nadir pixel. Priors 0, 37 and 95 m apart (a
+    the fix is the registration of the prior's nadir pixel. Priors 0, 37 and 95 m off (a
     fraction of a cell and a few cells) give one fix, the true one; a search seeded or
     weighted at the prior would follow it."""
     ms, skel = region
