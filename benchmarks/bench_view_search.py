@@ -128,7 +128,8 @@ def main():
     ap.add_argument("--scenes", default="", help="comma-separated scene names (default all)")
     ap.add_argument("--sizes", default="128,256")
     ap.add_argument("--cases", type=int, default=8)
-    ap.add_argument("--controls", type=int, default=1, help="other-place regions per view")
+    ap.add_argument("--controls", type=int, default=1,
+                    help="other-place regions per view, each once (fewer when they run out)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--dem", action="append", default=[],
                     help="a DEM whose camera render is a scene too (repeatable)")
@@ -169,7 +170,6 @@ def main():
             cases = per_scene[scene.name]
             if not cases:
                 continue
-            others = [s for s in scenes if s.place != scene.place and per_scene[s.name]]
             rec = defaultdict(list)
             for k, case in enumerate(cases):
                 t0 = _CLOCK[0]()
@@ -198,11 +198,9 @@ def main():
                           f"{score:.3f}, {1e3 * parts['total']:.0f} ms "
                           f"(search {1e3 * parts['search']:.0f}, icp "
                           f"{1e3 * parts['icp']:.0f})")
-                for j in range(args.controls if others else 0):
-                    other = others[(k + j) % len(others)]
-                    oc = per_scene[other.name]
-                    ref, _ = extractor.region_index(matcher, other,
-                                                    oc[(k + j) % len(oc)].region)
+                for other, box in ri._control_regions(scenes, scene, per_scene, k,
+                                                      args.controls):
+                    ref, _ = extractor.region_index(matcher, other, box)
                     rec["control"].append(float(matcher.localise(view, ref).score))
             if args.truth:
                 totals[size]["lost_search"] += len(rec["lost_search"])
