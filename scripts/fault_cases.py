@@ -1249,8 +1249,10 @@ def _write(path: Path, data) -> Path:
     return path
 
 
-def run_cases(selected: list[Case]) -> list[tuple[Case, str, str]]:
-    """Run each case in its own temporary folder; (case, verdict, detail) rows."""
+def run_cases(selected: list[Case], report: Callable | None = None
+              ) -> list[tuple[Case, str, str]]:
+    """Run each case in its own temporary folder; (case, verdict, detail) rows, each also
+    handed to ``report`` as it is answered (a long run killed part way keeps what it did)."""
     rows = []
     for case in selected:
         with tempfile.TemporaryDirectory(prefix="fault-") as tmp:
@@ -1259,15 +1261,22 @@ def run_cases(selected: list[Case]) -> list[tuple[Case, str, str]]:
             except Exception as err:  # noqa: BLE001 - a case that breaks is a finding
                 verdict, detail = BAD, f"the case itself failed: {type(err).__name__}: {err}"
         rows.append((case, verdict, detail))
+        if report is not None:
+            report(rows[-1])
     return rows
 
 
-def table(rows) -> str:
-    lines = [f"{'class':10s} {'case':48s} {'verdict':7s} answer"]
-    lines += [f"{c.fault:10s} {c.name:48s} {v:7s} {d}" for c, v, d in rows]
+TABLE_HEADER = f"{'class':10s} {'case':48s} {'verdict':7s} answer"
+
+
+def table_row(row) -> str:
+    case, verdict, detail = row
+    return f"{case.fault:10s} {case.name:48s} {verdict:7s} {detail}"
+
+
+def tally(rows) -> str:
     counts = {v: sum(1 for _, got, _ in rows if got == v) for v in (GOOD, POOR, BAD)}
-    lines.append(", ".join(f"{n} {v}" for v, n in counts.items()) + f" of {len(rows)}")
-    return "\n".join(lines)
+    return ", ".join(f"{n} {v}" for v, n in counts.items()) + f" of {len(rows)}"
 
 
 def main(argv=None) -> int:
@@ -1279,8 +1288,9 @@ def main(argv=None) -> int:
     parser.add_argument("-k", default="", help="only cases whose name holds this")
     args = parser.parse_args(argv)
     selected = [c for c in cases() if (c.ci or not args.ci) and args.k in c.name]
-    rows = run_cases(selected)
-    print(table(rows))
+    print(TABLE_HEADER, flush=True)
+    rows = run_cases(selected, lambda row: print(table_row(row), flush=True))
+    print(tally(rows))
     return 1 if any(v == BAD for _, v, _ in rows) else 0
 
 
