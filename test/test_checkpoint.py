@@ -18,7 +18,9 @@ from terrain_nav_ros.core.terrain.geodesy import EnuOrigin
 
 def _running_filter():
     ekf = TerrainEkf(EkfParams())
-    ekf.initialize(100.0, [10.0, 20.0, 3000.0], [30.0, 0.0, 1.0], [0.0, 0.0, 0.0, 1.0])
+    ekf.initialize(100.0, [10.0, 20.0, 3000.0], [30.0, 0.0, 1.0], [0.0, 0.0, 0.0, 1.0],
+                   baro_bias=2.0, camera_mount=[0.001, -0.002], camera_scale=0.003,
+                   map_bias=[4.0, -3.0])
     for k in range(1, 101):   # 1 s of level flight
         ekf.process_imu(100.0 + 0.01 * k, (0.0, 0.0, 0.0), (0.0, 0.0, 9.80665))
     return ekf
@@ -32,7 +34,8 @@ def test_a_checkpoint_reads_back_as_written(tmp_path):
     save_checkpoint(path, Checkpoint(state, origin, -12.5))   # replaced
     back = load_checkpoint(path)
     for name in ("position", "velocity", "quaternion", "gyro_bias", "accel_bias",
-                 "covariance", "wind", "baro_bias"):
+                 "covariance", "wind", "baro_bias", "camera_mount", "camera_scale",
+                 "map_bias"):
         np.testing.assert_array_equal(getattr(back.state, name), getattr(state, name))
     assert back.state.stamp == state.stamp == pytest.approx(101.0)
     assert back.origin == origin and back.baro_offset == -12.5
@@ -52,6 +55,7 @@ def test_a_state_is_carried_across_the_gap_with_its_uncertainty_grown():
     assert np.all(grown[3:6] >= (GAP_ACCEL_SIGMA * 3.0) ** 2 * 0.999)
     assert np.all(grown[6:9] > 0) and np.all(grown[9:] == 0)   # biases and wind kept
     np.testing.assert_array_equal(resumed.quaternion, state.quaternion)
+    np.testing.assert_array_equal(resumed.map_bias, [4.0, -3.0])   # the map did not move
     ekf = TerrainEkf(EkfParams())   # and a filter takes it
     assert ekf.initialize(resumed.stamp, resumed.position, resumed.velocity,
                           resumed.quaternion, resumed.covariance, resumed.gyro_bias,

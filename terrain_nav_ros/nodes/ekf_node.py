@@ -38,7 +38,10 @@ Subscribed:
   measured by the registration's scale, carries the camera's scale error, estimated too
   (``init_camera_scale_sigma``; ``camera_scale_*percent``). A fix from a track mosaic
   (``mosaic_lag`` > 0: its frames' mean age) carries the velocity's error over that time,
-  which the update models.
+  which the update models. A terrain fix is where the DEM puts the aircraft: it carries the
+  DEM's georeferencing error, the map bias, which the filter estimates where GNSS meets the
+  fixes and then takes out of them (``init_map_bias_sigma``; ``map_bias_*_m`` in the
+  diagnostics).
   Late and out-of-order fixes are applied at their own stamp by the core (state history of
   ``history_length`` s). A fix marked ``relocalisation`` (found by a search of the whole
   mission area) is fused when the gate accepts it; otherwise it is held, and the position
@@ -268,6 +271,11 @@ EKF_PARAMETERS = {
                                 "proportion [-]", 1e-6, 0.5),
     "camera_scale_random_walk": ("how fast the camera's scale error may change [1/sqrt(s)]",
                                  0.0, 0.01),
+    "init_map_bias_sigma": ("1-sigma of the map bias per horizontal axis at start: how far "
+                            "the DEM, and so every terrain fix, may be off its true place "
+                            "[m]", 1e-3, 1e4),
+    "map_bias_random_walk": ("how fast the map bias may change over the area flown "
+                             "[m/sqrt(s)]", 0.0, 100.0),
     "baro_bias_random_walk": ("how fast the baro bias may change (weather: ~8 m per hPa) "
                               "[m/sqrt(s)]", 0.0, 100.0),
     "sideslip_sigma": ("1-sigma of the sideslip, measured as zero (coordinated flight of a "
@@ -654,7 +662,7 @@ class EkfNode(Node):
             return
         out = self.ekf.initialize(stamp, s.position, s.velocity, s.quaternion, s.covariance,
                                   s.gyro_bias, s.accel_bias, s.wind, s.baro_bias,
-                                  s.camera_mount, s.camera_scale)
+                                  s.camera_mount, s.camera_scale, s.map_bias)
         if not out.accepted:
             self.get_logger().warning(f"not resuming: the filter refused the checkpoint "
                                       f"({out.reason.value})")

@@ -107,7 +107,9 @@ class MatcherNode(Node):
         # outside (and NaN) as it is declared; combinations fail in settings_from_parameters
         declare_settings(self, "match", MatchParams(), MatchParams.FIX_RANGES)
         self.landmark_sigma = declare(self, "landmark_sigma", 5.0,
-                                      "horizontal georeferencing error of the DEM [m]",
+                                      "horizontal error of the DEM that changes from fix to "
+                                      "fix [m] (its offset, common to all, is the ekf's map "
+                                      "bias)",
                                       min_value=0.0)
         self.tilt_sigma = math.radians(declare(
             self, "prior_tilt_sigma", 0.2,

@@ -44,7 +44,7 @@ GAP_ACCEL_SIGMA = 3.0
 GAP_RATE_SIGMA = 0.1
 
 _VECTORS = {"position": 3, "velocity": 3, "quaternion": 4, "gyro_bias": 3, "accel_bias": 3,
-            "wind": 2, "baro_bias": 1, "camera_mount": 2, "camera_scale": 1}
+            "wind": 2, "baro_bias": 1, "camera_mount": 2, "camera_scale": 1, "map_bias": 2}
 
 
 class CheckpointError(ValueError):
@@ -111,7 +111,7 @@ def load_checkpoint(path) -> Checkpoint:
                                                 "gyro_bias", "accel_bias")),
                      arrays["covariance"].reshape(DIM_STATE, DIM_STATE), arrays["wind"],
                      float(arrays["baro_bias"].ravel()[0]), arrays["camera_mount"],
-                     float(arrays["camera_scale"].ravel()[0]))
+                     float(arrays["camera_scale"].ravel()[0]), arrays["map_bias"])
     return Checkpoint(state, origin, float(offset[0]) if offset.size == 1 else None)
 
 
@@ -137,7 +137,7 @@ def resume_from(checkpoint: Checkpoint, stamp: float, max_age: float) -> NavStat
     return NavState(stamp, s.position + gap * s.velocity, s.velocity.copy(),
                     s.quaternion.copy(), s.gyro_bias.copy(), s.accel_bias.copy(),
                     0.5 * (grown + grown.T), s.wind.copy(), s.baro_bias,
-                    s.camera_mount.copy(), s.camera_scale)
+                    s.camera_mount.copy(), s.camera_scale, s.map_bias.copy())
 
 
 def checkpoint_path(setting: str, environ=None) -> Path | None:

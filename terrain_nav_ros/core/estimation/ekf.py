@@ -6,7 +6,7 @@ apply to an INS).
 
 State
 -----
-``kf.x`` (21 x 1) and ``kf.P`` (21 x 21) follow this order:
+``kf.x`` (23 x 1) and ``kf.P`` (23 x 23) follow this order:
 
 ======  ==============  ===================================================================
 index   symbol          meaning
@@ -23,6 +23,8 @@ index   symbol          meaning
                         camera's true mount is ``Exp(mu)`` times the declared one
 20      k               camera scale error: a ground match's height above the projection
                         plane, measured by its scale, is ``(1 + k)`` times the true one
+21:23   b_map           map bias, east and north (m): where a terrain fix puts the aircraft
+                        less where it is; the DEM's (and its renders') georeferencing error
 ======  ==============  ===================================================================
 
 The wind is no IMU state: the accelerometer levelling needs it (a turn's centripetal
@@ -57,6 +59,17 @@ terrain part ``k`` from the baro bias. It starts at ``init_camera_scale_sigma`` 
 ``camera_scale_random_walk``. A fix's height that its gate alone would reject (a focal length
 off by more than the prior allows) is left out and the rest of the fix fused
 (``FUSED_WITHOUT_HEIGHT``): the horizontal position does not depend on the scale.
+
+The map bias is the DEM's horizontal georeferencing error: every terrain fix is a
+registration onto the DEM's renders, so it measures ``p + b_map``, and a DEM (or, in a
+simulation, an image draped on it) 30 m off its true place puts every fix 30 m off. Taken
+as independent noise, as it was, fix after fix averaged it into the estimate. It starts at
+``init_map_bias_sigma`` (a DEM's stated horizontal accuracy), is learnt wherever GNSS and
+terrain fixes meet (the start of a flight before the jamming) and then taken out of every
+later fix; without GNSS it is not observed and its sigma stays in the position's, as a doubt
+no number of fixes averages away. It wanders at ``map_bias_random_walk`` (a DEM's error
+changes slowly over the area flown). GNSS and the operator's ``set_position`` are in the
+true frame and do not measure it.
 
 A fix from a track mosaic (a low camera's frames composed along its track, each moved into the
 newest frame's estimate by the filter's own dead reckoning) carries the velocity's error over
@@ -152,17 +165,20 @@ from .strapdown import (
 )
 
 # The filter's states: the mechanisation's error states, the wind (east, north), the baro
-# bias, the camera mount's error (about body x and y), the camera's scale error.
+# bias, the camera mount's error (about body x and y), the camera's scale error, the map
+# bias (east, north).
 IDX_W = slice(DIM_ERR, DIM_ERR + 2)
 IDX_BARO = DIM_ERR + 2
 IDX_MOUNT = slice(DIM_ERR + 3, DIM_ERR + 5)
 IDX_SCALE = DIM_ERR + 5
-DIM_STATE = DIM_ERR + 6
+IDX_MAP = slice(DIM_ERR + 6, DIM_ERR + 8)
+DIM_STATE = DIM_ERR + 8
 # The baro measures the height and its own bias.
 _BARO_LEVER = np.zeros((1, DIM_STATE))
 _BARO_LEVER[0, IDX_BARO] = 1.0
 
-__all__ = ["DIM_STATE", "IDX_BARO", "IDX_MOUNT", "IDX_SCALE", "IDX_W", "EkfDiagnostics",
+__all__ = ["DIM_STATE", "IDX_BARO", "IDX_MAP", "IDX_MOUNT", "IDX_SCALE", "IDX_W",
+           "EkfDiagnostics",
            "EkfParams", "NavState", "Outcome", "Reason", "TerrainEkf", "UpdateRecord",
            "tilt_lever"]
 
@@ -248,7 +264,7 @@ class NavState:
         Body -> ENU ``[x, y, z, w]``.
     gyro_bias, accel_bias : ndarray, (3,)
         Body frame (rad/s, m/s^2).
-    covariance : ndarray, (21, 21)
+    covariance : ndarray, (23, 23)
         Error-state covariance in the documented state order.
     wind : ndarray, (2,)
         East and north (m/s): where the air moves to.
@@ -259,6 +275,9 @@ class NavState:
     camera_scale : float
         The camera's scale error ``k`` (a ground match's height above its plane is
         ``1 + k`` times the true one).
+    map_bias : ndarray, (2,)
+        The map's bias, east and north (m): where a terrain fix puts the aircraft less
+        where it is.
     """
 
     stamp: float
@@ -272,6 +291,7 @@ class NavState:
     baro_bias: float = 0.0
     camera_mount: np.ndarray = field(default_factory=lambda: np.zeros(2))
     camera_scale: float = 0.0
+    map_bias: np.ndarray = field(default_factory=lambda: np.zeros(2))
 
     def pose_covariance(self) -> np.ndarray:
         """6x6 covariance of (position, attitude about ENU axes), the ROS Pose layout."""
@@ -348,6 +368,10 @@ class EkfDiagnostics:
         sqrt of the sum of its two variances (rad).
     camera_scale, camera_scale_sigma : float
         The camera's scale error and its sigma.
+    map_bias : tuple
+        The map's bias, east and north (m).
+    map_bias_sigma : float
+        sqrt of the sum of its two variances (m).
     heights_left_out, heights_left_out_in_a_row : int
         Fixes fused without their height (``FUSED_WITHOUT_HEIGHT``): in all, and since the
         last fix fused with it.
@@ -385,6 +409,8 @@ class EkfDiagnostics:
     camera_mount_sigma: float = float("nan")
     camera_scale: float = float("nan")
     camera_scale_sigma: float = float("nan")
+    map_bias: tuple = (float("nan"), float("nan"))
+    map_bias_sigma: float = float("nan")
     heights_left_out: int = 0
     heights_left_out_in_a_row: int = 0
 
@@ -497,6 +523,8 @@ class TerrainEkf:
         mount = np.arange(IDX_MOUNT.start, IDX_MOUNT.stop)
         self._Q1[mount, mount] = p.camera_mount_random_walk**2
         self._Q1[IDX_SCALE, IDX_SCALE] = p.camera_scale_random_walk**2
+        map_bias = np.arange(IDX_MAP.start, IDX_MAP.stop)
+        self._Q1[map_bias, map_bias] = p.map_bias_random_walk**2
         self._Q2[i3, i3 + 3] = self._Q2[i3 + 3, i3] = qa / 2.0
         self._Q3[i3, i3] = qa / 3.0
         self._seq = itertools.count()
@@ -559,7 +587,7 @@ class TerrainEkf:
         return NavState(self.t, x[IDX_P].copy(), x[IDX_V].copy(), self.q.copy(),
                         x[IDX_BG].copy(), x[IDX_BA].copy(), self.kf.P.copy(),
                         x[IDX_W].copy(), float(x[IDX_BARO]), x[IDX_MOUNT].copy(),
-                        float(x[IDX_SCALE]))
+                        float(x[IDX_SCALE]), x[IDX_MAP].copy())
 
     @property
     def diagnostics(self) -> EkfDiagnostics:
@@ -593,6 +621,10 @@ class TerrainEkf:
             else math.nan
         d.camera_scale = float(self._x[IDX_SCALE]) if known else math.nan
         d.camera_scale_sigma = float(np.sqrt(P[IDX_SCALE, IDX_SCALE])) if known else math.nan
+        d.map_bias = tuple(float(b) for b in self._x[IDX_MAP]) if known else \
+            (math.nan, math.nan)
+        d.map_bias_sigma = float(np.sqrt(np.trace(P[IDX_MAP, IDX_MAP]))) if known \
+            else math.nan
 
     def _now(self) -> float | None:
         """Filter time, or before initialisation the newest IMU stamp buffered (None if none)."""
@@ -602,19 +634,20 @@ class TerrainEkf:
 
     # ------------------------------------------------------------------ initialisation
     def default_covariance(self) -> np.ndarray:
-        """Initial 21x21 covariance from the ``init_*_sigma`` parameters."""
+        """Initial 23x23 covariance from the ``init_*_sigma`` parameters."""
         p = self.params
         sig = np.r_[[p.init_position_sigma] * 3, [p.init_velocity_sigma] * 3,
                     [p.init_roll_pitch_sigma] * 2, p.init_yaw_sigma,
                     [p.init_gyro_bias_sigma] * 3, [p.init_accel_bias_sigma] * 3,
                     [p.init_wind_sigma] * 2, p.init_baro_bias_sigma,
-                    [p.init_camera_mount_sigma] * 2, p.init_camera_scale_sigma]
+                    [p.init_camera_mount_sigma] * 2, p.init_camera_scale_sigma,
+                    [p.init_map_bias_sigma] * 2]
         return np.diag(sig**2)
 
     def initialize(self, stamp: float, position, velocity, quaternion, covariance=None,
                    gyro_bias=None, accel_bias=None, wind=None,
                    baro_bias: float = 0.0, camera_mount=None,
-                   camera_scale: float = 0.0) -> Outcome:
+                   camera_scale: float = 0.0, map_bias=None) -> Outcome:
         """Start (or restart) the filter from a full state at ``stamp``.
 
         Parameters
@@ -625,11 +658,12 @@ class TerrainEkf:
             ENU (m, m/s).
         quaternion : array_like, (4,)
             Body -> ENU ``[x, y, z, w]``.
-        covariance : array_like, (21, 21), (20, 20), (18, 18), (17, 17) or (15, 15), optional
-            Error covariance in the state order; default :meth:`default_covariance`. The
-            states it leaves out (the camera scale; the camera mount too, at 18 x 18; the baro
-            bias too, at 17 x 17; the wind too, at 15 x 15) start uncorrelated at their
-            ``init_*_sigma``.
+        covariance : array_like, optional
+            Error covariance in the state order, (23, 23), (21, 21), (20, 20), (18, 18),
+            (17, 17) or (15, 15); default :meth:`default_covariance`. The
+            states it leaves out (the map bias; the camera scale too, at 20 x 20; the camera
+            mount too, at 18 x 18; the baro bias too, at 17 x 17; the wind too, at 15 x 15)
+            start uncorrelated at their ``init_*_sigma``.
         gyro_bias, accel_bias : array_like, (3,), optional
             Initial bias estimates (default zero).
         wind : array_like, (2,), optional
@@ -640,6 +674,8 @@ class TerrainEkf:
             Initial camera mount error about body x and y (rad; default zero).
         camera_scale : float, optional
             Initial camera scale error (default zero).
+        map_bias : array_like, (2,), optional
+            Initial map bias, east and north (m; default zero).
 
         Returns
         -------
@@ -657,8 +693,8 @@ class TerrainEkf:
         if covariance is not None:
             given = np.array(covariance, float)
             n = given.shape[0] if given.ndim == 2 else 0
-            if given.shape == (n, n) and n in (DIM_ERR, IDX_BARO, IDX_MOUNT.start,
-                                               IDX_SCALE):   # the leading states
+            leading = (DIM_ERR, IDX_BARO, IDX_MOUNT.start, IDX_SCALE, IDX_MAP.start)
+            if given.shape == (n, n) and n in leading:   # the leading states
                 P[:n, :n] = given
             else:
                 P = given
@@ -678,6 +714,8 @@ class TerrainEkf:
         if camera_mount is not None:
             x[IDX_MOUNT] = camera_mount
         x[IDX_SCALE] = camera_scale
+        if map_bias is not None:
+            x[IDX_MAP] = map_bias
         self.kf.x = x.reshape(-1, 1).copy()
         self._x = self.kf.x[:, 0]
         self.kf.P = 0.5 * (P + P.T)
@@ -759,6 +797,8 @@ class TerrainEkf:
         P = self.default_covariance()
         P[IDX_P, IDX_P] = pcov
         P[IDX_V, IDX_V] = vcov
+        if meas.source == "fix":
+            _position_from_the_map(P)
         q = meas.attitude
         if q is not None:
             P[IDX_TH, IDX_TH] = meas.R[-3:, -3:]
@@ -1138,12 +1178,16 @@ class TerrainEkf:
             rows.append(np.arange(6, 9))
         if any(p.shape != (3,) for p in parts):
             return self._refuse(source, Reason.BAD_SHAPE)
-        lever = state_lever = None
+        lever = None
+        state_lever = np.zeros((3 * len(parts), DIM_STATE))
+        if source == "fix":   # a terrain fix is in the map's frame: it measures p + b_map
+            state_lever[:2, IDX_MAP] = np.eye(2)
         if projection_height > 0.0:
             lever = np.zeros((3 * len(parts), 3))
             lever[:3] = tilt_lever(projection_height)
-            state_lever = np.zeros((3 * len(parts), DIM_STATE))
             state_lever[2, IDX_SCALE] = projection_height
+        if not state_lever.any():
+            state_lever = None
         return self._submit(stamp, source, np.concatenate(parts), covariance,
                             np.concatenate(rows), att, relocalisation, lever=lever,
                             state_lever=state_lever, velocity_lag=mosaic_lag)
@@ -1536,6 +1580,8 @@ class TerrainEkf:
         P[r, :] = 0.0
         P[:, r] = 0.0
         P[np.ix_(r, r)] = meas.R[np.ix_(keep, keep)]
+        if meas.source == "fix" and 0 in r:
+            _position_from_the_map(P)
         self._x[r] = z[keep]
         if 2 in r and meas.source != "baro":
             # the height moved: the baro's last gap to it says nothing of a jump any more,
@@ -1712,7 +1758,18 @@ _HEIGHT_HELD_FOR = 2.0
 # velocity, attitude, biases and the camera's mount and scale (a fix's own biases); after
 # baro heights,
 # the vertical velocity and the accelerometer biases.
-_DEAD_RECKONING = np.arange(IDX_V.start, DIM_STATE)
+# (not the map bias: the map did not move when the dead reckoning went off)
+_DEAD_RECKONING = np.arange(IDX_V.start, IDX_MAP.start)
+
+
+def _position_from_the_map(P: np.ndarray) -> None:
+    """``P`` (in place) for a horizontal position just set from a terrain fix (its
+    covariance in ``P[:2, :2]``, uncorrelated): the fix is where the map puts the aircraft,
+    ``p = z - b_map``, so the position's doubt holds the map bias's, anti-correlated with it."""
+    bias = P[IDX_MAP, IDX_MAP].copy()
+    P[:2, :2] += bias
+    P[:2, IDX_MAP] = -bias
+    P[IDX_MAP, :2] = -bias.T
 _VERTICAL_CHANNEL = np.r_[IDX_V.stop - 1, np.arange(IDX_BA.start, IDX_BA.stop)]
 # ... after levellings: the velocity (integrated with the drifted tilt), the gyro biases, the
 # wind (through which the turns lean the levelling) and the horizontal accelerometer biases

@@ -239,6 +239,8 @@ def filter_values(d: EkfDiagnostics, init_mode: str, imu_received: int, imu_dt: 
         "camera_mount_sigma_deg": math.degrees(d.camera_mount_sigma),
         "camera_scale_percent": 100.0 * d.camera_scale,
         "camera_scale_sigma_percent": 100.0 * d.camera_scale_sigma,
+        "map_bias_east_m": d.map_bias[0], "map_bias_north_m": d.map_bias[1],
+        "map_bias_sigma_m": d.map_bias_sigma,
         "fix_heights_left_out": d.heights_left_out,
         "resets": d.resets, "reinitialisations": d.reinitialisations,
         "imu_stamps_refused": d.imu_stamps_refused,

@@ -185,6 +185,14 @@ class EkfParams:
     camera_scale_random_walk : float
         How fast the camera's scale error may change (1/sqrt(s)): the focal length with
         temperature. Default 1e-5 (0.06 % in an hour).
+    init_map_bias_sigma : float
+        1-sigma of the map bias, per horizontal axis, at initialisation (m): how far the
+        DEM (and so every terrain fix) may be off its true place. Default 10.0 (SRTM's
+        stated absolute horizontal accuracy is 20 m at 90 %, about 9 m per axis); a DEM
+        surveyed onto the mission's datum is within a few metres.
+    map_bias_random_walk : float
+        How fast the map bias may change (m/sqrt(s)): a DEM's error varies slowly over the
+        area flown. Default 0.1 (6 m in an hour).
     sideslip_sigma : float
         1-sigma of the sideslip, measured as zero every ``level_period`` (m/s of lateral air
         velocity): a fixed wing in coordinated flight, with the IMU's x axis along its
@@ -238,6 +246,8 @@ class EkfParams:
     camera_mount_random_walk: float = 1e-5
     init_camera_scale_sigma: float = 0.02
     camera_scale_random_walk: float = 1e-5
+    init_map_bias_sigma: float = 10.0
+    map_bias_random_walk: float = 0.1
     sideslip_sigma: float = 1.0
     sideslip_gate_probability: float = 0.999
 
@@ -268,6 +278,10 @@ class EkfParams:
             raise ValueError("EkfParams.init_camera_scale_sigma must be > 0 and "
                              "camera_scale_random_walk >= 0, got "
                              f"{self.init_camera_scale_sigma}, {self.camera_scale_random_walk}")
+        if self.init_map_bias_sigma <= 0 or self.map_bias_random_walk < 0:
+            raise ValueError("EkfParams.init_map_bias_sigma must be > 0 and "
+                             f"map_bias_random_walk >= 0, got {self.init_map_bias_sigma}, "
+                             f"{self.map_bias_random_walk}")
         if self.init_baro_bias_sigma <= 0 or self.baro_bias_random_walk < 0:
             raise ValueError("EkfParams.init_baro_bias_sigma must be > 0 and "
                              f"baro_bias_random_walk >= 0, got {self.init_baro_bias_sigma}, "

@@ -46,7 +46,7 @@ class Candidate:
         Its covariance (m^2).
     estimate : ndarray, (3,) or None
         The filter's position at ``stamp`` (None before the filter runs).
-    state_covariance : ndarray, (21, 21) or None
+    state_covariance : ndarray, (23, 23) or None
         The filter's error covariance at ``stamp``.
     quaternion : ndarray, (4,) or None
         The filter's body -> ENU attitude at ``stamp``.
@@ -106,7 +106,7 @@ def dead_reckoning_covariance(state_covariance: np.ndarray, quaternion, dt: floa
 
     Parameters
     ----------
-    state_covariance : ndarray, (21, 21)
+    state_covariance : ndarray, (23, 23)
         Error covariance at the start, in the filter's state order.
     quaternion : array_like, (4,)
         Body -> ENU attitude at the start.
