@@ -178,9 +178,8 @@ _BARO_LEVER = np.zeros((1, DIM_STATE))
 _BARO_LEVER[0, IDX_BARO] = 1.0
 
 __all__ = ["DIM_STATE", "IDX_BARO", "IDX_MAP", "IDX_MOUNT", "IDX_SCALE", "IDX_W",
-           "EkfDiagnostics",
-           "EkfParams", "NavState", "Outcome", "Reason", "TerrainEkf", "UpdateRecord",
-           "tilt_lever"]
+           "EkfDiagnostics", "EkfParams", "NavState", "Outcome", "Reason", "TerrainEkf",
+           "UpdateRecord", "tilt_lever"]
 
 
 class Reason(StrEnum):
@@ -660,10 +659,10 @@ class TerrainEkf:
             Body -> ENU ``[x, y, z, w]``.
         covariance : array_like, optional
             Error covariance in the state order, (23, 23), (21, 21), (20, 20), (18, 18),
-            (17, 17) or (15, 15); default :meth:`default_covariance`. The
-            states it leaves out (the map bias; the camera scale too, at 20 x 20; the camera
-            mount too, at 18 x 18; the baro bias too, at 17 x 17; the wind too, at 15 x 15)
-            start uncorrelated at their ``init_*_sigma``.
+            (17, 17) or (15, 15); default :meth:`default_covariance`. The states it leaves
+            out (the map bias; the camera scale too, at 20 x 20; the camera mount too, at
+            18 x 18; the baro bias too, at 17 x 17; the wind too, at 15 x 15) start
+            uncorrelated at their ``init_*_sigma``.
         gyro_bias, accel_bias : array_like, (3,), optional
             Initial bias estimates (default zero).
         wind : array_like, (2,), optional
@@ -1755,21 +1754,10 @@ _POSITION_SOURCES = frozenset({"fix", "gnss"})
 # this recently (s): :meth:`TerrainEkf._gate_test_without_height`.
 _HEIGHT_HELD_FOR = 2.0
 # States a divergence reset reopens (:meth:`TerrainEkf._reopen_dead_reckoning`): after fixes,
-# velocity, attitude, biases and the camera's mount and scale (a fix's own biases); after
-# baro heights,
+# velocity, attitude, biases and the camera's mount and scale (a fix's own biases; not the
+# map bias: the map did not move when the dead reckoning went off); after baro heights,
 # the vertical velocity and the accelerometer biases.
-# (not the map bias: the map did not move when the dead reckoning went off)
 _DEAD_RECKONING = np.arange(IDX_V.start, IDX_MAP.start)
-
-
-def _position_from_the_map(P: np.ndarray) -> None:
-    """``P`` (in place) for a horizontal position just set from a terrain fix (its
-    covariance in ``P[:2, :2]``, uncorrelated): the fix is where the map puts the aircraft,
-    ``p = z - b_map``, so the position's doubt holds the map bias's, anti-correlated with it."""
-    bias = P[IDX_MAP, IDX_MAP].copy()
-    P[:2, :2] += bias
-    P[:2, IDX_MAP] = -bias
-    P[IDX_MAP, :2] = -bias.T
 _VERTICAL_CHANNEL = np.r_[IDX_V.stop - 1, np.arange(IDX_BA.start, IDX_BA.stop)]
 # ... after levellings: the velocity (integrated with the drifted tilt), the gyro biases, the
 # wind (through which the turns lean the levelling) and the horizontal accelerometer biases
@@ -1780,6 +1768,16 @@ _TILT = np.arange(IDX_TH.start, IDX_TH.start + 2)
 _HORIZONTAL_VELOCITY = np.arange(IDX_V.start, IDX_V.start + 2)
 _TILT_RATE_BIASES = np.arange(IDX_BG.start, IDX_BG.start + 2)   # roll and pitch axes
 _HORIZONTAL_ACCEL_BIASES = np.arange(IDX_BA.start, IDX_BA.start + 2)   # body x and y
+
+
+def _position_from_the_map(P: np.ndarray) -> None:
+    """``P`` (in place) for a horizontal position just set from a terrain fix (its
+    covariance in ``P[:2, :2]``, uncorrelated): the fix is where the map puts the aircraft,
+    ``p = z - b_map``, so the position's doubt holds the map bias's, anti-correlated with it."""
+    bias = P[IDX_MAP, IDX_MAP].copy()
+    P[:2, :2] += bias
+    P[:2, IDX_MAP] = -bias
+    P[IDX_MAP, :2] = -bias.T
 
 
 @dataclass(frozen=True)
