@@ -88,7 +88,7 @@ def test_bag_play_of_a_corrupt_bag_plays_what_it_can_and_fails(bag_dir):
 
 @pytest.mark.parametrize("case", ["empty_folder", "broken_mission", "missing_dem", "rate_0",
                                   "existing_out", "cold_start_without_mission",
-                                  "cold_start_and_lost"])
+                                  "cold_start_and_lost", "bad_dem_accuracy"])
 def test_replay_checks_its_inputs_before_starting_the_graph(bag_dir, tmp_path, case):
     out = tmp_path / "out"
     bag, extra, words = {
@@ -97,6 +97,8 @@ def test_replay_checks_its_inputs_before_starting_the_graph(bag_dir, tmp_path, c
                            ["mission.yaml is not valid YAML", "fix it"]),
         "missing_dem": (_mission(bag_dir, "dem", "dem: /no/such/dem.tif\n"), [],
                         ["/no/such/dem.tif: no such DEM file", "give a readable DEM"]),
+        "bad_dem_accuracy": (_mission(bag_dir, "ce90", "dem_horizontal_ce90: -5\n"), [],
+                             ["dem_horizontal_ce90", "got -5", "fix or remove it"]),
         "rate_0": (bag_dir / "whole", ["--rate", 0], ["--rate 0.0: must be > 0"]),
         "existing_out": (bag_dir / "whole", [], ["exists: choose another --out"]),
         "cold_start_without_mission": (bag_dir / "whole", ["--cold-start"],
@@ -110,6 +112,17 @@ def test_replay_checks_its_inputs_before_starting_the_graph(bag_dir, tmp_path, c
         (out / "outputs").mkdir(parents=True)
     _one_line_error(terrain_nav("replay", "--bag", bag, "--out", out, *extra), *words)
     assert not (out / "logs").exists(), "the graph was started"
+
+
+def test_a_mission_s_dem_accuracy_sets_the_ekf_s_doubt_of_the_map():
+    """mission.yaml's ``dem_horizontal_ce90`` (the DEM's data sheet, m at 90 %) becomes the
+    replay's ekf ``init_map_bias_sigma`` per axis; without it the ekf keeps its default."""
+    from terrain_nav_ros.tools.replay import _mission_parameters
+
+    topics = {"/imu/data", "/gnss/fix"}
+    given = _mission_parameters(topics, {"dem_horizontal_ce90": 20.0})["ekf"]
+    assert given["init_map_bias_sigma"] == pytest.approx(20.0 / 2.146, rel=1e-3)
+    assert "init_map_bias_sigma" not in _mission_parameters(topics, {})["ekf"]
 
 
 def test_simulate_refuses_bad_options_and_a_truncated_dem(tmp_path):

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import rasterio
+import yaml
 from affine import Affine
 
 from terrain_nav_ros.core.features.hillshade import hillshade
@@ -145,6 +146,17 @@ def test_a_flight_that_fails_part_way_leaves_no_bag(tmp_path):
     with pytest.raises(ValueError, match="unknown image_format"):
         simulate(SimConfig(duration=4.0, image_format="png"), tmp_path / "bag")
     assert not (tmp_path / "bag").exists()
+
+
+def test_the_dem_s_stated_accuracy_goes_into_the_mission(tmp_path):
+    """``dem_ce90`` is written into mission.yaml for the replay's ekf; a bad one is refused
+    before anything is flown."""
+    simulate(SimConfig(duration=4.0, camera_rate=1.0, dem_ce90=20.0), tmp_path / "bag")
+    mission = yaml.safe_load((tmp_path / "bag" / "mission.yaml").read_text())
+    assert mission["dem_horizontal_ce90"] == 20.0
+    with pytest.raises(SimInputError, match="horizontal accuracy"):
+        simulate(SimConfig(duration=4.0, dem_ce90=float("nan")), tmp_path / "bad")
+    assert not (tmp_path / "bad").exists()
 
 
 def _shaded_photos(scene, tmp_path):

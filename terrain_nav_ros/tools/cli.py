@@ -492,6 +492,10 @@ def build_parser() -> argparse.ArgumentParser:
                      "the embedded Jacksboro DEM)")
     sim.add_argument("--landmark-gsd", dest="landmark_gsd", type=float,
                      help="GSD the replay's metamap and camera_ingest use [m/px] (default 20)")
+    sim.add_argument("--dem-ce90", dest="dem_ce90", type=float, metavar="M",
+                     help="the DEM's stated horizontal accuracy, the circular error at 90 %% "
+                          "[m] (SRTM: 20), written into mission.yaml: the replay's ekf "
+                          "then doubts the map by as much (default: the ekf's 10 m per axis)")
     sim.add_argument("--duration", type=float, help="flight time [s] (default 120)")
     sim.add_argument("--pattern", choices=["survey", "turns", "straight"])
     sim.add_argument("--speed", type=float, help="airspeed [m/s] (default 30)")

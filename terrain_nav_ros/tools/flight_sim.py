@@ -45,7 +45,7 @@ import yaml
 
 from ..core.camera.camera_mount import R_BODY_OPTICAL_NADIR, camera_rotation
 from ..core.estimation.baro import altitude_to_pressure
-from ..core.estimation.ekf_params import EkfParams
+from ..core.estimation.ekf_params import EkfParams, map_bias_sigma
 from ..core.estimation.strapdown import quat_conjugate, quat_rotate
 from ..core.render.camera_effects import CameraEffects, apply_camera_effects, distortion_maps
 from ..core.render.cloud_layer import CloudLayer
@@ -107,6 +107,9 @@ class SimConfig:
     truth_rate: float = 20.0         # Hz
     seed: int = 1
     landmark_gsd: float = 20.0       # m/px the replay's metamap and camera_ingest should use
+    dem_ce90: float = 0.0            # m, the DEM's stated horizontal accuracy (circular
+    #                                  error at 90 %), written into mission.yaml for the
+    #                                  replay's ekf; 0 = not stated (the ekf's default)
     albedo: str = ""                 # a real orthoimage (any georeferenced raster) draped
     #                                  over the terrain for the camera frames, shown as it
     #                                  is (it holds its own sun); "" = the rendered albedo
@@ -299,6 +302,11 @@ def simulate(cfg: SimConfig, output: str | Path) -> dict:
     output = Path(output)
     _cloud_layer(cfg, 0.0)   # bad cloud settings fail before the flight is flown
     parse_albedo_shift(cfg.albedo_shift)   # and a bad shift
+    if cfg.dem_ce90:                       # and a bad accuracy
+        try:
+            map_bias_sigma(cfg.dem_ce90)
+        except ValueError as err:
+            raise SimInputError(f"the DEM's horizontal accuracy: {err}") from None
     rng = np.random.default_rng(cfg.seed)
     metamap, dem_name = _open_metamap(cfg)
     truth, ground_low = fly(cfg, metamap)
@@ -346,6 +354,8 @@ def simulate(cfg: SimConfig, output: str | Path) -> dict:
                                          * math.tan(math.radians(cfg.camera_hfov) / 2) * 1.3),
         "config": plain(asdict(cfg)),
     }
+    if cfg.dem_ce90:
+        summary["dem_horizontal_ce90"] = float(cfg.dem_ce90)
     if cfg.albedo:   # the offset the image was draped shifted back by (0, 0: as it is)
         summary["albedo_shift_m"] = list(camera.albedo_shift)
     (output / "mission.yaml").write_text(yaml.safe_dump(summary, sort_keys=False))

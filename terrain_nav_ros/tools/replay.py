@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from ..core.estimation.ekf_params import map_bias_sigma
 from . import bags, report
 from .errors import InputError
 from .graph_runner import GraphError, GraphRunner, NodeSpec, load_graph
@@ -62,6 +63,8 @@ def _mission_parameters(topics: set[str], mission: dict) -> dict[str, dict]:
     if origin:
         ekf.update(origin_latitude=float(origin[0]), origin_longitude=float(origin[1]),
                    origin_altitude=float(origin[2]))
+    if mission.get("dem_horizontal_ce90") is not None:   # the DEM's data sheet, not a guess
+        ekf["init_map_bias_sigma"] = map_bias_sigma(mission["dem_horizontal_ce90"])
     if ekf:
         out["ekf"] = ekf
     return out
@@ -168,6 +171,12 @@ def _read_mission(bag: Path) -> dict:
         raise InputError(f"{path}: origin must be [lat, lon, height] and landmark_gsd a "
                          f"positive number, got {origin!r} and {gsd!r}: fix or remove "
                          "it") from None
+    if mission.get("dem_horizontal_ce90") is not None:
+        try:
+            map_bias_sigma(mission["dem_horizontal_ce90"])
+        except (TypeError, ValueError) as err:
+            raise InputError(f"{path}: dem_horizontal_ce90 (the DEM's stated horizontal "
+                             f"accuracy, m at 90 %): {err}: fix or remove it") from None
     return mission
 
 

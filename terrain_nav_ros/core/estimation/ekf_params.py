@@ -22,9 +22,27 @@ init_accel_bias_sigma          2.0e-2 m/s^2           ~2 mg turn-on bias
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 
 import numpy as np
+
+#: The radius holding 90 % of a circular normal error, in its per-axis sigmas:
+#: sqrt(-2 ln 0.1). Data sheets state a DEM's horizontal accuracy as that radius (CE90).
+CE90_PER_SIGMA = math.sqrt(-2.0 * math.log(0.1))
+
+
+def map_bias_sigma(dem_ce90: float) -> float:
+    """``init_map_bias_sigma`` (m per axis) of a DEM whose stated absolute horizontal
+    accuracy is ``dem_ce90`` m, the circular error at 90 % (SRTM: 20 m, so 9.3 m).
+
+    Raises ValueError for a CE90 that is not a positive finite number.
+    """
+    value = float(dem_ce90)
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"a DEM's horizontal CE90 must be a positive number of metres, got "
+                         f"{dem_ce90!r}")
+    return value / CE90_PER_SIGMA
 
 
 @dataclass
@@ -189,7 +207,8 @@ class EkfParams:
         1-sigma of the map bias, per horizontal axis, at initialisation (m): how far the
         DEM (and so every terrain fix) may be off its true place. Default 10.0 (SRTM's
         stated absolute horizontal accuracy is 20 m at 90 %, about 9 m per axis); a DEM
-        surveyed onto the mission's datum is within a few metres.
+        surveyed onto the mission's datum is within a few metres. :func:`map_bias_sigma`
+        gives it from a data sheet's CE90 (a mission.yaml's ``dem_horizontal_ce90``).
     map_bias_random_walk : float
         How fast the map bias may change (m/sqrt(s)): a DEM's error varies slowly over the
         area flown. Default 0.1 (6 m in an hour).
