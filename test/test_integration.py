@@ -6,6 +6,7 @@ bag, no camera_info, a flight over flat terrain) must degrade to "no fix" with r
 never kill a node.
 """
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -64,6 +65,11 @@ def test_replay_produces_fixes_and_bounds_the_error(nominal):
     use = nominal["ekf_fix_use"]
     assert use["fused"] >= 0.7 * fixes["fixes"] and use["fused"] + use["gated"] <= \
         fixes["fixes"] + 1, (use, fixes)
+    # and where it put the map: the camera sees the DEM itself, so in its place within its
+    # doubt (horizontal sigma, no more than the prior's 10 m per axis: 14.1 m)
+    east, north, sigma = use["map_bias"]
+    assert math.hypot(east, north) <= 3.0 * sigma <= 3.0 * math.hypot(10.0, 10.0) + 1e-3, \
+        use["map_bias"]
 
 
 def test_recorded_outputs_are_readable_by_rosbags_and_mcap(nominal):

@@ -94,8 +94,8 @@ def _ekf_health(bag) -> str:
 
 def ekf_fix_use(bag) -> dict | None:
     """What the EKF did with the matcher's fixes, from its last diagnostics: fused, rejected
-    by its gate, refused before it (by reason), and its last health (level, message). None
-    without diagnostics."""
+    by its gate, refused before it (by reason), its last health (level, message) and its
+    map bias (east, north, horizontal sigma m). None without diagnostics."""
     last = None
     for m in bags.read(bag, ["/nav/ekf/diagnostics"]):
         last = bags.decode(m)
@@ -114,6 +114,9 @@ def ekf_fix_use(bag) -> dict | None:
                               if k.startswith("rejected_input/fix:")
                               and not k.endswith(":not_initialized")}
             use["without_height"] = int(values.get("fix_heights_left_out", 0))
+            if "map_bias_east_m" in values:
+                use["map_bias"] = [float(values[f"map_bias_{k}_m"])
+                                   for k in ("east", "north", "sigma")]
         elif status.name == "ekf: fix":
             use["fused"] = int(values.get("accepted", 0))
             use["gated"] = int(values.get("rejected", 0))
@@ -397,6 +400,11 @@ def format_report(r: dict, gsd: float | None = None) -> str:
                      + (f" ({without} without their height)" if without else "")
                      + f", its gate rejected {use['gated']}, it refused {refused}"
                      + "".join(f"; {n} {why}" for why, n in sorted(use["refused"].items())))
+        if use.get("map_bias"):
+            east, north, sigma = use["map_bias"]
+            lines.append(f"  the map's offset as the ekf ended (where the fixes put the "
+                         f"aircraft less where it is): {east:+.1f} m east, {north:+.1f} m "
+                         f"north, sigma {sigma:.1f} m (horizontal)")
         if use["fused"] < f["fixes"] // 2:
             lines.append(f"WARNING: the ekf fused under half the fixes; its last health: "
                          f"{use['health'] or 'OK'}")
