@@ -275,13 +275,12 @@ def _replayed_real_image_flight(tmp_path, shared_data, agl: float, replays=("gns
     answered. Returns the replays' results in that order."""
     imagery = shared_data / "imagery"
     bag = tmp_path / "pa_real"
-    simulate(SimConfig(**{**dict(dem=str(imagery / "pa_ridgevalley_dem30m_utm18.tif"),
-                                 albedo=str(imagery / "pa_ridgevalley_l7_20021125.tif"),
-                                 albedo_band="4", start_time="2002-11-25T15:35:00Z",
-                                 duration=150.0, pattern="survey", start_east=-900.0,
-                                 start_north=-300.0, agl=agl, camera_hfov=70.0,
-                                 landmark_gsd=30.0, gnss_denied_after=15.0, seed=3),
-                          **changes}), bag)
+    flown = dict(dem=str(imagery / "pa_ridgevalley_dem30m_utm18.tif"),
+                 albedo=str(imagery / "pa_ridgevalley_l7_20021125.tif"), albedo_band="4",
+                 start_time="2002-11-25T15:35:00Z", duration=150.0, pattern="survey",
+                 start_east=-900.0, start_north=-300.0, agl=agl, camera_hfov=70.0,
+                 landmark_gsd=30.0, gnss_denied_after=15.0, seed=3)
+    simulate(SimConfig(**(flown | changes)), bag)
     results = [run_replay(bag, tmp_path / mode, GRAPH,
                           lost_offset=(0.0, 0.0) if mode == "jammed" else None)
                for mode in replays]
@@ -312,13 +311,12 @@ def test_a_map_off_its_place_by_its_stated_accuracy_is_learnt_without_gnss(tmp_p
     (simulate --albedo-shift -60,-40), so that the ground the camera sees lies ~95 m
     east-north-east of the DEM's (the pair's own +30 m east and the shift), and the DEM's
     stated accuracy, 200 m at 90 %, in mission.yaml (simulate --dem-ce90): every fix is
-    ~90 m off, west. With GNSS jammed from
-    take-off, the replay's ekf takes its doubt of the map from that accuracy (93 m per
-    axis), and the take-off pose with the dead reckoning after it tells the map's offset
-    from the aircraft's: fused RMS 9.8 and 14.3 m in two replays, the map bias learnt as
-    -77 to -85 m east, -35 to -39 m north.
-    At the default prior (SRTM's 10 m per axis) the same replay ran 52 m RMS, 82 m final,
-    within 3 sigma half the time."""
+    ~90 m off, west. With GNSS jammed from take-off, the replay's ekf takes its doubt of
+    the map from that accuracy (93 m per axis), and the take-off pose with the dead
+    reckoning after it tells the map's offset from the aircraft's: fused RMS 9.8 and 14.3
+    m in two replays, the map bias learnt as -77 to -85 m east, -35 to -39 m north. At the
+    default prior (SRTM's 10 m per axis) the same replay ran 52 m RMS, 82 m final, within
+    3 sigma half the time."""
     jammed, = _replayed_real_image_flight(tmp_path, shared_data, agl=3000.0,
                                           replays=("jammed",), albedo_shift="-60,-40",
                                           dem_ce90=200.0)
